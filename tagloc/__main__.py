@@ -1,0 +1,5 @@
+import sys
+
+from tagloc.cli import main
+
+sys.exit(main())

@@ -1,0 +1,35 @@
+"""The one exception root of tagloc.
+
+Every error a user can cause (bad file, bad argument, missing system library) is raised as a
+subclass of :class:`TaglocError`; the CLI turns it into a one-line message and an exit code.
+"""
+
+from __future__ import annotations
+
+
+class TaglocError(Exception):
+    """Root of all errors tagloc raises on purpose. ``exit_code`` is what the CLI returns."""
+
+    exit_code = 2
+
+
+class InputError(TaglocError):
+    """A file or argument given by the user is malformed (the message names file and line)."""
+
+
+class MapError(InputError):
+    """A sticker map is malformed."""
+
+
+class CalibrationError(InputError):
+    """A camera calibration or rig file is malformed."""
+
+
+class SessionError(InputError):
+    """A session directory is missing required files or is malformed."""
+
+
+class BackendUnavailable(TaglocError):
+    """An optional backend (libdmtx, paho-mqtt, ...) cannot be used on this machine."""
+
+    exit_code = 3

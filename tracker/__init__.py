@@ -1,0 +1,1 @@
+"""State estimation for tagloc: the walking-motion EKF and candidate selection."""
