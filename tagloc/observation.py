@@ -78,6 +78,8 @@ class Observation:
     ambiguous: bool = False
     times_ms: dict[str, float] = field(default_factory=dict)
     rejected_read: str | None = None
+    accepted: bool | None = None  # did the tracker take this fix (None: no fix offered)
+    gate_reason: str | None = None  # the tracker's reason when it refused
 
     def to_json(self) -> dict:
         """Plain-data form for the JSON-lines log."""
@@ -94,6 +96,8 @@ class Observation:
                        "reprojection_px": round(p.reprojection_px, 4)} for p in self.poses],
             "times_ms": {k: round(v, 3) for k, v in self.times_ms.items()},
             "rejected_read": self.rejected_read,
+            "accepted": self.accepted,
+            "gate_reason": self.gate_reason,
         }
 
 

@@ -154,19 +154,24 @@ class SessionReader:
             idx = np.array([int(f.stem) for f in files if f.stem.isdigit()])
             return idx, idx / fps
         index, stamps = [], []
-        with p.open(newline="", encoding="utf-8") as f:
-            for n, row in enumerate(csv.reader(f), 1):
-                if not row or (n == 1 and row[0].strip().lower() == "index"):
-                    continue
-                try:
-                    i, t = int(row[0]), float(row[1])
-                except (ValueError, IndexError):
-                    # A line cut short by a crash while recording is the only expected damage: stop there.
+        lines = p.read_text(encoding="utf-8", errors="replace").splitlines(keepends=True)
+        if lines and not lines[-1].endswith("\n") and (self.path / "session.json").exists():
+            # tagloc ends every line with a newline: an unterminated last line is a write cut short by a
+            # crash, and its number may be cut too ("12.5" -> "1"), so it is not trusted.
+            lines = lines[:-1]
+        for n, row in enumerate(csv.reader(lines), 1):
+            if not row or (n == 1 and row[0].strip().lower() == "index"):
+                continue
+            try:
+                i, t = int(row[0]), float(row[1])
+            except (ValueError, IndexError):
+                if n == len(lines):  # a last line cut short by a crash while recording: stop there
                     break
-                if not np.isfinite(t):
-                    raise SessionError(f"{p}:{n}: timestamp is not finite")
-                index.append(i)
-                stamps.append(t)
+                raise SessionError(f"{p}:{n}: want 'index,timestamp_s', got {','.join(row)!r}") from None
+            if not np.isfinite(t):
+                raise SessionError(f"{p}:{n}: timestamp is not finite")
+            index.append(i)
+            stamps.append(t)
         return np.array(index, np.int64), np.array(stamps, float)
 
     def __len__(self) -> int:

@@ -1,0 +1,534 @@
+"""Read a sticker's four Data Matrix symbols and turn them into (ID, in-plane rotation).
+
+Pipeline on the rectified raster (:mod:`tagloc.rectify`, 200 px, 7 px per module), cheapest first,
+stopping as soon as the read is decided:
+
+1. zxing-cpp on the whole raster (finds each symbol on its own; ~1 ms).
+2. Grid sampling: the module geometry is known exactly, so each quadrant's 10x10 module centres
+   are sampled, the symbol's orientation is taken from its fixed finder/timing border (scored over
+   all four quadrants at once), the modules are thresholded at levels learnt from that border and
+   the clean, upright symbol is handed to zxing-cpp in pure mode. zxing still does the Reed-Solomon
+   decoding: the payload always comes from a real Data Matrix decoder.
+3. Motion deblurring (only when 1-2 found nothing): the blur's extent along the raster axes is
+   measured from the edge-spread of the black frame, and the raster is Wiener-deconvolved with the
+   linear kernel (both diagonal signs are tried, since edge widths cannot tell them apart); then 1-2
+   again.
+
+libdmtx (pylibdmtx) is an alternative backend, imported only when asked for, run per quadrant with
+a time bound. libdmtx has been seen returning wrong payloads that look valid, so a single libdmtx
+symbol is never accepted unless corroborated (a second agreeing symbol, zxing, or a tracker
+candidate).
+
+Every accepted read is finally verified: the decoded ID is re-rendered in the decoded rotation and
+the raster's 256 data-module samples (the 8x8 interior of the four symbols) must correlate with it
+(:func:`verify_id`). Wrong IDs differ from the true one in most Reed-Solomon codewords, hence in
+many modules, and score near zero.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+from functools import lru_cache
+from collections.abc import Iterable, Sequence
+
+import cv2
+import numpy as np
+
+from tagloc.camera import Camera
+from tagloc.errors import BackendUnavailable, InputError
+from tagloc.observation import Detection
+from tagloc.rectify import DEFAULT_SIZE_PX, RectifyConfig, distorted_mapping, rectify
+from tagloc.sticker import parse_payload, render_sticker, symbol_modules
+
+BACKENDS = ("zxing", "libdmtx", "both")
+
+# Raster geometry at DEFAULT_SIZE_PX (exact on the 0.5 mm grid): frame 16 px, quadrant 84 px,
+# quiet zone 7 px, module 7 px.
+_N = DEFAULT_SIZE_PX
+_FRAME = 16
+_QUAD = 84
+_MOD = 7
+#: Top-left (row, col) of raster quadrant p (0 TL, 1 TR, 2 BR, 3 BL).
+_QUAD_ORIGIN = ((_FRAME, _FRAME), (_FRAME, _FRAME + _QUAD), (_FRAME + _QUAD, _FRAME + _QUAD),
+                (_FRAME + _QUAD, _FRAME))
+
+Symbol = tuple[str, int, str]  # (payload text, raster quadrant 0-3, backend name)
+
+
+@dataclass
+class DecodeConfig:
+    """Options of :func:`decode`.
+
+    Attributes:
+        grid_sampling: run stage 2 (module grid sampling + zxing pure mode) when stage 1 fails.
+        align_search_px: how far (raster px) each quadrant's module grid may shift to fit its
+            finder/timing border (absorbs detector corner error); 0 disables the search.
+        deblur: run stage 3 (Wiener deconvolution along the measured motion) when 1-2 fail.
+        thresholds: where to cut between the finder's dark and light levels (0 dark, 1 light).
+        wiener_nsr: noise-to-signal ratio of the Wiener filter.
+        min_blur_px: smallest measured blur (raster px) worth deconvolving.
+        verify: check accepted IDs against the re-rendered modules.
+        min_verify: smallest :func:`verify_id` score accepted.
+        libdmtx_timeout_ms: time bound of one libdmtx call (one quadrant).
+        libdmtx_shrink: libdmtx's own down-sampling (2: 3.5 px per module).
+    """
+
+    grid_sampling: bool = True
+    align_search_px: int = 4
+    deblur: bool = True
+    thresholds: tuple[float, ...] = (0.5, 0.4, 0.6)
+    wiener_nsr: float = 0.01
+    min_blur_px: float = 4.0
+    verify: bool = True
+    min_verify: float = 0.5
+    libdmtx_timeout_ms: int = 30
+    libdmtx_shrink: int = 2
+
+
+@dataclass
+class DecodeResult:
+    """Outcome of :func:`decode`.
+
+    Attributes:
+        sticker_id: decoded ID, or None.
+        rotation: r (0-3): the canonical top-left corner is ``detection.outer[r]``; None if no ID.
+        symbols: every symbol read: (payload, raster quadrant 0 TL..3 BL, backend), including the
+            ones of a rejected read (so a caller can corroborate them itself).
+        rejected: why symbols that were read did not give an ID (None if accepted or nothing read).
+        verify_score: :func:`verify_id` of the accepted (or rejected-by-verification) ID, else None.
+        stage: which stage decided ("zxing", "grid", "deblur", "libdmtx"), or None.
+        time_ms: wall time of the call.
+    """
+
+    sticker_id: int | None = None
+    rotation: int | None = None
+    symbols: list[Symbol] = field(default_factory=list)
+    rejected: str | None = None
+    verify_score: float | None = None
+    stage: str | None = None
+    time_ms: float = 0.0
+
+
+# --- module geometry -----------------------------------------------------------------------------
+
+
+@lru_cache(maxsize=1)
+def _border_template() -> tuple[np.ndarray, np.ndarray]:
+    """Finder/timing border of every 10x10 symbol, upright: (mask (10,10) bool, dark (10,10) bool)."""
+    m = symbol_modules("000000")
+    mask = np.zeros((10, 10), bool)
+    mask[0, :] = mask[-1, :] = mask[:, 0] = mask[:, -1] = True
+    return mask, m.copy()
+
+
+@lru_cache(maxsize=1)
+def _border_targets() -> np.ndarray:
+    """(4, 36) zero-mean unit-norm border patterns as seen in a raster where the symbol is turned
+    by ``np.rot90(., -k)`` (so ``np.rot90(sample, k)`` is upright)."""
+    mask, dark = _border_template()
+    e = np.where(dark, -1.0, 1.0)
+    t = np.stack([np.rot90(e, -k)[mask] for k in range(4)])
+    t -= t.mean(1, keepdims=True)
+    return t / np.linalg.norm(t, axis=1, keepdims=True)
+
+
+def module_samples(rect: np.ndarray, search_px: int = 0) -> tuple[np.ndarray, int, np.ndarray]:
+    """Module values of the raster's quadrants p = 0..3, aligned on their finder/timing borders.
+
+    Each value is the mean of the module's central 3x3 pixels, away from its blurred edges. With
+    ``search_px`` > 0, each quadrant's 10x10 sampling grid is shifted by up to that many raster px
+    to where its border best matches the fixed Data Matrix border; this absorbs corner errors of
+    the detector (1 image px is ~2 raster px, a third of a module).
+
+    Returns:
+        samples (4, 10, 10) float32 in raster orientation; k, the symbol turn shared by all
+        quadrants (``np.rot90(samples[p], k)`` is upright); shifts (4, 2) (dy, dx) raster px used.
+    """
+    if rect.shape != (_N, _N):
+        raise InputError(f"decode: raster must be {_N}x{_N}, got {rect.shape}")
+    box = cv2.blur(rect.astype(np.float32), (3, 3))
+    mask, _ = _border_template()
+    d = np.arange(-search_px, search_px + 1)
+    dy, dx = (a.ravel() for a in np.meshgrid(d, d, indexing="ij"))
+    centres = _MOD + _MOD // 2 + _MOD * np.arange(10)
+    vals, scores = [], []
+    for r0, c0 in _QUAD_ORIGIN:
+        rows = r0 + centres[None, :] + dy[:, None]  # (D, 10)
+        cols = c0 + centres[None, :] + dx[:, None]
+        v = box[rows[:, :, None], cols[:, None, :]]  # (D, 10, 10)
+        b = v[:, mask]
+        b = b - b.mean(1, keepdims=True)
+        b /= np.linalg.norm(b, axis=1, keepdims=True) + 1e-9
+        vals.append(v)
+        scores.append(b @ _border_targets().T)  # (D, 4)
+    scores = np.stack(scores)  # (4 quadrants, D, 4 turns)
+    k = int(np.argmax(scores.max(axis=1).sum(axis=0)))
+    best = np.argmax(scores[:, :, k], axis=1)
+    samples = np.stack([vals[p][best[p]] for p in range(4)])
+    return samples, k, np.stack([dy[best], dx[best]], 1)
+
+
+def _clean_symbol(modules_dark: np.ndarray, scale: int = 4, quiet: int = 2) -> np.ndarray:
+    """Upright binary symbol image (uint8) with a quiet zone, as zxing's pure mode wants it."""
+    img = np.pad(~modules_dark, quiet, constant_values=True)
+    return np.kron(img, np.ones((scale, scale), bool)).astype(np.uint8) * 255
+
+
+# --- backends ------------------------------------------------------------------------------------
+
+
+def _zxing(img: np.ndarray, pure: bool = False) -> list:
+    import zxingcpp
+
+    return zxingcpp.read_barcodes(img, formats=zxingcpp.BarcodeFormat.DataMatrix, try_rotate=not pure,
+                                  try_downscale=False, try_invert=False, is_pure=pure)
+
+
+def _quadrant_of(x: float, y: float) -> int:
+    """Raster quadrant (0 TL, 1 TR, 2 BR, 3 BL) of raster point (x, y)."""
+    right, bottom = x >= _N / 2, y >= _N / 2
+    return (3, 2)[right] if bottom else (0, 1)[right]
+
+
+def read_zxing_whole(rect: np.ndarray, tag: str = "zxing") -> list[Symbol]:
+    """Symbols zxing-cpp finds anywhere in the raster, each placed by its centre."""
+    out = []
+    for b in _zxing(rect):
+        pos = b.position
+        cx = (pos.top_left.x + pos.top_right.x + pos.bottom_right.x + pos.bottom_left.x) / 4
+        cy = (pos.top_left.y + pos.top_right.y + pos.bottom_right.y + pos.bottom_left.y) / 4
+        out.append((b.text, _quadrant_of(cx, cy), tag))
+    return out
+
+
+def read_grid(rect: np.ndarray, config: DecodeConfig, skip: Iterable[int] = (), tag: str = "zxing-grid") -> list[Symbol]:
+    """Stage 2: sample the module grid, orient, threshold, decode the clean symbols with zxing."""
+    samples, k, _ = module_samples(rect, config.align_search_px)
+    mask, dark = _border_template()
+    out = []
+    for p in range(4):
+        if p in skip:
+            continue
+        s = np.rot90(samples[p], k)
+        lo, hi = float(s[mask & dark].mean()), float(s[mask & ~dark].mean())
+        if hi - lo < 10:  # no contrast: nothing to threshold
+            continue
+        tried = set()
+        for f in config.thresholds:
+            bits = s < lo + f * (hi - lo)
+            key = bits.tobytes()
+            if key in tried:
+                continue
+            tried.add(key)
+            res = _zxing(_clean_symbol(bits), pure=True)
+            if res and res[0].text:
+                out.append((res[0].text, p, tag))
+                break
+    return out
+
+
+def read_libdmtx(rect: np.ndarray, config: DecodeConfig) -> list[Symbol]:
+    """libdmtx on each quadrant crop, time-bounded. Raises BackendUnavailable without libdmtx."""
+    try:
+        with warnings.catch_warnings():  # pylibdmtx's own distutils deprecation noise
+            warnings.simplefilter("ignore", DeprecationWarning)
+            from pylibdmtx import pylibdmtx
+    except (ImportError, OSError) as exc:  # the Python wrapper or the shared library is missing
+        raise BackendUnavailable(
+            f"libdmtx backend unavailable ({exc}): pip install pylibdmtx and apt-get install libdmtx0b "
+            "(Debian/Ubuntu) or brew install libdmtx (macOS)") from exc
+    out = []
+    for p, (r0, c0) in enumerate(_QUAD_ORIGIN):
+        crop = np.ascontiguousarray(rect[r0:r0 + _QUAD, c0:c0 + _QUAD])
+        with warnings.catch_warnings():  # pylibdmtx's own distutils deprecation noise
+            warnings.simplefilter("ignore", DeprecationWarning)
+            res = pylibdmtx.decode(crop, timeout=config.libdmtx_timeout_ms, max_count=1,
+                                   shrink=config.libdmtx_shrink)
+        for d in res:
+            out.append((d.data.decode("ascii", errors="replace"), p, "libdmtx"))
+    return out
+
+
+# --- deblurring ----------------------------------------------------------------------------------
+
+
+_MARGIN = 24  # raster px of floor kept around the sticker when measuring the blur
+
+
+def _margin_raster(gray: np.ndarray, detection: Detection, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Raster at the decode scale with ``_MARGIN`` px of floor around the sticker, and its scale.
+
+    Only used to measure blur, so the one-homography approximation of the distortion is enough.
+    Returns the raster and (2,) raster px per image px along the raster's x and y at its centre.
+    """
+    H, _, _ = distorted_mapping(detection, camera, _N, RectifyConfig(max_residual_px=np.inf))
+    shift = np.array([[1.0, 0, -_MARGIN], [0, 1.0, -_MARGIN], [0, 0, 1.0]])
+    n = _N + 2 * _MARGIN
+    raster = cv2.warpPerspective(gray, H @ shift, (n, n), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                 borderMode=cv2.BORDER_REPLICATE)
+    c = _N / 2
+    pts = cv2.perspectiveTransform(np.array([[[c, c], [c + 1, c], [c, c + 1]]]), H)[0]
+    scale = 1.0 / np.linalg.norm(pts[1:] - pts[0], axis=1)
+    return raster, scale
+
+
+_BLUR_LENGTHS = tuple(range(30))  # candidate motion-blur lengths (raster px)
+_EDGE_SHIFTS = tuple(range(-3, 4))  # candidate edge offsets (raster px) from detector corner error
+_SCALE_STEP = 0.5  # raster-per-image px scale is quantised to this to share cached models
+#: Candidate optics + resampling spreads (image px, Gaussian sigma) of the sharp image: a property of
+#: the lens that the frame edges reveal together with the motion.
+_OPTICS_SIGMAS = (0.3, 0.6, 0.9)
+
+
+def _box(width: float) -> np.ndarray:
+    """Normalised 1-D box of (fractional) ``width`` samples, centred, ends weighted by the fraction."""
+    if width <= 1.0:
+        return np.ones(1)
+    n = int(np.ceil(width)) | 1  # odd, so the box stays centred
+    k = np.ones(n)
+    k[0] = k[-1] = (width - (n - 2)) / 2
+    return k / k.sum()
+
+
+@lru_cache(maxsize=48)
+def _level_bases(n: int, scale: float, optics_px: float) -> np.ndarray:
+    """(S, L, n, 5) orthonormal bases of the blurred five-level frame-edge profile models.
+
+    One per (edge shift, motion length): the columns span the blurred indicator profiles of the
+    five levels (floor, black frame, white quiet zone, the symbols' first module column, which is
+    finder or timing pattern and so not an average grey, and the rest of the symbols). Every model
+    also carries the sharp image's own spread at this raster ``scale`` (raster px per image px):
+    one image pixel's integration and ``optics_px`` (Gaussian sigma, image px) of optics.
+    """
+    x = np.arange(n)
+    r = int(np.ceil(3 * optics_px * scale))
+    base = np.convolve(_box(scale), np.exp(-0.5 * (np.arange(-r, r + 1) / (optics_px * scale)) ** 2))
+    out = np.empty((len(_EDGE_SHIFTS), len(_BLUR_LENGTHS), n, 5), np.float32)
+    for si, shift in enumerate(_EDGE_SHIFTS):
+        e0 = _MARGIN + shift
+        edges = (e0, e0 + _FRAME, e0 + _FRAME + _MOD, e0 + _FRAME + 2 * _MOD)
+        basis = np.eye(5)[np.searchsorted(edges, x, side="right")]  # (n, 5) indicator of each level
+        for li, length in enumerate(_BLUR_LENGTHS):
+            k = np.convolve(_box(length), base)
+            k /= k.sum()
+            pad = len(k)
+            B = np.stack([np.convolve(np.pad(basis[:, j], pad, mode="edge"), k, "same")[pad:-pad]
+                          for j in range(5)], 1)
+            out[si, li] = np.linalg.qr(B)[0]
+    return out
+
+
+def _edge_fit(profiles: np.ndarray, scale: float, optics_px: float) -> tuple[np.ndarray, float]:
+    """Best motion length (raster px) for each of ``profiles`` (P, n), and the summed residual.
+
+    A profile runs from the floor (``_MARGIN`` px) across the black frame (16 px) and the white
+    quiet zone (7 px) into the symbols, averaged along the edge so the symbols (past their first
+    module column) average to a flat grey: five unknown levels. Each candidate (edge shift, length)
+    is scored by the residual of the least-squares fit of those levels; the shift absorbs the
+    detector's corner error.
+    """
+    q = max(_SCALE_STEP, round(scale / _SCALE_STEP) * _SCALE_STEP)
+    Q = _level_bases(profiles.shape[1], q, optics_px)
+    proj = np.einsum("slnj,pn->slpj", Q, profiles.astype(np.float32))
+    resid = np.sum(profiles**2, axis=1) - np.sum(proj.astype(np.float64) ** 2, axis=3)  # (S, L, P)
+    flat = resid.reshape(-1, len(profiles))
+    best = flat.argmin(axis=0)
+    return np.asarray(_BLUR_LENGTHS, float)[best % len(_BLUR_LENGTHS)], float(flat.min(axis=0).sum())
+
+
+def blur_extent(gray: np.ndarray, detection: Detection, camera: Camera) -> tuple[float, float]:
+    """Motion-blur extent (raster px) along the raster's x and y, from the four frame edges.
+
+    The lens's own spread is fitted too (shared by all four edges), so that it is not mistaken
+    for motion.
+    """
+    m, scale = _margin_raster(gray, detection, camera)
+    m = m.astype(np.float64)
+    band = slice(_MARGIN + 40, _MARGIN + _N - 40)
+    depth = _MARGIN + _FRAME + _MOD + 30
+    px = np.stack([m[band, :depth].mean(0), m[band, ::-1][:, :depth].mean(0)])  # left, right
+    py = np.stack([m[:depth, band].mean(1), m[::-1][:depth, band].mean(1)])  # top, bottom
+    best = None
+    for sigma in _OPTICS_SIGMAS:
+        lx, rx = _edge_fit(px, float(scale[0]), sigma)
+        ly, ry = _edge_fit(py, float(scale[1]), sigma)
+        if best is None or rx + ry < best[0]:
+            best = (rx + ry, float(lx.mean()), float(ly.mean()))
+    return best[1], best[2]
+
+
+def _wiener(rect: np.ndarray, kernel: np.ndarray, nsr: float) -> np.ndarray:
+    """Wiener deconvolution of ``rect`` by ``kernel`` (reflect-padded FFT), clipped to uint8."""
+    pad = (256 - rect.shape[0]) // 2  # 256: a fast FFT size with room for the kernel's reach
+    img = cv2.copyMakeBorder(rect, pad, pad, pad, pad, cv2.BORDER_REFLECT).astype(np.float32)
+    k = np.zeros(img.shape, np.float32)
+    kh, kw = kernel.shape
+    k[:kh, :kw] = kernel
+    k = np.roll(k, (-(kh // 2), -(kw // 2)), (0, 1))
+    F = cv2.dft(img, flags=cv2.DFT_COMPLEX_OUTPUT)
+    Kf = cv2.dft(k, flags=cv2.DFT_COMPLEX_OUTPUT)
+    num = cv2.mulSpectrums(F, Kf, 0, conjB=True)
+    den = Kf[..., 0] ** 2 + Kf[..., 1] ** 2 + nsr
+    out = cv2.idft(num / den[..., None], flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
+    return np.clip(out[pad:-pad, pad:-pad], 0, 255).astype(np.uint8)
+
+
+def _line_kernel(dx: float, dy: float) -> np.ndarray:
+    """Normalised box kernel along the segment (-dx/2, -dy/2)-(dx/2, dy/2), anti-aliased."""
+    length = float(np.hypot(dx, dy))
+    size = int(np.ceil(length)) // 2 * 2 + 3
+    k = np.zeros((size, size), np.float32)
+    c = (size - 1) / 2
+    n = max(int(length * 4), 2)
+    t = np.linspace(-0.5, 0.5, n)
+    xs, ys = c + t * dx, c + t * dy
+    x0, y0 = np.floor(xs).astype(int), np.floor(ys).astype(int)
+    fx, fy = xs - x0, ys - y0
+    # Bilinear splat of the sample points along the segment.
+    np.add.at(k, (y0, x0), (1 - fx) * (1 - fy))
+    np.add.at(k, (y0, x0 + 1), fx * (1 - fy))
+    np.add.at(k, (y0 + 1, x0), (1 - fx) * fy)
+    np.add.at(k, (y0 + 1, x0 + 1), fx * fy)
+    return k / k.sum()
+
+
+def deblurred_variants(gray: np.ndarray, detection: Detection, camera: Camera, rect: np.ndarray,
+                       config: DecodeConfig) -> list[np.ndarray]:
+    """Wiener-deconvolved rasters for the blur measured on the frame edges (0, 1 or 2 of them)."""
+    lx, ly = blur_extent(gray, detection, camera)
+    if max(lx, ly) < config.min_blur_px:
+        return []
+    # Edge widths give |lx| and |ly| only: try both diagonals unless the blur is along an axis.
+    signs = (1.0,) if min(lx, ly) < 2.0 else (1.0, -1.0)
+    return [_wiener(rect, _line_kernel(lx, s * ly), config.wiener_nsr) for s in signs]
+
+
+# --- combining and verifying ---------------------------------------------------------------------
+
+
+def combine_reads(symbols: Sequence[Symbol], config: DecodeConfig | None = None,
+                  candidates: Iterable[int] | None = None) -> tuple[int | None, int | None, str | None]:
+    """(ID, rotation, rejection reason) from the symbols read.
+
+    Every payload must be a valid sticker payload and all must agree on ID and rotation
+    r = (p - q) mod 4. A lone libdmtx symbol needs corroboration: a second agreeing symbol in another
+    quadrant, a zxing read, or the ID being among the tracker's ``candidates``.
+    """
+    if not symbols:
+        return None, None, None
+    reads = []
+    for text, p, backend in symbols:
+        parsed = parse_payload(text)
+        if parsed is None:
+            return None, None, f"payload {text!r} ({backend}, quadrant {p}) is not a sticker payload"
+        sid, q = parsed
+        reads.append((sid, (p - q) % 4, p, backend))
+    keys = {(sid, r) for sid, r, _, _ in reads}
+    if len(keys) > 1:
+        desc = ", ".join(f"{t}@{p}/{b}" for t, p, b in symbols)
+        return None, None, f"symbols disagree on ID/rotation: {desc}"
+    (sid, rot), = keys
+    places = {p for _, _, p, _ in reads}
+    backends = {b for _, _, _, b in reads}
+    if backends == {"libdmtx"} and len(places) < 2 and sid not in set(candidates or ()):
+        return None, None, f"lone libdmtx symbol {symbols[0][0]!r} not corroborated"
+    return sid, rot, None
+
+
+@lru_cache(maxsize=256)
+def _expected_dark(sticker_id: int, rotation: int) -> np.ndarray:
+    """(4, 8, 8) bool: interior modules of the raster quadrants for this ID and rotation."""
+    ref = np.rot90(render_sticker(sticker_id, _N), -rotation)  # canonical TL goes to raster corner r
+    return module_samples(np.ascontiguousarray(ref))[0][:, 1:-1, 1:-1] < 128
+
+
+def verify_id(rect: np.ndarray, sticker_id: int, rotation: int, samples: np.ndarray | None = None,
+              search_px: int = 4) -> float:
+    """Correlation (-1..1) between the raster's 256 data-module samples and those of the ID.
+
+    The true ID and rotation score high even under blur; another ID differs in the Reed-Solomon
+    codewords, hence in roughly half the modules, and scores near 0.
+    """
+    samples = module_samples(rect, search_px)[0] if samples is None else samples
+    v = samples[:, 1:-1, 1:-1].ravel().astype(np.float64)
+    e = np.where(_expected_dark(sticker_id, rotation).ravel(), -1.0, 1.0)
+    v = v - v.mean()
+    e = e - e.mean()
+    return float(v @ e / (np.linalg.norm(v) * np.linalg.norm(e) + 1e-9))
+
+
+# --- the entry point -----------------------------------------------------------------------------
+
+
+def _decide(rect: np.ndarray, symbols: list[Symbol], config: DecodeConfig, candidates, stage: str,
+            result: DecodeResult) -> bool:
+    """Fill ``result`` from ``symbols``; True when the read is settled (accepted or rejected).
+
+    ``rect`` is the raster the symbols were read from (deblurred if they came from stage 3), whose
+    sharper modules also make the verification more decisive.
+    """
+    sid, rot, why = combine_reads(symbols, config, candidates)
+    result.symbols = list(symbols)
+    if sid is None:
+        result.rejected = why
+        return why is not None and "corroborated" not in why
+    if config.verify:
+        score = verify_id(rect, sid, rot, search_px=config.align_search_px)
+        result.verify_score = score
+        if score < config.min_verify:
+            result.rejected = f"decoded {sid} (rotation {rot}) fails module verification ({score:.2f})"
+            return True
+    result.sticker_id, result.rotation, result.rejected, result.stage = sid, rot, None, stage
+    return True
+
+
+def decode(gray: np.ndarray, detection: Detection, camera: Camera, backend: str = "zxing",
+           config: DecodeConfig | None = None, candidates: Iterable[int] | None = None) -> DecodeResult:
+    """Decode the sticker at ``detection`` in ``gray`` (H, W) uint8.
+
+    Args:
+        backend: "zxing" (default: best measured read rate and speed), "libdmtx", or "both"
+            (zxing first, libdmtx when zxing read nothing).
+        candidates: IDs the tracker expects here; they may corroborate a lone libdmtx symbol.
+    Returns:
+        A :class:`DecodeResult`; ``sticker_id`` is None unless the symbols agree and verify.
+    """
+    if backend not in BACKENDS:
+        raise InputError(f"decode: unknown backend {backend!r} (choose from {', '.join(BACKENDS)})")
+    config = config or DecodeConfig()
+    candidates = list(candidates) if candidates is not None else None
+    t0 = time.perf_counter()
+    result = DecodeResult()
+    rect = rectify(gray, detection, camera, _N)
+
+    def done() -> DecodeResult:
+        result.time_ms = (time.perf_counter() - t0) * 1e3
+        return result
+
+    if backend in ("zxing", "both"):
+        for stage, img in _zxing_attempts(gray, detection, camera, rect, config):
+            symbols = read_zxing_whole(img)
+            if config.grid_sampling and len(symbols) < 4:
+                symbols += read_grid(img, config, skip={p for _, p, _ in symbols})
+            if stage == "zxing" and symbols and all(b == "zxing-grid" for _, _, b in symbols):
+                stage = "grid"
+            if symbols and _decide(img, symbols, config, candidates, stage, result):
+                return done()
+    if backend in ("libdmtx", "both"):
+        symbols = read_libdmtx(rect, config)
+        if backend == "both":
+            symbols = result.symbols + symbols
+        if symbols:
+            _decide(rect, symbols, config, candidates, "libdmtx", result)
+    return done()
+
+
+def _zxing_attempts(gray: np.ndarray, detection: Detection, camera: Camera, rect: np.ndarray,
+                    config: DecodeConfig):
+    """(stage name, raster) pairs to try in order; deblurred rasters are computed only if reached."""
+    yield "zxing", rect
+    if config.deblur:
+        for img in deblurred_variants(gray, detection, camera, rect, config):
+            yield "deblur", img

@@ -1,0 +1,212 @@
+"""Camera calibration files (OpenCV FileStorage, ROS camera_info) and rig files."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from tagloc.camera import Camera, default_camera, load_calibration, save_calibration
+from tagloc.errors import CalibrationError
+from tagloc.geometry import invert
+from tagloc.rig import Rig, RigCamera, default_rig, load_rig, looking_forward, save_rig
+
+K = np.array([[1010.5, 0.0, 640.25], [0.0, 1008.75, 479.5], [0.0, 0.0, 1.0]])
+DIST = np.array([0.11, -0.23, 0.001, -0.002, 0.05])
+
+
+def _same(cam: Camera, K_=K, dist=DIST, size=(1280, 960)) -> None:
+    assert cam.K == pytest.approx(K_, abs=1e-9)
+    assert cam.dist == pytest.approx(dist, abs=1e-12)
+    assert (cam.width, cam.height) == size
+
+
+def test_opencv_round_trip(tmp_path):
+    p = tmp_path / "camera.yaml"
+    save_calibration(Camera(K, DIST, 1280, 960), p)
+    _same(load_calibration(p))
+    cam = default_camera()
+    save_calibration(cam, p)
+    back = load_calibration(p)
+    assert back.K == pytest.approx(cam.K) and back.dist == pytest.approx(cam.dist) and back.size == (1296, 972)
+
+
+def test_file_written_by_cv2_filestorage(tmp_path):
+    p = tmp_path / "calib.yml"
+    fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", 1280)
+    fs.write("image_height", 960)
+    fs.write("camera_matrix", K)
+    fs.write("distortion_coefficients", DIST.reshape(-1, 1))  # column vector, as calibrateCamera returns
+    fs.write("avg_reprojection_error", 0.21)
+    fs.release()
+    _same(load_calibration(p))
+
+
+OST = """image_width: 1280
+image_height: 960
+camera_name: narrow_stereo
+camera_matrix:
+  rows: 3
+  cols: 3
+  data: [1010.5, 0.0, 640.25, 0.0, 1008.75, 479.5, 0.0, 0.0, 1.0]
+distortion_model: plumb_bob
+distortion_coefficients:
+  rows: 1
+  cols: 5
+  data: [0.11, -0.23, 0.001, -0.002, 0.05]
+rectification_matrix:
+  rows: 3
+  cols: 3
+  data: [1, 0, 0, 0, 1, 0, 0, 0, 1]
+projection_matrix:
+  rows: 3
+  cols: 4
+  data: [1010.5, 0, 640.25, 0, 0, 1008.75, 479.5, 0, 0, 0, 1, 0]
+"""
+
+CAMERA_INFO = """header:
+  seq: 0
+  stamp: {secs: 0, nsecs: 0}
+  frame_id: vest_camera
+height: 960
+width: 1280
+distortion_model: plumb_bob
+D: [0.11, -0.23, 0.001, -0.002, 0.05]
+K: [1010.5, 0.0, 640.25, 0.0, 1008.75, 479.5, 0.0, 0.0, 1.0]
+R: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+P: [1010.5, 0.0, 640.25, 0.0, 0.0, 1008.75, 479.5, 0.0, 0.0, 0.0, 1.0, 0.0]
+binning_x: 0
+binning_y: 0
+"""
+
+
+def test_ros_camera_calibration_ost_yaml(tmp_path):
+    p = tmp_path / "ost.yaml"
+    p.write_text(OST)
+    _same(load_calibration(p))
+
+
+def test_ros_camera_info_dump(tmp_path):
+    p = tmp_path / "camera_info.yaml"
+    p.write_text(CAMERA_INFO)
+    _same(load_calibration(p))
+    p.write_text(CAMERA_INFO.replace("D:", "d:").replace("K:", "k:"))  # ROS 2 field names
+    _same(load_calibration(p))
+
+
+@pytest.mark.parametrize("text, fragment", [
+    ("image_width: [1, 2\n", "not valid YAML"),
+    ("- 1\n- 2\n", "not a calibration mapping"),
+    ("image_width: 10\nimage_height: 10\n", "no camera_matrix or K"),
+    (CAMERA_INFO.replace("K: [1010.5, 0.0, 640.25,", "K: [1010.5,"), "camera matrix has 7 values"),
+    (CAMERA_INFO.replace("width: 1280\n", ""), "width/height"),
+    (CAMERA_INFO.replace("K: [1010.5", "K: [-1010.5"), "not a valid intrinsic"),
+    (CAMERA_INFO.replace("K: [1010.5", "K: [.nan"), "NaN or inf"),
+    (CAMERA_INFO.replace("D: [0.11, -0.23, 0.001, -0.002, 0.05]", "D: [0.1, 0.2, 0.3]"), "distortion"),
+    (CAMERA_INFO.replace("K: [1010.5", "K: [abc"), "not a list of numbers"),
+    (OST.replace("image_width: 1280", "image_width: 0"), "not positive"),
+])
+def test_malformed_ros_files_refused(tmp_path, text, fragment):
+    p = tmp_path / "bad.yaml"
+    p.write_text(text)
+    with pytest.raises(CalibrationError) as info:
+        load_calibration(p)
+    assert str(p) in str(info.value) and fragment in str(info.value)
+    assert "\n" not in str(info.value)
+
+
+def test_malformed_opencv_files_refused(tmp_path):
+    p = tmp_path / "cv.yaml"
+    fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_WRITE)
+    fs.write("camera_matrix", K)
+    fs.release()
+    with pytest.raises(CalibrationError, match="missing distortion_coefficients, image_height, image_width"):
+        load_calibration(p)
+    fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", 1280)
+    fs.write("image_height", 960)
+    fs.write("camera_matrix", np.eye(2))
+    fs.write("distortion_coefficients", DIST)
+    fs.release()
+    with pytest.raises(CalibrationError, match=f"{p}: camera_matrix must be a 3x3"):
+        load_calibration(p)
+    with pytest.raises(CalibrationError, match="cannot read"):
+        load_calibration(tmp_path / "absent.yaml")
+
+
+# --- rig ------------------------------------------------------------------------------------------
+
+
+def test_looking_forward_geometry():
+    T = looking_forward(1.3, 55.0)
+    assert T[:3, 3] == pytest.approx((0, 0, 1.3))
+    axis = T[:3, 2]  # optical axis in the body frame: forward and down by the pitch
+    assert axis == pytest.approx((np.cos(np.radians(55)), 0, -np.sin(np.radians(55))))
+    assert T[:3, 0] == pytest.approx((0, -1, 0))  # image x (right) is body -y
+    R = T[:3, :3]
+    assert R @ R.T == pytest.approx(np.eye(3)) and np.linalg.det(R) == pytest.approx(1.0)
+
+
+def test_rig_round_trip(tmp_path):
+    side = Camera(K, DIST, 1280, 960)
+    rig = Rig([RigCamera("front", default_camera(), looking_forward(1.3, 55.0)),
+               RigCamera("left", side, looking_forward(1.2, 60.0, yaw_deg=90.0, y_m=0.1), "left.yaml")])
+    save_rig(rig, tmp_path / "rig.json")
+    assert (tmp_path / "camera.yaml").exists() and (tmp_path / "left.yaml").exists()
+    back = load_rig(tmp_path / "rig.json")
+    assert [c.name for c in back.cameras] == ["front", "left"]
+    for a, b in zip(rig.cameras, back.cameras):
+        assert b.T_body_camera == pytest.approx(a.T_body_camera, abs=1e-12)
+        assert b.camera.K == pytest.approx(a.camera.K) and b.camera.dist == pytest.approx(a.camera.dist)
+    override = load_rig(tmp_path / "rig.json", calibration=side)
+    assert all(c.camera is side for c in override.cameras)
+
+
+def _rig_doc(T) -> str:
+    return json.dumps({"cameras": [{"name": "front", "calibration": "camera.yaml", "T_body_camera": T}]})
+
+
+@pytest.mark.parametrize("T, fragment", [
+    (np.eye(3).tolist(), "finite 4x4"),
+    ([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, float("nan")]], "finite 4x4"),
+    ((np.diag([2.0, 1, 1, 1])).tolist(), "not a rigid transform"),
+    ((np.diag([1.0, 1, -1, 1])).tolist(), "not a rigid transform"),  # a reflection
+    ([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1]], "not a rigid transform"),
+    ([["a", 0, 0, 0]] * 4, "not a 4x4 matrix of numbers"),
+])
+def test_bad_T_body_camera_refused(tmp_path, T, fragment):
+    save_calibration(default_camera(), tmp_path / "camera.yaml")
+    p = tmp_path / "rig.json"
+    p.write_text(_rig_doc(T))
+    with pytest.raises(CalibrationError) as info:
+        load_rig(p)
+    assert f"{p}: cameras[0]" in str(info.value) and fragment in str(info.value)
+
+
+def test_bad_rig_files_refused(tmp_path):
+    p = tmp_path / "rig.json"
+    p.write_text('{"cameras": [}')
+    with pytest.raises(CalibrationError, match="line 1: not valid JSON"):
+        load_rig(p)
+    p.write_text('{"cameras": []}')
+    with pytest.raises(CalibrationError, match="non-empty"):
+        load_rig(p)
+    p.write_text('{"cameras": [{"name": "x"}]}')
+    with pytest.raises(CalibrationError, match="needs T_body_camera"):
+        load_rig(p)
+    p.write_text(_rig_doc(np.eye(4).tolist()))
+    with pytest.raises(CalibrationError, match="camera.yaml: cannot read"):
+        load_rig(p)  # the calibration it names is missing
+
+
+def test_default_rig_sees_floor_ahead():
+    rig = default_rig()
+    cam = rig[0]
+    # A floor point 1.3/tan(55 deg) ahead of the body projects to the principal point.
+    d = 1.3 / np.tan(np.radians(55.0))
+    p_cam = (invert(cam.T_body_camera) @ np.array([d, 0, 0, 1.0]))[:3]
+    uv = cam.camera.project(p_cam[None])[0]
+    assert uv == pytest.approx(cam.camera.K[:2, 2], abs=1e-6)

@@ -1,0 +1,180 @@
+"""Sticker detection (ours and the paper's) on synthetic frames with exactly known corners."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tagloc.bench_detect import FrameTruth, bench_detection, match_detections
+from tagloc.camera import Camera, default_camera
+from tagloc.detect import DetectConfig, as_gray, detect, detect_stickers
+from tagloc.errors import InputError
+from synth import floor_point_at_pixel, floor_view, sticker_pose, synth_frame
+
+CAM = default_camera()
+
+
+def _shoelace(q: np.ndarray) -> float:
+    x, y = q[:, 0], q[:, 1]
+    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y))
+
+
+def _one(frame, cam=CAM, **kw):
+    dets = detect_stickers(frame.image, cam, **kw)
+    matches = match_detections(dets, frame.outer, frame.inner)
+    return dets, matches
+
+
+@pytest.mark.parametrize("yaw", [0, 90, 180, 270])
+def test_rotations_keep_clockwise_order_and_inner_pairing(yaw):
+    f = synth_frame([(4242, sticker_pose(CAM, (620, 470), 1.1, 35, yaw + 12))], CAM, noise=2, gamma=2.2, seed=yaw)
+    dets, matches = _one(f)
+    assert len(dets) == 1 and len(matches) == 1
+    d, m = dets[0], matches[0]
+    assert _shoelace(d.outer) > 0 and _shoelace(d.inner) > 0  # clockwise on screen (y down)
+    assert m.outer_err.max() < 0.4
+    # inner[i] belongs to outer[i]: the same cyclic shift aligns both with the truth
+    assert m.inner_err is not None and m.inner_err.max() < 0.4
+    assert 0 < d.score <= 1
+
+
+@pytest.mark.parametrize("tilt,dist", [(20, 1.3), (45, 1.1), (70, 0.75)])
+def test_viewing_angles_20_to_70_degrees(tilt, dist):
+    f = synth_frame([(99, sticker_pose(CAM, (700, 520), dist, tilt, 33, tilt_dir_deg=60))], CAM, noise=2,
+                    gamma=2.2, seed=tilt)
+    dets, matches = _one(f)
+    assert len(dets) == 1 and len(matches) == 1
+    assert np.median(matches[0].outer_err) < 0.25
+
+
+def _floor_scene(n: int, seed: int, **kw):
+    """A vest view (1.3 m, 55 deg pitch) with ``n`` stickers at fixed pixels, random headings."""
+    rng = np.random.default_rng(seed)
+    Twc = floor_view(CAM, 1.3, 55)
+    from tagloc.geometry import planar_T
+
+    spots = [(350, 700), (900, 600), (650, 300)][:n]
+    stickers = []
+    for k, px in enumerate(spots):
+        xy = floor_point_at_pixel(CAM, Twc, px)
+        stickers.append((1000 + k, planar_T(xy[0], xy[1], rng.uniform(-np.pi, np.pi))))
+    return synth_frame(stickers, CAM, Twc, gamma=2.2, seed=seed, **kw)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_one_to_three_stickers_on_a_floor_view(n):
+    f = _floor_scene(n, seed=10 + n, noise=3, distractors=[(1100, 250, 45, 20)],
+                     lines=[(0, 900, 1296, 820, 14)])
+    dets, matches = _one(f)
+    assert len(matches) == n and len(dets) == n
+    errs = np.concatenate([m.outer_err for m in matches])
+    assert np.median(errs) < 0.25 and errs.max() < 0.6
+
+
+def test_corner_error_unblurred_and_at_6px_blur():
+    errs = {0: [], 6: []}
+    for blur in errs:
+        for k, angle in enumerate((0, 40, 90, 135)):
+            f = _floor_scene(2, seed=100 + k, blur_px=blur, blur_angle_deg=angle, noise=3)
+            _, matches = _one(f)
+            assert len(matches) == 2, (blur, angle)
+            errs[blur].extend(np.concatenate([m.outer_err for m in matches]))
+    assert np.median(errs[0]) < 0.25
+    assert np.median(errs[6]) < 0.6
+
+
+@pytest.mark.parametrize("angle", [0, 60, 120])
+def test_blur_8px_still_detected(angle):
+    f = synth_frame([(7, sticker_pose(CAM, (640, 480), 1.0, 30, 20))], CAM, blur_px=8, blur_angle_deg=angle, noise=3,
+                    gamma=2.2, seed=angle)
+    dets, matches = _one(f)
+    assert len(matches) == 1 and len(dets) == 1
+    assert np.median(matches[0].outer_err) < 1.0
+
+
+def test_dim_noisy_frame():
+    f = synth_frame([(31337, sticker_pose(CAM, (500, 400), 1.4, 40, 70))], CAM, exposure=0.25, noise=6, gamma=2.2,
+                    blur_px=2, seed=5)
+    dets, matches = _one(f)
+    assert len(matches) == 1 and len(dets) == 1
+    assert np.median(matches[0].outer_err) < 0.4
+
+
+@pytest.mark.parametrize("kind", ["empty", "black", "white", "noise", "distractor"])
+def test_frames_without_stickers_give_nothing(kind):
+    rng = np.random.default_rng(3)
+    if kind == "empty":
+        img = synth_frame([], CAM, noise=3, seed=3).image
+    elif kind == "black":
+        img = np.zeros((CAM.height, CAM.width), np.uint8)
+    elif kind == "white":
+        img = np.full((CAM.height, CAM.width), 255, np.uint8)
+    elif kind == "noise":
+        img = rng.integers(0, 256, (CAM.height, CAM.width), dtype=np.uint8)
+    else:  # dark squares of sticker size, one with a small bright spot
+        img = synth_frame([], CAM, noise=3, seed=4, distractors=[(400, 400, 80, 15), (900, 600, 60, 50)]).image
+        img[595:603, 895:903] = 230
+    assert detect_stickers(img, CAM) == []
+    assert detect(img, CAM, method="paper") == []
+
+
+def test_sticker_cut_by_border_is_rejected():
+    # A sticker centred 30 px from the right edge: about half of it is outside.
+    f = synth_frame([(5, sticker_pose(CAM, (CAM.width - 30, 480), 1.1, 20, 10)),
+                     (6, sticker_pose(CAM, (500, 480), 1.1, 20, 10))], CAM, noise=2, gamma=2.2, seed=8)
+    assert f.inside == [False, True]
+    dets, matches = _one(f)
+    assert len(dets) == 1 and matches[0].truth == 1
+
+
+def test_frame_smaller_than_a_sticker():
+    tiny = CAM.scaled(0.02)
+    assert detect_stickers(np.full((tiny.height, tiny.width), 128, np.uint8), tiny) == []
+
+
+def test_input_conversion_and_errors():
+    f = synth_frame([(12, sticker_pose(CAM, (640, 480), 1.1, 25, 5))], CAM, noise=2, gamma=2.2, seed=2)
+    ref = detect_stickers(f.image, CAM)
+    assert len(ref) == 1
+    bgr = np.repeat(f.image[:, :, None], 3, axis=2)
+    as_float = f.image.astype(np.float32) / 255.0
+    as_u16 = f.image.astype(np.uint16) * 257
+    for img in (bgr, as_float, as_u16, f.image[:, :, None]):
+        got = detect_stickers(img, CAM)
+        assert len(got) == 1 and np.abs(got[0].outer - ref[0].outer).max() < 0.05
+    with pytest.raises(InputError):
+        detect_stickers(np.zeros((CAM.height, CAM.width, 2), np.uint8), CAM)
+    with pytest.raises(InputError):
+        detect_stickers(np.zeros(10, np.uint8), CAM)
+    with pytest.raises(InputError):
+        detect_stickers(f.image[:500], CAM)  # does not match the calibration
+    with pytest.raises(InputError):
+        detect(f.image, CAM, method="sift")
+    assert as_gray(np.ones((4, 4), bool)).max() == 255
+
+
+def test_without_distortion_and_linear_response():
+    cam = Camera(CAM.K, np.zeros(5), CAM.width, CAM.height)
+    f = synth_frame([(77, sticker_pose(cam, (300, 700), 1.2, 45, 200))], cam, blur_px=4, blur_angle_deg=30, noise=2,
+                    seed=9)
+    _, matches = _one(f, cam, config=DetectConfig(response_gamma=1.0))
+    assert len(matches) == 1 and np.median(matches[0].outer_err) < 0.3
+
+
+def test_paper_method_finds_a_large_sticker_roughly():
+    f = synth_frame([(4242, sticker_pose(CAM, (640, 500), 1.0, 30, 30))], CAM, noise=2, gamma=2.2, seed=1)
+    dets = detect(f.image, CAM, method="paper")
+    assert len(dets) == 1 and dets[0].inner is None
+    m = match_detections(dets, f.outer)
+    assert len(m) == 1 and np.median(m[0].outer_err) < 3.0
+    assert _shoelace(dets[0].outer) > 0
+
+
+def test_bench_detection_summary():
+    f1 = synth_frame([(3, sticker_pose(CAM, (640, 480), 1.1, 30, 10))], CAM, noise=2, gamma=2.2, seed=1)
+    f0 = synth_frame([], CAM, noise=2, seed=2)
+    frames = [FrameTruth(f1.image, CAM, f1.outer, f1.inner, "one"), FrameTruth(f0.image, CAM, [], [], "none")]
+    res = bench_detection(frames, methods=("contour",))
+    one, none = res["contour"]["one"], res["contour"]["none"]
+    assert one["rate"] == 1.0 and one["false_positives"] == 0 and one["outer_err_px_median"] < 0.3
+    assert none["stickers"] == 0 and none["false_positives"] == 0 and none["time_ms_median"] > 0

@@ -1,0 +1,291 @@
+"""Capture sources and thread, the live loop, and `tagloc live` end to end (UDP, recording killed mid-run)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from mosquitto import MOSQUITTO, Broker, Subscriber
+from conftest_io import cached_session, line_map, walk_pose, write_video
+from tagloc.capture import CaptureThread, FrameSource, SessionSource, VideoSource, open_source
+from tagloc.errors import InputError, SessionError
+from tagloc.live import LiveConfig, run_live
+from tagloc.observation import FrameResult, IdSource, TrackerOutput, TrackState
+from tagloc.rig import default_rig
+from tagloc.session import Frame, SessionInfo, SessionReader, SessionWriter
+
+FPS = 10.0
+N = 20
+
+
+@pytest.fixture(scope="module")
+def session(request) -> Path:
+    return cached_session(request.config.cache.mkdir("tagloc_io_sessions"), N, FPS)
+
+
+@pytest.fixture(scope="module")
+def video(session, tmp_path_factory) -> Path:
+    return write_video(session, tmp_path_factory.mktemp("video") / "walk.avi", FPS)
+
+
+def counter_video(path: Path, n: int, fps: float) -> Path:
+    """A tiny MJPG video whose frame k is uniformly grey at level 20 + 7 (k mod 30) (frames are identifiable)."""
+    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (64, 48))
+    for k in range(n):
+        vw.write(np.full((48, 64, 3), 20 + 7 * (k % 30), np.uint8))
+    vw.release()
+    return path
+
+
+def level(frame: Frame) -> int:
+    return round((float(frame.image.mean()) - 20) / 7)
+
+
+class ListSource(FrameSource):
+    """A live source with frames ready at once (the consumer decides when to take them)."""
+
+    live = True
+
+    def __init__(self, n: int, bad: tuple[int, ...] = ()):
+        self.frames = [Frame(k, k * 0.1, None if k in bad else np.full((4, 4), k, np.uint8)) for k in range(n)]
+
+    def read(self) -> Frame | None:
+        return self.frames.pop(0) if self.frames else None
+
+
+def drain(cap: CaptureThread) -> list[int]:
+    out = []
+    while (item := cap.get(timeout=10)) is not None:
+        out.append(item.frame.index)
+    return out
+
+
+def test_video_source_reads_frames_with_the_file_clock(tmp_path):
+    src = open_source(str(counter_video(tmp_path / "c.avi", 12, 25.0)))
+    assert isinstance(src, VideoSource) and not src.live and src.fps == pytest.approx(25.0)
+    frames = []
+    while (f := src.read()) is not None:
+        frames.append(f)
+    src.close()
+    assert [f.index for f in frames] == list(range(12))
+    assert np.allclose([f.timestamp for f in frames], np.arange(12) / 25.0)
+    assert [level(f) for f in frames] == list(range(12))
+    assert frames[0].image.ndim == 2 and frames[0].image.dtype == np.uint8
+
+
+def test_open_source_rejects_what_it_cannot_open(tmp_path):
+    with pytest.raises(InputError):
+        open_source(str(tmp_path / "missing.avi"))
+    (tmp_path / "junk.avi").write_bytes(b"\0" * 100)
+    with pytest.raises(InputError):
+        open_source(str(tmp_path / "junk.avi"))
+    (tmp_path / "empty_dir").mkdir()
+    with pytest.raises(SessionError):
+        open_source(str(tmp_path / "empty_dir"))
+
+
+def test_full_buffer_drops_the_oldest_frames():
+    cap = CaptureThread(ListSource(20, bad=(3, 11)), buffer=2).start()
+    cap.join(timeout=10)  # let the reader run to the end before consuming anything
+    got = drain(cap)
+    cap.stop()
+    assert got == [18, 19]  # the newest two, not the first two
+    s = cap.stats
+    assert (s.grabbed, s.skipped, s.dropped, s.delivered) == (20, 2, 16, 2)
+    assert s.ended == "end of source"
+
+
+def test_unpaced_file_loses_nothing_even_with_a_slow_consumer(tmp_path):
+    cap = CaptureThread(VideoSource(str(counter_video(tmp_path / "c.avi", 15, 100.0)), live=False),
+                        buffer=1, pace=False).start()
+    got = []
+    while (item := cap.get(timeout=10)) is not None:
+        got.append(level(item.frame))
+        time.sleep(0.02)
+    cap.stop()
+    assert got == list(range(15))
+    assert cap.stats.dropped == 0 and cap.stats.delivered == 15 and cap.stats.ended == "end of file"
+
+
+def test_paced_file_drops_when_processing_falls_behind(tmp_path):
+    # 50 fps source, a consumer needing 100 ms per frame: about 4 of 5 frames must be dropped, and
+    # what is processed is always recent (newest-first buffer, no growing lag).
+    cap = CaptureThread(VideoSource(str(counter_video(tmp_path / "c.avi", 30, 50.0)), live=False),
+                        buffer=1, pace=True).start()
+    got = []
+    while (item := cap.get(timeout=10)) is not None:
+        got.append(item.frame.index)
+        time.sleep(0.1)
+    cap.stop()
+    s = cap.stats
+    assert s.grabbed == 30 and s.delivered == len(got) and s.dropped == 30 - len(got)
+    assert s.dropped >= 15
+    assert got == sorted(got) and got[-1] >= 27
+
+
+def test_session_source_skips_and_counts_corrupt_frames(tmp_path):
+    sess = tmp_path / "s"
+    with SessionWriter(sess, line_map(), default_rig(), SessionInfo(fps=FPS)) as w:
+        for k in range(6):
+            w.write(k, k / FPS, np.full((48, 64), 10 * k, np.uint8))
+    for k in (2, 4):
+        (sess / "frames" / f"{k:06d}.jpg").write_bytes(b"\xff\xd8 truncated")
+    cap = CaptureThread(SessionSource(sess), buffer=1, pace=False).start()
+    got = drain(cap)
+    cap.stop()
+    assert got == [0, 1, 3, 5] and cap.stats.skipped == 2 and cap.stats.ended == "end of session"
+
+
+class EchoLocaliser:
+    """Stands in for the localiser in plumbing tests: the pose encodes the frame it came from."""
+
+    def __init__(self, session: Path):
+        r = SessionReader(session)
+        self.map, self.rig = r.map, r.rig
+
+    def process(self, frame: Frame) -> FrameResult:
+        out = TrackerOutput(frame.timestamp, np.array([frame.index * 0.1, 1.0, 0.0]), np.eye(3) * 1e-3,
+                            TrackState.TRACKING, 0.0, 100 + frame.index, IdSource.DECODED)
+        return FrameResult(frame.index, frame.timestamp, [], out, {"total": 1.0})
+
+
+def udp_listener() -> socket.socket:
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", 0))
+    rx.settimeout(0.5)
+    return rx
+
+
+def receive_all(rx: socket.socket) -> list[dict]:
+    msgs = []
+    while True:
+        try:
+            msgs.append(json.loads(rx.recv(65536)))
+        except socket.timeout:
+            return msgs
+
+
+def test_live_loop_publishes_records_and_logs(session, video, tmp_path):
+    rx = udp_listener()
+    cfg = LiveConfig(source=str(video), publish=[f"udp://127.0.0.1:{rx.getsockname()[1]}"], vest="v9",
+                     record=tmp_path / "rec", log=tmp_path / "frames.jsonl", rerun_save=tmp_path / "live.rrd",
+                     pace=False, max_frames=20)
+    summary = run_live(cfg, localiser=EchoLocaliser(session))
+    msgs = receive_all(rx)
+    rx.close()
+    assert summary.frames == 20 and summary.recorded == 20 and summary.capture.dropped == 0
+    assert [m["index"] for m in msgs] == list(range(20))
+    assert all(m["vest"] == "v9" and m["latency_ms"] >= 0 for m in msgs)
+    assert np.allclose([m["t"] for m in msgs], np.arange(20) / FPS)
+    assert np.allclose([m["x"] for m in msgs], np.arange(20) * 0.1)
+    assert summary.sinks[f"udp://127.0.0.1:{cfg.publish[0].rsplit(':', 1)[1]}"] == (20, 0)
+    assert np.isfinite(summary.latency(50)) and summary.latency(95) >= summary.latency(50)
+    rec = SessionReader(tmp_path / "rec")
+    frames = list(rec.frames())
+    assert [f.index for f in frames] == list(range(20)) and not rec.skipped
+    assert np.allclose(rec.timestamps, np.arange(20) / FPS)
+    assert len((tmp_path / "frames.jsonl").read_text().splitlines()) == 20
+    from tagloc.rerun_view import read_rrd
+
+    assert read_rrd(tmp_path / "live.rrd")["world/body"].frames == list(range(20))
+
+
+def test_live_loop_stops_on_max_seconds(session, tmp_path):
+    # A paced 20-frame session lasts 2 s; the limit stops it after about 0.5 s (5 or 6 frames).
+    summary = run_live(LiveConfig(source=str(session), max_seconds=0.5), localiser=EchoLocaliser(session))
+    assert 1 <= summary.frames <= 15
+
+
+def cli(*args: str, **kw) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "tagloc", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, **kw)
+
+
+def test_tagloc_live_publishes_poses_over_udp(session, video):
+    rx = udp_listener()
+    port = rx.getsockname()[1]
+    p = cli("live", "--camera", str(video), "--config", str(session), "--publish", f"udp://127.0.0.1:{port}",
+            "--vest", "v1", "--no-pace")
+    out, err = p.communicate(timeout=120)
+    msgs = receive_all(rx)
+    rx.close()
+    assert p.returncode == 0, err
+    assert "latency: median" in err and f"frames: {N} processed" in err
+    assert [m["index"] for m in msgs] == list(range(N))
+    tracked = [m for m in msgs if m["state"] == "tracking"]
+    assert len(tracked) >= N - 3
+    errs = [np.hypot(m["x"] - walk_pose(m["t"])[0], m["y"] - walk_pose(m["t"])[1]) for m in tracked]
+    assert np.median(errs) < 0.05
+    assert all(m["last_source"] == "decoded" for m in tracked)
+
+
+def test_recording_killed_mid_run_replays_every_written_frame(session, video, tmp_path):
+    rec = tmp_path / "rec"
+    p = cli("live", "--camera", str(video), "--config", str(session), "--record", str(rec), "--no-pace")
+    deadline = time.monotonic() + 120
+    try:
+        while time.monotonic() < deadline:
+            csv = rec / "frames.csv"
+            if csv.exists() and len(csv.read_text().splitlines()) >= 9:  # header + 8 frames
+                break
+            time.sleep(0.01)
+        os.kill(p.pid, signal.SIGKILL)
+    finally:
+        p.communicate(timeout=30)
+    assert p.returncode == -signal.SIGKILL
+    reader = SessionReader(rec)
+    frames = list(reader.frames())
+    assert len(frames) >= 8 and not reader.skipped
+    assert [f.index for f in frames] == list(range(len(frames)))
+    assert all(f.image is not None and f.image.shape == (972, 1296) for f in frames)
+    r = cli("replay", str(rec), "--out", str(tmp_path / "est.tum"), "--quiet")
+    out, err = r.communicate(timeout=120)
+    assert r.returncode == 0, err
+    assert f"frames: {len(frames)} (0 unreadable" in out
+
+
+@pytest.mark.skipif(MOSQUITTO is None, reason="mosquitto binary not installed (apt install mosquitto)")
+def test_live_loop_keeps_going_through_a_broker_restart(session, tmp_path):
+    # 80 tiny frames played at 20 fps (4 s); the broker goes away after ~1 s and is back ~1 s later.
+    video = counter_video(tmp_path / "c.avi", 80, 20.0)
+    broker = Broker(tmp_path).start()
+    sub = Subscriber(broker.port, "tagloc/v8/pose")
+    assert sub.subscribed.wait(10)
+    result: dict = {}
+    loc = EchoLocaliser(session)
+    cfg = LiveConfig(source=str(video), publish=[f"mqtt://127.0.0.1:{broker.port}"], vest="v8")
+    runner = threading.Thread(target=lambda: result.update(summary=run_live(cfg, localiser=loc)))
+    try:
+        runner.start()
+        assert sub.wait_for(lambda idx: len(idx) >= 5)
+        broker.stop()
+        time.sleep(1.0)
+        sub.subscribed.clear()
+        broker.start()
+        assert sub.subscribed.wait(15)
+        runner.join(timeout=30)
+        assert not runner.is_alive()
+    finally:
+        sub.close()
+        broker.stop()
+    s = result["summary"]
+    name = f"mqtt://127.0.0.1:{broker.port}/tagloc/v8/pose"
+    sent, dropped = s.sinks[name]
+    assert s.frames + s.capture.dropped == 80  # localisation never stopped for the broker
+    assert sent + dropped == s.frames and dropped >= 10  # a second of outage at 20 fps
+    with sub.lock:
+        got = list(sub.indices)
+    gap = np.diff(got)
+    assert got == sorted(got) and gap.max() >= 10  # the outage: dropped, never replayed later
+    assert got[-1] >= 75  # publication resumed after the restart

@@ -1,0 +1,180 @@
+"""Pose from one sticker: exactness, accuracy under corner noise, honest covariance, ambiguity."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from tagloc.camera import default_camera
+from tagloc.geometry import invert, planar_from_T, planar_T, transform_points, wrap_angle
+from tagloc.observation import Detection
+from tagloc.pose import PoseConfig, solve_pose
+from tagloc.rig import RigCamera, looking_forward
+from tagloc.sticker import INNER_CORNERS, OUTER_CORNERS
+
+
+def rig_camera(height=1.3, pitch=55.0) -> RigCamera:
+    return RigCamera("front", default_camera(), looking_forward(height, pitch))
+
+
+def scene(rng: np.random.Generator, rc: RigCamera, distance: float | None = None, lateral: float = 0.0):
+    """(T_world_body, T_world_sticker) with the sticker ``distance`` m from the camera (random yaws)."""
+    body = planar_T(rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(-np.pi, np.pi))
+    T_wc = body @ rc.T_body_camera
+    cam_pos = T_wc[:3, 3]
+    axis = T_wc[:3, 2]
+    fwd = axis[:2] / np.linalg.norm(axis[:2]) if np.linalg.norm(axis[:2]) > 1e-9 else body[:2, 0]
+    left = np.array([-fwd[1], fwd[0]])
+    if distance is None:  # where the optical axis meets the floor
+        p = cam_pos - axis * cam_pos[2] / axis[2]
+        xy = p[:2] + lateral * left
+    else:
+        ground = math.sqrt(distance**2 - cam_pos[2] ** 2)
+        xy = cam_pos[:2] + ground * fwd + lateral * left
+    return body, planar_T(xy[0], xy[1], rng.uniform(-np.pi, np.pi))
+
+
+def corners(rc: RigCamera, T_world_body, T_world_sticker, rotation: int, sigma: float, rng) -> Detection:
+    """Detection with canonical TL at ``outer[rotation]`` and Gaussian corner noise ``sigma`` px."""
+    T_cs = invert(T_world_body @ rc.T_body_camera) @ T_world_sticker
+    outer = rc.camera.project(transform_points(T_cs, OUTER_CORNERS)) + rng.normal(0, sigma, (4, 2))
+    inner = rc.camera.project(transform_points(T_cs, INNER_CORNERS)) + rng.normal(0, sigma, (4, 2))
+    return Detection(np.roll(outer, rotation, 0), np.roll(inner, rotation, 0))
+
+
+def pose_error(fix, T_world_body, rc):
+    cam_err = np.linalg.norm(fix.T_world_camera[:3, 3] - (T_world_body @ rc.T_body_camera)[:3, 3])
+    truth = np.array(planar_from_T(T_world_body))
+    d = fix.body - truth
+    d[2] = wrap_angle(d[2])
+    return cam_err, d
+
+
+@pytest.mark.parametrize("rotation", [0, 1, 2, 3])
+def test_exact_corners_recover_pose(rotation):
+    rng = np.random.default_rng(rotation)
+    rc = rig_camera()
+    body, sticker = scene(rng, rc, 1.6, 0.2)
+    for use_inner in (False, True):
+        sol = solve_pose(corners(rc, body, sticker, rotation, 0.0, rng), rotation, sticker, rc,
+                         config=PoseConfig(use_inner=use_inner))
+        cam_err, d = pose_error(sol.poses[0], body, rc)
+        assert cam_err < 1e-6 and np.all(np.abs(d) < 1e-6), (cam_err, d)
+        assert sol.poses[0].reprojection_px < 1e-6
+        assert np.allclose(sol.poses[0].T_world_camera, body @ rc.T_body_camera, atol=1e-6)
+
+
+def test_wrong_rotation_gives_wrong_pose():
+    """The rotation really selects the corner correspondence (a wrong one is off by ~90 deg)."""
+    rng = np.random.default_rng(9)
+    rc = rig_camera()
+    body, sticker = scene(rng, rc, 1.6)
+    det = corners(rc, body, sticker, 1, 0.0, rng)
+    _, d = pose_error(solve_pose(det, 2, sticker, rc).poses[0], body, rc)
+    assert abs(d[2]) > 1.0
+
+
+def test_noise_accuracy_4_vs_8_points():
+    """0.5 px corner noise at 1.5 m: median camera position error < 3 cm, lower with 8 points."""
+    rng = np.random.default_rng(1)
+    rc = rig_camera()
+    errs = {False: [], True: []}
+    for _ in range(150):
+        body, sticker = scene(rng, rc, 1.5, rng.uniform(-0.4, 0.4))
+        det = corners(rc, body, sticker, int(rng.integers(4)), 0.5, rng)
+        for use_inner in (False, True):
+            sol = solve_pose(det, _rot(det, rc, body, sticker), sticker, rc, config=PoseConfig(use_inner=use_inner))
+            errs[use_inner].append(pose_error(sol.poses[0], body, rc)[0])
+    m4, m8 = np.median(errs[False]), np.median(errs[True])
+    assert m4 < 0.03, m4
+    assert m8 < 0.8 * m4, (m4, m8)
+
+
+def _rot(det, rc, body, sticker) -> int:
+    """Rotation of a detection built by :func:`corners` (index of the canonical TL corner)."""
+    T_cs = invert(body @ rc.T_body_camera) @ sticker
+    tl = rc.camera.project(transform_points(T_cs, OUTER_CORNERS[:1]))[0]
+    return int(np.argmin(np.linalg.norm(det.outer - tl, axis=1)))
+
+
+def test_realistic_noise_under_1cm():
+    """0.15 px noise, 1.5 m, all 8 corners: median camera position error under 1 cm."""
+    rng = np.random.default_rng(2)
+    rc = rig_camera()
+    errs = []
+    for _ in range(100):
+        body, sticker = scene(rng, rc, 1.5, rng.uniform(-0.4, 0.4))
+        r = int(rng.integers(4))
+        sol = solve_pose(corners(rc, body, sticker, r, 0.15, rng), r, sticker, rc)
+        errs.append(pose_error(sol.poses[0], body, rc)[0])
+    assert np.median(errs) < 0.01, np.median(errs)
+
+
+@pytest.mark.parametrize("estimated", [False, True])
+def test_covariance_is_honest(estimated):
+    """NEES of body (x, y, yaw) averages ~3 over noisy trials (given or estimated sigma)."""
+    rng = np.random.default_rng(3)
+    rc = rig_camera()
+    sigma = 0.4
+    nees = []
+    n = 300
+    for _ in range(n):
+        body, sticker = scene(rng, rc, rng.uniform(1.3, 2.0), rng.uniform(-0.4, 0.4))
+        r = int(rng.integers(4))
+        det = corners(rc, body, sticker, r, sigma, rng)
+        sol = solve_pose(det, r, sticker, rc, corner_sigma_px=None if estimated else sigma,
+                         config=PoseConfig(min_sigma_px=0.05))
+        _, d = pose_error(sol.poses[0], body, rc)
+        nees.append(d @ np.linalg.solve(sol.poses[0].cov, d))
+    mean = np.mean(nees)
+    if estimated:
+        # sigma from 10 residual dof: the NEES is then ~3 F(3, 10)-distributed, mean 3 * 10/8.
+        assert 2.5 < mean < 5.0, mean
+    else:
+        lo, hi = chi2.ppf([0.005, 0.995], 3 * n) / n
+        assert lo < mean < hi, (mean, lo, hi)
+    # and not a constant: closer stickers give tighter covariances
+    assert np.isfinite(mean)
+
+
+def test_covariance_grows_with_distance():
+    rng = np.random.default_rng(4)
+    rc = rig_camera()
+    traces = []
+    for dist in (1.4, 2.4):
+        body, sticker = scene(rng, rc, dist)
+        sol = solve_pose(corners(rc, body, sticker, 0, 0.0, rng), 0, sticker, rc, corner_sigma_px=0.3)
+        traces.append(np.trace(sol.poses[0].cov[:2, :2]))
+    assert traces[1] > 2 * traces[0]
+
+
+def test_head_on_is_ambiguous_oblique_is_not():
+    """Looking straight down at a sticker under the camera both IPPE poses fit: flagged ambiguous."""
+    rng = np.random.default_rng(5)
+    down = rig_camera(1.3, 90.0)
+    body, sticker = scene(rng, down)
+    sol = solve_pose(corners(down, body, sticker, 0, 0.3, rng), 0, sticker, down, corner_sigma_px=0.3)
+    assert sol.ambiguous and len(sol.poses) == 2
+    assert sol.poses[0].reprojection_px <= sol.poses[1].reprojection_px
+    rc = rig_camera()
+    amb = 0
+    for _ in range(20):
+        body, sticker = scene(rng, rc, 1.5, rng.uniform(-0.3, 0.3))
+        sol = solve_pose(corners(rc, body, sticker, 0, 0.15, rng), 0, sticker, rc)
+        amb += sol.ambiguous
+        cam_err, _ = pose_error(sol.poses[0], body, rc)
+        assert cam_err < 0.05
+    assert amb <= 2
+
+
+def test_bad_rotation_raises():
+    from tagloc.errors import InputError
+
+    rng = np.random.default_rng(6)
+    rc = rig_camera()
+    body, sticker = scene(rng, rc, 1.5)
+    with pytest.raises(InputError):
+        solve_pose(corners(rc, body, sticker, 0, 0.0, rng), 4, sticker, rc)

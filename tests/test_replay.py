@@ -1,0 +1,135 @@
+"""Trajectory metrics, and `tagloc replay` on a small synthetic session (determinism, GT metrics, .rrd)."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest_io import cached_session, line_map, walk_pose
+from tagloc.geometry import planar_T
+from tagloc.metrics import interpolate_groundtruth, trajectory_metrics
+from tagloc.session import read_tum
+
+FPS = 10.0
+N = 20
+
+
+def straight_gt(n: int = 11, yaw_rate: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    t = np.arange(n) / 10.0
+    return t, np.stack([planar_T(ti, 0.0, yaw_rate * ti) for ti in t])
+
+
+def test_metrics_of_a_constant_offset():
+    gt_t, gt_T = straight_gt()
+    t = np.arange(10) / 10.0 + 0.05  # between GT samples: needs interpolation
+    est = np.c_[t + 0.03, np.full_like(t, 0.04), np.full_like(t, math.radians(2.0))]
+    cov = np.repeat(np.diag([0.0025, 0.0025, 1e-3])[None], len(t), axis=0)
+    m = trajectory_metrics(t, est, cov, gt_t, gt_T)
+    assert m["frames"] == 10 and m["outside_gt"] == 0
+    for k in ("rmse_m", "median_m", "p95_m", "max_m"):
+        assert m[k] == pytest.approx(0.05, abs=1e-9)
+    assert m["heading_rmse_deg"] == pytest.approx(2.0, abs=1e-6)
+    assert m["within_10cm"] == 1.0 and m["within_25cm"] == 1.0
+    assert m["nees_mean"] == pytest.approx(1.0)  # (0.03^2 + 0.04^2) / 0.0025
+
+
+def test_metrics_against_numpy_on_random_errors():
+    rng = np.random.default_rng(7)
+    gt_t, gt_T = straight_gt(101, yaw_rate=0.5)
+    t = np.sort(rng.uniform(0.0, 10.0, 200))
+    truth = np.c_[t, np.zeros_like(t), 0.5 * t]
+    err = rng.normal(0.0, 0.08, (200, 2))
+    dyaw = rng.normal(0.0, 0.05, 200)
+    est = truth + np.c_[err, dyaw]
+    sig = rng.uniform(0.03, 0.1, 200)
+    cov = np.stack([np.diag([s**2, (2 * s) ** 2, 0.01]) for s in sig])
+    m = trajectory_metrics(t, est, cov, gt_t, gt_T)
+    d = np.hypot(err[:, 0], err[:, 1])
+    assert m["rmse_m"] == pytest.approx(np.sqrt(np.mean(d**2)), rel=1e-9)
+    assert m["median_m"] == pytest.approx(np.median(d), rel=1e-9)
+    assert m["p95_m"] == pytest.approx(np.percentile(d, 95), rel=1e-9)
+    assert m["max_m"] == pytest.approx(d.max(), rel=1e-9)
+    assert m["heading_rmse_deg"] == pytest.approx(np.degrees(np.sqrt(np.mean(dyaw**2))), rel=1e-6)
+    assert m["within_10cm"] == pytest.approx(np.mean(d <= 0.1)) and m["within_25cm"] == pytest.approx(np.mean(d <= 0.25))
+    nees = err[:, 0] ** 2 / sig**2 + err[:, 1] ** 2 / (2 * sig) ** 2
+    assert m["nees_mean"] == pytest.approx(nees.mean(), rel=1e-9)
+
+
+def test_heading_interpolation_wraps_around_pi():
+    t = np.array([0.0, 1.0])
+    gt_T = np.stack([planar_T(0, 0, math.pi - 0.1), planar_T(0, 0, -math.pi + 0.1)])  # a 0.2 rad turn across pi
+    gt, inside = interpolate_groundtruth(t, gt_T, np.array([0.5, 0.25, 2.0]))
+    assert inside.tolist() == [True, True, False]
+    assert abs(abs(gt[0, 2]) - math.pi) < 1e-9  # half way is pi, not 0
+    m = trajectory_metrics([0.5], [[0.0, 0.0, -math.pi + 0.01]], [np.eye(3)], t, gt_T)
+    assert m["heading_rmse_deg"] == pytest.approx(math.degrees(0.01), abs=1e-6)
+
+
+def test_metrics_with_nothing_to_score():
+    gt_t, gt_T = straight_gt()
+    m = trajectory_metrics([5.0, 6.0], np.zeros((2, 3)), np.repeat(np.eye(3)[None], 2, 0), gt_t, gt_T)
+    assert m["frames"] == 0 and m["outside_gt"] == 2
+    assert math.isnan(m["rmse_m"]) and m["within_10cm"] == 0.0
+    m = trajectory_metrics(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3)), gt_t, gt_T)
+    assert m["frames"] == 0 and math.isnan(m["nees_mean"])
+
+
+@pytest.fixture(scope="module")
+def session(request, tmp_path_factory) -> Path:
+    """The shared synthetic session, copied, with frame 5 corrupted."""
+    path = tmp_path_factory.mktemp("replay") / "sess"
+    shutil.copytree(cached_session(request.config.cache.mkdir("tagloc_io_sessions"), N, FPS), path)
+    (path / "frames" / "000005.jpg").write_bytes(b"not a jpeg")
+    return path
+
+
+def replay_cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "tagloc", "replay", *args, "--quiet"], capture_output=True,
+                          text=True, timeout=180)
+
+
+def test_replay_is_deterministic_and_scores_against_ground_truth(session, tmp_path):
+    runs = []
+    for k in range(2):
+        out, log = tmp_path / f"est{k}.tum", tmp_path / f"frames{k}.jsonl"
+        r = replay_cli(str(session), "--out", str(out), "--log", str(log), *(["--rerun", str(tmp_path / "r.rrd")] if k else []))
+        assert r.returncode == 0, r.stderr
+        runs.append((out.read_bytes(), log.read_bytes(), r.stdout))
+    assert runs[0][0] == runs[1][0] and runs[0][1] == runs[1][1]
+    stdout = runs[0][2]
+    assert f"frames: {N} (1 unreadable" in stdout and "error vs ground truth" in stdout
+
+    stamps, T = read_tum(tmp_path / "est0.tum")
+    assert len(stamps) >= N - 4  # every frame once tracking, except the corrupt one's pose is still output
+    truth = np.array([walk_pose(t)[:2] for t in stamps])
+    err = np.hypot(*(T[:, :2, 3] - truth).T)
+    assert np.median(err) < 0.05
+    lines = [json.loads(s) for s in (tmp_path / "frames0.jsonl").read_text().splitlines()]
+    assert [d["index"] for d in lines] == list(range(N))
+    assert lines[5]["skipped"] and not lines[5]["observations"]
+    decoded = [o["sticker_id"] for d in lines for o in d["observations"] if o["source"] == "decoded"]
+    assert set(decoded) <= set(line_map().ids.tolist()) and len(decoded) >= N - 2
+
+    from tagloc.rerun_view import read_rrd
+
+    ents = read_rrd(tmp_path / "r.rrd")
+    assert ents["world/body/front/image"].frames == [k for k in range(N) if k != 5]
+    assert len(ents["plots/error/position_m"].frames) >= N - 4
+    assert ents["world/groundtruth/path"].static
+
+
+def test_replay_metrics_match_the_library(session, tmp_path):
+    from tagloc.replay import ReplayConfig, replay
+
+    res = replay(ReplayConfig(session=session, out=tmp_path / "e.tum", progress=False))
+    assert res.frames == N and res.skipped == 1 and res.metrics is not None
+    assert res.metrics["frames"] == res.posed
+    assert res.metrics["rmse_m"] < 0.05 and res.metrics["within_10cm"] > 0.9
+    assert sum(res.fixes.values()) >= N - 3 and set(res.fixes) == {"decoded"}

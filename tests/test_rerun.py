@@ -1,0 +1,128 @@
+"""Rerun logging: write a recording from hand-made results, read the .rrd back with rerun-sdk."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+import tagloc.rerun_view as rv
+from tagloc.geometry import planar_T
+from tagloc.observation import Detection, FrameResult, IdSource, Observation, TrackerOutput, TrackState
+from tagloc.rerun_view import RerunView, read_rrd
+from tagloc.rig import default_rig
+from tagloc.session import Frame
+from tagloc.stickermap import StickerMap
+
+N = 12
+FIRST_POSE = 2  # frames 0-1 initialising
+OFFSET = 0.05  # estimate is this far (m, along y) from ground truth
+
+
+def column(path, entity: str, component: str) -> list:
+    """Values of one component of one entity, in frame order."""
+    from rerun.chunk import RrdReader
+
+    rows = []
+    for chunk in RrdReader(str(path)).stream():
+        if chunk.entity_path.lstrip("/") != entity:
+            continue
+        b = chunk.to_record_batch()
+        if component not in b.schema.names:
+            continue
+        frames = b.column("frame").to_pylist() if "frame" in b.schema.names else [None] * b.num_rows
+        rows += zip(frames, b.column(component).to_pylist())
+    return [v for _, v in sorted(rows, key=lambda r: -1 if r[0] is None else r[0])]
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    rv.PATH_PIECE = 4  # several trajectory pieces from a few frames
+    path = tmp_path_factory.mktemp("rr") / "run.rrd"
+    smap = StickerMap(np.array([7, 8, 9]), np.array([[0.0, 0.0], [1.5, 0.0], [3.0, 0.2]]), np.zeros(3))
+    rig = default_rig()
+    gt_t = np.arange(N) / 10
+    gt = (gt_t, np.stack([planar_T(0.1 * k, 0.0, 0.0) for k in range(N)]))
+    view = RerunView(smap, rig, save=path, groundtruth=gt, image_scale=0.5)
+    rng = np.random.default_rng(3)
+    for k in range(N):
+        img = rng.integers(0, 255, (972, 1296), dtype=np.uint8)
+        outer = np.array([[100.0, 100.0], [300.0, 110.0], [290.0, 300.0], [95.0, 290.0]])
+        obs = [Observation(Detection(outer), 0, 7, IdSource.DECODED, 0, 1.0, accepted=True),
+               Observation(Detection(outer + 400), 0, 8, IdSource.ORB, 2, 0.8, accepted=False, gate_reason="gate"),
+               Observation(Detection(outer + [600, 0]), 0, None)]
+        state = TrackState.INITIALISING if k < FIRST_POSE else TrackState.TRACKING
+        out = TrackerOutput(k / 10, np.array([0.1 * k, OFFSET, 0.0]), np.diag([4e-4, 1e-4, 1e-3]), state, 0.1, 7,
+                            IdSource.DECODED)
+        view.log(Frame(k, k / 10, img), FrameResult(k, k / 10, obs, out, {"detect": 4.0, "total": 6.0}))
+    view.close()
+    rv.PATH_PIECE = 256
+    return path
+
+
+def test_entities_and_frame_counts(recording):
+    ents = read_rrd(recording)
+    for static in ("world/map/stickers", "world/body/front", "world/groundtruth/path"):
+        assert ents[static].static, static
+    image = ents["world/body/front/image"]
+    assert image.static  # the pinhole
+    assert image.frames == list(range(N))
+    assert "EncodedImage:blob" in image.components and "Pinhole:image_from_camera" in image.components
+    assert ents["world/body/front/image/detections"].frames == list(range(N))
+    posed = list(range(FIRST_POSE, N))
+    for name in ("world/body", "world/estimate/ellipse", "plots/error/position_m", "plots/error/yaw_deg",
+                 "plots/uncertainty/position_2sigma_m", "plots/uncertainty/yaw_sigma_deg"):
+        assert ents[name].frames == posed, name
+    for name in ("plots/timing/detect_ms", "plots/timing/total_ms", "status", "world/groundtruth/body"):
+        assert ents[name].frames == list(range(N)), name
+    pieces = sorted(k for k in ents if k.startswith("world/estimate/path/"))
+    assert pieces == ["world/estimate/path/0000", "world/estimate/path/0001", "world/estimate/path/0002"]
+
+
+def test_blueprint_is_in_the_file(recording):
+    from rerun.chunk import RrdReader
+
+    assert len(RrdReader(str(recording)).blueprints()) == 1
+
+
+def test_map_labels_and_values(recording):
+    labels = column(recording, "world/map/stickers", "LineStrips3D:labels")[0]
+    assert labels == ["7", "8", "9"]
+    strips = column(recording, "world/map/stickers", "LineStrips3D:strips")[0]
+    first = np.array(strips[0])
+    assert first.shape == (5, 3) and np.allclose(first[0], first[-1])  # closed square
+    assert np.allclose(np.ptp(first[:, :2], axis=0), [0.1, 0.1]) and np.allclose(first[:, 2], 0)
+    err = np.concatenate(column(recording, "plots/error/position_m", "Scalars:scalars"))
+    assert np.allclose(err, OFFSET, atol=1e-9)
+    two_sigma = np.concatenate(column(recording, "plots/uncertainty/position_2sigma_m", "Scalars:scalars"))
+    assert np.allclose(two_sigma, 2 * 0.02)  # major axis: sqrt(4e-4) = 0.02 m
+
+
+def test_image_is_downscaled_jpeg_and_outlines_scaled(recording):
+    blob = column(recording, "world/body/front/image", "EncodedImage:blob")[0][0]  # one blob: a list of bytes
+    img = cv2.imdecode(np.array(blob, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert img.shape[:2] == (486, 648)
+    K = np.array(column(recording, "world/body/front/image", "Pinhole:image_from_camera")[0]).reshape(3, 3)
+    assert K[0, 0] == pytest.approx(default_rig()[0].camera.fx / 2, rel=1e-6)
+    strips = column(recording, "world/body/front/image/detections", "LineStrips2D:strips")[0]
+    assert np.allclose(np.array(strips[0])[0], [100 * 0.5 + 0.25 - 0.5] * 2)
+    labels = column(recording, "world/body/front/image/detections", "LineStrips2D:labels")[0]
+    assert labels == ["7 decoded", "8 orb (refused: gate)", "? none"]
+    colours = column(recording, "world/body/front/image/detections", "LineStrips2D:colors")[0]
+    assert len(set(colours)) == 3  # one colour per identification source
+
+
+def test_trajectory_pieces_join(recording):
+    p0 = np.array(column(recording, "world/estimate/path/0000", "LineStrips3D:strips")[-1][0])
+    p1 = np.array(column(recording, "world/estimate/path/0001", "LineStrips3D:strips")[-1][0])
+    assert len(p0) == 4 and len(p1) == 5
+    assert np.allclose(p1[0], p0[-1])
+    assert np.allclose(p0[:, 0], [0.2, 0.3, 0.4, 0.5])
+
+
+def test_missing_viewer_is_a_clear_error(monkeypatch, tmp_path):
+    from tagloc.errors import BackendUnavailable
+
+    monkeypatch.setenv("PATH", str(tmp_path))  # no `rerun` executable to spawn
+    with pytest.raises(BackendUnavailable, match="Rerun viewer"):
+        RerunView(StickerMap(np.array([1]), np.zeros((1, 2)), np.zeros(1)), default_rig(), spawn=True)

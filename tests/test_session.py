@@ -1,0 +1,136 @@
+"""Session directories: crash-safe writing, tolerant reading, TUM trajectories."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from tagloc.errors import SessionError
+from tagloc.geometry import make_T
+from tagloc.rig import default_rig
+from tagloc.session import SessionInfo, SessionReader, SessionWriter, read_tum, write_tum
+from tagloc.stickermap import StickerMap
+
+N = 6
+
+
+def _images(rng, n=N, shape=(48, 64)) -> list[np.ndarray]:
+    # Smooth content so JPEG is close; noise would make the JPEG check meaningless.
+    yy, xx = np.mgrid[: shape[0], : shape[1]]
+    return [np.clip(100 + 60 * np.sin(xx / 7.0 + k) * np.cos(yy / 9.0) + rng.normal(0, 2, shape), 0, 255)
+            .astype(np.uint8) for k in range(n)]
+
+
+def _write_session(path, images, ext=".png", stamps=None) -> np.ndarray:
+    smap = StickerMap([4, 9], [[0.0, 0.0], [1.5, 0.0]], [0.0, 1.0])
+    stamps = np.round(np.cumsum(np.full(len(images), 1 / 30)) + 100.0, 6) if stamps is None else stamps
+    with SessionWriter(path, smap, default_rig(), SessionInfo(source="test", fps=30.0), image_ext=ext) as w:
+        for i, (t, img) in enumerate(zip(stamps, images)):
+            w.write(i, float(t), img)
+    return stamps
+
+
+def test_png_round_trip_exact(tmp_path, rng):
+    images = _images(rng)
+    stamps = _write_session(tmp_path / "s", images)
+    r = SessionReader(tmp_path / "s")
+    assert len(r) == N and r.info.source == "test" and r.info.fps == 30.0
+    frames = list(r.frames())
+    assert [f.index for f in frames] == list(range(N))
+    assert np.array([f.timestamp for f in frames]) == pytest.approx(stamps, abs=1e-9)
+    for f, img in zip(frames, images):
+        assert f.error is None and np.array_equal(f.image, img)
+    assert r.skipped == [] and list(r.map.ids) == [4, 9]
+    assert r.camera.K == pytest.approx(default_rig()[0].camera.K)
+
+
+def test_jpeg_round_trip_close(tmp_path, rng):
+    images = _images(rng)
+    _write_session(tmp_path / "s", images, ext=".jpg")
+    for f, img in zip(SessionReader(tmp_path / "s").frames(), images):
+        assert f.image.shape == img.shape
+        assert np.abs(f.image.astype(float) - img).mean() < 3.0
+
+
+def test_missing_session_json_still_readable(tmp_path, rng):
+    _write_session(tmp_path / "s", _images(rng, 3))
+    (tmp_path / "s" / "session.json").unlink()
+    r = SessionReader(tmp_path / "s")
+    assert r.info.source == "unknown" and len(list(r.frames())) == 3 and r.skipped == []
+
+
+def test_corrupt_and_missing_frames_skipped(tmp_path, rng):
+    _write_session(tmp_path / "s", _images(rng), ext=".jpg")
+    frames_dir = tmp_path / "s" / "frames"
+    (frames_dir / "000002.jpg").write_bytes(b"\x00garbage, not a JPEG" * 10)
+    (frames_dir / "000004.jpg").unlink()
+    r = SessionReader(tmp_path / "s")
+    frames = list(r.frames())
+    assert len(frames) == N  # every listed frame is yielded, unreadable ones without an image
+    bad = {f.index for f in frames if f.image is None}
+    assert bad == {2, 4}
+    assert [i for i, _ in r.skipped] == [2, 4]
+    assert "corrupt" in r.skipped[0][1] and "missing" in r.skipped[1][1]
+    assert all(f.image.shape == (48, 64) for f in frames if f.index not in bad)
+
+
+@pytest.mark.parametrize("keep", ["4,", "4"])
+def test_frames_csv_cut_mid_line(tmp_path, rng, keep):
+    _write_session(tmp_path / "s", _images(rng))
+    csv_path = tmp_path / "s" / "frames.csv"
+    lines = csv_path.read_text().splitlines(keepends=True)
+    assert lines[5].startswith("4,")
+    # A crash while writing line 6 (frame 4) leaves only its first characters.
+    csv_path.write_text("".join(lines[:5]) + keep)
+    r = SessionReader(tmp_path / "s")
+    assert list(r.index) == [0, 1, 2, 3]
+    assert len([f for f in r.frames() if f.image is not None]) == 4
+
+
+def test_writer_refuses_existing_session(tmp_path, rng):
+    _write_session(tmp_path / "s", _images(rng, 2))
+    with pytest.raises(SessionError, match="already holds a session"):
+        _write_session(tmp_path / "s", _images(rng, 2))
+
+
+def test_reader_refuses_non_sessions(tmp_path):
+    with pytest.raises(SessionError, match="not a session directory"):
+        SessionReader(tmp_path / "nothing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SessionError, match="missing map.csv"):
+        SessionReader(tmp_path / "empty")
+
+
+def test_tum_round_trip(tmp_path):
+    rot = Rotation.random(20, random_state=3)
+    rng = np.random.default_rng(3)
+    poses = [make_T(R, t) for R, t in zip(rot.as_matrix(), rng.uniform(-50, 50, (20, 3)))]
+    stamps = 1000.0 + np.sort(rng.uniform(0, 60, 20))
+    write_tum(tmp_path / "gt.tum", stamps, poses)
+    t2, T2 = read_tum(tmp_path / "gt.tum")
+    assert t2 == pytest.approx(stamps, abs=1e-6)
+    assert T2.shape == (20, 4, 4)
+    assert T2[:, :3, 3] == pytest.approx(np.array(poses)[:, :3, 3], abs=1e-6)
+    assert T2[:, :3, :3] == pytest.approx(np.array(poses)[:, :3, :3], abs=1e-5)
+
+
+def test_tum_comments_and_errors(tmp_path):
+    p = tmp_path / "x.tum"
+    p.write_text("# timestamp x y z qx qy qz qw\n\n1.0 1 2 3 0 0 0 1\n")
+    t, T = read_tum(p)
+    assert t.tolist() == [1.0] and T[0, :3, 3] == pytest.approx((1, 2, 3))
+    p.write_text("1.0 1 2 3 0 0 0 1\n2.0 1 2 3 0 0 1\n")
+    with pytest.raises(SessionError, match=f"{p}:2: want 8"):
+        read_tum(p)
+    p.write_text("1.0 1 2 3 0 0 0 1\n2.0 1 x 3 0 0 0 1\n")
+    with pytest.raises(SessionError, match=f"{p}:2: not a TUM line"):
+        read_tum(p)
+
+
+def test_groundtruth_in_session(tmp_path, rng):
+    _write_session(tmp_path / "s", _images(rng, 2))
+    assert SessionReader(tmp_path / "s").groundtruth() is None
+    write_tum(tmp_path / "s" / "groundtruth.tum", np.array([0.5]), [np.eye(4)])
+    t, T = SessionReader(tmp_path / "s").groundtruth()
+    assert t.tolist() == [0.5] and T[0] == pytest.approx(np.eye(4))

@@ -1,0 +1,557 @@
+"""Tests of the walking-motion EKF tracker on synthetic trajectories (no images)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from tagloc.observation import IdSource, PoseFix, TrackState
+from tracker import motion
+from tracker.config import TrackerConfig
+from tracker.tracker import Tracker
+
+FIX_COV = np.diag([0.01**2, 0.01**2, math.radians(0.5) ** 2])  # what the pose solver claims
+
+
+def wrap(a):
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def floor_cov(cfg: TrackerConfig) -> np.ndarray:
+    return np.diag([cfg.floor_sigma_xy**2, cfg.floor_sigma_xy**2, cfg.floor_sigma_yaw**2])
+
+
+def make_fix(pose, cov=FIX_COV) -> PoseFix:
+    return PoseFix(np.eye(4), np.asarray(pose, float), np.asarray(cov, float), 0.4)
+
+
+def noisy_fix(pose, rng, cfg: TrackerConfig) -> PoseFix:
+    """A fix whose real error follows the solver's covariance plus the vest floor (the tracker's model)."""
+    z = np.asarray(pose, float) + rng.multivariate_normal(np.zeros(3), FIX_COV + floor_cov(cfg))
+    return make_fix(z)
+
+
+def assert_spd(C):
+    assert np.all(np.isfinite(C))
+    np.testing.assert_allclose(C, C.T, atol=1e-12)
+    assert np.linalg.eigvalsh(C).min() > 0
+
+
+# -- motion model -----------------------------------------------------------------------------------
+
+STATES = [
+    np.array([1.0, -2.0, 0.3, 1.4, 0.0]),
+    np.array([0.0, 0.0, -2.9, 1.2, 1e-9]),
+    np.array([5.0, 1.0, 3.1, 0.8, 1e-4]),
+    np.array([0.0, 0.0, 1.0, 1.3, 0.02]),  # phi/2 crosses the series/closed-form switch
+    np.array([2.0, 3.0, 0.7, 0.0, 3.0]),  # turning on the spot
+    np.array([-1.0, 4.0, -1.2, 2.2, -1.7]),
+]
+
+
+@pytest.mark.parametrize("state", STATES)
+@pytest.mark.parametrize("dt", [0.033, 0.5, 2.0, -0.2])
+def test_motion_jacobian_matches_finite_differences(state, dt):
+    F = motion.jacobian(state, dt)
+    eps = 1e-6
+    num = np.zeros((5, 5))
+    for j in range(5):
+        d = np.zeros(5)
+        d[j] = eps
+        num[:, j] = (motion.propagate(state + d, dt) - motion.propagate(state - d, dt)) / (2 * eps)
+    np.testing.assert_allclose(F, num, atol=1e-7, rtol=1e-6)
+
+
+def test_motion_limits_and_textbook_form():
+    # w -> 0: a straight line, no division by zero.
+    x = motion.propagate([1.0, 2.0, 0.5, 1.5, 0.0], 2.0)
+    np.testing.assert_allclose(x, [1 + 3 * math.cos(0.5), 2 + 3 * math.sin(0.5), 0.5, 1.5, 0.0], atol=1e-12)
+    # w != 0: equals the usual v/w (sin(yaw + w dt) - sin(yaw)) form.
+    s = np.array([1.0, 2.0, 0.5, 1.5, 0.8])
+    dt = 1.3
+    v, w, yaw = 1.5, 0.8, 0.5
+    ref = [1 + v / w * (math.sin(yaw + w * dt) - math.sin(yaw)), 2 + v / w * (math.cos(yaw) - math.cos(yaw + w * dt))]
+    np.testing.assert_allclose(motion.propagate(s, dt)[:2], ref, atol=1e-12)
+    # Backwards undoes forwards.
+    np.testing.assert_allclose(motion.propagate(motion.propagate(s, dt), -dt), s, atol=1e-12)
+    # Jacobian continuous through w = 0.
+    np.testing.assert_allclose(motion.jacobian([0, 0, 0.4, 1.2, 1e-12], 0.7), motion.jacobian([0, 0, 0.4, 1.2, 0.0], 0.7),
+                               atol=1e-10)
+
+
+def test_process_noise_is_psd_and_scales():
+    Q = motion.process_noise([0, 0, 0.3, 1.0, 0.5], 0.5, 0.3, 0.5, 0.05)
+    np.testing.assert_allclose(Q, Q.T)
+    assert np.linalg.eigvalsh(Q).min() > -1e-15
+    np.testing.assert_allclose(Q[3, 3], 0.3 * 0.5)
+    np.testing.assert_allclose(Q[2, 2], 0.5 * 0.5**3 / 3)
+    assert np.all(motion.process_noise([0, 0, 0, 1, 0], 0.0, 0.3, 0.5, 0.05) == 0)
+
+
+# -- simulated walks --------------------------------------------------------------------------------
+
+def simulate(truth, t_end, fix_gaps, rng, cfg=None, frame_dt=0.1, extra=None):
+    """Run a tracker over ``truth(t) -> (x, y, yaw)`` with decoded fixes every ``fix_gaps`` (low, high) s.
+
+    ``extra(t, tracker)`` may offer more fixes in a frame. Returns a dict of per-frame arrays.
+    """
+    cfg = cfg or TrackerConfig()
+    tr = Tracker(cfg)
+    next_fix = 0.0
+    rec = {k: [] for k in ("t", "truth", "pose", "cov", "state", "since")}
+    n_fix = 0
+    for i in range(int(round(t_end / frame_dt)) + 1):
+        t = i * frame_dt
+        tr.predict(t)
+        if t >= next_fix - 1e-9:
+            res = tr.update([noisy_fix(truth(t), rng, cfg)], 100 + n_fix, IdSource.DECODED, t)
+            assert res.accepted, res.reason
+            n_fix += 1
+            next_fix = t + rng.uniform(*fix_gaps)
+        if extra is not None:
+            extra(t, tr)
+        out = tr.output(t)
+        rec["t"].append(t)
+        rec["truth"].append(truth(t))
+        rec["pose"].append(out.pose)
+        rec["cov"].append(out.cov)
+        rec["state"].append(out.state)
+        rec["since"].append(out.since_fix)
+    out = {k: np.array(v) if k != "state" else v for k, v in rec.items()}
+    out["tracker"] = tr
+    err = out["pose"] - out["truth"]
+    err[:, 2] = wrap(err[:, 2])
+    out["err"] = err
+    out["pos_err"] = np.hypot(err[:, 0], err[:, 1])
+    out["pos_nees"] = np.einsum("ni,nij,nj->n", err[:, :2], np.linalg.inv(out["cov"][:, :2, :2]), err[:, :2])
+    return out
+
+
+def straight(t):
+    return np.array([1.3 * t * math.cos(0.4), 1.3 * t * math.sin(0.4), 0.4])
+
+
+def stop_and_go(t):
+    """Walk 1.4 m/s for 4 s, stop at 1.4 m/s^2 (1 s), stand 3 s, start again at 1.4 m/s^2."""
+    v0, a = 1.4, 1.4
+    if t < 4.0:
+        s = v0 * t
+    elif t < 5.0:
+        s = v0 * 4 + v0 * (t - 4) - 0.5 * a * (t - 4) ** 2
+    elif t < 8.0:
+        s = v0 * 4 + 0.7
+    elif t < 9.0:
+        s = v0 * 4 + 0.7 + 0.5 * a * (t - 8) ** 2
+    else:
+        s = v0 * 4 + 1.4 + v0 * (t - 9)
+    return np.array([s, 0.0, 0.0])
+
+
+def turn_on_spot(t):
+    """Walk 1.2 m/s along +x for 3 s, stop over 1 s, turn to face -x (smooth, peak 1.5 rad/s), walk back."""
+    if t < 3.0:
+        return np.array([1.2 * t, 0.0, 0.0])
+    if t < 4.0:
+        return np.array([3.6 + 1.2 * (t - 3) - 0.6 * (t - 3) ** 2, 0.0, 0.0])
+    T = math.pi / 0.75  # turn duration for a raised-cosine rate with peak 1.5 rad/s
+    if t < 4.0 + T:
+        u = t - 4.0
+        yaw = 0.75 * (u - T / (2 * math.pi) * math.sin(2 * math.pi * u / T))
+        return np.array([4.2, 0.0, float(wrap(yaw))])
+    return np.array([4.2 - 1.2 * (t - 4 - T), 0.0, float(wrap(math.pi))])
+
+
+def test_straight_walk_tracked(rng):
+    run = simulate(straight, 30.0, (1.0, 2.0), rng)
+    warm = run["t"] > 4.0
+    # Within 0.5 s of a fix the error is that of the fixes; deeper into 1-2 s gaps it grows with
+    # the (honestly wide) walking model, so the whole-run RMS bound is looser.
+    near = warm & (run["since"] <= 0.5)
+    assert np.sqrt(np.mean(run["pos_err"][near] ** 2)) < 0.07
+    assert run["pos_err"][near].max() < 0.20
+    rms = float(np.sqrt(np.mean(run["pos_err"][warm] ** 2)))
+    assert rms < 0.15, rms
+    z_yaw = np.abs(run["err"][warm, 2]) / np.sqrt(run["cov"][warm, 2, 2])
+    assert np.mean(z_yaw < 3.0) > 0.95 and np.abs(run["err"][near, 2]).max() < 0.2
+    # 2-sigma consistency of the position: at least 90% of frames inside the 95% ellipse.
+    assert np.mean(run["pos_nees"][warm] <= chi2.ppf(0.95, 2)) >= 0.9
+
+
+def test_stop_and_go_tracked(rng):
+    run = simulate(stop_and_go, 16.0, (1.0, 2.0), rng)
+    warm = run["t"] > 2.5
+    # Between fixes the filter cannot know about the stop or the start (no odometry): it must say
+    # so through the covariance, and be right again as soon as a fix arrives.
+    assert np.mean(run["pos_nees"][warm] <= chi2.ppf(0.95, 2)) >= 0.9
+    assert np.all(run["pos_nees"][warm] <= chi2.ppf(0.999, 2))
+    at_fix = warm & (run["since"] <= 1e-9)
+    assert at_fix.sum() >= 6
+    # A fix's own error is ~3.5 cm per axis (solver + vest floor): 5 cm RMS in the plane.
+    assert np.sqrt(np.mean(run["pos_err"][at_fix] ** 2)) < 0.08
+    assert run["pos_err"][at_fix].max() < 0.15
+
+
+def test_turn_on_the_spot_tracked(rng):
+    run = simulate(turn_on_spot, 14.0, (0.7, 1.2), rng)
+    warm = run["t"] > 2.0
+    assert np.mean(run["pos_nees"][warm] <= chi2.ppf(0.95, 2)) >= 0.9
+    at_fix = warm & (run["since"] <= 1e-9)
+    assert np.sqrt(np.mean(run["pos_err"][at_fix] ** 2)) < 0.08
+    assert run["pos_err"][at_fix].max() < 0.15
+    assert np.all(np.abs(run["err"][at_fix, 2]) < 0.1)
+    # Heading error within 3 sigma through the turn, and no fix lost to the gate.
+    z = np.abs(run["err"][warm, 2]) / np.sqrt(run["cov"][warm, 2, 2])
+    assert np.mean(z < 3.0) > 0.95
+    assert run["tracker"].stats["rejected_decoded"] == 0
+
+
+def test_nees_is_consistent_with_the_model(rng):
+    """Truth drawn from the tracker's own motion and fix noise: mean NEES (x, y, yaw) should be ~3."""
+    cfg = TrackerConfig(v_min=-50, v_max=50, w_max=50, lost_sigma_m=1e3)
+    nees = []
+    offered = rejected = 0
+    sub = 0.01
+    for _ in range(20):
+        tr = Tracker(cfg)
+        x = np.array([0.0, 0.0, rng.uniform(-np.pi, np.pi), 0.0, 0.0])
+        x[3] = rng.normal(0, cfg.init_v_sigma)
+        x[4] = rng.normal(0, cfg.init_w_sigma)
+        next_fix = 0.0
+        for i in range(int(10.0 / sub) + 1):
+            t = i * sub
+            if i % 5 == 0:  # 20 Hz frames
+                tr.predict(t)
+                if t >= next_fix - 1e-9:
+                    offered += 1
+                    rejected += not tr.update([noisy_fix(x[:3], rng, cfg)], offered, IdSource.DECODED, t).accepted
+                    next_fix = t + rng.uniform(0.2, 0.6)
+                if t > 2.0:
+                    out = tr.output(t)
+                    e = out.pose - x[:3]
+                    e[2] = wrap(e[2])
+                    nees.append(float(e @ np.linalg.solve(out.cov, e)))
+            a = rng.normal(0, math.sqrt(cfg.accel_psd / sub))
+            alpha = rng.normal(0, math.sqrt(cfg.yaw_accel_psd / sub))
+            v_lat = rng.normal(0, math.sqrt(cfg.lateral_psd / sub))
+            c, s = math.cos(x[2]), math.sin(x[2])
+            x[0] += (x[3] * c - v_lat * s) * sub
+            x[1] += (x[3] * s + v_lat * c) * sub
+            x[2] += x[4] * sub
+            x[3] += a * sub
+            x[4] += alpha * sub
+    mean = float(np.mean(nees))
+    assert 2.4 < mean < 3.8, mean
+    # The 99.9% gate may refuse the odd true fix (model linearisation), never many.
+    assert rejected <= max(2, 0.01 * offered), (rejected, offered)
+
+
+# -- gating, identities, life cycle ------------------------------------------------------------------
+
+def test_outliers_rejected_and_counted(rng):
+    cfg = TrackerConfig()
+    injected = []
+
+    def extra(t, tr):
+        # Shortly after some real fixes, a decoded fix 1 m off in a random direction.
+        if tr.output(t).since_fix == pytest.approx(0.2, abs=1e-6) and len(injected) < 6 and t > 3:
+            ang = rng.uniform(0, 2 * np.pi)
+            z = straight(t) + np.array([math.cos(ang), math.sin(ang), 0.0])
+            res = tr.update([make_fix(z)], 999, IdSource.DECODED, t)
+            injected.append(res)
+
+    run = simulate(straight, 30.0, (0.8, 1.0), rng, cfg, extra=extra)
+    assert len(injected) == 6
+    assert not any(r.accepted for r in injected)
+    assert all(r.nis > cfg.gate for r in injected)
+    st = run["tracker"].stats
+    assert st["rejected_decoded"] == 6
+    assert st["reinitialisations"] == 0
+    assert np.sqrt(np.mean(run["pos_err"][run["t"] > 4] ** 2)) < 0.10
+
+
+def _track(rng, cfg=None, t_end=6.0, gap=0.5):
+    """A tracker that has followed ``straight`` with fixes every ``gap`` s up to ``t_end``."""
+    cfg = cfg or TrackerConfig()
+    tr = Tracker(cfg)
+    for i in range(int(round(t_end / 0.1)) + 1):
+        t = i * 0.1
+        tr.predict(t)
+        if abs(t / gap - round(t / gap)) < 1e-9:
+            assert tr.update([noisy_fix(straight(t), rng, cfg)], i, IdSource.DECODED, t).accepted
+    return tr
+
+
+def test_wrong_id_fix_rejected(rng):
+    """The pose a fix gets when the seen sticker is taken for a neighbour 1.5 m away, turned 90 deg."""
+    tr = _track(rng)
+    t = 6.05
+    truth = straight(t)
+    # Body relative to the true sticker A at (7, 3, 0); wrong sticker B at (8.5, 3, pi/2).
+    A, B = np.array([7.0, 3.0, 0.0]), np.array([8.5, 3.0, math.pi / 2])
+    rel = truth - A
+    c, s = math.cos(B[2] - A[2]), math.sin(B[2] - A[2])
+    wrong = np.array([B[0] + c * rel[0] - s * rel[1], B[1] + s * rel[0] + c * rel[1], wrap(truth[2] + B[2] - A[2])])
+    for source in (IdSource.ORB, IdSource.APPEARANCE, IdSource.DECODED):
+        res = tr.update([make_fix(wrong)], 77, source, t)
+        assert not res.accepted and res.reason.startswith("gated")
+    st = tr.stats
+    assert (st["rejected_orb"], st["rejected_appearance"], st["rejected_decoded"]) == (1, 1, 1)
+    # The right identity from ORB passes.
+    assert tr.update([noisy_fix(truth, rng, tr.config)], 76, IdSource.ORB, t).accepted
+    assert tr.stats["accepted_orb"] == 1
+
+
+def test_identified_gate_is_stricter():
+    cfg = TrackerConfig()
+    assert cfg.gate_identified < cfg.gate
+    assert cfg.gate == pytest.approx(chi2.ppf(0.999, 3))
+    tr = Tracker(cfg)
+    tr.predict(0.0)
+    tr.update([make_fix([0, 0, 0])], 1, IdSource.DECODED, 0.0)
+    tr.predict(0.1)
+    P = tr.prior()[1]
+    S = P + FIX_COV + floor_cov(cfg)
+    # A fix whose NIS lies between the two gates: ORB refused, decoded taken.
+    nis_target = 0.5 * (cfg.gate + cfg.gate_identified)
+    d = np.array([1.0, 0.0, 0.0]) * math.sqrt(nis_target * S[0, 0])
+    tr2 = Tracker(cfg)
+    tr2.predict(0.0)
+    tr2.update([make_fix([0, 0, 0])], 1, IdSource.DECODED, 0.0)
+    tr2.predict(0.1)
+    r_orb = tr2.update([make_fix(d)], 2, IdSource.ORB, 0.1)
+    assert not r_orb.accepted and cfg.gate_identified < r_orb.nis < cfg.gate
+    assert tr2.update([make_fix(d)], 2, IdSource.DECODED, 0.1).accepted
+
+
+def test_orb_fix_ignored_while_initialising():
+    tr = Tracker()
+    tr.predict(0.0)
+    for source in (IdSource.ORB, IdSource.APPEARANCE):
+        res = tr.update([make_fix([1, 2, 0.3])], 5, source, 0.0)
+        assert not res.accepted
+    assert tr.state is TrackState.INITIALISING
+    assert tr.stats["ignored_initialising"] == 2
+    assert tr.prior() is None
+    out = tr.output(0.5)
+    assert out.state is TrackState.INITIALISING and np.all(out.pose == 0) and out.since_fix == math.inf
+    assert_spd(out.cov)
+    res = tr.update([make_fix([1, 2, 0.3])], 5, IdSource.DECODED, 0.1)
+    assert res.accepted and res.reason == "initialised"
+    assert tr.state is TrackState.TRACKING
+    np.testing.assert_allclose(tr.output().pose, [1, 2, 0.3])
+
+
+def test_ambiguous_alternatives():
+    tr = Tracker()
+    tr.predict(0.0)
+    # Initialising: the first (best reprojection) is used.
+    res = tr.update([make_fix([1, 0, 0]), make_fix([1.3, 0.1, 0.4])], 5, IdSource.DECODED, 0.0)
+    assert res.chosen == 0
+    np.testing.assert_allclose(tr.output().pose, [1, 0, 0], atol=1e-9)
+    tr.predict(0.1)
+    # Tracking: the one nearer the prediction, even when listed second.
+    res = tr.update([make_fix([1.4, 0.2, 0.5]), make_fix([1.0, 0.01, 0.01])], 5, IdSource.DECODED, 0.1)
+    assert res.accepted and res.chosen == 1
+    assert abs(tr.output().pose[0] - 1.0) < 0.02
+
+
+def test_out_of_order_frames_and_fixes(rng):
+    cfg = TrackerConfig()
+    tr = _track(rng, cfg)
+    before = tr.output()
+    tr.predict(5.0)  # older than the filter (6.0): ignored
+    after = tr.output()
+    assert after.t == before.t == pytest.approx(6.0)
+    np.testing.assert_array_equal(after.pose, before.pose)
+    assert tr.stats["out_of_order_frames"] == 1
+    # Far too old a fix: refused.
+    res = tr.update([make_fix(straight(5.0))], 1, IdSource.DECODED, 5.0)
+    assert not res.accepted and res.reason.startswith("out of order")
+    assert tr.stats["out_of_order_fixes"] == 1
+
+
+def test_late_fix_fused_like_an_in_order_one(rng):
+    """A fix 0.1 s late (multi-camera interleave) ends close to the same estimate as in order."""
+    cfg = TrackerConfig()
+    seed = int(rng.integers(1 << 30))
+    a = _track(np.random.default_rng(seed), cfg, t_end=6.0, gap=1.0)
+    b = _track(np.random.default_rng(seed), cfg, t_end=6.0, gap=1.0)
+    fix = noisy_fix(straight(6.3), rng, cfg)
+    a.predict(6.3)
+    assert a.update([fix], 9, IdSource.DECODED, 6.3).accepted
+    a.predict(6.4)
+    b.predict(6.4)
+    res = b.update([fix], 9, IdSource.DECODED, 6.3)
+    assert res.accepted
+    assert b.stats["late_fixes_fused"] == 1
+    oa, ob = a.output(), b.output()
+    assert np.hypot(*(oa.pose[:2] - ob.pose[:2])) < 0.02
+    # Retrodiction ignores the correlation of the lag's process noise with the state: close, not equal.
+    np.testing.assert_allclose(np.diag(ob.cov), np.diag(oa.cov), rtol=0.4)
+    # Without the late fix the covariance would be far larger.
+    c = _track(np.random.default_rng(seed), cfg, t_end=6.0, gap=1.0)
+    c.predict(6.4)
+    assert np.trace(c.output().cov[:2, :2]) > 3 * np.trace(ob.cov[:2, :2])
+
+
+def test_same_frame_fixes_share_the_vest_floor():
+    """Three stickers in one frame are one vest pose: they must not shrink the covariance 3x."""
+    cfg = TrackerConfig()
+    tiny = np.diag([1e-6, 1e-6, 1e-8])
+
+    def fused(n):
+        tr = Tracker(cfg)
+        tr.predict(0.0)
+        tr.update([make_fix([0, 0, 0], tiny)], 1, IdSource.DECODED, 0.0)
+        tr.predict(0.5)
+        for k in range(n):
+            assert tr.update([make_fix([0.7, 0.0, 0.0], tiny)], 2 + k, IdSource.DECODED, 0.5).accepted
+        return tr.output().cov
+
+    one, three = fused(1), fused(3)
+    # Independent treatment would divide the variance by ~3; shared floor keeps it within 10%.
+    assert three[0, 0] > 0.9 * one[0, 0]
+    assert three[1, 1] > 0.9 * one[1, 1]
+    # A same-frame fix far from the others is gated against them, not just against the prior.
+    tr = Tracker(cfg)
+    tr.predict(0.0)
+    tr.update([make_fix([0, 0, 0], tiny)], 1, IdSource.DECODED, 0.0)
+    tr.predict(1.5)  # prior wide (~0.9 m along track)
+    assert tr.update([make_fix([0.0, 0.0, 0.0], tiny)], 2, IdSource.DECODED, 1.5).accepted
+    res = tr.update([make_fix([0.4, 0.0, 0.0], tiny)], 3, IdSource.DECODED, 1.5)
+    assert not res.accepted, res
+
+
+def test_long_gap_goes_lost_and_recovers(rng):
+    cfg = TrackerConfig()
+    tr = _track(rng, cfg)
+    lost_before = tr.stats["lost"]
+    sigmas, states = [], []
+    for i in range(1, 121):
+        t = 6.0 + i * 1.0
+        tr.predict(t)
+        out = tr.output()
+        assert np.all(np.isfinite(out.pose))
+        assert_spd(out.cov)
+        sigmas.append(math.sqrt(np.linalg.eigvalsh(out.cov[:2, :2])[-1]))
+        states.append(out.state)
+    assert np.all(np.diff(sigmas) >= -1e-9)
+    # 2 s at 1.3 m/s with no fix: position sigma > 0.5 m.
+    assert all(s is TrackState.LOST for s in states[1:])
+    assert tr.prior() is None
+    assert tr.stats["lost"] == lost_before + 1
+    # Hours later, on demand: finite, SPD, capped.
+    far = tr.output(tr.time + 5 * 3600.0)
+    assert far.state is TrackState.LOST and np.all(np.isfinite(far.pose))
+    assert_spd(far.cov)
+    assert far.cov[0, 0] <= cfg.pos_var_cap * (1 + 1e-9) and far.cov[2, 2] <= cfg.yaw_var_cap * (1 + 1e-9)
+    # ORB fixes are not taken while lost; the next decoded fix recovers.
+    t = tr.time + 0.1
+    here = np.array([20.0, -4.0, 1.0])
+    assert not tr.update([make_fix(here)], 3, IdSource.ORB, t).accepted
+    assert tr.stats["ignored_lost"] == 1
+    res = tr.update([make_fix(here)], 3, IdSource.DECODED, t)
+    assert res.accepted
+    assert tr.state is TrackState.TRACKING
+    assert np.hypot(*(tr.output().pose[:2] - here[:2])) < 0.05
+
+
+def test_kidnapped_operator_reinitialises(rng):
+    """Fixes at 4 Hz; at t = 6 s the operator is suddenly 5 m away: consistent decoded fixes take over."""
+    cfg = TrackerConfig()
+    tr = _track(rng, cfg, t_end=6.0, gap=0.25)
+
+    def moved(t):
+        return straight(t) + np.array([0.0, 5.0, 0.0])
+
+    results = []
+    for i, t in enumerate(np.arange(6.1, 8.0, 0.25)):
+        tr.predict(t)
+        results.append(tr.update([noisy_fix(moved(t), rng, cfg)], 500 + i, IdSource.DECODED, t))
+    assert [r.accepted for r in results[:2]] == [False, False]
+    assert results[2].accepted and results[2].reason.startswith("reinitialised")
+    assert all(r.accepted and r.reason == "fused" for r in results[3:])
+    st = tr.stats
+    assert st["reinitialisations"] == 1 and st["reinit_consistent"] == 1
+    assert st["rejected_decoded"] == 2
+    assert np.hypot(*(tr.output().pose[:2] - moved(tr.time)[:2])) < 0.10
+
+
+def test_inconsistent_rejections_do_not_reinitialise(rng):
+    """Three rejected decoded fixes scattered around (not one consistent motion) leave the track alone."""
+    cfg = TrackerConfig()
+    tr = _track(rng, cfg, t_end=6.0, gap=0.25)
+    offsets = [(0, 3.0), (3.0, 0), (0, -3.0), (-3.0, 0)]
+    for i, (dx, dy) in enumerate(offsets):
+        t = 6.1 + 0.25 * i
+        tr.predict(t)
+        assert not tr.update([make_fix(straight(t) + [dx, dy, 0])], 600 + i, IdSource.DECODED, t).accepted
+        tr.update([noisy_fix(straight(t), rng, cfg)], 700 + i, IdSource.DECODED, t)
+    assert tr.stats["reinitialisations"] == 0
+    assert np.hypot(*(tr.output().pose[:2] - straight(tr.time)[:2])) < 0.1
+
+
+def test_random_inputs_never_break_the_covariance():
+    """Random times (repeats, reversals, jumps of hours, NaN) and random, partly malformed fixes."""
+    rng = np.random.default_rng(7)
+    steps = [0.0, 0.0, 1e-4, 0.03, 0.1, 0.7, 3.0, -0.05, -2.0, 600.0, 7200.0, math.nan, math.inf]
+    sources = [IdSource.DECODED, IdSource.DECODED, IdSource.ORB, IdSource.APPEARANCE, IdSource.NONE]
+    for seed in range(4):
+        tr = Tracker()
+        t = float(rng.uniform(-100, 100))
+        for _ in range(250):
+            t_new = t + steps[rng.integers(len(steps))]
+            tr.predict(t_new)
+            if math.isfinite(t_new) and t_new > t:
+                t = t_new
+            if rng.random() < 0.6:
+                n = int(rng.integers(0, 3))
+                fixes = []
+                for _k in range(n):
+                    body = rng.normal(0, [5, 5, 10]) + tr.output().pose * (rng.random() < 0.7)
+                    kind = rng.integers(6)
+                    cov = [np.diag(rng.uniform(1e-6, 1e-2, 3)), np.zeros((3, 3)), np.diag([1e8, 1e8, 1e3]),
+                           -np.eye(3), np.full((3, 3), np.nan), rng.normal(size=(3, 3))][kind]
+                    if rng.random() < 0.05:
+                        body[0] = np.nan
+                    fixes.append(make_fix(body, cov))
+                t_fix = t - rng.choice([0.0, 0.0, 0.1, 1.0])
+                tr.update(fixes, int(rng.integers(100)), sources[rng.integers(len(sources))], t_fix)
+            for when in (None, t + float(rng.choice([0.0, 0.5, 1e4]))):
+                out = tr.output(when)
+                assert np.all(np.isfinite(out.pose)) and math.isfinite(out.t)
+                assert_spd(out.cov)
+                assert -math.pi <= out.pose[2] < math.pi
+        assert tr.stats["numeric_errors"] == 0
+
+
+def test_lost_track_restarts_on_a_disagreeing_decoded_fix(rng):
+    tr = _track(rng)
+    tr.predict(tr.time + 2.5)  # position sigma well over 0.5 m
+    assert tr.state is TrackState.LOST
+    far = straight(tr.time) + np.array([10.0, -6.0, 2.0])
+    res = tr.update([make_fix(far)], 42, IdSource.DECODED, tr.time)
+    assert res.accepted and res.reason.startswith("reinitialised (lost")
+    st = tr.stats
+    assert st["reinit_lost"] == 1 and st["reinitialisations"] == 1 and st["rejected_decoded"] == 0
+    out = tr.output()
+    assert out.state is TrackState.TRACKING and out.last_id == 42 and out.last_source is IdSource.DECODED
+    np.testing.assert_allclose(out.pose[:2], far[:2], atol=1e-9)
+    assert out.since_fix == 0.0
+
+
+def test_same_frame_fixes_at_initialisation_share_the_floor():
+    """Two stickers in the very first frame: the joint start is no sharper than the floor allows."""
+    cfg = TrackerConfig()
+    tiny = np.diag([1e-6, 1e-6, 1e-8])
+    tr = Tracker(cfg)
+    tr.predict(0.0)
+    assert tr.update([make_fix([1.0, 2.0, 0.1], tiny)], 1, IdSource.DECODED, 0.0).reason == "initialised"
+    one = tr.output().cov
+    assert tr.update([make_fix([1.0, 2.0, 0.1], tiny)], 2, IdSource.DECODED, 0.0).accepted
+    two = tr.output().cov
+    np.testing.assert_allclose(np.diag(two), np.diag(one), rtol=0.05)
+    np.testing.assert_allclose(tr.output().pose, [1.0, 2.0, 0.1], atol=1e-6)

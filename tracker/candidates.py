@@ -1,0 +1,253 @@
+"""Which mapped stickers could the one seen at a pixel be? Candidates from the tracker's prior.
+
+Stickers near the camera's predicted floor footprint are fetched from the map's KD-tree, their
+centres projected through the predicted body pose and the rig into the (distorted) image, and each
+projection's uncertainty is the body-pose covariance pushed through the projection Jacobian plus
+the vest's own wobble and a pixel term. Candidates are those whose predicted pixel lies within the
+Mahalanobis gate of the observed one, most likely first.
+
+Projection Jacobian of sticker centre ``p_w`` (world, on the floor) with respect to the body pose
+(x, y, yaw): ``p_b = R(yaw)^T (p_w - (x, y, 0))``, ``p_c = R_cb p_b + t_cb``, pixel ``u = pi(p_c)``::
+
+    d p_b / d(x, y, yaw) = [[-cos, -sin,  p_b.y],
+                            [ sin, -cos, -p_b.x],
+                            [   0,    0,      0]]
+    d u / d(x, y, yaw)   = (d u / d p_c) R_cb (d p_b / d(x, y, yaw))
+
+``d u / d p_c`` (with distortion) is OpenCV's ``projectPoints`` Jacobian with respect to ``tvec``
+at zero pose; its Jacobian with respect to ``rvec`` gives the effect of the camera tilting.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.stats import chi2
+
+from tagloc.geometry import invert, planar_T
+from tagloc.rig import RigCamera
+from tagloc.stickermap import StickerMap
+
+#: Default gate: 99.9% of a 2-D Gaussian (sqrt of the chi-square bound, about 3.72 sigma).
+GATE_SIGMA = math.sqrt(float(chi2.ppf(0.999, 2)))
+
+
+@dataclass
+class CandidateConfig:
+    """Noise beyond the body-pose covariance when predicting where a sticker appears.
+
+    Attributes:
+        pixel_sigma: detection-centre noise, px: the mean of the four detected corners is not the
+            projected centre under perspective (~1 px for a 10 cm sticker) and blur moves corners.
+        tilt_sigma: camera tilt about its own axes relative to the nominal rig, rad (the vest
+            pitches/rolls ~1 deg; at fx ~1290 px that alone is ~22 px).
+        bob_sigma: camera height bob, m (2-3 cm while walking).
+        max_range: farthest floor distance from the camera considered, m (the footprint of rays
+            above the horizon is clipped there; a 10 cm sticker is ~30 px wide at 4 m).
+        min_depth: points closer than this along the optical axis are not projected, m.
+        image_margin: fraction of the image size around it where predicted stickers still count
+            (a sticker predicted just outside may be the one seen just inside).
+    """
+
+    pixel_sigma: float = 3.0
+    tilt_sigma: float = math.radians(1.0)
+    bob_sigma: float = 0.025
+    max_range: float = 4.0
+    min_depth: float = 0.1
+    image_margin: float = 0.25
+
+
+@dataclass
+class Footprint:
+    """The floor area a camera sees, in the body frame.
+
+    Attributes:
+        polygon: (M, 2) floor points under the image border (body x, y), m, rays clipped at range.
+        centre: (2,) centre of the polygon's bounding box. radius: distance to its farthest vertex.
+    """
+
+    polygon: np.ndarray
+    centre: np.ndarray
+    radius: float
+
+
+@dataclass
+class Projection:
+    """Mapped sticker centres projected into one camera.
+
+    Attributes:
+        rows: (N,) map rows. ids: (N,) sticker IDs.
+        pixels: (N, 2) distorted pixel positions. depth: (N,) distance along the optical axis, m.
+        in_image: (N,) bool, the pixel lies inside the image.
+    """
+
+    rows: np.ndarray
+    ids: np.ndarray
+    pixels: np.ndarray
+    depth: np.ndarray
+    in_image: np.ndarray
+
+
+_FOOTPRINTS: dict[int, tuple[bytes, Footprint]] = {}
+
+
+def _key(rc: RigCamera, cfg: CandidateConfig) -> bytes:
+    c = rc.camera
+    return (rc.T_body_camera.tobytes() + c.K.tobytes() + c.dist.tobytes()
+            + np.array([c.width, c.height, cfg.max_range], float).tobytes())
+
+
+def footprint(rig_camera: RigCamera, config: CandidateConfig | None = None) -> Footprint:
+    """Floor footprint of ``rig_camera`` in the body frame (cached per rig camera and settings)."""
+    cfg = config or CandidateConfig()
+    key = _key(rig_camera, cfg)
+    hit = _FOOTPRINTS.get(id(rig_camera))
+    if hit is not None and hit[0] == key:
+        return hit[1]
+    cam = rig_camera.camera
+    w, h = cam.width - 1.0, cam.height - 1.0
+    s = np.linspace(0.0, 1.0, 17)
+    border = np.vstack([np.c_[s * w, 0 * s], np.c_[w + 0 * s, s * h], np.c_[(1 - s) * w, h + 0 * s],
+                        np.c_[0 * s, (1 - s) * h]])
+    norm = cv2.undistortPoints(border.reshape(-1, 1, 2), cam.K, cam.dist).reshape(-1, 2)
+    rays = rig_camera.T_body_camera[:3, :3] @ np.c_[norm, np.ones(len(norm))].T  # (3, M), body
+    origin = rig_camera.T_body_camera[:3, 3]
+    horiz = np.hypot(rays[0], rays[1])
+    # Distance along the floor to where each ray meets it; rays at or above the horizon never do.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        reach = np.where(rays[2] < -1e-9, origin[2] * horiz / -rays[2], np.inf)
+    reach = np.minimum(reach, cfg.max_range)
+    dirs = rays[:2] / np.maximum(horiz, 1e-12)
+    poly = (origin[:2, None] + dirs * reach).T
+    lo, hi = poly.min(axis=0), poly.max(axis=0)
+    centre = 0.5 * (lo + hi)
+    fp = Footprint(poly, centre, float(np.max(np.hypot(*(poly - centre).T))))
+    _FOOTPRINTS[id(rig_camera)] = (key, fp)
+    return fp
+
+
+def _query_rows(mean: np.ndarray, cov: np.ndarray | None, smap: StickerMap, fp: Footprint,
+                n_sigma: float) -> np.ndarray:
+    """Map rows near the footprint, widened by ``n_sigma`` of position and heading uncertainty."""
+    x, y, yaw = (float(v) for v in mean)
+    c, s = math.cos(yaw), math.sin(yaw)
+    cx, cy = x + c * fp.centre[0] - s * fp.centre[1], y + s * fp.centre[0] + c * fp.centre[1]
+    radius = fp.radius + 0.1
+    if cov is not None:
+        pos_sigma = math.sqrt(max(np.linalg.eigvalsh(cov[:2, :2])[-1], 0.0))
+        reach = float(np.hypot(*fp.centre)) + fp.radius
+        # A heading error swings the footprint about the body by at most a chord of 2 * reach.
+        radius += n_sigma * pos_sigma + min(n_sigma * math.sqrt(max(cov[2, 2], 0.0)), 2.0) * reach
+    return smap.within(cx, cy, radius)
+
+
+def _project(mean: np.ndarray, smap: StickerMap, rig_camera: RigCamera, rows: np.ndarray,
+             cfg: CandidateConfig, jacobians: bool):
+    """Project map rows' centres; returns (kept rows, pixels (N,2), depth (N,), p_b (N,3), J (2N,15) | None)."""
+    T_world_body = planar_T(*mean)
+    T_cam_body = invert(rig_camera.T_body_camera)
+    p_w = np.c_[smap.xy[rows], np.zeros(len(rows))]
+    Rwb, twb = T_world_body[:3, :3], T_world_body[:3, 3]
+    p_b = (p_w - twb) @ Rwb  # R^T (p_w - t)
+    p_c = p_b @ T_cam_body[:3, :3].T + T_cam_body[:3, 3]
+    cam = rig_camera.camera
+    z = p_c[:, 2]
+    keep = z > cfg.min_depth
+    # Only points whose ideal projection lies near the image: distortion polynomials fold far-off
+    # points back into view.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = cam.fx * p_c[:, 0] / z + cam.K[0, 2]
+        v = cam.fy * p_c[:, 1] / z + cam.K[1, 2]
+    mx, my = cfg.image_margin * cam.width, cfg.image_margin * cam.height
+    keep &= (u > -mx) & (u < cam.width + mx) & (v > -my) & (v < cam.height + my)
+    rows, p_b, p_c = rows[keep], p_b[keep], p_c[keep]
+    if len(rows) == 0:
+        return rows, np.zeros((0, 2)), np.zeros(0), p_b, None
+    pix, J = cv2.projectPoints(p_c.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), cam.K, cam.dist)
+    return rows, pix.reshape(-1, 2), p_c[:, 2], p_b, (J if jacobians else None)
+
+
+def project_map(mean: np.ndarray, smap: StickerMap, rig_camera: RigCamera,
+                config: CandidateConfig | None = None) -> Projection:
+    """Every mapped sticker whose centre falls in (or near) ``rig_camera``'s view from body pose ``mean`` (3,).
+
+    For visualisation and for spotting mapped stickers that should have been seen; ``in_image``
+    flags the ones whose centre is inside the image proper.
+    """
+    cfg = config or CandidateConfig()
+    mean = np.asarray(mean, float).ravel()
+    rows = _query_rows(mean, None, smap, footprint(rig_camera, cfg), 0.0)
+    rows, pix, depth, _, _ = _project(mean, smap, rig_camera, rows, cfg, jacobians=False)
+    cam = rig_camera.camera
+    inside = (pix[:, 0] >= 0) & (pix[:, 0] <= cam.width - 1) & (pix[:, 1] >= 0) & (pix[:, 1] <= cam.height - 1)
+    return Projection(rows, smap.ids[rows], pix, depth, inside)
+
+
+def predicted_pixels(mean: np.ndarray, cov: np.ndarray, smap: StickerMap, rig_camera: RigCamera,
+                     rows: np.ndarray, config: CandidateConfig | None = None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Predicted pixels of map ``rows`` with their covariances.
+
+    Returns (kept rows (N,), pixels (N, 2), covariances (N, 2, 2) in px^2) for the rows in front of
+    the camera and near the image.
+    """
+    cfg = config or CandidateConfig()
+    mean = np.asarray(mean, float).ravel()
+    rows, pix, _, p_b, J = _project(mean, smap, rig_camera, np.asarray(rows, np.int64), cfg, jacobians=True)
+    if len(rows) == 0:
+        return rows, pix, np.zeros((0, 2, 2))
+    n = len(rows)
+    J = J.reshape(n, 2, -1)
+    J_rot, J_c = J[:, :, 0:3], J[:, :, 3:6]  # d pixel / d rvec, d pixel / d p_c at zero pose
+    R_cb = rig_camera.T_body_camera[:3, :3].T
+    c, s = math.cos(mean[2]), math.sin(mean[2])
+    G = np.zeros((n, 3, 3))
+    G[:, 0, 0], G[:, 0, 1], G[:, 0, 2] = -c, -s, p_b[:, 1]
+    G[:, 1, 0], G[:, 1, 1], G[:, 1, 2] = s, -c, -p_b[:, 0]
+    J_pose = J_c @ R_cb @ G  # (n, 2, 3)
+    cov = np.asarray(cov, float)
+    C = J_pose @ cov @ J_pose.transpose(0, 2, 1)
+    C += cfg.tilt_sigma**2 * J_rot @ J_rot.transpose(0, 2, 1)
+    up = J_c @ R_cb[:, 2]  # (n, 2): pixel motion per metre of camera height change
+    C += cfg.bob_sigma**2 * up[:, :, None] * up[:, None, :]
+    C += cfg.pixel_sigma**2 * np.eye(2)
+    return rows, pix, C
+
+
+def select_candidates(mean: np.ndarray, cov: np.ndarray, smap: StickerMap, rig_camera: RigCamera,
+                      observed_px: np.ndarray, k: int = 5, gate_sigma: float = GATE_SIGMA,
+                      config: CandidateConfig | None = None) -> list[int]:
+    """IDs of the mapped stickers that may be the one whose centre was seen at ``observed_px``.
+
+    Args:
+        mean, cov: body pose prior (x, y, yaw) (3,) and its covariance (3, 3) (``Tracker.prior()``;
+            pass its result only while TRACKING, which is when it is not None).
+        observed_px: (2,) distorted pixel centre of the detected sticker.
+        k: at most this many IDs. gate_sigma: Mahalanobis gate in pixel space.
+
+    Returns:
+        Up to ``k`` sticker IDs inside the gate, most likely first (Gaussian likelihood of the
+        observed pixel under each sticker's predicted pixel distribution).
+    """
+    if mean is None or cov is None:
+        return []
+    cfg = config or CandidateConfig()
+    mean = np.asarray(mean, float).ravel()
+    cov = np.asarray(cov, float)
+    rows = _query_rows(mean, cov, smap, footprint(rig_camera, cfg), gate_sigma)
+    if len(rows) == 0:
+        return []
+    rows, pix, C = predicted_pixels(mean, cov, smap, rig_camera, rows, cfg)
+    if len(rows) == 0:
+        return []
+    d = np.asarray(observed_px, float).ravel()[:2] - pix
+    d2 = np.einsum("ni,ni->n", d, np.linalg.solve(C, d[:, :, None])[:, :, 0])
+    inside = d2 <= gate_sigma**2
+    if not inside.any():
+        return []
+    neg_log_lik = d2[inside] + np.log(np.linalg.det(C[inside]))
+    order = np.argsort(neg_log_lik, kind="stable")[:k]
+    return [int(i) for i in smap.ids[rows[inside][order]]]

@@ -1,0 +1,113 @@
+"""The tracker's configuration: walking-motion noise, rig noise floor, gates and life-cycle limits.
+
+Every number below is chosen by reasoning about a person walking in a warehouse with a camera on a
+vest, not by fitting a test. Units: metres, seconds, radians.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from scipy.stats import chi2
+
+
+@dataclass
+class TrackerConfig:
+    """Choices of the walking-motion EKF (:class:`tracker.tracker.Tracker`).
+
+    Motion noise (continuous-time white-noise power spectral densities of the CTRV model in
+    :mod:`tracker.motion`):
+
+    - ``accel_psd`` (m^2/s^3), longitudinal acceleration. Over 1 s the speed spreads by
+      sqrt(0.3) = 0.55 m/s and the position by sqrt(0.3/3) = 0.32 m. A hard stop from 1.4 m/s at
+      1.4 m/s^2 (the 1-2 m/s^2 people stop and start with) leaves the walker 0.7 m behind the
+      constant-velocity prediction after 1 s: 2.2 sigma, well inside the gate, so fixes after a stop
+      are not thrown away, while steady walking (speed changes of ~0.1 m/s per step) stays sharp.
+    - ``yaw_accel_psd`` (rad^2/s^3), yaw acceleration. 0.5 spreads the yaw rate by 0.7 rad/s per
+      second, so a corner taken while walking (~1.5 rad/s built up over ~1 s) is a 2-sigma event.
+      Spinning on the spot (3 rad/s within 0.5 s, 0.75 rad off after 0.5 s) is beyond it on
+      purpose: a model wide enough for spins would leave the heading +-0.5 rad half a second after
+      every fix (position +-0.5 m at walking speed) and the prior useless for candidates. Fixes
+      after such a spin fail the gate and the track recovers by re-initialisation (below).
+    - ``lateral_psd`` (m^2/s), white lateral velocity: people sidestep without turning. 0.05 gives
+      0.16 m of sideways spread in 0.5 s, the size of one sidestep.
+
+    Physical limits (the state is clipped to them after every step): speed ``v_min``..``v_max``
+    (walking backwards slowly .. running 2.5 m/s), yaw rate +-``w_max``.
+
+    Rig/vest noise floor added to every fix's covariance, because the pose solver assumes the
+    nominal rig while the vest bobs 2-3 cm and tilts ~1 deg: a 1 deg tilt swings the 1.3 m lever
+    from camera to floor by 2.3 cm, plus 2.5 cm of bob gives sqrt(2.3^2 + 2.5^2) = 3.4 cm per axis
+    (``floor_sigma_xy``); the vest also twists about the torso by ~1.5 deg (``floor_sigma_yaw``).
+    The floor is shared by all stickers seen in one frame (same vest pose), and the tracker fuses
+    same-frame fixes with that correlation.
+
+    Gates (squared Mahalanobis distance of the innovation over x, y, yaw, 3 DoF):
+
+    - ``gate_prob`` 0.999 for decoded fixes (the brief's bound, 16.27).
+    - ``gate_prob_identified`` 0.99 (11.34) for ORB/appearance fixes: their identity was picked among
+      candidates chosen from this very prior, so agreement with it is weaker evidence, and a wrong
+      pick (a neighbouring sticker, one spacing away) must not pull the track; losing 1% of good
+      identified fixes costs little.
+
+    Life cycle:
+
+    - ``lost_sigma_m``: TRACKING becomes LOST when the position standard deviation (square root of
+      the largest eigenvalue of the x, y covariance) exceeds it. Candidates for the sticker seen at
+      a pixel are the map stickers within the gate (~3.7 sigma) of the floor point under that pixel:
+      pi (3.7 sigma)^2 / spacing^2 stickers, about K = 5 at sigma = 0.5 m and 1.5 m spacing. Beyond
+      that the true sticker often falls outside the top K, and a wrong pick (one spacing away)
+      would pass the identified gate. With the noise above this happens ~1.1 s into a gap while
+      walking (an honest limit without odometry): decoded fixes still resume tracking.
+    - ``lost_after_s``: or when no fix was accepted for this long; after it the speed and yaw rate
+      are forgotten (zero mean, initial variance), so the mean stops extrapolating.
+    - ``max_lag_s``: a fix from a frame up to this much older than the filter is fused against the
+      state retrodicted to its time (multi-camera rigs interleave frames); older ones are rejected
+      and counted, and so are frames older than the filter (they do not move it).
+    - Re-initialisation: ``reinit_fixes`` decoded fixes rejected by the gate but consistent with
+      each other (each passing the decoded gate of a fresh filter started from the first), from at
+      least ``reinit_min_ids`` different stickers, within ``reinit_window_s``, replace the track:
+      the filter was wrong, not the stickers (a "kidnapped" operator, a missed turn).
+
+    Covariance guards: eigenvalues are kept >= ``min_eig``; variances are capped (position
+    ``pos_var_cap`` m^2, i.e. 1 km sigma; yaw pi^2/3, the variance of a uniform heading; speed
+    ``v_var_cap``; yaw rate ``w_var_cap``) so hours without a fix give a huge but finite covariance.
+    ``max_step_s`` splits long predictions into steps (at most ``max_steps``).
+    """
+
+    accel_psd: float = 0.3
+    yaw_accel_psd: float = 0.5
+    lateral_psd: float = 0.05
+    v_min: float = -1.0
+    v_max: float = 2.5
+    w_max: float = 4.0
+    init_v_sigma: float = 1.0
+    init_w_sigma: float = 1.0
+    floor_sigma_xy: float = 0.034
+    floor_sigma_yaw: float = math.radians(1.5)
+    gate_prob: float = 0.999
+    gate_prob_identified: float = 0.99
+    lost_sigma_m: float = 0.5
+    lost_after_s: float = 10.0
+    max_lag_s: float = 0.25
+    reinit_fixes: int = 3
+    reinit_min_ids: int = 2
+    reinit_window_s: float = 5.0
+    min_eig: float = 1e-10
+    pos_var_cap: float = 1e6
+    yaw_var_cap: float = math.pi**2 / 3
+    v_var_cap: float = 4.0
+    w_var_cap: float = 9.0
+    max_step_s: float = 0.2
+    max_steps: int = 50
+
+    @property
+    def gate(self) -> float:
+        """Squared-Mahalanobis bound for decoded fixes (chi-square, 3 DoF)."""
+        return float(chi2.ppf(self.gate_prob, 3))
+
+    @property
+    def gate_identified(self) -> float:
+        """Squared-Mahalanobis bound for ORB/appearance fixes (chi-square, 3 DoF)."""
+        return float(chi2.ppf(self.gate_prob_identified, 3))

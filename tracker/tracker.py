@@ -1,0 +1,375 @@
+"""The tracker: walking-motion EKF, gating, life cycle (INITIALISING / TRACKING / LOST), counters.
+
+Rules, in one place:
+
+- Time is the frames' clock. :meth:`Tracker.predict` moves the filter to a frame's timestamp; a
+  frame older than the filter does not move it (counted ``out_of_order_frames``). A fix up to
+  ``max_lag_s`` older than the filter is fused against the state retrodicted to its time (CTRV run
+  backwards, plus the process noise over the lag); an older fix is rejected
+  (``out_of_order_fixes``).
+- Every fix's covariance gets the rig/vest noise floor (see :class:`TrackerConfig`). Fixes from the
+  same frame share that floor; they are fused jointly with the correlation, so three stickers in one
+  frame do not count as three independent vest poses.
+- Two IPPE alternatives (ambiguous pose): while tracking, the one with the smaller Mahalanobis
+  distance to the prediction is used; when (re)initialising, the first (best reprojection).
+- INITIALISING: only a DECODED fix starts the track. TRACKING: fixes must pass the chi-square gate
+  (stricter for ORB/appearance). LOST (position sigma > ``lost_sigma_m`` or no fix for
+  ``lost_after_s``; after ``lost_after_s`` speed and yaw rate are also forgotten): only decoded
+  fixes are taken; one that passes the gate is fused, one that does not re-initialises the track.
+- ``reinit_fixes`` gated-out DECODED fixes that agree with each other re-initialise the track.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tagloc.observation import IdSource, PoseFix, TrackerOutput, TrackState
+from tagloc.rig import RigCamera
+from tagloc.stickermap import StickerMap
+from tracker.candidates import select_candidates
+from tracker.config import TrackerConfig
+from tracker.ekf import WalkingEKF, frame_augment, frame_innovation, frame_update, pose_residual, sym_spd
+
+__all__ = ["Tracker", "TrackerConfig", "UpdateResult"]
+
+
+@dataclass
+class UpdateResult:
+    """What the tracker did with one sticker's fix.
+
+    Attributes:
+        accepted: the fix changed the estimate (fused, started or restarted the track).
+        reason: one line: "fused", "initialised", "reinitialised ...", or why it was refused.
+        nis: squared Mahalanobis distance of the chosen alternative (nan when not gated).
+        chosen: index into the offered fixes of the alternative used, or None.
+    """
+
+    accepted: bool
+    reason: str
+    nis: float = math.nan
+    chosen: int | None = None
+
+
+@dataclass
+class _Frame:
+    """The frame-augmented state (see :mod:`tracker.ekf`) after the fixes fused at time ``t``."""
+
+    t: float
+    x: np.ndarray
+    P: np.ndarray
+
+
+@dataclass
+class _Hypothesis:
+    """A fresh filter fed with decoded fixes the track rejected."""
+
+    ekf: WalkingEKF
+    t0: float
+    t: float
+    ids: set[int]
+    count: int
+
+
+_SOURCES = (IdSource.DECODED, IdSource.ORB, IdSource.APPEARANCE)
+
+
+class Tracker:
+    """Walking-motion EKF over the body pose (x, y, yaw) fed with sticker pose fixes."""
+
+    def __init__(self, config: TrackerConfig | None = None):
+        self.config = config or TrackerConfig()
+        cfg = self.config
+        self._gate = {IdSource.DECODED: cfg.gate, IdSource.ORB: cfg.gate_identified,
+                      IdSource.APPEARANCE: cfg.gate_identified}
+        self._floor = np.diag([cfg.floor_sigma_xy**2, cfg.floor_sigma_xy**2, cfg.floor_sigma_yaw**2])
+        self._ekf = WalkingEKF(cfg)
+        self._state = TrackState.INITIALISING
+        self._t: float | None = None
+        self._last_fix_t = -math.inf
+        self._last_id: int | None = None
+        self._last_source: IdSource | None = None
+        self._frame: _Frame | None = None
+        self._forgot = False  # speed and yaw rate dropped after a long time without fixes
+        self._hyp: _Hypothesis | None = None
+        self._stats: dict[str, int] = {f"{v}_{s.value}": 0 for s in _SOURCES for v in ("accepted", "rejected")}
+        self._stats.update(dict.fromkeys(
+            ("initialisations", "reinitialisations", "reinit_consistent", "reinit_lost", "lost",
+             "ignored_initialising", "ignored_lost", "out_of_order_frames", "out_of_order_fixes",
+             "late_fixes_fused", "invalid_fixes", "invalid_times", "numeric_errors"), 0))
+
+    # -- read-only views --------------------------------------------------------------------------
+    @property
+    def state(self) -> TrackState:
+        """Current life-cycle state."""
+        return self._state
+
+    @property
+    def time(self) -> float | None:
+        """Timestamp (s) the filter stands at, None before the first frame."""
+        return self._t
+
+    @property
+    def stats(self) -> dict[str, int]:
+        """Counters: accepted/rejected fixes per source, (re)initialisations, out-of-order, ..."""
+        return dict(self._stats)
+
+    def prior(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(mean (3,), cov (3, 3)) of the body pose for choosing candidates; None unless TRACKING."""
+        if self._state is not TrackState.TRACKING:
+            return None
+        return self._ekf.mean[:3], self._ekf.cov[:3, :3]
+
+    def candidates(self, smap: StickerMap, rig_camera: RigCamera, observed_px: np.ndarray, k: int = 5) -> list[int]:
+        """Sticker IDs that may be the one seen at ``observed_px``, most likely first ([] unless TRACKING)."""
+        prior = self.prior()
+        return [] if prior is None else select_candidates(prior[0], prior[1], smap, rig_camera, observed_px, k=k)
+
+    # -- time ---------------------------------------------------------------------------------------
+    def predict(self, t: float) -> None:
+        """Move the filter to frame time ``t`` (s); an older or non-finite ``t`` leaves it unchanged."""
+        t = float(t)
+        if not math.isfinite(t):
+            self._stats["invalid_times"] += 1
+            return
+        if self._t is not None and t < self._t:
+            self._stats["out_of_order_frames"] += 1
+            return
+        if self._t is not None and t > self._t:
+            self._frame = None
+            if self._state is not TrackState.INITIALISING:
+                self._guarded(lambda: self._ekf.advance(t - self._t))
+        self._t = t
+        self._check_lost()
+
+    def _check_lost(self) -> None:
+        if self._state is TrackState.TRACKING and self._is_lost(self._ekf.cov, self._t):
+            self._state = TrackState.LOST
+            self._stats["lost"] += 1
+        if self._state is TrackState.LOST and not self._forgot and self._t - self._last_fix_t > self.config.lost_after_s:
+            # Long without a fix, the speed and turn rate are stale: keep the pose mean and let a
+            # walker of unknown velocity spread from there instead of extrapolating for hours.
+            self._forgot = True
+            self._frame = None
+            self._guarded(self._ekf.forget_motion)
+
+    def _is_lost(self, P: np.ndarray, t: float) -> bool:
+        sigma = math.sqrt(max(np.linalg.eigvalsh(P[:2, :2])[-1], 0.0))
+        return sigma > self.config.lost_sigma_m or t - self._last_fix_t > self.config.lost_after_s
+
+    def _guarded(self, step) -> bool:
+        """Run a filter step; on a numerical failure restore the state before it, count it, return False."""
+        x, P = self._ekf.mean, self._ekf.cov
+        try:
+            with np.errstate(over="raise", invalid="raise"):
+                step()
+            return True
+        except (FloatingPointError, np.linalg.LinAlgError):
+            self._stats["numeric_errors"] += 1
+            self._ekf.set(x, P)
+            return False
+
+    # -- fixes --------------------------------------------------------------------------------------
+    def _clean(self, fixes: list[PoseFix]) -> list[tuple[np.ndarray, np.ndarray]]:
+        """(body (3,), cov (3, 3) SPD) of the usable fixes, in the order given."""
+        out = []
+        for f in fixes:
+            z = np.asarray(f.body, float).ravel()
+            C = np.asarray(f.cov, float)
+            if z.shape != (3,) or C.shape != (3, 3) or not (np.all(np.isfinite(z)) and np.all(np.isfinite(C))):
+                continue
+            if np.abs(C).max() > 1e12 or np.abs(z[:2]).max() > 1e9:
+                continue
+            z = z.copy()
+            z[2] = float(pose_residual(np.array([0, 0, z[2]]), np.zeros(3))[2])
+            out.append((z, sym_spd(C, self.config.min_eig)))
+        return out
+
+    def update(self, fixes: list[PoseFix], sticker_id: int, source: IdSource, t: float) -> UpdateResult:
+        """Offer one sticker's pose fix(es) (1, or 2 IPPE alternatives best first) seen at frame time ``t``."""
+        source = IdSource(source)
+        t = float(t)
+        if not math.isfinite(t):
+            self._stats["invalid_times"] += 1
+            return UpdateResult(False, "invalid timestamp")
+        if source is IdSource.NONE:
+            return UpdateResult(False, "unidentified sticker")
+        alts = self._clean(fixes)
+        if not alts:
+            self._stats["invalid_fixes"] += 1
+            return UpdateResult(False, "no usable fix (empty, NaN or malformed)")
+        if self._t is None or t > self._t:
+            self.predict(t)
+        lag = self._t - t
+        if lag > self.config.max_lag_s:
+            self._stats["out_of_order_fixes"] += 1
+            return UpdateResult(False, f"out of order: frame {lag:.3f} s older than the filter")
+
+        if self._state is TrackState.INITIALISING:
+            if source is not IdSource.DECODED:
+                self._stats["ignored_initialising"] += 1
+                return UpdateResult(False, "initialising: only a decoded sticker starts the track")
+            self._start(alts[0], sticker_id, source, t)
+            self._stats["initialisations"] += 1
+            return UpdateResult(True, "initialised", chosen=0)
+        if self._state is TrackState.LOST and source is not IdSource.DECODED:
+            self._stats["ignored_lost"] += 1
+            return UpdateResult(False, "lost: only decoded stickers are taken")
+
+        k, nis = self._best(alts, lag)
+        if nis <= self._gate[source]:
+            self._fuse(*alts[k], lag)
+            self._accept(sticker_id, source, t)
+            if source is IdSource.DECODED:
+                self._hyp = None
+            return UpdateResult(True, "fused", nis, k)
+
+        reason = f"gated: NIS {nis:.1f} > {self._gate[source]:.1f}"
+        if source is IdSource.DECODED and self._state is TrackState.LOST:
+            self._start(alts[0], sticker_id, source, t)
+            self._stats["reinitialisations"] += 1
+            self._stats["reinit_lost"] += 1
+            return UpdateResult(True, f"reinitialised (lost, {reason})", nis, 0)
+        if source is IdSource.DECODED and self._feed_hypothesis(alts, sticker_id, t):
+            return UpdateResult(True, f"reinitialised: {self.config.reinit_fixes} consistent decoded fixes "
+                                      f"disagreed with the track ({reason})", nis, 0)
+        self._stats[f"rejected_{source.value}"] += 1
+        return UpdateResult(False, reason, nis, k)
+
+    def _best(self, alts, lag: float) -> tuple[int, float]:
+        """Index and NIS of the alternative closest to the prediction."""
+        best = (0, math.inf)
+        for i, (z, C) in enumerate(alts):
+            try:
+                if lag > 0.0:
+                    nis = self._ekf.innovation(z, C + self._floor, lag).nis
+                else:
+                    nis = frame_innovation(*self._frame_state(), z, C)[2]
+            except np.linalg.LinAlgError:
+                self._stats["numeric_errors"] += 1
+                continue
+            if nis < best[1]:
+                best = (i, nis)
+        return best
+
+    def _frame_state(self) -> tuple[np.ndarray, np.ndarray]:
+        """The frame-augmented state at the filter's time (fresh when no fix was fused at it yet)."""
+        if self._frame is None or self._frame.t != self._t:
+            self._frame = _Frame(self._t, *frame_augment(self._ekf.mean, self._ekf.cov, self._floor))
+        return self._frame.x, self._frame.P
+
+    def _fuse(self, z: np.ndarray, C: np.ndarray, lag: float) -> None:
+        """Fuse an accepted fix (pose z, own covariance C): late fixes through retrodiction, current
+        ones on the frame-augmented state so that fixes of one frame share the vest floor."""
+        if lag > 0.0:
+            self._frame = None
+            self._guarded(lambda: self._ekf.fuse(z, C + self._floor, lag))
+            self._stats["late_fixes_fused"] += 1
+            return
+        x, P = self._frame_state()
+
+        def step() -> None:
+            xa, Pa = frame_update(x, P, z, C)
+            self._ekf.set(xa[:5], Pa[:5, :5])
+            self._frame = _Frame(self._t, xa, Pa)
+
+        if not self._guarded(step):
+            self._frame = None
+
+    def _accept(self, sticker_id: int, source: IdSource, t: float) -> None:
+        self._stats[f"accepted_{source.value}"] += 1
+        self._last_fix_t = max(self._last_fix_t, t)
+        self._last_id, self._last_source = int(sticker_id), source
+        self._state = TrackState.TRACKING
+        self._forgot = False
+
+    def _start(self, alt: tuple[np.ndarray, np.ndarray], sticker_id: int, source: IdSource, t: float) -> None:
+        """(Re)start the track from one fix: pose from it, speed and yaw rate unknown."""
+        self._hyp = None
+        self._ekf = WalkingEKF(self.config)
+        self._ekf.reset(alt[0], alt[1] + self._floor)
+        self._frame = None
+        if t == self._t:
+            # Start this frame from a vague pose prior (10 m, uniform heading; vaguer only costs
+            # precision) and fuse the fix on it, so that more fixes of this frame share its floor.
+            self._ekf.set(self._ekf.mean, np.diag(np.r_[100.0, 100.0, self.config.yaw_var_cap,
+                                                        np.diag(self._ekf.cov)[3:]]))
+            self._fuse(alt[0], alt[1], 0.0)
+        self._stats[f"accepted_{source.value}"] += 1
+        self._last_fix_t = t
+        self._last_id, self._last_source = int(sticker_id), source
+        self._state = TrackState.TRACKING
+        self._forgot = False
+
+    def _feed_hypothesis(self, alts, sticker_id: int, t: float) -> bool:
+        """Add a rejected decoded fix to the competing hypothesis; True when it replaced the track."""
+        cfg = self.config
+        h = self._hyp
+        if h is not None and (t < h.t or t - h.t0 > cfg.reinit_window_s):
+            h = None
+        if h is not None:
+            try:
+                with np.errstate(over="raise", invalid="raise"):
+                    h.ekf.advance(t - h.t)
+                    h.t = t
+                    best = min((h.ekf.innovation(z, C + self._floor).nis, i) for i, (z, C) in enumerate(alts))
+                    if best[0] <= cfg.gate:
+                        z, C = alts[best[1]]
+                        h.ekf.fuse(z, C + self._floor)
+                        h.ids.add(int(sticker_id))
+                        h.count += 1
+                    else:
+                        h = None
+            except (FloatingPointError, np.linalg.LinAlgError):
+                self._stats["numeric_errors"] += 1
+                h = None
+        if h is None:
+            ekf = WalkingEKF(cfg)
+            ekf.reset(alts[0][0], alts[0][1] + self._floor)
+            h = _Hypothesis(ekf, t, t, {int(sticker_id)}, 1)
+        self._hyp = h
+        if h.count < cfg.reinit_fixes or len(h.ids) < cfg.reinit_min_ids:
+            return False
+        self._ekf = h.ekf
+        self._hyp = None
+        self._frame = None
+        self._accept(sticker_id, IdSource.DECODED, t)
+        self._stats["reinitialisations"] += 1
+        self._stats["reinit_consistent"] += 1
+        return True
+
+    # -- output -------------------------------------------------------------------------------------
+    def output(self, t: float | None = None) -> TrackerOutput:
+        """The pose at ``t`` (default: the filter's time) without changing the filter.
+
+        ``t`` earlier than the filter's time (or non-finite) gives the latest estimate, stamped with
+        the filter's time. Pose zeros and a huge covariance while initialising. Never NaN.
+        """
+        cfg = self.config
+        now = self._t if self._t is not None else 0.0
+        if t is not None and math.isfinite(float(t)) and float(t) > now:
+            target = float(t)
+        else:
+            target = now
+        since = target - self._last_fix_t if math.isfinite(self._last_fix_t) else math.inf
+        if self._state is TrackState.INITIALISING:
+            cov = np.diag([cfg.pos_var_cap, cfg.pos_var_cap, cfg.yaw_var_cap])
+            return TrackerOutput(target, np.zeros(3), cov, TrackState.INITIALISING, since)
+        state = self._state
+        if target > now:
+            ekf = WalkingEKF(cfg)
+            ekf.set(self._ekf.mean, self._ekf.cov)
+            try:
+                with np.errstate(over="raise", invalid="raise"):
+                    ekf.advance(target - now)
+            except (FloatingPointError, np.linalg.LinAlgError):
+                ekf.set(self._ekf.mean, self._ekf.cov)
+            x, P = ekf.mean, ekf.cov
+            if state is TrackState.TRACKING and self._is_lost(P, target):
+                state = TrackState.LOST
+        else:
+            x, P = self._ekf.mean, self._ekf.cov
+        cov = sym_spd(P[:3, :3], cfg.min_eig)
+        return TrackerOutput(target, x[:3].copy(), cov, state, since, self._last_id, self._last_source)
