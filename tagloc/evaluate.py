@@ -221,7 +221,7 @@ def plot_run(session: SessionReader, log: RunLog, gt: tuple[np.ndarray, np.ndarr
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from tagloc.metrics import position_errors
+    from tagloc.metrics import trajectory_errors
 
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(13, 5), gridspec_kw={"width_ratios": [1.3, 1]})
     ax0.scatter(session.map.xy[:, 0], session.map.xy[:, 1], s=6, c="0.6", marker="s", label="stickers")
@@ -243,13 +243,14 @@ def plot_run(session: SessionReader, log: RunLog, gt: tuple[np.ndarray, np.ndarr
     ax0.legend(loc="best", fontsize=8)
     ax0.set_title(title, fontsize=9)
     if gt is not None and v.any():
-        err = position_errors(log.stamps[v], log.poses[v], *gt)
-        sig = np.sqrt(np.maximum(np.linalg.eigvalsh(log.covs[v][:, :2, :2])[:, 1], 0))
-        ax1.fill_between(log.stamps[v], 0, 100 * 2 * sig, color="tab:blue", alpha=0.2, label="2 sigma (major axis)")
-        ax1.plot(log.stamps[v], 100 * err, c="tab:red", lw=1, label="position error")
+        e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *gt)
+        covs = log.covs[v][e.inside]
+        sig = np.sqrt(np.maximum(np.linalg.eigvalsh(covs[:, :2, :2])[:, 1], 0))
+        ax1.fill_between(e.stamps, 0, 100 * 2 * sig, color="tab:blue", alpha=0.2, label="2 sigma (major axis)")
+        ax1.plot(e.stamps, 100 * e.position, c="tab:red", lw=1, label="position error")
         for f in log.fixes:
             ax1.axvline(f["t"], c="tab:green", lw=0.3, alpha=0.5)
-        ax1.set_ylim(0, max(30, float(np.percentile(100 * err, 99)) * 1.2))
+        ax1.set_ylim(0, max(30.0, float(np.percentile(100 * e.position, 99)) * 1.2))
     ax1.set_xlabel("time (s)")
     ax1.set_ylabel("cm")
     ax1.legend(loc="upper right", fontsize=8)

@@ -11,10 +11,12 @@ Both tests work on the rectified sticker (:func:`tagloc.rectify.rectify`), whose
 clockwise by r quarter turns, so geometry is known and no RANSAC is needed.
 
 - Appearance: the motion-blur kernel is fitted once on the structure every sticker shares (mean
-  sticker, four-fold symmetrised); each candidate's rendered template, minus the mean sticker, is
-  rotated, blurred with that kernel (and its mirror image, which the symmetric fit cannot tell
-  apart) and correlated (NCC) with the observed inner code area after the shared structure has been
-  regressed out. Score = NCC.
+  sticker, four-fold symmetrised). Each candidate's rendered template is rotated, blurred with that
+  kernel (and its mirror image, which the symmetric fit cannot tell apart) and correlated with the
+  observed inner code area, after taking out of both what every sticker shares (frame, finder
+  patterns) and, per candidate, what it shares with the other IDs of its decade (the same first
+  two of its three data codewords): a missing neighbour sticker matches those parts as well as
+  the candidate does. Score = that (partial) NCC.
 - ORB: features of the rectified sticker are matched to each candidate's reference features
   (Hamming, ratio test); a match counts only if it lands where the square's known geometry puts it
   for that rotation. Score = number of such matches.
@@ -51,6 +53,8 @@ class IdentifyConfig:
         ratio: Lowe ratio test for ORB matches.
         inlier_px: largest distance (ORB raster px) between a match and where the square's
             geometry puts it.
+        orb_global_above: with more candidates than this, ORB matches once against all their
+            references (ratio test across stickers) instead of once per candidate.
         blur_lengths_px, blur_angles_deg: the linear motion-blur kernels tried when estimating
             the blur (appearance raster px; angle of the blur direction from raster +x).
         contrast: what is correlated: "none" (plain NCC of the templates), "generic" (the
@@ -66,6 +70,7 @@ class IdentifyConfig:
     min_inlier_margin: int = 12
     ratio: float = 0.8
     inlier_px: float = 4.0
+    orb_global_above: int = 16
     blur_lengths_px: tuple[float, ...] = (0.0, 1.5, 3.0, 4.5, 6.0, 8.0, 10.0, 13.0)
     blur_angles_deg: tuple[float, ...] = tuple(range(0, 180, 15))
     contrast: str = "decade"
@@ -169,20 +174,14 @@ def _unrotate_vector(v: np.ndarray, r: int) -> np.ndarray:
     return np.array([x, y])
 
 
-def _ambiguous_blurs(blur: np.ndarray, ambiguity: int) -> list[np.ndarray]:
-    """The blur vectors the square's symmetries cannot tell from ``blur`` (sign never matters).
+def _ambiguous_blurs(blur: np.ndarray) -> list[np.ndarray]:
+    """``blur`` and its mirror about the raster axes, which a fit on the square frame cannot tell apart.
 
-    The frame is symmetric under mirrors about the raster axes (``ambiguity`` >= 2) and about its
-    diagonals (``ambiguity`` 4), so a kernel fitted on it is known only up to these.
+    (Sign never matters: the kernel is centred. The diagonal mirrors are symmetries of the frame
+    too, but trying them as well changed no decision in 900 measured views, so they are left out.)
     """
-    x, y = float(blur[0]), float(blur[1])
-    cands = [(x, y), (x, -y), (y, x), (y, -x)][:ambiguity]
-    out: list[np.ndarray] = []
-    for c in cands:
-        v = np.array(c)
-        if not any(np.allclose(v, u, atol=0.25) or np.allclose(v, -u, atol=0.25) for u in out):
-            out.append(v)
-    return out
+    v, m = np.asarray(blur, float), np.array([blur[0], -blur[1]], float)
+    return [v] if np.allclose(v, m, atol=0.25) or np.allclose(v, -m, atol=0.25) else [v, m]
 
 
 def _centred_unit(rows: np.ndarray) -> np.ndarray:
@@ -209,11 +208,10 @@ class _Appearance:
         vecs = [np.zeros(2)]
         for length in cfg.blur_lengths_px:
             if length > 0:
-                vecs += [length * np.array([np.cos(np.radians(a)), np.sin(np.radians(a))])
-                         for a in cfg.blur_angles_deg]
+                vecs += [length * np.array([np.cos(np.radians(ang)), np.sin(np.radians(ang))])
+                         for ang in cfg.blur_angles_deg]
         self.blur_vectors = np.array(vecs)
         self.basis = _centred_unit(np.stack([_blur(mean_sym, motion_kernel(v))[self.fit].ravel() for v in vecs]))
-        self.ambiguity = 2
         # Room around each template so the blur sees the sticker's own border, never a neighbour.
         self.pad = int(np.ceil(max(cfg.blur_lengths_px, default=0) / 2)) + 2
 
@@ -230,7 +228,7 @@ class _Appearance:
     def scores(self, obs: np.ndarray, cands: Sequence[int], bank: ReferenceBank, contrast: str,
                blur: np.ndarray) -> np.ndarray:
         """NCC table (C, 4) over candidates and rotations."""
-        vectors = _ambiguous_blurs(blur, self.ambiguity)
+        vectors = _ambiguous_blurs(blur)
         p, s, n_c = self.pad, self.size, len(cands)
         if contrast == "none":
             tiles = [bank.template(c) for c in cands]
@@ -306,26 +304,50 @@ def orb_scores(gray: np.ndarray, detection: Detection, camera: Camera, cands: Se
     if len(des) < 2:
         return _Scores(table)
     c = (p.orb_size_px - 1) / 2.0
+    if len(cands) > cfg.orb_global_above:
+        # Many candidates (the paper's match-everything baseline): one match against all their
+        # references, the ratio test then runs across stickers -- stricter, and ~50x faster
+        # than one matcher call per sticker.
+        feats = [bank.features(sid) for sid in cands]
+        owner = np.repeat(np.arange(len(cands)), [len(f[1]) for f in feats])
+        rxy = np.concatenate([f[0] for f in feats])
+        rdes = np.concatenate([f[1] for f in feats])
+        q, t = _ratio_matches(des, rdes, cfg.ratio)
+        _count_inliers(table, owner[t], q, xy[q] - c, rxy[t] - c, cfg.inlier_px)
+        return _Scores(table)
     for ci, sid in enumerate(cands):
         rxy, rdes = bank.features(sid)
-        if len(rdes) < 2:
-            continue
-        pairs = _MATCHER.knnMatch(des, rdes, k=2)
-        good = [(m.queryIdx, m.trainIdx) for m, n in (pr for pr in pairs if len(pr) == 2)
-                if m.distance < cfg.ratio * n.distance]
-        if not good:
-            continue
-        q, t = np.array(good).T
-        sxy, ref = xy[q] - c, rxy[t] - c
-        for r in range(4):
-            # Clockwise quarter turns in image axes (row down): (x, y) -> (-y, x).
-            rr = ref
-            for _ in range(r):
-                rr = np.stack([-rr[:, 1], rr[:, 0]], 1)
-            ok = np.linalg.norm(sxy - rr, axis=1) <= cfg.inlier_px
-            # One scene keypoint counts once even if several matches agree.
-            table[ci, r] = len(np.unique(q[ok]))
+        q, t = _ratio_matches(des, rdes, cfg.ratio)
+        _count_inliers(table, np.full(len(q), ci), q, xy[q] - c, rxy[t] - c, cfg.inlier_px)
     return _Scores(table)
+
+
+def _ratio_matches(des: np.ndarray, ref: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """(query, train) index arrays of the matches passing Lowe's ratio test."""
+    if len(des) < 1 or len(ref) < 2:
+        return np.zeros(0, int), np.zeros(0, int)
+    good = [(m.queryIdx, m.trainIdx) for m, n in (pr for pr in _MATCHER.knnMatch(des, ref, k=2) if len(pr) == 2)
+            if m.distance < ratio * n.distance]
+    if not good:
+        return np.zeros(0, int), np.zeros(0, int)
+    q, t = np.array(good).T
+    return q, t
+
+
+def _count_inliers(table: np.ndarray, owner: np.ndarray, q: np.ndarray, sxy: np.ndarray, ref: np.ndarray,
+                   inlier_px: float) -> None:
+    """Add to ``table[owner, r]`` the scene keypoints whose match lands where rotation r puts it.
+
+    ``sxy``/``ref`` are scene/reference positions relative to the raster centre; one scene
+    keypoint counts once per (candidate, rotation) even if several of its matches agree.
+    """
+    rr = ref
+    for r in range(4):
+        ok = np.linalg.norm(sxy - rr, axis=1) <= inlier_px
+        if np.any(ok):
+            pairs = np.unique(np.stack([owner[ok], q[ok]], 1), axis=0)
+            np.add.at(table[:, r], pairs[:, 0], 1)
+        rr = np.stack([-rr[:, 1], rr[:, 0]], 1)  # one more clockwise quarter turn (row-down axes)
 
 
 # ---------------------------------------------------------------- entry point

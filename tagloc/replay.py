@@ -103,18 +103,8 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
             from tagloc.rerun_view import RerunView
 
             view = RerunView(session.map, session.rig, save=cfg.rerun_save, spawn=cfg.spawn, groundtruth=gt)
-        start_wall = start_t = None
 
         def on_result(res: FrameResult) -> None:
-            nonlocal start_wall, start_t
-            if cfg.realtime:
-                # Pace on the frame clock; run_session itself runs as fast as it can.
-                now = time.monotonic()
-                if start_wall is None:
-                    start_wall, start_t = now, res.timestamp
-                delay = (res.timestamp - start_t) - (now - start_wall)
-                if delay > 0:
-                    time.sleep(delay)
             if tum is not None:
                 tum.write(res.output)
             msg = PoseMessage(cfg.vest, res.index, res.output)
@@ -129,7 +119,8 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
                 view.log(_reload(session, res), res)
 
         t0 = time.monotonic()
-        run = run_session(session, LocaliserConfig(mode=cfg.mode), progress=cfg.progress, on_result=on_result)
+        run = run_session(session, LocaliserConfig(mode=cfg.mode), progress=cfg.progress, on_result=on_result,
+                          realtime=cfg.realtime)
         seconds = time.monotonic() - t0
     finally:
         for c in (tum, log, view, *sinks):

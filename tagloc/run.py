@@ -71,13 +71,17 @@ def iterate_results(session: SessionReader, localiser: Localiser, progress: bool
 
 
 def run_session(session: SessionReader, config: LocaliserConfig | None = None, refs=None,
-                progress: bool = False, on_result: Callable[[FrameResult], None] | None = None) -> RunLog:
-    """Run the localiser (``config.mode`` picks tagloc or a baseline) over every frame of a session."""
+                progress: bool = False, on_result: Callable[[FrameResult], None] | None = None,
+                realtime: bool = False) -> RunLog:
+    """Run the localiser (``config.mode`` picks tagloc or a baseline) over every frame of a session.
+
+    ``realtime`` paces frames at their timestamps; otherwise they go as fast as they can.
+    """
     loc = Localiser(session.map, session.rig, config or LocaliserConfig(), refs=refs,
                     map_path=session.path / "map.csv")
     stamps, poses, covs, valid, frame_ms, tracker_ms = [], [], [], [], [], []
     fixes, rejected = [], []
-    for res in iterate_results(session, loc, progress=progress):
+    for res in iterate_results(session, loc, progress=progress, realtime=realtime):
         out = res.output
         stamps.append(res.timestamp)
         poses.append(out.pose)

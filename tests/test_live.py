@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from mosquitto import MOSQUITTO, Broker, Subscriber
-from conftest_io import cached_session, line_map, walk_pose, write_video
+from conftest_io import line_map, make_session, truth_xy, write_video
 from tagloc.capture import CaptureThread, FrameSource, SessionSource, VideoSource, open_source
 from tagloc.errors import InputError, SessionError
 from tagloc.live import LiveConfig, run_live
@@ -30,8 +30,8 @@ N = 20
 
 
 @pytest.fixture(scope="module")
-def session(request) -> Path:
-    return cached_session(request.config.cache.mkdir("tagloc_io_sessions"), N, FPS)
+def session(tmp_path_factory) -> Path:
+    return make_session(tmp_path_factory.mktemp("live") / "sess", N, FPS)
 
 
 @pytest.fixture(scope="module")
@@ -225,9 +225,10 @@ def test_tagloc_live_publishes_poses_over_udp(session, video):
     assert [m["index"] for m in msgs] == list(range(N))
     tracked = [m for m in msgs if m["state"] == "tracking"]
     assert len(tracked) >= N - 3
-    errs = [np.hypot(m["x"] - walk_pose(m["t"])[0], m["y"] - walk_pose(m["t"])[1]) for m in tracked]
-    assert np.median(errs) < 0.05
-    assert all(m["last_source"] == "decoded" for m in tracked)
+    est = np.array([[m["x"], m["y"]] for m in tracked])
+    errs = np.hypot(*(est - truth_xy(session, [m["t"] for m in tracked])).T)
+    assert np.median(errs) < 0.10
+    assert all(m["last_source"] in ("decoded", "orb", "appearance") for m in tracked)
 
 
 def test_recording_killed_mid_run_replays_every_written_frame(session, video, tmp_path):

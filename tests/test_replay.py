@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -12,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest_io import cached_session, line_map, walk_pose
+from conftest_io import line_map, make_session, truth_xy
 from tagloc.geometry import planar_T
 from tagloc.metrics import interpolate_groundtruth, trajectory_metrics
 from tagloc.session import read_tum
@@ -82,12 +81,9 @@ def test_metrics_with_nothing_to_score():
 
 
 @pytest.fixture(scope="module")
-def session(request, tmp_path_factory) -> Path:
-    """The shared synthetic session, copied, with frame 5 corrupted."""
-    path = tmp_path_factory.mktemp("replay") / "sess"
-    shutil.copytree(cached_session(request.config.cache.mkdir("tagloc_io_sessions"), N, FPS), path)
-    (path / "frames" / "000005.jpg").write_bytes(b"not a jpeg")
-    return path
+def session(tmp_path_factory) -> Path:
+    """A simulated session with frame 5 corrupted."""
+    return make_session(tmp_path_factory.mktemp("replay") / "sess", N, FPS, corrupt=(5,))
 
 
 def replay_cli(*args: str) -> subprocess.CompletedProcess:
@@ -99,7 +95,9 @@ def test_replay_is_deterministic_and_scores_against_ground_truth(session, tmp_pa
     runs = []
     for k in range(2):
         out, log = tmp_path / f"est{k}.tum", tmp_path / f"frames{k}.jsonl"
-        r = replay_cli(str(session), "--out", str(out), "--log", str(log), *(["--rerun", str(tmp_path / "r.rrd")] if k else []))
+        # The second run also logs to Rerun: that must not change the results either.
+        rerun = ["--rerun", str(tmp_path / "r.rrd")] if k else []
+        r = replay_cli(str(session), "--out", str(out), "--log", str(log), *rerun)
         assert r.returncode == 0, r.stderr
         runs.append((out.read_bytes(), log.read_bytes(), r.stdout))
     assert runs[0][0] == runs[1][0] and runs[0][1] == runs[1][1]
@@ -107,15 +105,14 @@ def test_replay_is_deterministic_and_scores_against_ground_truth(session, tmp_pa
     assert f"frames: {N} (1 unreadable" in stdout and "error vs ground truth" in stdout
 
     stamps, T = read_tum(tmp_path / "est0.tum")
-    assert len(stamps) >= N - 4  # every frame once tracking, except the corrupt one's pose is still output
-    truth = np.array([walk_pose(t)[:2] for t in stamps])
-    err = np.hypot(*(T[:, :2, 3] - truth).T)
-    assert np.median(err) < 0.05
+    assert len(stamps) >= N - 4  # a pose per frame once tracking (the unreadable frame gets the prediction)
+    err = np.hypot(*(T[:, :2, 3] - truth_xy(session, stamps)).T)
+    assert np.median(err) < 0.10
     lines = [json.loads(s) for s in (tmp_path / "frames0.jsonl").read_text().splitlines()]
     assert [d["index"] for d in lines] == list(range(N))
     assert lines[5]["skipped"] and not lines[5]["observations"]
     decoded = [o["sticker_id"] for d in lines for o in d["observations"] if o["source"] == "decoded"]
-    assert set(decoded) <= set(line_map().ids.tolist()) and len(decoded) >= N - 2
+    assert set(decoded) <= set(line_map().ids.tolist()) and len(decoded) >= N // 2
 
     from tagloc.rerun_view import read_rrd
 
@@ -131,5 +128,5 @@ def test_replay_metrics_match_the_library(session, tmp_path):
     res = replay(ReplayConfig(session=session, out=tmp_path / "e.tum", progress=False))
     assert res.frames == N and res.skipped == 1 and res.metrics is not None
     assert res.metrics["frames"] == res.posed
-    assert res.metrics["rmse_m"] < 0.05 and res.metrics["within_10cm"] > 0.9
-    assert sum(res.fixes.values()) >= N - 3 and set(res.fixes) == {"decoded"}
+    assert res.metrics["rmse_m"] < 0.10 and res.metrics["within_25cm"] > 0.9
+    assert sum(res.fixes.values()) >= N // 2 and res.fixes.get("decoded", 0) >= N // 4

@@ -78,8 +78,8 @@ def test_motion_limits_and_textbook_form():
     # Backwards undoes forwards.
     np.testing.assert_allclose(motion.propagate(motion.propagate(s, dt), -dt), s, atol=1e-12)
     # Jacobian continuous through w = 0.
-    np.testing.assert_allclose(motion.jacobian([0, 0, 0.4, 1.2, 1e-12], 0.7), motion.jacobian([0, 0, 0.4, 1.2, 0.0], 0.7),
-                               atol=1e-10)
+    np.testing.assert_allclose(motion.jacobian([0, 0, 0.4, 1.2, 1e-12], 0.7),
+                               motion.jacobian([0, 0, 0.4, 1.2, 0.0], 0.7), atol=1e-10)
 
 
 def test_process_noise_is_psd_and_scales():
@@ -555,3 +555,21 @@ def test_same_frame_fixes_at_initialisation_share_the_floor():
     two = tr.output().cov
     np.testing.assert_allclose(np.diag(two), np.diag(one), rtol=0.05)
     np.testing.assert_allclose(tr.output().pose, [1.0, 2.0, 0.1], atol=1e-6)
+
+
+def test_same_frame_fixes_after_hours_lost_stay_precise(rng):
+    """A huge prior (hours lost) and two same-frame fixes: no precision lost in the joint update."""
+    cfg = TrackerConfig()
+    tiny = np.diag([1e-6, 1e-6, 1e-8])
+    tr = _track(rng, cfg)
+    t = tr.time + 3 * 3600.0
+    tr.predict(t)
+    assert tr.output().cov[0, 0] > 1e5
+    here = np.array([3.0, 4.0, -2.0])
+    assert tr.update([make_fix(here, tiny)], 1, IdSource.DECODED, t).accepted
+    one = tr.output().cov
+    assert tr.update([make_fix(here, tiny)], 2, IdSource.DECODED, t).accepted
+    two = tr.output().cov
+    np.testing.assert_allclose(np.diag(one)[:2], cfg.floor_sigma_xy**2 + 1e-6, rtol=0.01)
+    np.testing.assert_allclose(np.diag(two), np.diag(one), rtol=0.05)
+    np.testing.assert_allclose(tr.output().pose, here, atol=1e-3)  # yaw prior capped at pi^2/3, not flat

@@ -62,7 +62,8 @@ def frame_augment(mean: np.ndarray, cov: np.ndarray, floor: np.ndarray) -> tuple
     return x, P
 
 
-def frame_innovation(x: np.ndarray, P: np.ndarray, z: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+def frame_innovation(x: np.ndarray, P: np.ndarray, z: np.ndarray,
+                     C: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """(y (3,), S (3, 3), NIS) of pose ``z`` with own covariance ``C`` on the frame-augmented state."""
     y = pose_residual(z, _H_FRAME @ x)
     S = _H_FRAME @ P @ _H_FRAME.T + C

@@ -8,8 +8,9 @@ Rules, in one place:
   backwards, plus the process noise over the lag); an older fix is rejected
   (``out_of_order_fixes``).
 - Every fix's covariance gets the rig/vest noise floor (see :class:`TrackerConfig`). Fixes from the
-  same frame share that floor; they are fused jointly with the correlation, so three stickers in one
-  frame do not count as three independent vest poses.
+  same frame share that floor (one vest pose): they are gated and fused on a frame-augmented state
+  that carries the shared offset (see :mod:`tracker.ekf`), so three stickers in one frame do not
+  count as three independent vest poses.
 - Two IPPE alternatives (ambiguous pose): while tracking, the one with the smaller Mahalanobis
   distance to the prediction is used; when (re)initialising, the first (best reprojection).
 - INITIALISING: only a DECODED fix starts the track. TRACKING: fixes must pass the chi-square gate
@@ -22,7 +23,7 @@ Rules, in one place:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -31,7 +32,7 @@ from tagloc.rig import RigCamera
 from tagloc.stickermap import StickerMap
 from tracker.candidates import select_candidates
 from tracker.config import TrackerConfig
-from tracker.ekf import WalkingEKF, frame_augment, frame_innovation, frame_update, pose_residual, sym_spd
+from tracker.ekf import WalkingEKF, frame_augment, frame_innovation, frame_update, sym_spd, wrap
 
 __all__ = ["Tracker", "TrackerConfig", "UpdateResult"]
 
@@ -148,7 +149,8 @@ class Tracker:
         if self._state is TrackState.TRACKING and self._is_lost(self._ekf.cov, self._t):
             self._state = TrackState.LOST
             self._stats["lost"] += 1
-        if self._state is TrackState.LOST and not self._forgot and self._t - self._last_fix_t > self.config.lost_after_s:
+        stale = self._t - self._last_fix_t > self.config.lost_after_s
+        if self._state is TrackState.LOST and stale and not self._forgot:
             # Long without a fix, the speed and turn rate are stale: keep the pose mean and let a
             # walker of unknown velocity spread from there instead of extrapolating for hours.
             self._forgot = True
@@ -180,10 +182,11 @@ class Tracker:
             C = np.asarray(f.cov, float)
             if z.shape != (3,) or C.shape != (3, 3) or not (np.all(np.isfinite(z)) and np.all(np.isfinite(C))):
                 continue
+            # Absurd magnitudes come from a solver blow-up, not from a sticker: refuse them.
             if np.abs(C).max() > 1e12 or np.abs(z[:2]).max() > 1e9:
                 continue
             z = z.copy()
-            z[2] = float(pose_residual(np.array([0, 0, z[2]]), np.zeros(3))[2])
+            z[2] = float(wrap(z[2]))
             out.append((z, sym_spd(C, self.config.min_eig)))
         return out
 
@@ -297,6 +300,8 @@ class Tracker:
             self._ekf.set(self._ekf.mean, np.diag(np.r_[100.0, 100.0, self.config.yaw_var_cap,
                                                         np.diag(self._ekf.cov)[3:]]))
             self._fuse(alt[0], alt[1], 0.0)
+            if self._frame is None:  # numerical failure: fall back to the plain start
+                self._ekf.reset(alt[0], alt[1] + self._floor)
         self._stats[f"accepted_{source.value}"] += 1
         self._last_fix_t = t
         self._last_id, self._last_source = int(sticker_id), source
