@@ -1,0 +1,102 @@
+"""The localiser end to end on small simulated walks: accuracy, baselines, wrong-ID safety, eval, demo, CLI."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tagloc.cli import main
+from tagloc.evaluate import EvalConfig, evaluate, wrong_id_fixes
+from tagloc.localiser import LocaliserConfig, load_setup
+from tagloc.mapgen import GridMapConfig, grid_map
+from tagloc.metrics import trajectory_metrics
+from tagloc.run import run_session
+from tagloc.session import SessionReader
+from tagloc.simulate import SimConfig, simulate_session
+
+
+@pytest.fixture(scope="module")
+def walk(tmp_path_factory) -> Path:
+    """A 6 s walk at 150 lux on a small warehouse map, with unmapped stickers and missing ones."""
+    path = tmp_path_factory.mktemp("loc") / "walk"
+    smap = grid_map(GridMapConfig(width_m=12, depth_m=10, spacing_min_m=1.2, spacing_max_m=1.6, seed=5))
+    simulate_session(smap, path, SimConfig(seconds=6, lux=150, speed_mps=1.2, seed=11, unmapped=15,
+                                           missing_fraction=0.1), progress=False)
+    return path
+
+
+def test_full_localiser_is_accurate_and_takes_no_wrong_id(walk):
+    session = SessionReader(walk)
+    log = run_session(session, LocaliserConfig())
+    m = trajectory_metrics(log.stamps[log.valid], log.poses[log.valid], log.covs[log.valid], *session.groundtruth())
+    assert log.valid.mean() > 0.7
+    assert m["rmse_m"] < 0.10
+    assert m["heading_rmse_deg"] < 4.0
+    assert 0.2 < m["nees_mean"] < 8.0  # honest order of magnitude; eval measures it properly
+    wrong, checked = wrong_id_fixes(walk, log)
+    assert checked >= 10 and wrong == 0
+    assert np.all(np.isfinite(log.poses)) and np.all(np.isfinite(log.covs))
+    assert np.all(np.linalg.eigvalsh(log.covs) > 0)
+
+
+def test_unmapped_stickers_are_read_but_never_fixes(walk):
+    info = json.loads((walk / "session.json").read_text())
+    unmapped = {int(u["id"]) for u in info["simulation"]["unmapped"]}
+    session = SessionReader(walk)
+    log = run_session(session, LocaliserConfig())
+    assert not unmapped & {f["id"] for f in log.fixes}
+    assert not unmapped & set(map(int, session.map.ids))
+
+
+def test_baselines_run_on_the_same_frames(walk):
+    session = SessionReader(walk)
+    dec = run_session(session, LocaliserConfig(mode="decoded-only"))
+    assert dec.fixes and all(f["source"] == "decoded" for f in dec.fixes)
+    assert wrong_id_fixes(walk, dec)[0] == 0
+    # Without a filter, the pose is held between fixes: its stated covariance is the last fix's.
+    assert len(dec.stamps) == len(SessionReader(walk))
+
+
+def test_bad_mode_is_refused(walk):
+    from tagloc.errors import InputError
+
+    with pytest.raises(InputError, match="mode"):
+        run_session(SessionReader(walk), LocaliserConfig(mode="nonsense"))
+
+
+def test_load_setup_from_a_session_directory(walk):
+    smap, rig = load_setup(config_dir=walk)
+    assert len(smap) > 10 and rig[0].camera.width == 1296
+
+
+def test_eval_writes_report_and_plots(tmp_path):
+    res = evaluate(EvalConfig(sessions=1, seconds=3, out=tmp_path, modes=("full", "decoded-only"), progress=False))
+    assert (tmp_path / "report.md").exists() and (tmp_path / "s00.png").exists()
+    assert {r["mode"] for r in res["rows"]} == {"full", "decoded-only"}
+    assert res["summary"]["full"]["wrong_id_fixes"] == 0
+    assert res["summary"]["full"]["rmse_m"] < 0.3
+
+
+def test_cli_errors_are_one_line(tmp_path, capsys):
+    assert main(["replay", str(tmp_path / "nope")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "nope" in err[0]
+    bad = tmp_path / "bad.csv"
+    bad.write_text("id,x_m,y_m,yaw_deg\n1,0,0,0\n2,nan,0,0\n")
+    assert main(["refs", "build", str(bad)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "bad.csv:3" in err[0]
+
+
+def test_demo_runs_without_arguments_beyond_output(tmp_path):
+    out = tmp_path / "demo"
+    r = subprocess.run([sys.executable, "-m", "tagloc", "demo", "--seconds", "2", "--quiet", "-o", str(out)],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "rerun " in r.stdout and (out / "demo.rrd").exists() and (out / "estimate.tum").exists()
+    assert "RMSE" in r.stdout
