@@ -1,0 +1,123 @@
+"""tagloc bench: a tiny smoke run (structure and sane numbers, no timing assertions) and its helpers."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from tagloc.bench import BenchConfig, _aruco_frame, _view_at_distance, bench_command, format_tables, run_bench
+from tagloc.camera import default_camera
+from tagloc.errors import InputError
+from tagloc.simulate import camera_pose_looking_at, render_view, true_corners
+from tagloc.stickermap import StickerMap
+
+
+@pytest.fixture(scope="module")
+def quick() -> dict:
+    return run_bench(BenchConfig.quick(seed=3))
+
+
+def test_result_structure_and_json(quick):
+    assert {"config", "environment", "timing", "blur", "lux", "distance", "detectors", "targets"} <= set(quick)
+    assert [r["frames"] for r in quick["timing"]["rows"]] == ["0 stickers", "1 sticker", "3 stickers"]
+    assert [c["blur_px"] for c in quick["blur"]] == [0.0, 4.0]
+    assert [c["lux"] for c in quick["lux"]] == [100.0]
+    assert [c["distance_m"] for c in quick["distance"]] == [1.5]
+    assert len(quick["environment"]["start"]["load_average"]) == 3
+    json.loads(json.dumps(quick))  # plain data only
+
+
+def test_timing_rows_are_sane(quick):
+    rows = {r["frames"]: r for r in quick["timing"]["rows"]}
+    # The frames hold what their group says (all stickers fully visible).
+    assert rows["0 stickers"]["stickers_visible_mean"] == 0
+    assert rows["1 sticker"]["stickers_visible_mean"] == 1
+    assert rows["3 stickers"]["stickers_visible_mean"] == 3
+    assert rows["0 stickers"]["decode"]["median"] == 0.0 and rows["0 stickers"]["pose"]["median"] == 0.0
+    for r in rows.values():
+        assert r["n"] == 3
+        assert 0 < r["detect"]["median"] <= r["detect"]["p95"]
+        assert r["end_to_end"]["median"] > 0
+    # Three stickers cost more pose solving than one.
+    assert rows["3 stickers"]["pose"]["median"] > rows["1 sticker"]["pose"]["median"] > 0
+    ar = quick["timing"]["aruco"]
+    assert ar["frames"] == 3 and ar["detected"] == 3  # the pasted marker is a valid ArUco marker
+    assert quick["timing"]["ratio_end_to_end_vs_aruco"] > 0
+
+
+def test_reads_are_right_and_never_wrong(quick):
+    b0 = quick["blur"][0]
+    assert b0["stickers"] == 3 and b0["detected"] == 3
+    assert b0["decode"]["zxing"]["rate"] == 1.0
+    assert b0["identify"]["auto"]["rate"] == 1.0
+    for c in quick["blur"] + quick["lux"]:
+        assert all(v["wrong"] == 0 for v in c["decode"].values())
+        assert all(v["wrong"] == 0 and v["absent_wrong"] == 0 for v in c["identify"].values())
+    # Stronger blur lengthens what the frame shows.
+    assert quick["blur"][1]["blur_px_median"] > 3.5 > quick["blur"][0]["blur_px_median"]
+
+
+def test_geometry_errors_are_small(quick):
+    b0 = quick["blur"][0]
+    assert 0 < b0["outer_err_px"]["median"] < 1.0
+    d = quick["distance"][0]
+    assert d["detected"] == d["stickers"] == 3
+    assert 0 < d["position_err_cm"]["median"] < 3.0
+
+
+def test_targets_and_tables(quick):
+    names = [t["target"] for t in quick["targets"]]
+    assert any("ArUco" in n for n in names) and any("wrong IDs" in n for n in names)
+    assert all(t["pass"] in (True, False, None) for t in quick["targets"])
+    wrong = next(t for t in quick["targets"] if t["target"].startswith("wrong IDs"))
+    assert wrong["value"] == 0 and wrong["pass"] is True
+    text = format_tables(quick)
+    for title in ("1. Stage time", "2a.", "2b.", "3a.", "3b.", "4. Paper", "Targets"):
+        assert title in text
+    assert "PASS" in text and "load average" in text
+    # Aligned: every line of a table has the width of its header line.
+    lines = text.splitlines()
+    k = next(i for i, line in enumerate(lines) if line.startswith("blur px  stickers"))
+    assert len({len(line.rstrip()) for line in lines[k:k + 4]}) <= 2
+
+
+def test_view_at_distance_is_exact():
+    cam = default_camera()
+    rng = np.random.default_rng(5)
+    for d in (1.0, 1.5, 2.5):
+        T = _view_at_distance(rng, cam, np.array([3.0, -2.0]), d)
+        assert np.linalg.norm(T[:3, 3] - [3.0, -2.0, 0.0]) == pytest.approx(d, abs=1e-6)
+        assert 0.5 < T[2, 3] <= 1.5
+        smap = StickerMap(np.array([42]), np.array([[3.0, -2.0]]), np.array([0.3]))
+        px = true_corners(smap, cam, T, 42)
+        assert px is not None and np.all(px > 0) and np.all(px < (cam.width, cam.height))
+
+
+def test_aruco_frame_is_detected_where_the_sticker_was():
+    cam = default_camera()
+    smap = StickerMap(np.array([7]), np.array([[0.0, 0.0]]), np.array([0.4]))
+    T = camera_pose_looking_at((0.0, 0.0), 1.3, 55.0, 20.0)
+    gray = render_view(smap, cam, T, 150.0, seed=1).image
+    corners = true_corners(smap, cam, T, 7)[:4]
+    out = _aruco_frame(gray, corners, np.random.default_rng(0))
+    det = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50))
+    found, ids, _ = det.detectMarkers(out)
+    assert ids is not None and 7 in ids.ravel()
+    c = found[list(ids.ravel()).index(7)].reshape(4, 2)
+    # Same square, whatever the starting corner.
+    err = min(np.abs(np.roll(c, -r, axis=0) - corners).max() for r in range(4))
+    assert err < 1.5
+    assert math.isclose(float(out[:50].mean()), float(gray[:50].mean()), abs_tol=0.01)  # rest untouched
+
+
+def test_bad_options_are_refused(tmp_path):
+    with pytest.raises(InputError):
+        BenchConfig(frames=0)
+    with pytest.raises(InputError):
+        BenchConfig(near_m=2.0, far_m=1.0)
+    with pytest.raises(InputError, match="does not exist"):
+        bench_command(quick=True, json_path=tmp_path / "nope" / "b.json")
