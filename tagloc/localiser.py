@@ -16,7 +16,8 @@ import numpy as np
 from tagloc.camera import load_calibration
 from tagloc.decode import decode
 from tagloc.detect import detect
-from tagloc.errors import InputError
+from tagloc.errors import CalibrationError, InputError
+from tagloc.odometry import FloorOdometry, OdometryConfig
 from tagloc.observation import FrameResult, IdSource, Observation, TrackerOutput, TrackState
 from tagloc.pose import solve_pose
 from tagloc.rig import Rig, default_rig, load_rig
@@ -41,6 +42,8 @@ class LocaliserConfig:
         identify: identification when decoding fails: "auto", "orb", "appearance" or "off".
         candidates: K, the most candidates handed to identification.
         tracker: the EKF's configuration.
+        odometry: measure the body's motion between frames from the floor texture and feed it to
+            the tracker ("full" mode only); ``odometry_config`` tunes it.
     """
 
     mode: str = "full"
@@ -49,6 +52,8 @@ class LocaliserConfig:
     identify: str = "auto"
     candidates: int = 5
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    odometry: bool = True
+    odometry_config: OdometryConfig = field(default_factory=OdometryConfig)
 
 
 def load_setup(map_path: str | Path | None = None, calibration: str | Path | None = None,
@@ -90,8 +95,9 @@ class Localiser:
         self._held: TrackerOutput | None = None  # the baselines' last fix
         self._refs = refs
         self._map_path = map_path
+        self._odometry: dict[int, FloorOdometry | None] = {}  # per rig camera; None: camera sees too little floor
         self.counts = {"frames": 0, "skipped": 0, "detections": 0, "decoded": 0, "identified": 0,
-                       "rejected_reads": 0, "unmapped_reads": 0}
+                       "rejected_reads": 0, "unmapped_reads": 0, "odometry_steps": 0, "odometry_unavailable": 0}
 
     @property
     def refs(self):
@@ -119,6 +125,11 @@ class Localiser:
         gray = frame.image if frame.image.ndim == 2 else cv2.cvtColor(frame.image, cv2.COLOR_BGR2GRAY)
         rig_cam = self.rig[frame.camera]
         cam = rig_cam.camera
+        if self.config.odometry and self.config.mode == "full":
+            # Before the fixes: the step covers the interval the tracker just predicted over.
+            ts = time.perf_counter()
+            self._odometry_step(gray, frame.camera, t)
+            times["odometry"] = (time.perf_counter() - ts) * 1e3
 
         ts = time.perf_counter()
         detections = detect(gray, cam, method=self.config.detector)
@@ -166,11 +177,27 @@ class Localiser:
         times["total"] = (time.perf_counter() - t0) * 1e3
         return FrameResult(frame.index, t, observations, out, times)
 
-    def _identify(self, obs: Observation, gray: np.ndarray, rig_cam, t: float, cands: list[int] | None = None) -> None:
-        from tagloc.identify import identify
+    def _odometry_step(self, gray: np.ndarray, camera: int, t: float) -> None:
+        if camera not in self._odometry:
+            try:
+                self._odometry[camera] = FloorOdometry(self.rig[camera], self.config.odometry_config)
+            except CalibrationError:
+                self._odometry[camera] = None
+                self.counts["odometry_unavailable"] += 1
+        odo = self._odometry[camera]
+        step = odo.measure(gray, t) if odo is not None else None
+        if step is not None:
+            self.counts["odometry_steps"] += 1
+            self.tracker.update_odometry(step)
 
-        method = "orb" if cands is not None else self.config.identify
-        if cands is None:
+    def _identify(self, obs: Observation, gray: np.ndarray, rig_cam, t: float, cands: list[int] | None = None) -> None:
+        from tagloc.identify import IdentifyConfig, identify
+
+        method, id_config = self.config.identify, None
+        if cands is not None:
+            # The paper's baseline: ORB against every reference, each scored by its own match count.
+            method, id_config = "orb", IdentifyConfig(orb_global_above=len(cands) + 1)
+        else:
             ts = time.perf_counter()
             prior = self.tracker.prior()
             cands = [] if prior is None else select_candidates(
@@ -179,7 +206,7 @@ class Localiser:
         if not cands:
             return
         ts = time.perf_counter()
-        res = identify(gray, obs.detection, rig_cam.camera, cands, self.refs, method=method)
+        res = identify(gray, obs.detection, rig_cam.camera, cands, self.refs, method=method, config=id_config)
         obs.times_ms["identify"] = (time.perf_counter() - ts) * 1e3
         if res.sticker_id is None:
             return

@@ -147,10 +147,15 @@ class WalkingEKF(ExtendedKalmanFilter):
         """Nonlinear mean propagation (filterpy calls this from ``predict``)."""
         self.x = motion.propagate(self.x[:, 0], self._dt).reshape(motion.DIM, 1)
 
-    def advance(self, dt: float) -> None:
-        """Predict ``dt`` >= 0 seconds ahead, in steps of at most ``max_step_s`` (then one last step)."""
+    def advance(self, dt: float) -> np.ndarray:
+        """Predict ``dt`` >= 0 seconds ahead, in steps of at most ``max_step_s`` (then one last step).
+
+        Returns the (5, 5) Jacobian of the new state with respect to the old one (the steps'
+        ``F`` multiplied), which gives the cross-covariance with a clone of the old state.
+        """
+        F_total = np.eye(motion.DIM)
         if not dt > 0.0:
-            return
+            return F_total
         cfg = self.cfg
         n = min(cfg.max_steps, max(1, math.ceil(dt / cfg.max_step_s)))
         steps = [cfg.max_step_s] * (n - 1)
@@ -162,6 +167,8 @@ class WalkingEKF(ExtendedKalmanFilter):
             self.Q = motion.process_noise(x, h, cfg.accel_psd, cfg.yaw_accel_psd, cfg.lateral_psd)
             self.predict()
             self._tidy()
+            F_total = self.F @ F_total
+        return F_total
 
     # -- measurement --------------------------------------------------------------------------
     def _model(self, lag: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

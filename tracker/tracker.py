@@ -18,6 +18,16 @@ Rules, in one place:
   ``lost_after_s``; after ``lost_after_s`` speed and yaw rate are also forgotten): only decoded
   fixes are taken; one that passes the gate is fused, one that does not re-initialises the track.
 - ``reinit_fixes`` gated-out DECODED fixes that agree with each other re-initialise the track.
+- Floor odometry (:meth:`Tracker.update_odometry`): each step is the body's relative pose between
+  two consecutive frames. :meth:`Tracker.predict` keeps a clone of the pose at the time it
+  advanced from, with its cross-covariance to the new state (stochastic cloning), and the step is
+  fused as a measurement of ``pose(t1) (-) clone(t0)``. That is exact for one step (forward,
+  lateral and turn alike, so sidesteps and stops are followed), and consecutive steps share no
+  clone, so fusing every frame never counts a frame twice. The steps' temporal correlation (vest
+  oscillations) is covered by inflating their covariance (see :class:`TrackerConfig`). Used while
+  TRACKING or LOST (it slows the growth of the uncertainty either way), gated, and only on the
+  interval the filter just advanced over with nothing fused in between (so: before the frame's
+  fixes); otherwise it is counted as ``odometry_unmatched``.
 """
 
 from __future__ import annotations
@@ -32,6 +42,8 @@ from tagloc.rig import RigCamera
 from tagloc.stickermap import StickerMap
 from tracker.candidates import select_candidates
 from tracker.config import TrackerConfig
+from filterpy.kalman import update as kf_update
+
 from tracker.ekf import WalkingEKF, frame_augment, frame_innovation, frame_update, sym_spd, wrap
 
 __all__ = ["Tracker", "TrackerConfig", "UpdateResult"]
@@ -61,6 +73,16 @@ class _Frame:
     t: float
     x: np.ndarray
     P: np.ndarray
+
+
+@dataclass
+class _Clone:
+    """The pose at ``t0`` (3,), its covariance (3, 3) and its cross-covariance with the state (5, 3)."""
+
+    t0: float
+    pose: np.ndarray
+    P: np.ndarray
+    cross: np.ndarray
 
 
 @dataclass
@@ -95,11 +117,14 @@ class Tracker:
         self._frame: _Frame | None = None
         self._forgot = False  # speed and yaw rate dropped after a long time without fixes
         self._hyp: _Hypothesis | None = None
+        self._clone: _Clone | None = None  # pose before the last advance, for odometry
+        self._odo_scale = np.sqrt(np.asarray(cfg.odometry_inflation, float))
         self._stats: dict[str, int] = {f"{v}_{s.value}": 0 for s in _SOURCES for v in ("accepted", "rejected")}
         self._stats.update(dict.fromkeys(
             ("initialisations", "reinitialisations", "reinit_consistent", "reinit_lost", "lost",
              "ignored_initialising", "ignored_lost", "out_of_order_frames", "out_of_order_fixes",
-             "late_fixes_fused", "invalid_fixes", "invalid_times", "numeric_errors"), 0))
+             "late_fixes_fused", "invalid_fixes", "invalid_times", "numeric_errors", "odometry_accepted",
+             "odometry_rejected", "odometry_unmatched", "odometry_ignored"), 0))
 
     # -- read-only views --------------------------------------------------------------------------
     @property
@@ -140,8 +165,12 @@ class Tracker:
             return
         if self._t is not None and t > self._t:
             self._frame = None
+            self._clone = None
             if self._state is not TrackState.INITIALISING:
-                self._guarded(lambda: self._ekf.advance(t - self._t))
+                t0, x0, P0 = self._t, self._ekf.mean, self._ekf.cov
+                jac: list[np.ndarray] = []
+                if self._guarded(lambda: jac.append(self._ekf.advance(t - t0))):
+                    self._clone = _Clone(t0, x0[:3], P0[:3, :3], jac[0] @ P0[:, :3])
         self._t = t
         self._check_lost()
 
@@ -155,6 +184,7 @@ class Tracker:
             # walker of unknown velocity spread from there instead of extrapolating for hours.
             self._forgot = True
             self._frame = None
+            self._clone = None
             self._guarded(self._ekf.forget_motion)
 
     def _is_lost(self, P: np.ndarray, t: float) -> bool:
@@ -266,6 +296,7 @@ class Tracker:
     def _fuse(self, z: np.ndarray, C: np.ndarray, lag: float) -> None:
         """Fuse an accepted fix (pose z, own covariance C): late fixes through retrodiction, current
         ones on the frame-augmented state so that fixes of one frame share the vest floor."""
+        self._clone = None
         if lag > 0.0:
             self._frame = None
             self._guarded(lambda: self._ekf.fuse(z, C + self._floor, lag))
@@ -291,6 +322,7 @@ class Tracker:
     def _start(self, alt: tuple[np.ndarray, np.ndarray], sticker_id: int, source: IdSource, t: float) -> None:
         """(Re)start the track from one fix: pose from it, speed and yaw rate unknown."""
         self._hyp = None
+        self._clone = None
         self._ekf = WalkingEKF(self.config)
         self._ekf.reset(alt[0], alt[1] + self._floor)
         self._frame = None
@@ -340,10 +372,79 @@ class Tracker:
         self._ekf = h.ekf
         self._hyp = None
         self._frame = None
+        self._clone = None
         self._accept(sticker_id, IdSource.DECODED, t)
         self._stats["reinitialisations"] += 1
         self._stats["reinit_consistent"] += 1
         return True
+
+    # -- odometry ---------------------------------------------------------------------------------
+    def update_odometry(self, step) -> UpdateResult:
+        """Fuse one floor-odometry step (:class:`tagloc.odometry.OdometryStep`): the body pose at
+        ``step.t1`` relative to ``step.t0`` (``delta`` (3,) in the body frame at ``t0``, ``cov`` (3, 3)).
+
+        The filter is moved to ``t1`` if it is behind. The step must cover the interval the filter
+        last advanced over, with nothing fused since (call it before the frame's fixes).
+        """
+        cfg = self.config
+        z = np.asarray(step.delta, float).ravel()
+        C = np.asarray(step.cov, float)
+        t0, t1 = float(step.t0), float(step.t1)
+        if (z.shape != (3,) or C.shape != (3, 3) or not (np.all(np.isfinite(z)) and np.all(np.isfinite(C)))
+                or not (math.isfinite(t0) and math.isfinite(t1)) or not 0.0 < t1 - t0 <= cfg.odometry_max_dt):
+            self._stats["invalid_fixes"] += 1
+            return UpdateResult(False, "unusable odometry step (malformed, NaN, or bad interval)")
+        if self._state is TrackState.INITIALISING:
+            self._stats["odometry_ignored"] += 1
+            return UpdateResult(False, "initialising: odometry needs a pose to move")
+        if self._t is None or t1 > self._t:
+            self.predict(t1)
+        c = self._clone
+        tol = 1e-6 + 1e-9 * abs(t1)
+        if c is None or abs(c.t0 - t0) > tol or abs(self._t - t1) > tol:
+            self._stats["odometry_unmatched"] += 1
+            return UpdateResult(False, "odometry interval does not match the filter's last prediction")
+        x5, P5 = self._ekf.mean, self._ekf.cov
+        # Joint state [x (5), clone (3)]; the measurement is the pose at t1 seen from the clone.
+        x = np.r_[x5, c.pose]
+        P = np.zeros((8, 8))
+        P[:5, :5], P[5:, 5:], P[:5, 5:], P[5:, :5] = P5, c.P, c.cross, c.cross.T
+        P = sym_spd(P, cfg.min_eig)  # the caps applied while advancing may have bent it slightly
+        yaw0 = c.pose[2]
+        co, si = math.cos(yaw0), math.sin(yaw0)
+        Rt = np.array([[co, si], [-si, co]])  # world -> body at t0
+        d = x5[:2] - c.pose[:2]
+        hx = np.r_[Rt @ d, wrap(x5[2] - yaw0)]
+        H = np.zeros((3, 8))
+        H[:2, 0:2], H[:2, 5:7] = Rt, -Rt
+        H[:2, 7] = np.array([[-si, co], [-co, -si]]) @ d
+        H[2, 2], H[2, 7] = 1.0, -1.0
+        R = sym_spd(C * np.outer(self._odo_scale, self._odo_scale), cfg.min_eig)
+        y = z - hx
+        y[2] = wrap(y[2])
+        S = H @ P @ H.T + R
+        try:
+            nis = float(y @ np.linalg.solve(0.5 * (S + S.T), y))
+        except np.linalg.LinAlgError:
+            self._stats["numeric_errors"] += 1
+            return UpdateResult(False, "singular odometry innovation")
+        if not nis <= cfg.gate_odometry:
+            self._stats["odometry_rejected"] += 1
+            return UpdateResult(False, f"odometry gated: NIS {nis:.1f} > {cfg.gate_odometry:.1f}", nis)
+
+        def fuse() -> None:
+            # filterpy's functional update is the linear one (residual z - H x): hand it the
+            # measurement whose linear residual is our (wrapped) nonlinear one.
+            xa, Pa = kf_update(x, P, H @ x + y, R, H)
+            xa = np.asarray(xa, float).ravel()
+            self._ekf.set(xa[:5], 0.5 * (Pa[:5, :5] + Pa[:5, :5].T))
+
+        self._clone = None  # one step per interval: a second one would reuse the same frames
+        if not self._guarded(fuse):
+            return UpdateResult(False, "numerical failure fusing odometry", nis)
+        self._frame = None
+        self._stats["odometry_accepted"] += 1
+        return UpdateResult(True, "fused", nis)
 
     # -- output -------------------------------------------------------------------------------------
     def output(self, t: float | None = None) -> TrackerOutput:

@@ -1,0 +1,293 @@
+"""Floor visual odometry: the body's planar motion between consecutive frames, from the floor texture.
+
+The camera looks at a flat floor, so a fixed homography (from the rig's nominal pose and the
+calibration, undistortion included) turns a floor patch in front of the operator into a metric
+bird's-eye image: :func:`cv2.remap` with maps built once. Consecutive bird's-eye images of a static
+floor differ by a 2-D rigid motion (the body's planar motion, seen from the patch):
+
+1. translation by :func:`cv2.phaseCorrelate` on high-passed, Hann-windowed images (robust to large
+   shifts, to lighting gradients and to heavy noise; its peak ``response`` is the quality);
+2. rotation and a sub-pixel refinement by :func:`cv2.findTransformECC` (``MOTION_EUCLIDEAN``) on
+   half-resolution images, started from that translation (its correlation is a second quality).
+
+The image motion is converted into the body frame at the earlier frame (``T_body0_body1``), which
+accounts for the patch lying ~1 m ahead of the body origin: a turn about the body origin also
+shifts the patch sideways.
+
+What it cannot see: the vest moving on the body (bobbing, pitch jitter, sway, torso yaw) moves the
+camera, not the body, and the nominal homography turns it into apparent floor motion. These errors
+are oscillatory (they cancel over a step cycle) and grow with walking speed; the covariance carries
+them per frame (see :class:`OdometryConfig`), and the tracker accounts for their correlation in
+time (see :mod:`tracker.config`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from tagloc.errors import CalibrationError, InputError
+from tagloc.rig import RigCamera
+
+__all__ = ["OdometryConfig", "OdometryStep", "FloorOdometry", "floor_patch"]
+
+
+@dataclass
+class OdometryConfig:
+    """Choices of the floor odometry. Lengths in metres, angles in radians, times in seconds.
+
+    Bird's-eye patch:
+
+    - ``patch_px``: side of the bird's-eye image. ``max_side_m`` caps the floor square it covers;
+      the square is the largest one, centred in front of the camera, whose corners stay
+      ``image_margin`` (fraction of the image size) inside the image and whose rays dip at least
+      ``min_depression`` below the horizon. ``supersample``: the patch is remapped at this factor
+      and reduced with :func:`cv2.pyrDown` (anti-aliasing: the camera resolves 1-4 mm, the patch
+      holds 4-6 mm).
+    - ``highpass_sigma_px``: the local mean (Gaussian of this sigma) is subtracted, so lighting
+      gradients and vignetting do not correlate.
+
+    Acceptance (otherwise :meth:`FloorOdometry.measure` returns None):
+
+    - ``max_dt``: a longer gap between frames (skipped frames) is not measured.
+    - ``min_response``: phase-correlation peak. Independent sensor noise on a blank floor gives
+      0.04 (median; up to 0.1 in 40 trials); consecutive frames of simulated concrete 0.3-0.6
+      (median per session, lux 50-300), down to ~0.05 only under the heaviest blur.
+    - ``min_ecc``: ECC correlation after alignment: < 0.1 on noise, >= 0.3 on matching frames.
+    - ``max_shift_frac``: shifts beyond this fraction of the patch leave too little overlap.
+
+    Noise per frame (standard deviations of the step, added in quadrature), calibrated on simulated
+    sessions so that the NEES of the delta against ground truth is about 3 (3 DoF):
+
+    - ``sigma_xy``, ``sigma_yaw``: image-matching noise floor (a fraction of a bird's-eye pixel).
+    - ``sigma_xy_per_m``, ``sigma_yaw_per_m``: per metre walked in the step: the vest's bobbing,
+      pitch jitter, sway and torso yaw move the camera in proportion to the walking speed.
+    - ``sigma_scale``: relative error of the displacement (vest height and pitch off nominal).
+    """
+
+    patch_px: int = 160
+    max_side_m: float = 1.0
+    image_margin: float = 0.03
+    min_depression: float = math.radians(20.0)
+    supersample: int = 2
+    highpass_sigma_px: float = 5.0
+    max_dt: float = 0.12
+    min_response: float = 0.1
+    min_ecc: float = 0.3
+    max_shift_frac: float = 0.3
+    ecc_iterations: int = 15
+    ecc_eps: float = 1e-4
+    sigma_xy: float = 0.002
+    sigma_yaw: float = math.radians(0.15)
+    sigma_xy_per_m: float = 0.15
+    sigma_yaw_per_m: float = 0.11
+    sigma_scale: float = 0.03
+
+
+@dataclass
+class OdometryStep:
+    """Body motion between two frames.
+
+    Attributes:
+        t0, t1: timestamps of the earlier and later frame, s.
+        delta: (3,) ``(dx, dy, dyaw)``: the body pose at ``t1`` in the body frame at ``t0`` (m, m, rad).
+        cov: (3, 3) covariance of ``delta``.
+        quality: phase-correlation response (0-1, higher is better).
+    """
+
+    t0: float
+    t1: float
+    delta: np.ndarray
+    cov: np.ndarray
+    quality: float
+
+
+@dataclass
+class FloorPatch:
+    """The floor square seen as the bird's-eye image (body frame, metres).
+
+    Bird's-eye pixel (col, row) is the floor point ``origin + A @ (col, row)``, with ``A`` (2, 2) =
+    ``res * [[0, -1], [-1, 0]]``: rows run backwards (image up = forward), columns to the right.
+    """
+
+    x_near: float
+    x_far: float
+    y_left: float
+    side: float
+    res: float
+    origin: np.ndarray
+    A: np.ndarray
+
+
+def _floor_from_pixels(rig_camera: RigCamera, px: np.ndarray, min_depression: float) -> np.ndarray:
+    """Body-frame floor points (N, 2) under distorted pixels (N, 2); NaN where the ray misses the floor."""
+    cam = rig_camera.camera
+    n = cv2.undistortPoints(px.reshape(-1, 1, 2).astype(np.float64), cam.K, cam.dist).reshape(-1, 2)
+    rays = np.column_stack([n, np.ones(len(n))]) @ rig_camera.T_body_camera[:3, :3].T
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    c = rig_camera.T_body_camera[:3, 3]
+    out = np.full((len(n), 2), np.nan)
+    down = rays[:, 2] < -math.sin(min_depression)
+    s = -c[2] / rays[down, 2]
+    out[down] = c[:2] + s[:, None] * rays[down, :2]
+    return out
+
+
+def floor_patch(rig_camera: RigCamera, config: OdometryConfig | None = None) -> FloorPatch:
+    """The largest floor square (side <= ``max_side_m``) in front of the camera that the image covers.
+
+    The square is axis-aligned in the body frame and centred on the camera's lateral position; its
+    near edge is searched over the footprint. Raises CalibrationError if the camera does not see
+    enough floor (looking up, or a rig far above the floor).
+    """
+    cfg = config or OdometryConfig()
+    cam = rig_camera.camera
+    if rig_camera.T_body_camera[2, 3] <= 0.05:
+        raise CalibrationError(f"camera {rig_camera.name!r}: floor odometry needs the camera above the floor")
+    m = cfg.image_margin
+    # The image border (inset by the margin), densely, as the footprint polygon on the floor.
+    k = np.linspace(0.0, 1.0, 41)
+    u0, u1 = m * (cam.width - 1), (1 - m) * (cam.width - 1)
+    v0, v1 = m * (cam.height - 1), (1 - m) * (cam.height - 1)
+    border = np.vstack([np.column_stack([u0 + (u1 - u0) * k, np.full_like(k, v0)]),
+                        np.column_stack([np.full_like(k, u1), v0 + (v1 - v0) * k]),
+                        np.column_stack([u1 - (u1 - u0) * k, np.full_like(k, v1)]),
+                        np.column_stack([np.full_like(k, u0), v1 - (v1 - v0) * k])])
+    floor = _floor_from_pixels(rig_camera, border, cfg.min_depression)
+    ok = np.all(np.isfinite(floor), axis=1)
+    if ok.sum() < 8:
+        raise CalibrationError(f"camera {rig_camera.name!r}: sees too little floor for odometry")
+    # Rays above the depression limit are dropped: what is left is the footprint's near part.
+    poly = cv2.convexHull(floor[ok].astype(np.float32))
+    yc = float(rig_camera.T_body_camera[1, 3])
+
+    def fits(x0: float, s: float) -> bool:
+        t = np.linspace(0.0, 1.0, 5)
+        edge = np.vstack([np.column_stack([x0 + s * t, np.full(5, yc - s / 2)]),
+                          np.column_stack([x0 + s * t, np.full(5, yc + s / 2)]),
+                          np.column_stack([np.full(5, x0), yc - s / 2 + s * t]),
+                          np.column_stack([np.full(5, x0 + s), yc - s / 2 + s * t])])
+        return all(cv2.pointPolygonTest(poly, (float(a), float(b)), False) >= 0 for a, b in edge)
+
+    xs = floor[ok, 0]
+    best = (0.0, 0.0)
+    for x0 in np.linspace(xs.min(), xs.max(), 60):
+        lo, hi = 0.0, cfg.max_side_m
+        if best[1] >= hi and fits(x0, hi):
+            continue  # a nearer square of full size was already found
+        for _ in range(20):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if fits(x0, mid) else (lo, mid)
+        if lo > best[1] + 1e-4:
+            best = (float(x0), lo)
+    x0, side = best
+    if side < 0.2:
+        raise CalibrationError(f"camera {rig_camera.name!r}: the floor square in view is {side:.2f} m, too small for odometry")
+    res = side / cfg.patch_px
+    origin = np.array([x0 + side - 0.5 * res, yc + side / 2 - 0.5 * res])  # centre of pixel (0, 0)
+    A = res * np.array([[0.0, -1.0], [-1.0, 0.0]])
+    return FloorPatch(x0, x0 + side, yc + side / 2, side, res, origin, A)
+
+
+class FloorOdometry:
+    """Planar body motion between consecutive frames of one rig camera, from the floor texture."""
+
+    def __init__(self, rig_camera: RigCamera, config: OdometryConfig | None = None):
+        self.config = cfg = config or OdometryConfig()
+        self.rig_camera = rig_camera
+        self.patch = p = floor_patch(rig_camera, cfg)
+        n = cfg.patch_px
+        ss = max(1, int(cfg.supersample))
+        m = n * ss
+        # pyrDown's output pixel j is centred on its input pixel 2j: supersampled pixel i is patch
+        # coordinate i / ss.
+        g = np.arange(m) / ss
+        cols, rows = np.meshgrid(g, g)
+        pts = p.origin + np.stack([cols.ravel(), rows.ravel()], axis=1) @ p.A.T
+        T_cb = np.linalg.inv(rig_camera.T_body_camera)
+        pc = np.column_stack([pts, np.zeros(len(pts))]) @ T_cb[:3, :3].T + T_cb[:3, 3]
+        px = rig_camera.camera.project(pc).astype(np.float32)
+        mx = px[:, 0].reshape(m, m)
+        my = px[:, 1].reshape(m, m)
+        self._map1, self._map2 = cv2.convertMaps(mx, my, cv2.CV_16SC2)
+        self._levels = int(round(math.log2(ss))) if ss > 1 else 0
+        self._window = cv2.createHanningWindow((n, n), cv2.CV_32F)
+        self._prev: tuple[float, np.ndarray, np.ndarray] | None = None
+        self._criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, cfg.ecc_iterations, cfg.ecc_eps)
+
+    def birdseye(self, gray: np.ndarray) -> np.ndarray:
+        """The bird's-eye patch (patch_px, patch_px) float32, high-passed, of a (H, W) uint8 frame."""
+        cam = self.rig_camera.camera
+        if gray.ndim != 2 or gray.shape != (cam.height, cam.width):
+            raise InputError(f"odometry wants a {cam.width}x{cam.height} greyscale frame, got shape {gray.shape}")
+        img = cv2.remap(gray, self._map1, self._map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        for _ in range(self._levels):
+            img = cv2.pyrDown(img)
+        f = img.astype(np.float32)
+        s = self.config.highpass_sigma_px
+        return f - cv2.GaussianBlur(f, (0, 0), s) if s > 0 else f - float(f.mean())
+
+    def reset(self) -> None:
+        """Forget the previous frame (the next :meth:`measure` returns None)."""
+        self._prev = None
+
+    def measure(self, gray: np.ndarray, t: float) -> OdometryStep | None:
+        """Body motion from the previous frame to this one (``gray`` (H, W) uint8, time ``t`` s), or None.
+
+        None for the first frame, after a gap longer than ``max_dt``, out-of-order time, or when the
+        match is poor (texture-less floor, heavy blur, too large a shift).
+        """
+        cfg = self.config
+        cur = self.birdseye(gray)
+        small = cv2.pyrDown(cur)
+        prev, self._prev = self._prev, (float(t), cur, small)
+        if prev is None:
+            return None
+        t0, pcur, psmall = prev
+        dt = float(t) - t0
+        if not (0.0 < dt <= cfg.max_dt):
+            return None
+        # Phase correlation: shift (sx, sy) such that cur(q) ~ prev(q - shift).
+        # phaseCorrelate applies the window in place: hand it copies.
+        (sx, sy), response = cv2.phaseCorrelate(pcur.copy(), cur.copy(), self._window)
+        n = cfg.patch_px
+        if not math.isfinite(response) or response < cfg.min_response or max(abs(sx), abs(sy)) > cfg.max_shift_frac * n:
+            return None
+        # ECC finds W with prev(W q) ~ cur(q): W maps current patch pixels to previous ones. Run at
+        # half resolution: rotation and sub-pixel shift converge there and it is 4x cheaper.
+        W = np.array([[1.0, 0.0, -sx / 2], [0.0, 1.0, -sy / 2]], np.float32)
+        try:
+            rho, W = cv2.findTransformECC(small, psmall, W, cv2.MOTION_EUCLIDEAN, self._criteria, None, 1)
+        except cv2.error:
+            return None
+        if not (math.isfinite(rho) and rho >= cfg.min_ecc):
+            return None
+        W = W.astype(np.float64)
+        # Back to full-resolution patch pixels (pyrDown: q_half = q / 2).
+        Wl, w_full = W[:, :2], 2.0 * W[:, 2]
+        if np.hypot(*w_full) > cfg.max_shift_frac * n * 1.5:
+            return None
+        delta = self._body_motion(Wl, w_full)
+        return OdometryStep(t0, float(t), delta, self._covariance(delta), float(response))
+
+    def _body_motion(self, Wl: np.ndarray, wt: np.ndarray) -> np.ndarray:
+        """(dx, dy, dyaw) of body1 in body0 from the patch-pixel map q0 = Wl q1 + wt."""
+        A, b = self.patch.A, self.patch.origin
+        # Floor points p = A q + b; p0 = R p1 + t (T_body0_body1). Hence R = A Wl A^-1 and
+        # t = A wt + b - R b: the rotation is about the body origin, not the patch centre.
+        M = A @ Wl @ np.linalg.inv(A)
+        yaw = math.atan2(M[1, 0] - M[0, 1], M[0, 0] + M[1, 1])
+        R = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+        t = A @ wt + b - R @ b
+        return np.array([t[0], t[1], yaw])
+
+    def _covariance(self, delta: np.ndarray) -> np.ndarray:
+        """(3, 3) covariance of a step (see :class:`OdometryConfig`)."""
+        cfg = self.config
+        d = float(np.hypot(delta[0], delta[1]))
+        sxy2 = cfg.sigma_xy**2 + (cfg.sigma_xy_per_m * d) ** 2 + (cfg.sigma_scale * d) ** 2
+        syaw2 = cfg.sigma_yaw**2 + (cfg.sigma_yaw_per_m * d) ** 2
+        return np.diag([sxy2, sxy2, syaw2])

@@ -1,0 +1,258 @@
+"""Floor odometry: patch geometry, accuracy against simulated ground truth, rejection, tracker fusion."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from tagloc.camera import default_camera
+from tagloc.errors import InputError
+from tagloc.geometry import planar_from_T
+from tagloc.localiser import LocaliserConfig
+from tagloc.mapgen import GridMapConfig, grid_map
+from tagloc.metrics import trajectory_metrics
+from tagloc.observation import IdSource, PoseFix, TrackState
+from tagloc.odometry import FloorOdometry, OdometryConfig, OdometryStep, floor_patch
+from tagloc.rig import RigCamera, looking_forward
+from tagloc.run import run_session
+from tagloc.session import SessionReader
+from tagloc.simulate import SimConfig, simulate_session
+from tagloc.walk import WalkConfig
+from tracker.tracker import Tracker
+
+FPS = 30.0
+
+
+def rig_camera(pitch_deg: float = 55.0, scale: float = 1.0) -> RigCamera:
+    cam = default_camera()
+    return RigCamera("front", cam.scaled(scale) if scale != 1 else cam, looking_forward(1.3, pitch_deg))
+
+
+# -- patch geometry ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("pitch", [45.0, 55.0, 70.0])
+@pytest.mark.parametrize("scale", [1.0, 0.5])
+def test_patch_is_in_view_for_any_pitch(pitch, scale):
+    rc = rig_camera(pitch, scale)
+    p = floor_patch(rc)
+    assert 0.5 <= p.side <= 1.0 + 1e-9
+    assert p.x_near >= -0.05
+    # The patch's corners project inside the image, in front of the camera.
+    corners = np.array([[p.x_near, p.y_left, 0], [p.x_far, p.y_left, 0], [p.x_near, p.y_left - p.side, 0],
+                        [p.x_far, p.y_left - p.side, 0]])
+    T_cb = np.linalg.inv(rc.T_body_camera)
+    pc = corners @ T_cb[:3, :3].T + T_cb[:3, 3]
+    assert np.all(pc[:, 2] > 0.3)
+    px = rc.camera.project(pc)
+    assert np.all(px >= 0) and np.all(px[:, 0] <= rc.camera.width - 1) and np.all(px[:, 1] <= rc.camera.height - 1)
+
+
+def test_camera_seeing_no_floor_is_refused():
+    from tagloc.errors import CalibrationError
+
+    with pytest.raises(CalibrationError):
+        floor_patch(RigCamera("up", default_camera(), looking_forward(1.3, -30.0)))
+
+
+def test_body_motion_of_a_synthetic_shift_and_turn():
+    """A bird's-eye image moved by a known body motion is measured back (no camera in the loop)."""
+    rc = rig_camera(55.0, 0.5)
+    odo = FloorOdometry(rc)
+    p = odo.patch
+    # Ground truth motion of the body (T_body0_body1) -> map of patch pixels q1 -> q0.
+    dx, dy, dyaw = 0.04, -0.006, math.radians(1.2)
+    R = np.array([[math.cos(dyaw), -math.sin(dyaw)], [math.sin(dyaw), math.cos(dyaw)]])
+    Ainv = np.linalg.inv(p.A)
+    Wl = Ainv @ R @ p.A
+    wt = Ainv @ (R @ p.origin + np.array([dx, dy]) - p.origin)
+    assert np.allclose(odo._body_motion(Wl, wt), [dx, dy, dyaw], atol=1e-12)
+
+
+# -- simulated sessions -----------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def stop_walk(tmp_path_factory) -> Path:
+    """A 5 s walk with a stop of ~1.5 s in it, at 120 lux, pitch 60 degrees."""
+    path = tmp_path_factory.mktemp("odo") / "walk"
+    smap = grid_map(GridMapConfig(width_m=12, depth_m=10, spacing_min_m=1.6, spacing_max_m=2.0, seed=8))
+    walk = WalkConfig(stop_every_s=1.0, stop_s=(1.4, 1.6))
+    simulate_session(smap, path, SimConfig(seconds=5, lux=120, speed_mps=1.3, seed=21, pitch_deg=60.0, walk=walk),
+                     progress=False)
+    return path
+
+
+def _deltas(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(errors (N, 3) or NaN rows where refused, NEES (N,)) of the odometry against ground truth."""
+    cv2.setNumThreads(1)
+    session = SessionReader(path)
+    gt = [json.loads(line) for line in (path / "groundtruth_frames.jsonl").read_text().splitlines()]
+    odo = FloorOdometry(session.rig[0])
+    errs, nees = [], []
+    for fr in session.frames():
+        step = odo.measure(fr.image, fr.timestamp)
+        if fr.index == 0:
+            assert step is None
+            continue
+        T0, T1 = (np.array(gt[k]["T_world_body"]) for k in (fr.index - 1, fr.index))
+        truth = np.array(planar_from_T(np.linalg.inv(T0) @ T1))
+        if step is None:
+            errs.append(np.full(3, np.nan))
+            nees.append(np.nan)
+            continue
+        e = step.delta - truth
+        e[2] = (e[2] + np.pi) % (2 * np.pi) - np.pi
+        errs.append(e)
+        nees.append(float(e @ np.linalg.solve(step.cov, e)))
+        assert step.t1 - step.t0 == pytest.approx(1 / FPS, abs=1e-6)
+    return np.array(errs), np.array(nees)
+
+
+def test_deltas_match_groundtruth(stop_walk):
+    errs, nees = _deltas(stop_walk)
+    ok = np.isfinite(nees)
+    assert ok.mean() > 0.95
+    rms = np.sqrt(np.mean(errs[ok] ** 2, axis=0))
+    assert rms[0] < 0.008 and rms[1] < 0.008  # metres per frame (steps are up to 4.5 cm)
+    assert rms[2] < math.radians(0.5)
+    assert abs(errs[ok, 0].sum()) < 0.10  # 5 s of forward motion (~4 m) within 10 cm
+    assert 1.0 < nees[ok].mean() < 5.0  # calibrated for 3 (3 DoF)
+
+
+def test_textureless_or_noise_floor_is_refused():
+    rc = rig_camera(55.0, 0.5)
+    odo = FloorOdometry(rc)
+    h, w = rc.camera.height, rc.camera.width
+    flat = np.full((h, w), 90, np.uint8)
+    assert odo.measure(flat, 0.0) is None
+    assert odo.measure(flat, 1 / FPS) is None
+    rng = np.random.default_rng(3)
+    odo.reset()
+    for k in range(5):
+        noise = np.clip(90 + 25 * rng.standard_normal((h, w)), 0, 255).astype(np.uint8)
+        assert odo.measure(noise, k / FPS) is None
+
+
+def test_gaps_and_bad_input_are_refused(stop_walk):
+    session = SessionReader(stop_walk)
+    frames = [f for f, _ in zip(session.frames(), range(4))]
+    odo = FloorOdometry(session.rig[0])
+    assert odo.measure(frames[0].image, 0.0) is None  # first frame
+    assert odo.measure(frames[1].image, 0.5) is None  # too long after the previous frame
+    assert odo.measure(frames[2].image, 0.5) is None  # same time
+    assert odo.measure(frames[3].image, 0.5 + 1 / FPS) is not None
+    with pytest.raises(InputError):
+        odo.measure(frames[0].image[:100], 1.0)
+
+
+def test_localiser_with_odometry_follows_the_stop(stop_walk):
+    session = SessionReader(stop_walk)
+    gt = session.groundtruth()
+    results = {}
+    for use in (False, True):
+        states = []
+        log = run_session(session, LocaliserConfig(odometry=use), on_result=lambda r: states.append(r.output.state))
+        v = log.valid
+        results[use] = (trajectory_metrics(log.stamps[v], log.poses[v], log.covs[v], *gt), states, log.counts)
+    m_off, _, _ = results[False]
+    m_on, states, counts = results[True]
+    assert counts["tracker_odometry_accepted"] > 100
+    assert m_on["rmse_m"] < 0.08
+    assert m_on["rmse_m"] < 0.7 * m_off["rmse_m"]
+    assert m_on["p95_m"] < m_off["p95_m"]
+    assert 0.3 < m_on["nees_mean"] < 6.0
+    first = next(i for i, s in enumerate(states) if s is not TrackState.INITIALISING)
+    assert np.mean([s is TrackState.TRACKING for s in states[first:]]) > 0.95
+
+
+# -- tracker fusion (synthetic) ---------------------------------------------------------------------
+
+
+def _truth(t: np.ndarray, stop_at: float) -> np.ndarray:
+    """(N, 3) body poses on a gentle curve at 1.3 m/s, braking at 1.3 m/s^2 from ``stop_at`` to a standstill."""
+    fine = np.arange(0.0, t[-1] + 0.01, 0.001)
+    v = np.clip(1.3 - 1.3 * (fine - stop_at), 0.0, 1.3)
+    yaw = np.cumsum(v * (0.2 / 1.3)) * 0.001
+    x = np.cumsum(v * np.cos(yaw)) * 0.001
+    y = np.cumsum(v * np.sin(yaw)) * 0.001
+    return np.column_stack([np.interp(t, fine, x), np.interp(t, fine, y), np.interp(t, fine, yaw)])
+
+
+def _step(p0: np.ndarray, p1: np.ndarray, t0: float, t1: float, cov: np.ndarray, rng) -> OdometryStep:
+    c, s = math.cos(p0[2]), math.sin(p0[2])
+    d = np.array([[c, s], [-s, c]]) @ (p1[:2] - p0[:2])
+    delta = np.r_[d, p1[2] - p0[2]] + rng.multivariate_normal(np.zeros(3), cov)
+    return OdometryStep(t0, t1, delta, cov, 0.5)
+
+
+def _run(rng, odometry: bool, stop_at: float = 1.5, t_end: float = 4.0, fix_until: float = 1.0):
+    """Fixes every frame until ``fix_until``, then only odometry (if on). Returns errors and covs at the end."""
+    tr = Tracker()
+    t = np.arange(0.0, t_end, 1 / FPS)
+    truth = _truth(t, stop_at)
+    cov = np.diag([0.004**2, 0.004**2, math.radians(0.3) ** 2])
+    fix_cov = np.diag([0.02**2, 0.02**2, math.radians(1.0) ** 2])
+    for k, tk in enumerate(t):
+        tr.predict(tk)
+        if odometry and k > 0:
+            tr.update_odometry(_step(truth[k - 1], truth[k], t[k - 1], tk, cov, rng))
+        if tk <= fix_until:
+            z = truth[k] + rng.multivariate_normal(np.zeros(3), fix_cov + tr._floor)
+            tr.update([PoseFix(np.eye(4), z, fix_cov, 0.3)], 1, IdSource.DECODED, tk)
+    out = tr.output()
+    return out.pose - truth[-1], out.cov, tr
+
+
+def test_tracker_follows_a_stop_with_odometry(rng):
+    err_on, cov_on, tr = _run(rng, True)
+    err_off, cov_off, _ = _run(rng, False)
+    assert tr.state is TrackState.TRACKING
+    assert tr.stats["odometry_accepted"] > 100 and tr.stats["odometry_rejected"] <= 1
+    assert np.hypot(*err_on[:2]) < 0.08
+    assert np.hypot(*err_off[:2]) > 0.3  # blind extrapolation walks on after the stop
+    sigma_on = math.sqrt(np.linalg.eigvalsh(cov_on[:2, :2])[-1])
+    assert sigma_on < 0.15  # 3 s without a fix
+    assert sigma_on < 0.3 * math.sqrt(np.linalg.eigvalsh(cov_off[:2, :2])[-1])
+    assert abs(err_on[2]) < math.radians(4)
+
+
+def test_tracker_odometry_nees_is_honest():
+    nees = []
+    for seed in range(40):
+        err, cov, _ = _run(np.random.default_rng(seed), True, t_end=3.0)
+        nees.append(err[:2] @ np.linalg.solve(cov[:2, :2], err[:2]))
+    # 2 DoF: mean 2 if exact; inflation for correlated steps makes it smaller, never much larger.
+    assert 0.3 < np.mean(nees) < 2.6
+
+
+def test_tracker_odometry_bookkeeping(rng):
+    tr = Tracker()
+    cov = np.diag([1e-5, 1e-5, 1e-5])
+    tr.predict(0.0)
+    res = tr.update_odometry(OdometryStep(-1 / FPS, 0.0, np.zeros(3), cov, 0.5))
+    assert not res.accepted and tr.stats["odometry_ignored"] == 1
+    fix = [PoseFix(np.eye(4), np.zeros(3), np.diag([1e-4, 1e-4, 1e-4]), 0.3)]
+    tr.update(fix, 1, IdSource.DECODED, 0.0)
+    # A fix fused at t1 before the step: the step no longer matches the prediction.
+    t1 = 1 / FPS
+    tr.predict(t1)
+    tr.update(fix, 1, IdSource.DECODED, t1)
+    assert not tr.update_odometry(OdometryStep(0.0, t1, np.zeros(3), cov, 0.5)).accepted
+    assert tr.stats["odometry_unmatched"] == 1
+    # The step moves the filter itself; a 1 m jump in one frame is gated out; a plausible one is fused.
+    t2 = 2 / FPS
+    res = tr.update_odometry(OdometryStep(t1, t2, np.array([1.0, 0.0, 0.0]), cov, 0.5))
+    assert not res.accepted and tr.stats["odometry_rejected"] == 1 and tr.time == pytest.approx(t2)
+    t3 = 3 / FPS
+    assert tr.update_odometry(OdometryStep(t2, t3, np.array([0.01, 0.0, 0.0]), cov, 0.5)).accepted
+    # The same interval twice would count its frames twice.
+    assert not tr.update_odometry(OdometryStep(t2, t3, np.array([0.01, 0.0, 0.0]), cov, 0.5)).accepted
+    bad = OdometryStep(t3, t3 + 0.03, np.array([np.nan, 0, 0]), cov, 0.5)
+    assert not tr.update_odometry(bad).accepted
+    assert np.all(np.linalg.eigvalsh(tr.output().cov) > 0)
