@@ -140,6 +140,7 @@ def evaluate(cfg: EvalConfig) -> dict:
                    "frame_ms_median": float(np.median(log.frame_ms)) if len(log.frame_ms) else math.nan,
                    "tracker_ms_median": float(np.median(log.tracker_ms)) if len(log.tracker_ms) else math.nan,
                    "tracker_ms_p95": float(np.percentile(log.tracker_ms, 95)) if len(log.tracker_ms) else math.nan,
+                   "odometry_ms_median": float(np.median(log.odometry_ms)) if len(log.odometry_ms) else math.nan,
                    "counts": log.counts}
             rows.append(row)
             if mode == "full":
@@ -167,14 +168,29 @@ def summarise(rows: list[dict]) -> dict:
             "within_25cm": float(np.sum(w * np.array([r["within_25cm"] for r in rs]))),
             "heading_rmse_deg": float(np.sqrt(np.sum(w * np.array([r["heading_rmse_deg"] for r in rs]) ** 2))),
             "nees_mean": float(np.sum(w * np.array([r["nees_mean"] for r in rs]))),
+            "nees_bounds_95": _nees_bounds(int(n.sum())),
             "wrong_id_fixes": int(sum(r["wrong_id_fixes"] for r in rs)),
             "fixes": int(sum(r["fixes"] for r in rs)),
             "rejected_fixes": int(sum(r["rejected_fixes"] for r in rs)),
             "coverage": float(np.mean([r["coverage"] for r in rs])),
             "tracker_ms_median": float(np.median([r["tracker_ms_median"] for r in rs])),
+            "tracker_ms_p95": float(np.median([r["tracker_ms_p95"] for r in rs])),
+            "odometry_ms_median": float(np.median([r["odometry_ms_median"] for r in rs])),
             "frame_ms_median": float(np.median([r["frame_ms_median"] for r in rs])),
         }
     return summary
+
+
+def _nees_bounds(frames: int) -> list[float]:
+    """95% chi-square bounds of a mean 2-DoF NEES over ``frames`` samples, as if independent.
+
+    Consecutive frames of a filter are correlated, so these bounds are tighter than the truth: a
+    mean inside them is consistent; just outside is not yet proof of inconsistency.
+    """
+    from scipy.stats import chi2
+
+    n = max(frames, 1)
+    return [float(chi2.ppf(0.025, 2 * n) / n), float(chi2.ppf(0.975, 2 * n) / n)]
 
 
 def format_table(rows: list[dict], summary: dict) -> str:
@@ -198,6 +214,20 @@ def format_table(rows: list[dict], summary: dict) -> str:
     return "\n".join(lines)
 
 
+def format_notes(summary: dict) -> str:
+    """Consistency (NEES against its bounds) and timing per mode, as Markdown lines."""
+    parts = ["## Consistency", ""]
+    for mode, s in summary.items():
+        lo, hi = s["nees_bounds_95"]
+        parts.append(f"- {mode}: mean position NEES {s['nees_mean']:.2f} (2 DoF; 95% bounds for independent samples"
+                     f" [{lo:.2f}, {hi:.2f}]; below means the stated uncertainty is conservative, above overconfident)")
+    parts += ["", "## Timing (per frame)", ""]
+    for mode, s in summary.items():
+        parts.append(f"- {mode}: median frame {s['frame_ms_median']:.1f} ms, of which tracker {s['tracker_ms_median']:.2f} ms"
+                     f" (p95 {s['tracker_ms_p95']:.2f} ms) and floor odometry {s['odometry_ms_median']:.2f} ms")
+    return "\n".join(parts)
+
+
 def report_markdown(rows: list[dict], summary: dict, plots: list[Path], out: Path) -> str:
     """The Markdown report: conditions, the table, timing, and the plots."""
     parts = ["# tagloc eval", "", "Modes: `full` = tagloc (EKF + candidate identification); `decoded-only` = the paper's"
@@ -205,9 +235,8 @@ def report_markdown(rows: list[dict], summary: dict, plots: list[Path], out: Pat
              "Errors are horizontal position errors of the body frame against the simulator's ground truth, over the"
              " frames where the mode had a pose (`covered`). NEES is the mean normalised position error (2 DoF; 95%"
              " bounds for the mean depend on the number of independent samples, about [1.8, 2.2] for a few hundred).",
-             "", format_table(rows, summary), "", "## Timing", ""]
-    for mode, s in summary.items():
-        parts.append(f"- {mode}: median frame {s['frame_ms_median']:.1f} ms, of which tracker {s['tracker_ms_median']:.2f} ms")
+             "", format_table(rows, summary)]
+    parts += ["", format_notes(summary)]
     parts += ["", "## Plots", ""]
     parts += [f"![{p.stem}]({p.relative_to(out)})" for p in plots if p is not None]
     return "\n".join(parts) + "\n"

@@ -37,7 +37,8 @@ class RunLog:
         valid: (N,) bool, False while the localiser had no pose yet.
         fixes: list of dicts, one per accepted fix: frame index, sticker id, source, corners centre.
         counts: counters from the localiser and tracker.
-        frame_ms: (N,) wall time per frame, ms; tracker_ms: (N,) of which in the tracker.
+        frame_ms: (N,) wall time per frame, ms; tracker_ms, odometry_ms: (N,) of which in the
+            tracker (predict, candidates, update, output) and in the floor odometry.
     """
 
     stamps: np.ndarray
@@ -49,6 +50,7 @@ class RunLog:
     counts: dict = field(default_factory=dict)
     frame_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     tracker_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    odometry_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 def iterate_results(session: SessionReader, localiser: Localiser, progress: bool = False,
@@ -79,7 +81,7 @@ def run_session(session: SessionReader, config: LocaliserConfig | None = None, r
     """
     loc = Localiser(session.map, session.rig, config or LocaliserConfig(), refs=refs,
                     map_path=session.path / "map.csv")
-    stamps, poses, covs, valid, frame_ms, tracker_ms = [], [], [], [], [], []
+    stamps, poses, covs, valid, frame_ms, tracker_ms, odometry_ms = [], [], [], [], [], [], []
     fixes, rejected = [], []
     for res in iterate_results(session, loc, progress=progress, realtime=realtime):
         out = res.output
@@ -89,6 +91,7 @@ def run_session(session: SessionReader, config: LocaliserConfig | None = None, r
         valid.append(out.state.value != "initialising")
         frame_ms.append(res.times_ms.get("total", 0.0))
         tracker_ms.append(res.times_ms.get("tracker", 0.0))
+        odometry_ms.append(res.times_ms.get("odometry", 0.0))
         for obs in res.observations:
             if obs.poses and obs.sticker_id is not None:
                 rec = {"frame": res.index, "t": res.timestamp, "id": obs.sticker_id, "source": obs.source.value,
@@ -101,7 +104,8 @@ def run_session(session: SessionReader, config: LocaliserConfig | None = None, r
         counts.update({f"tracker_{k}": v for k, v in loc.tracker.stats.items()})
     counts["skipped_frames"] = len(session.skipped)
     return RunLog(np.array(stamps), np.array(poses, float).reshape(-1, 3), np.array(covs, float).reshape(-1, 3, 3),
-                  np.array(valid, bool), fixes, rejected, counts, np.array(frame_ms), np.array(tracker_ms))
+                  np.array(valid, bool), fixes, rejected, counts, np.array(frame_ms), np.array(tracker_ms),
+                  np.array(odometry_ms))
 
 
 def write_jsonl(path: str | Path, results: list[dict]) -> None:

@@ -27,11 +27,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from tagloc.evaluate import EvalConfig, evaluate, format_table
+    from tagloc.evaluate import EvalConfig, evaluate, format_notes, format_table
 
     res = evaluate(EvalConfig(sessions=args.sessions, seconds=args.seconds, seed=args.seed, out=args.out,
                               modes=tuple(m.strip() for m in args.modes.split(",") if m.strip()),
                               hard=not args.no_hard, progress=not args.quiet))
     print(format_table(res["rows"], res["summary"]))
+    print()
+    print(format_notes(res["summary"]))
     print(f"\nreport: {res['report']}")
     return 0
