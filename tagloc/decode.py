@@ -10,21 +10,27 @@ stopping as soon as the read is decided:
    symbols' common orientation comes from that border too. The modules are thresholded at levels
    learnt from the border and the clean, upright symbol is handed to zxing-cpp in pure mode. zxing
    still does the Reed-Solomon decoding: the payload always comes from a real Data Matrix decoder.
-3. Motion deblurring (only when 1-2 found nothing): the blur's extent along the raster axes is
-   fitted to the black frame's four edge profiles (with the lens's own spread and the edge offset
-   as nuisance parameters), and the raster is Wiener-deconvolved with that linear kernel (both
-   diagonal signs are tried, lazily, since edge profiles cannot tell them apart); then 1-2 again.
-
+3. Module least squares (when 1-2 found nothing; :func:`module_estimates`): the raster, in linear
+   light, is modelled as black level + contrast * (PSF * sticker), where the sticker is known
+   except for its 256 data modules and the PSF is the lens + pixel spread mapped into the raster
+   plus the motion blur fitted to the black frame's four edge profiles (:func:`blur_estimate`).
+   One ridge-regularised solve per quadrant estimates every data module from all of its pixels,
+   undoing the blur's cross-talk; each symbol is thresholded and handed to zxing (pure mode), also
+   with its least certain modules flipped (Reed-Solomon still decides). On the physical simulator
+   this lifts the read rate from 40 % to ~90 % at 4 px of motion blur and to 100 % up to 2 px.
+4. Optional (``DecodeConfig.deblur``, off by default since stage 3 supersedes it): the raster
+   Wiener-deconvolved with the measured linear kernel, then 1-2 again.
 libdmtx (pylibdmtx) is an alternative backend, imported only when asked for, run per quadrant with
 a time bound. libdmtx has been seen returning wrong payloads that look valid, so a single libdmtx
 symbol is never accepted unless corroborated (a second agreeing symbol, zxing, or a tracker
 candidate).
 
 Every accepted read is finally verified: the decoded ID is re-rendered in the decoded rotation and
-the raster's 256 data-module samples (the 8x8 interior of the four symbols) must correlate with it
-(:func:`verify_id`, accepted from 0.5). Wrong IDs differ from the true one in most Reed-Solomon
-codewords, hence in many modules: measured, they score <= 0.44 while true IDs score >= 0.9 up
-to 2 px of motion blur.
+the raster's 256 data-module samples (the 8x8 interior of the four symbols; for stage 3 its own
+module estimates) must correlate with it (:func:`verify_id`, accepted from 0.5). Wrong IDs differ
+from the true one in most Reed-Solomon codewords, hence in many modules: measured, they score
+<= 0.44 while true IDs score >= 0.9 up to 2 px of motion blur (stage 3 estimates on simulator
+frames: wrong IDs and wrong rotations <= 0.45, true median 0.95).
 """
 
 from __future__ import annotations
@@ -41,7 +47,7 @@ import numpy as np
 from tagloc.camera import Camera
 from tagloc.errors import BackendUnavailable, InputError
 from tagloc.observation import Detection
-from tagloc.rectify import DEFAULT_SIZE_PX, RectifyConfig, distorted_mapping, rectify
+from tagloc.rectify import DEFAULT_SIZE_PX, RectifyConfig, distorted_mapping, ideal_homography, rectify
 from tagloc.sticker import parse_payload, render_sticker, symbol_modules
 
 BACKENDS = ("zxing", "libdmtx", "both")
@@ -68,7 +74,7 @@ class DecodeConfig:
         grid_sampling: run stage 2 (module grid sampling + zxing pure mode) when stage 1 fails.
         align_search_px: how far (raster px) each quadrant's module grid may shift to fit its
             finder/timing border (absorbs detector corner error); 0 disables the search.
-        deblur: run stage 3 (Wiener deconvolution along the measured motion) when 1-2 fail.
+        deblur: run stage 4 (Wiener deconvolution along the measured motion) when 1-3 fail.
         thresholds: where to cut between the finder's dark and light levels (0 dark, 1 light).
         wiener_nsr: noise-to-signal ratio of the Wiener filter.
         min_blur_px: smallest measured blur (raster px) worth deconvolving.
@@ -76,11 +82,16 @@ class DecodeConfig:
         min_verify: smallest :func:`verify_id` score accepted.
         libdmtx_timeout_ms: time bound of one libdmtx call (one quadrant).
         libdmtx_shrink: libdmtx's own down-sampling (2: 3.5 px per module).
+        lsq: run the module least-squares stage (:func:`module_estimates`) when 1-2 fail.
+        lsq_gamma: tone curve of the camera's 8-bit output, undone before the linear blur model.
+        lsq_ridge: regularisation of the module estimates (see :func:`module_estimates`).
+        lsq_flips: how many of a symbol's least certain modules may be flipped (2**n zxing attempts,
+            each ~10 us; Reed-Solomon still decides, and symbols must agree and verify).
     """
 
     grid_sampling: bool = True
     align_search_px: int = 4
-    deblur: bool = True
+    deblur: bool = False
     thresholds: tuple[float, ...] = (0.5, 0.4, 0.6)
     wiener_nsr: float = 0.01
     min_blur_px: float = 4.0
@@ -88,6 +99,10 @@ class DecodeConfig:
     min_verify: float = 0.5
     libdmtx_timeout_ms: int = 30
     libdmtx_shrink: int = 2
+    lsq: bool = True
+    lsq_gamma: float = 2.2
+    lsq_ridge: float = 0.02
+    lsq_flips: int = 6
 
 
 @dataclass
@@ -101,7 +116,7 @@ class DecodeResult:
             ones of a rejected read (so a caller can corroborate them itself).
         rejected: why symbols that were read did not give an ID (None if accepted or nothing read).
         verify_score: :func:`verify_id` of the accepted (or rejected-by-verification) ID, else None.
-        stage: which stage decided ("zxing", "grid", "deblur", "libdmtx"), or None.
+        stage: which stage decided ("zxing", "grid", "lsq", "deblur", "libdmtx"), or None.
         time_ms: wall time of the call.
     """
 
@@ -175,8 +190,10 @@ def module_samples(rect: np.ndarray, search_px: int = 0) -> tuple[np.ndarray, in
 
 def _clean_symbol(modules_dark: np.ndarray, scale: int = 4, quiet: int = 2) -> np.ndarray:
     """Upright binary symbol image (uint8) with a quiet zone, as zxing's pure mode wants it."""
-    img = np.pad(~modules_dark, quiet, constant_values=True)
-    return np.kron(img, np.ones((scale, scale), bool)).astype(np.uint8) * 255
+    n = modules_dark.shape[0] + 2 * quiet
+    img = np.full((n, n), 255, np.uint8)
+    img[quiet:n - quiet, quiet:n - quiet][modules_dark] = 0
+    return cv2.resize(img, (n * scale, n * scale), interpolation=cv2.INTER_NEAREST)
 
 
 # --- backends ------------------------------------------------------------------------------------
@@ -349,6 +366,13 @@ def blur_extent(gray: np.ndarray, detection: Detection, camera: Camera) -> tuple
     The lens's own spread is fitted too (shared by all four edges), so that it is not mistaken
     for motion.
     """
+    lx, ly, _ = blur_estimate(gray, detection, camera)
+    return lx, ly
+
+
+def blur_estimate(gray: np.ndarray, detection: Detection, camera: Camera) -> tuple[float, float, float]:
+    """(motion extent along raster x, along raster y (raster px), optics sigma (image px)) from the
+    four frame edges; see :func:`blur_extent`."""
     m, scale = _margin_raster(gray, detection, camera)
     m = m.astype(np.float64)
     band = slice(_MARGIN + 40, _MARGIN + _N - 40)
@@ -360,8 +384,8 @@ def blur_extent(gray: np.ndarray, detection: Detection, camera: Camera) -> tuple
         lx, rx = _edge_fit(px, float(scale[0]), sigma)
         ly, ry = _edge_fit(py, float(scale[1]), sigma)
         if best is None or rx + ry < best[0]:
-            best = (rx + ry, float(lx.mean()), float(ly.mean()))
-    return best[1], best[2]
+            best = (rx + ry, float(lx.mean()), float(ly.mean()), sigma)
+    return best[1], best[2], best[3]
 
 
 _FFT_N = 256  # padded raster side for deconvolution: a fast FFT size with room for the kernel
@@ -408,12 +432,13 @@ def _line_kernel(dx: float, dy: float) -> np.ndarray:
 
 
 def deblurred_variants(gray: np.ndarray, detection: Detection, camera: Camera, rect: np.ndarray,
-                       config: DecodeConfig) -> Iterator[np.ndarray]:
+                       config: DecodeConfig, blur: tuple[float, float] | None = None) -> Iterator[np.ndarray]:
     """Wiener-deconvolved rasters for the blur measured on the frame edges (0, 1 or 2 of them).
 
-    Lazy: the second diagonal is only deconvolved if the caller asks for it.
+    Lazy: the second diagonal is only deconvolved if the caller asks for it. ``blur``: the
+    (x, y) extents if already measured.
     """
-    lx, ly = blur_extent(gray, detection, camera)
+    lx, ly = blur if blur is not None else blur_extent(gray, detection, camera)
     if max(lx, ly) < config.min_blur_px:
         return
     # Edge widths give |lx| and |ly| only: try both diagonals unless the blur is along an axis.
@@ -421,6 +446,178 @@ def deblurred_variants(gray: np.ndarray, detection: Detection, camera: Camera, r
     spectrum = _spectrum(rect)
     for sign in signs:
         yield _wiener(spectrum, _line_kernel(lx, sign * ly), config.wiener_nsr)
+
+
+# --- module least squares ------------------------------------------------------------------------
+#
+# The module grid is known exactly, so instead of sampling a blurred, noisy raster at module centres,
+# each quadrant's 64 data modules are estimated jointly: the raster (in linear light) is modelled as
+# black level + contrast * (PSF * sharp sticker), where the sharp sticker is known everywhere except
+# at the data modules (frame, quiet zones and every symbol's finder/timing border are fixed), and
+# the PSF is the lens + pixel spread mapped into the raster plus the motion measured on the frame
+# edges. That is linear in (black level, contrast, data modules), so one small ridge-regularised
+# least-squares solve per quadrant uses every pixel of every module and undoes the blur's
+# cross-talk between neighbouring modules.
+
+
+def _psf(cov: np.ndarray, motion: tuple[float, float]) -> np.ndarray:
+    """Normalised raster-space PSF (odd square): Gaussian of covariance ``cov`` (2, 2) (raster px^2,
+    (x, y) order) convolved with a line of extent ``motion`` (dx, dy) raster px."""
+    r = int(np.ceil(3.0 * np.sqrt(np.linalg.eigvalsh(cov).max())))
+    yy, xx = np.mgrid[-r:r + 1, -r:r + 1].astype(np.float64)
+    inv = np.linalg.inv(cov)
+    g = np.exp(-0.5 * (inv[0, 0] * xx * xx + 2 * inv[0, 1] * xx * yy + inv[1, 1] * yy * yy))
+    if np.hypot(*motion) > 1.0:
+        line = _line_kernel(*motion)  # point-symmetric, so correlation = convolution
+        h = line.shape[0] // 2
+        g = cv2.filter2D(np.pad(g, h).astype(np.float32), -1, line, borderType=cv2.BORDER_CONSTANT)
+    return (g / g.sum()).astype(np.float32)
+
+
+def _raster_cov(detection: Detection, camera: Camera, sigma_px: float) -> np.ndarray:
+    """(2, 2) raster-space covariance of an isotropic image-space spread of ``sigma_px`` (image px),
+    through the raster -> image mapping's Jacobian at the sticker centre."""
+    H = ideal_homography(detection, camera, _N)
+    c = _N / 2
+    p = cv2.perspectiveTransform(np.array([[[c, c], [c + 1, c], [c, c + 1]]]), H)[0]
+    A = np.column_stack([p[1] - p[0], p[2] - p[0]])  # d(image)/d(raster)
+    Ai = np.linalg.inv(A)
+    return sigma_px**2 * Ai @ Ai.T
+
+
+_CANVAS = 2 * _QUAD + 1  # module-centred canvas covering every offset inside a quadrant
+
+
+@lru_cache(maxsize=4)
+def _design_index(step: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixels used in a quadrant and where they fall relative to each data module's centre.
+
+    Returns rows (P,), cols (P,) relative to the quadrant's origin and (P, 64) flat indices of the
+    pixel-minus-module-centre offsets in a module-centred ``_CANVAS``-square image. The same for
+    every quadrant, so the blurred module design is built once per PSF.
+    """
+    i, j = np.mgrid[1:9, 1:9]
+    mr, mc = (_MOD + _MOD * i + _MOD // 2).ravel(), (_MOD + _MOD * j + _MOD // 2).ravel()
+    g = np.arange(step // 2, _QUAD, step)
+    rr, cc = (a.ravel() for a in np.meshgrid(g, g, indexing="ij"))
+    # Flat index into a (_CANVAS, _CANVAS) image centred on the module: offsets never leave it.
+    flat = (rr[:, None] - mr[None] + _QUAD) * _CANVAS + (cc[:, None] - mc[None] + _QUAD)
+    return rr, cc, flat
+
+
+def _known_sticker(k: int, shifts: np.ndarray) -> np.ndarray:
+    """Sharp sticker reflectance (200, 200) float32 in raster orientation: 0 ink, 1 paper, 0.5 on
+    every data module (unknown); symbol borders turned by ``k`` and moved by ``shifts`` (4, 2)."""
+    mask, dark = _border_template()
+    sym = np.where(mask, np.where(dark, 0.0, 1.0), 0.5)
+    sym = np.kron(np.rot90(sym, -k), np.ones((_MOD, _MOD)))
+    s = np.zeros((_N, _N), np.float32)
+    s[_FRAME:_N - _FRAME, _FRAME:_N - _FRAME] = 1.0
+    for (r0, c0), (dy, dx) in zip(_QUAD_ORIGIN, shifts):
+        r, c = r0 + _MOD + dy, c0 + _MOD + dx
+        s[r:r + 10 * _MOD, c:c + 10 * _MOD] = sym
+    return s
+
+
+def module_estimates(rect: np.ndarray, psf: np.ndarray, k: int, shifts: np.ndarray, gamma: float = 2.2,
+                     ridge: float = 0.05, step: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares reflectance of every data module, in raster orientation.
+
+    Args:
+        rect: (200, 200) uint8 raster.
+        psf: raster-space PSF (odd square, sums to 1).
+        k, shifts: symbol turn and per-quadrant grid shifts from :func:`module_samples`.
+        gamma: the image's tone curve, undone first so that the blur model is linear.
+        ridge: Tikhonov weight pulling modules towards grey, relative to the PSF-blurred module's
+            energy (keeps noise from exploding where the blur removes a module pattern).
+        step: raster px between the pixels used (the raster oversamples the image ~4x).
+    Returns:
+        (4, 10, 10) float32 reflectance (0 ink .. 1 paper; the fixed border is filled in from the
+        template, data modules estimated) and (4,) rms fit residual per quadrant.
+    """
+    lin = _linearise(rect, gamma)
+    known = cv2.filter2D(_known_sticker(k, shifts), -1, psf, borderType=cv2.BORDER_REPLICATE)
+    # One module blurred by the PSF, on a canvas centred on the module's centre pixel.
+    canvas = np.zeros((_CANVAS, _CANVAS), np.float32)
+    c = _QUAD - _MOD // 2
+    canvas[c:c + _MOD, c:c + _MOD] = 1.0
+    canvas = cv2.filter2D(canvas, -1, psf, borderType=cv2.BORDER_CONSTANT)
+    rr, cc, flat = _design_index(step)
+    D = canvas.ravel()[flat]  # (P, 64) blurred data-module indicators at the pixels used
+    DtD = (D.T @ D).astype(np.float64) + ridge * float(np.sum(canvas * canvas)) * np.eye(64)
+    Dt1 = D.sum(0, dtype=np.float64)
+    n = len(rr)
+    mask, dark = _border_template()
+    border = np.rot90(np.where(dark, 0.0, 1.0), -k).astype(np.float32)
+    out = np.empty((4, 10, 10), np.float32)
+    resid = np.empty(4)
+    for p, ((r0, c0), (dy, dx)) in enumerate(zip(_QUAD_ORIGIN, shifts)):
+        r, cl = rr + r0 + dy, cc + c0 + dx
+        kq = known[r, cl]
+        y = lin[r, cl]
+        N = np.empty((66, 66))
+        N[0, 0], N[0, 1], N[1, 1] = n, kq.sum(dtype=np.float64), float(kq @ kq)
+        N[1, 0] = N[0, 1]
+        N[0, 2:] = N[2:, 0] = Dt1
+        N[1, 2:] = N[2:, 1] = kq @ D
+        N[2:, 2:] = DtD
+        rhs = np.concatenate([[y.sum(dtype=np.float64), float(kq @ y)], y @ D])
+        sol = np.linalg.solve(N, rhs)
+        fit = sol[0] + sol[1] * kq + D @ sol[2:].astype(np.float32)
+        resid[p] = float(np.sqrt(np.mean((fit - y) ** 2)))
+        contrast = sol[1] if abs(sol[1]) > 1e-6 else 1e-6
+        sym = border.copy()
+        # Data modules are the symbol's interior 8x8 (raster-oriented); the border is the template.
+        sym[1:9, 1:9] = (sol[2:] / contrast + 0.5).reshape(8, 8)
+        out[p] = sym
+    return out, resid
+
+
+@lru_cache(maxsize=4)
+def _gamma_lut(gamma: float) -> np.ndarray:
+    """(256,) float32: 8-bit code -> linear light (0..1) for a pure power-law tone curve."""
+    return ((np.arange(256) / 255.0) ** gamma).astype(np.float32)
+
+
+def _linearise(rect: np.ndarray, gamma: float) -> np.ndarray:
+    """Raster in linear light (float32, 0..1)."""
+    return _gamma_lut(float(gamma))[rect]
+
+
+@lru_cache(maxsize=8)
+def _flip_masks(n: int) -> np.ndarray:
+    """(2**n, n) bool: every subset of n bits."""
+    return (np.arange(2**n)[:, None] >> np.arange(n)[None] & 1).astype(bool)
+
+
+def _decode_estimates(est: np.ndarray, k: int, flips: int, tag: str) -> list[Symbol]:
+    """zxing (pure mode) on each quadrant's thresholded estimates, flipping up to the ``flips``
+    least certain data modules (every subset, the least confidence overturned first); zxing's
+    Reed-Solomon decoding decides. Stops once two symbols agree on ID and rotation."""
+    out: list[Symbol] = []
+    agree: dict[tuple[int, int], int] = {}
+    for p in range(4):
+        s = np.rot90(est[p], k)
+        dark = s < 0.5
+        conf = np.abs(s[1:9, 1:9] - 0.5).ravel()
+        order = np.argsort(conf)[:flips]
+        masks = _flip_masks(len(order))
+        masks = masks[np.argsort(masks @ conf[order], kind="stable")]
+        rows, cols = 1 + order // 8, 1 + order % 8
+        for m in masks:
+            bits = dark.copy()
+            bits[rows[m], cols[m]] ^= True
+            res = _zxing(_clean_symbol(bits), pure=True)
+            if res and res[0].text:
+                out.append((res[0].text, p, tag))
+                parsed = parse_payload(res[0].text)
+                if parsed is not None:
+                    key = (parsed[0], (p - parsed[1]) % 4)
+                    agree[key] = agree.get(key, 0) + 1
+                    if agree[key] >= 2:
+                        return out
+                break
+    return out
 
 
 # --- combining and verifying ---------------------------------------------------------------------
@@ -481,11 +678,12 @@ def verify_id(rect: np.ndarray, sticker_id: int, rotation: int, samples: np.ndar
 
 
 def _decide(rect: np.ndarray, symbols: list[Symbol], config: DecodeConfig, candidates, stage: str,
-            result: DecodeResult) -> bool:
+            result: DecodeResult, samples: np.ndarray | None = None) -> bool:
     """Fill ``result`` from ``symbols``; True when the read is settled (accepted or rejected).
 
     ``rect`` is the raster the symbols were read from (deblurred if they came from stage 3), whose
-    sharper modules also make the verification more decisive.
+    sharper modules also make the verification more decisive; ``samples`` (4, 10, 10), when given,
+    are the module values to verify instead (the least-squares estimates).
     """
     sid, rot, why = combine_reads(symbols, config, candidates)
     result.symbols = list(symbols)
@@ -493,7 +691,7 @@ def _decide(rect: np.ndarray, symbols: list[Symbol], config: DecodeConfig, candi
         result.rejected = why
         return why is not None and not why.startswith(_LONE)
     if config.verify:
-        score = verify_id(rect, sid, rot, search_px=config.align_search_px)
+        score = verify_id(rect, sid, rot, samples=samples, search_px=config.align_search_px)
         result.verify_score = score
         if score < config.min_verify:
             result.rejected = f"decoded {sid} (rotation {rot}) fails module verification ({score:.2f})"
@@ -526,15 +724,19 @@ def decode(gray: np.ndarray, detection: Detection, camera: Camera, backend: str 
         return result
 
     if backend in ("zxing", "both"):
-        for stage, img in _zxing_attempts(gray, detection, camera, rect, config):
-            symbols = read_zxing_whole(img)
-            # Two agreeing symbols already decide; fewer: sample the grid of the quadrants left.
-            if config.grid_sampling and len(symbols) < 2:
-                symbols += read_grid(img, config, skip={p for _, p, _ in symbols})
-            if stage == "zxing" and symbols and all(b == "zxing-grid" for _, _, b in symbols):
-                stage = "grid"
-            if symbols and _decide(img, symbols, config, candidates, stage, result):
+        if _read_raster(rect, config, candidates, "zxing", result):
+            return done()
+        blur = None
+        if config.lsq or config.deblur:
+            blur = blur_estimate(gray, detection, camera)
+        if config.lsq:
+            symbols, est = read_lsq(rect, detection, camera, config, blur)
+            if symbols and _decide(rect, symbols, config, candidates, "lsq", result, samples=est):
                 return done()
+        if config.deblur:
+            for img in deblurred_variants(gray, detection, camera, rect, config, blur[:2]):
+                if _read_raster(img, config, candidates, "deblur", result):
+                    return done()
     if backend in ("libdmtx", "both"):
         symbols = read_libdmtx(rect, config)
         if backend == "both":
@@ -544,10 +746,35 @@ def decode(gray: np.ndarray, detection: Detection, camera: Camera, backend: str 
     return done()
 
 
-def _zxing_attempts(gray: np.ndarray, detection: Detection, camera: Camera, rect: np.ndarray,
-                    config: DecodeConfig):
-    """(stage name, raster) pairs to try in order; deblurred rasters are computed only if reached."""
-    yield "zxing", rect
-    if config.deblur:
-        for img in deblurred_variants(gray, detection, camera, rect, config):
-            yield "deblur", img
+def _read_raster(img: np.ndarray, config: DecodeConfig, candidates, stage: str, result: DecodeResult) -> bool:
+    """Stages 1-2 on one raster; True when the read is settled."""
+    symbols = read_zxing_whole(img)
+    # Two agreeing symbols already decide; fewer: sample the grid of the quadrants left.
+    if config.grid_sampling and len(symbols) < 2:
+        symbols += read_grid(img, config, skip={p for _, p, _ in symbols})
+    if stage == "zxing" and symbols and all(b == "zxing-grid" for _, _, b in symbols):
+        stage = "grid"
+    return bool(symbols) and _decide(img, symbols, config, candidates, stage, result)
+
+
+def read_lsq(rect: np.ndarray, detection: Detection, camera: Camera, config: DecodeConfig,
+             blur: tuple[float, float, float]) -> tuple[list[Symbol], np.ndarray | None]:
+    """Module least-squares stage: symbols read from :func:`module_estimates` and those estimates.
+
+    ``blur`` is :func:`blur_estimate`'s (x extent, y extent, optics sigma). The image-space spread
+    is the optics plus one pixel's integration (variance 1/12) plus the raster's bilinear
+    resampling (1/6). Edge profiles cannot tell the motion's diagonal sign, so a diagonal blur is
+    tried both ways, the better-fitting first.
+    """
+    lx, ly, sigma = blur
+    samples, k, shifts = module_samples(rect, config.align_search_px)
+    cov = _raster_cov(detection, camera, float(np.sqrt(sigma**2 + 1 / 12 + 1 / 6)))
+    signs = (1.0,) if min(lx, ly) < 2.0 else (1.0, -1.0)
+    fits = [module_estimates(rect, _psf(cov, (lx, s * ly)), k, shifts, config.lsq_gamma, config.lsq_ridge)
+            for s in signs]
+    fits.sort(key=lambda f: float(f[1].sum()))
+    for est, _ in fits:
+        symbols = _decode_estimates(est, k, config.lsq_flips, "zxing-lsq")
+        if symbols:
+            return symbols, est
+    return [], None
