@@ -32,7 +32,7 @@ class ReplayConfig:
         rerun_save: .rrd file to write; ``spawn``: stream to a new Rerun viewer.
         realtime: pace frames at their timestamps instead of as fast as possible.
         publish: pose sinks (see :func:`tagloc.sinks.open_sink`), ``vest`` the ID in messages.
-        mode: localiser mode.
+        mode: localiser mode; detector, decoder: per-frame methods (see LocaliserConfig).
         progress: show a progress bar.
     """
 
@@ -46,6 +46,8 @@ class ReplayConfig:
     publish: list[str] = field(default_factory=list)
     vest: str = "replay"
     mode: str = "full"
+    detector: str = "contour"
+    decoder: str = "zxing"
     progress: bool = True
 
 
@@ -119,7 +121,7 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
                 view.log(_reload(session, res), res)
 
         t0 = time.monotonic()
-        run = run_session(session, LocaliserConfig(mode=cfg.mode), progress=cfg.progress, on_result=on_result,
+        run = run_session(session, LocaliserConfig(mode=cfg.mode, detector=cfg.detector, decoder=cfg.decoder), progress=cfg.progress, on_result=on_result,
                           realtime=cfg.realtime)
         seconds = time.monotonic() - t0
     finally:

@@ -30,6 +30,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="also publish poses: stdout | udp://HOST:PORT | mqtt://HOST[:PORT][/TOPIC] (repeatable)")
     p.add_argument("--vest", default="replay", help="vest ID in published messages (default replay)")
     p.add_argument("--mode", default="full", choices=("full", "decoded-only", "orb-all"), help="localiser mode")
+    p.add_argument("--detector", default="contour", choices=("contour", "paper"),
+                   help="sticker detector: ours (contour, default) or the paper's ORB + k-means")
+    p.add_argument("--decoder", default="zxing", choices=("zxing", "libdmtx", "both"),
+                   help="Data Matrix backend (default zxing; libdmtx needs the system library)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -38,6 +42,7 @@ def run(args: argparse.Namespace) -> int:
 
     res = replay(ReplayConfig(session=args.session, out=args.out, log=args.log, log_times=args.log_times,
                               rerun_save=args.rerun, spawn=args.spawn, realtime=args.realtime,
-                              publish=args.publish, vest=args.vest, mode=args.mode, progress=not args.quiet))
+                              publish=args.publish, vest=args.vest, mode=args.mode,
+                              detector=args.detector, decoder=args.decoder, progress=not args.quiet))
     print(res.format())
     return 0
