@@ -3,18 +3,22 @@
 Two stages:
 
 1. Candidates, on an image ``downscale`` times smaller: adaptive threshold (dark = below the
-   local mean), connected components with their statistics (vectorised filtering by size, fill
-   and border contact), then for each survivor the convex hull of its outline approximated by a
-   quadrilateral. A sticker's dark part (frame plus modules) covers 20-80 % of its quad; a dark
-   distractor square covers ~100 % and is rejected.
+   local mean), outer outlines of the dark blobs (filtered by size, fill and border contact), then
+   each blob's convex hull approximated by a quadrilateral (a 5-6 sided polygon whose short edges
+   cut corners off is extended back to a quad). A sticker's dark part (frame plus modules) covers
+   20-80 % of its quad; a dark distractor square covers ~100 % and is rejected. A second pass with
+   a wider closing (``group_px``) joins frames that heavy blur or a far, foreshortened view broke
+   into pieces.
 2. Refinement at full resolution, twice (the second pass re-aims at the first pass's lines):
    intensity profiles are sampled across each side (each averaged over a 3 px wide strip), the
    outer edge is placed where the profile crosses halfway between the floor level next to it and
    the sticker's ink level, the inner edge halfway between ink and paper. For a symmetric blur
    of a straight edge that crossing is the mid-exposure edge, unbiased as long as the blur across
-   the edge is under twice the frame width (a 40 px sticker's 3.2 px frame tolerates 6.4 px).
-   Edge points are undistorted, a line is fitted per side (Huber), adjacent lines are intersected
-   and the corners are distorted back to image pixels.
+   the edge is under twice the frame width (a 40 px sticker's 3.2 px frame tolerates 6.4 px);
+   a side blurred beyond that is located on the middle of the ramp from the dip to the paper,
+   which lies over the frame's centre line. Edge points are undistorted, a line is fitted per side
+   (Huber, gross outliers dropped), adjacent lines are intersected and the corners are distorted
+   back to image pixels.
 
 Corners are returned in distorted pixels, clockwise on screen, starting at an arbitrary corner
 (decoding resolves the rotation). ``inner`` is None when the inner edges disagree with the outer
@@ -48,6 +52,8 @@ class DetectConfig:
         dark_ratio, offset: a pixel is dark when below ``dark_ratio`` times its local mean and
             below the local mean minus ``offset`` grey levels.
         close_px: morphological closing of the dark mask (candidate resolution px; 0 = off).
+        group_px: a second candidate pass closes the mask this much (candidate resolution px), so a
+            frame broken into pieces by blur or foreshortening becomes one component (0 = off).
         min_side_px, max_side_px: accepted outer side lengths (longest side).
         border_px: all outer corners must be at least this far inside the image.
         min_dark_fraction, max_dark_fraction: dark share of the candidate quad (a sticker's frame
@@ -73,6 +79,7 @@ class DetectConfig:
     dark_ratio: float = 0.8
     offset: int = 4
     close_px: int = 3
+    group_px: int = 7
     min_side_px: float = 24.0
     max_side_px: float = 420.0
     border_px: float = 3.0
@@ -141,12 +148,123 @@ def _polygon_area(quad: np.ndarray) -> float:
     return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y)))
 
 
+def _fit_sides(contour: np.ndarray, quad: np.ndarray) -> np.ndarray:
+    """Sharpen a polygon-approximated quad (4, 2): fit a line to the outline points (N, 2) along each
+    side and intersect them. approxPolyDP keeps outline vertices, which can sit a few pixels inside
+    a corner that blur or noise has rounded; the sides themselves are well defined."""
+    lines = []
+    for i in range(4):
+        a, b = quad[i], quad[(i + 1) % 4]
+        d = b - a
+        length = float(np.hypot(*d))
+        if length < 4:
+            return quad
+        u = (contour - a) @ d / length**2  # position along the side, 0-1
+        off = np.abs((contour - a) @ np.array([-d[1], d[0]]) / length)
+        near = contour[(u > 0.15) & (u < 0.85) & (off < max(1.5, 0.06 * length))]
+        if len(near) < 4:
+            return quad
+        lines.append(_line_through(near)[0])
+    corners = _intersect(np.roll(np.array(lines), 0, axis=0))
+    if not np.all(np.isfinite(corners)) or np.abs(corners - quad).max() > 0.25 * float(
+            np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1).min()):
+        return quad
+    return corners
+
+
+def _cut_corners_back(poly: np.ndarray) -> np.ndarray | None:
+    """Reduce a convex polygon (K, 2), K = 4-6, to a quad by extending the neighbours of its
+    shortest edge until they meet, as often as needed: blur and small foreshortened stickers round
+    corners off, and the outline's polygon then has a short edge across each. None if that fails."""
+    p = poly
+    while len(p) > 4:
+        k = len(p)
+        i = int(np.argmin(np.linalg.norm(np.roll(p, -1, axis=0) - p, axis=1)))
+        a0, a1, b0, b1 = p[(i - 1) % k], p[i], p[(i + 1) % k], p[(i + 2) % k]
+        if np.linalg.norm(b0 - a1) > 0.5 * min(np.linalg.norm(a1 - a0), np.linalg.norm(b1 - b0)):
+            return None  # not a small cut across a corner
+        x = np.cross(np.cross([*a0, 1.0], [*a1, 1.0]), np.cross([*b0, 1.0], [*b1, 1.0]))
+        if abs(x[2]) < 1e-9:
+            return None
+        corner = x[:2] / x[2]
+        # The new corner must lie beyond the cut edge, not far out (nearly parallel neighbours).
+        if np.linalg.norm(corner - (a1 + b0) / 2) > np.linalg.norm(b0 - a1) + 0.25 * np.linalg.norm(a1 - a0):
+            return None
+        p = np.array([corner if j == i else p[j] for j in range(k) if j != (i + 1) % k])
+    return p
+
+
+def _outline_quads(mask: np.ndarray, cfg: DetectConfig, ds: int, skip: set[tuple[int, ...]] | None = None,
+                   dark_mask: np.ndarray | None = None) -> tuple[list[np.ndarray], set[tuple[int, ...]]]:
+    """Quads (4, 2) in full-resolution pixels of the mask's blobs (outer outlines) that can be stickers.
+
+    Blobs whose bounding box (x, y, w, h) is in ``skip`` are ignored. The dark share of a quad is
+    counted in ``dark_mask`` (default ``mask``) inside the blob's outline: a widely closed mask fills
+    a sticker's inside. Returns the quads, largest blob first, and the bounding boxes of their blobs.
+    """
+    h, w = mask.shape
+    # Outer outlines rather than labelled components: the outline is what the quad is fitted to,
+    # and findContours costs a small fraction of connectedComponentsWithStats on a noisy mask.
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    dark_src = mask if dark_mask is None else dark_mask
+    lo, hi = cfg.min_side_px / ds, cfg.max_side_px / ds
+    found: set[tuple[int, ...]] = set()
+    blobs = []
+    for c in contours:
+        box = cv2.boundingRect(c)
+        x0, y0, ww, hh = box
+        if (not 0.7 * lo <= max(ww, hh) <= 1.2 * hi or x0 <= 0 or y0 <= 0 or x0 + ww >= w or y0 + hh >= h
+                or (skip and box in skip)):
+            continue
+        local = c.reshape(-1, 2) - [x0, y0]
+        fill = np.zeros((hh, ww), np.uint8)
+        cv2.drawContours(fill, [local.reshape(-1, 1, 2)], -1, 255, cv2.FILLED)
+        area = cv2.countNonZero(cv2.bitwise_and(fill, dark_src[y0 : y0 + hh, x0 : x0 + ww]))
+        # A quad's box is at most 2x its area (a square at 45 deg); its dark share is >= min_dark_fraction.
+        if 0.5 * cfg.min_dark_fraction * min(ww, hh) ** 2 / cfg.max_aspect <= area <= 0.97 * ww * hh:
+            blobs.append((area, local, box))
+    blobs.sort(key=lambda b: -b[0])
+    quads = []
+    for area, local, (x0, y0, ww, hh) in blobs[: cfg.max_candidates]:
+        hull = cv2.convexHull(local.reshape(-1, 1, 2).astype(np.int32))
+        peri = cv2.arcLength(hull, True)
+        quad = None
+        for eps in (0.03, 0.05, 0.08):
+            approx = cv2.approxPolyDP(hull, eps * peri, True)
+            if 4 <= len(approx) <= 6:
+                quad = _cut_corners_back(approx.reshape(-1, 2).astype(float))
+                if quad is not None:
+                    break
+        if quad is None:
+            continue
+        pts = local.astype(float)
+        fitted = _fit_sides(pts, _fit_sides(pts, quad))  # the second fit gathers what a skewed first missed
+        hull_area = cv2.contourArea(hull)
+        # Only a clearly cut corner is replaced (refinement, not this fit, sets the final accuracy; a
+        # sub-pixel change only reshuffles its profiles), and not when the ring's inner outline
+        # pulled a side in.
+        if np.abs(fitted - quad).max() > 1.0 and _polygon_area(fitted) >= 0.85 * hull_area:
+            quad = fitted
+        qa = _polygon_area(quad)
+        if qa < 0.85 * hull_area or not cv2.isContourConvex(quad.astype(np.float32)):
+            continue
+        dark = float(area) / max(qa, 1.0)
+        if not cfg.min_dark_fraction <= dark <= cfg.max_dark_fraction:
+            continue
+        sides = np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1)
+        if sides.max() > cfg.max_aspect * max(sides.min(), 1e-6):
+            continue
+        # Outline pixel centres sit half a pixel inside the blob's edge; refinement corrects the rest.
+        quads.append(_clockwise((quad + [x0 + 0.5, y0 + 0.5]) * ds - 0.5))
+        found.add((x0, y0, ww, hh))
+    return quads, found
+
+
 def _candidates(gray: np.ndarray, cfg: DetectConfig) -> list[np.ndarray]:
     """Coarse quads (4, 2), full-resolution pixels, clockwise, largest first."""
     ds = max(1, int(cfg.downscale))
     small = gray if ds == 1 else cv2.resize(gray, (gray.shape[1] // ds, gray.shape[0] // ds),
                                             interpolation=cv2.INTER_AREA)
-    h, w = small.shape
     block = max(3, int(round(cfg.block_px / ds)) | 1)
     # Dark means below both a fraction of the local mean (a ratio holds at any exposure; 0.8 still
     # catches a thin frame smeared by 6-8 px of blur) and the mean minus an offset (keeps sensor
@@ -157,44 +275,14 @@ def _candidates(gray: np.ndarray, cfg: DetectConfig) -> list[np.ndarray]:
     if cfg.close_px > 1:
         # Blur across a thin frame leaves it as dashes; closing rejoins them into one ring.
         mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_RECT, (cfg.close_px,) * 2))
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=cv2.CV_32S)
-    if n <= 1:
-        return []
-    x, y, bw, bh, area = (stats[1:, i] for i in range(5))
-    longest = np.maximum(bw, bh)
-    lo, hi = cfg.min_side_px / ds, cfg.max_side_px / ds
-    # A quad's box is at most 2x its area (a square at 45 deg); its dark share is >= min_dark_fraction.
-    ok = ((longest >= 0.7 * lo) & (longest <= 1.2 * hi) & (x > 0) & (y > 0) & (x + bw < w) & (y + bh < h)
-          & (area >= 0.5 * cfg.min_dark_fraction * np.minimum(bw, bh) ** 2 / cfg.max_aspect)
-          & (area <= 0.97 * bw * bh))
-    idx = np.flatnonzero(ok)
-    idx = idx[np.argsort(-area[idx])][: cfg.max_candidates]
-    quads = []
-    for k in idx:
-        x0, y0, ww, hh = int(x[k]), int(y[k]), int(bw[k]), int(bh[k])
-        blob = (labels[y0 : y0 + hh, x0 : x0 + ww] == k + 1).astype(np.uint8)
-        contours, _ = cv2.findContours(blob, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-        hull = cv2.convexHull(max(contours, key=len))
-        peri = cv2.arcLength(hull, True)
-        quad = None
-        for eps in (0.03, 0.05, 0.08):
-            approx = cv2.approxPolyDP(hull, eps * peri, True)
-            if len(approx) == 4:
-                quad = approx.reshape(4, 2).astype(float)
-                break
-        if quad is None:
-            continue
-        qa = _polygon_area(quad)
-        if qa < 0.85 * cv2.contourArea(hull) or not cv2.isContourConvex(quad.astype(np.float32)):
-            continue
-        dark = float(area[k]) / max(qa, 1.0)
-        if not cfg.min_dark_fraction <= dark <= cfg.max_dark_fraction:
-            continue
-        sides = np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1)
-        if sides.max() > cfg.max_aspect * max(sides.min(), 1e-6):
-            continue
-        # Component pixel centres sit half a pixel inside the outline; refinement corrects the rest.
-        quads.append(_clockwise((quad + [x0 + 0.5, y0 + 0.5]) * ds - 0.5))
+    quads, boxes = _outline_quads(mask, cfg, ds)
+    if cfg.group_px > max(cfg.close_px, 1):
+        # Heavy blur across a side, or a side seen nearly edge-on at 2-2.5 m, leaves the frame under
+        # a pixel wide here and it breaks into pieces that no single blob spans. A wider closing
+        # groups the pieces; a group that is a first-pass blob already made into a quad is not new.
+        grouped = cv2.morphologyEx(mask, cv2.MORPH_CLOSE,
+                                   cv2.getStructuringElement(cv2.MORPH_RECT, (cfg.group_px,) * 2))
+        quads += _outline_quads(grouped, cfg, ds, skip=boxes, dark_mask=mask)[0]
     return quads
 
 
@@ -206,10 +294,28 @@ def _line_through(points: np.ndarray) -> tuple[np.ndarray, float]:
     return line, float(np.sqrt(np.mean(res**2)))
 
 
+def _robust_line(points: np.ndarray, min_points: int) -> tuple[np.ndarray, float, np.ndarray] | None:
+    """Line through (N, 2) edge points after dropping gross outliers; None if too few remain.
+
+    A profile whose crossing locked onto a module, a noise spike or a floor mark lands pixels off the
+    edge; one such point must not sink a side whose other points are on a line. Points further than
+    three robust sigmas (at least 1 px) from the first fit are dropped and the line refitted.
+    Returns the line (3,), the inliers' RMS residual (px) and the inlier mask (N,).
+    """
+    line, _ = _line_through(points)
+    res = np.abs(points @ line[:2] + line[2])
+    keep = res <= max(1.0, 3.0 * 1.4826 * float(np.median(res)))
+    if keep.sum() < min_points:
+        return None
+    line, rms = _line_through(points[keep])
+    return line, rms, keep
+
+
 def _intersect(lines: np.ndarray) -> np.ndarray:
     """Corner i = side i-1 x side i, for (4, 3) lines; returns (4, 2)."""
     p = np.cross(np.roll(lines, 1, axis=0), lines)
-    return p[:, :2] / p[:, 2:3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return p[:, :2] / p[:, 2:3]
 
 
 def _implied_inner(outer_ideal: np.ndarray) -> np.ndarray:
@@ -263,13 +369,15 @@ def _refine(gray: np.ndarray, camera: Camera, quad: np.ndarray, cfg: DetectConfi
     den = np.einsum("ij,ij->i", inward, inner_line[:, :2])[:, None]
     frame_w = np.clip(num / den, 1.0, None)  # (4, n) distance to the inner edge along ``inward``
     w_max = float(frame_w.max())
+    if w_max > 0.25 * float(side_len.max()):
+        return None  # a degenerate quad (the frame is 8 % of the side, perspective adds little)
     quiet = w_max * _QUIET_RATIO / _FRAME_RATIO
     step = 0.5
     s = np.arange(-(search_px + cfg.blur_allow_px / 2 + 2), w_max + quiet + search_px + step, step)
     strip = np.array([-1.0, 0.0, 1.0])
     pts = (base[:, :, None, None, :] + strip[None, None, :, None, None] * along[:, None, None, None, :]
            + s[None, None, None, :, None] * inward[:, None, None, None, :])  # (4, n, 3, S, 2)
-    maps = pts.reshape(1, -1, 2).astype(np.float32)
+    maps = pts.reshape(4 * n * 3, len(s), 2).astype(np.float32)
     vals = cv2.remap(gray, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
     if lut is not None:
         # Linearise after interpolation of 8-bit values: the LUT is applied to floats by interpolation.
@@ -290,15 +398,36 @@ def _refine(gray: np.ndarray, camera: Camera, quad: np.ndarray, cfg: DetectConfi
     if paper - ink < max(cfg.min_contrast, cfg.min_paper_ratio * (float(np.median(floor)) - ink)):
         return None
     flat = prof.reshape(4 * n, len(s))
+    # Halfway between floor and ink is the true edge under any symmetric blur shorter than twice the
+    # frame width w. Longer blur L across a side keeps that side's dip above halfway (a bar under a
+    # box blur darkens to r = w / L of its full depth) and too shallow to locate in noise. Such a
+    # side is located on the steep rise from the dip to the paper instead: for a floor | ink (w) |
+    # paper step under a box blur longer than w, that rise is a straight ramp whose middle,
+    # ((F + P)(1 - r) + 2 I r) / 2, lies over the frame's centre line, whatever L is.
+    near = (s >= -cfg.blur_allow_px / 2) & (s <= float(np.median(frame_w)))
+    floor_side = np.median(floor, axis=1)  # (4,)
+    ratio = np.clip((floor_side - med[:, near].min(axis=1)) / np.maximum(floor_side - ink, 1e-6), 0.0, 1.0)
     outer_s = _crossings(flat, ((floor + ink) / 2).ravel(), s, np.zeros(4 * n), rising=False).reshape(4, n)
     outer_s[(floor - ink) < cfg.min_contrast / 2] = np.nan
+    # Only sides that the halfway level fails on (too few crossings) take the ramp.
+    shallow = (ratio < 0.45) | ((np.isfinite(outer_s).sum(axis=1) < max(4, n // 3)) & (ratio < 0.75))
+    if np.any(shallow):
+        r = ratio[shallow, None]
+        fl = floor[shallow]
+        rise = 0.5 * ((fl + paper) * (1.0 - r) + 2.0 * ink * r)
+        half_w = 0.5 * frame_w[shallow]
+        mid = _crossings(prof[shallow].reshape(-1, len(s)), rise.ravel(), s, half_w.ravel(), rising=True)
+        outer_s[shallow] = mid.reshape(half_w.shape) - half_w
     ok = np.isfinite(outer_s)
     if ok.sum(axis=1).min() < max(4, n // 3):
         return None
     # Lines are straight only without distortion: undistort every edge point (one call), then fit.
     edge = camera.undistort_pixels((base + np.nan_to_num(outer_s)[..., None] * inward[:, None, :]).reshape(-1, 2))
     edge = edge.reshape(4, n, 2)
-    fits = [_line_through(edge[i, ok[i]]) for i in range(4)]
+    min_points = max(4, n // 3)
+    fits = [_robust_line(edge[i, ok[i]], min_points) for i in range(4)]
+    if any(f is None for f in fits):
+        return None
     lines, rms = [f[0] for f in fits], [f[1] for f in fits]
     if max(rms) > cfg.max_rms_px:
         return None
@@ -306,7 +435,7 @@ def _refine(gray: np.ndarray, camera: Camera, quad: np.ndarray, cfg: DetectConfi
     if not np.all(np.isfinite(outer_ideal)):
         return None
     outer = distort_ideal(camera, outer_ideal)
-    valid = float(np.isfinite(outer_s).mean())
+    valid = sum(int(f[2].sum()) for f in fits) / (4.0 * n)
     score = valid * min(1.0, (float(np.median(floor)) - ink) / 60.0) * float(np.exp(-max(rms)))
 
     inner = None
@@ -358,7 +487,8 @@ def detect_stickers(gray: np.ndarray, camera: Camera, config: DetectConfig | Non
     h, w = img.shape
     out: list[Detection] = []
     for quad in _candidates(img, cfg):
-        if any(_inside(quad.mean(axis=0), d.outer) for d in out):
+        area = _polygon_area(quad)
+        if any(_inside(quad.mean(axis=0), d.outer) and area < 0.5 * _polygon_area(d.outer) for d in out):
             continue  # a symbol inside an accepted sticker
         first = _refine(img, camera, quad, cfg, lut, search_px=2.0 * cfg.downscale + 1.0)
         if first is None:
@@ -374,8 +504,14 @@ def detect_stickers(gray: np.ndarray, camera: Camera, config: DetectConfig | Non
             continue
         if not cv2.isContourConvex(o.astype(np.float32)):
             continue
-        out.append(Detection(outer=o, inner=ref.inner, score=float(np.clip(ref.score, 0.0, 1.0))))
-    return out
+        det = Detection(outer=o, inner=ref.inner, score=float(np.clip(ref.score, 0.0, 1.0)))
+        # A candidate that covers only part of a blurred sticker can refine to a wrong quad over it;
+        # of two overlapping detections the better scored one stays.
+        rivals = [k for k, d in enumerate(out) if _inside(o.mean(axis=0), d.outer) or _inside(d.outer.mean(axis=0), o)]
+        if any(out[k].score >= det.score for k in rivals):
+            continue
+        out = [d for k, d in enumerate(out) if k not in rivals] + [det]
+    return sorted(out, key=lambda d: -_polygon_area(d.outer))
 
 
 def detect(gray: np.ndarray, camera: Camera, method: str = "contour", config: object | None = None) -> list[Detection]:

@@ -29,11 +29,14 @@ class Detection:
         outer: (4, 2) outer-square corners, distorted pixels, in image order (clockwise on screen).
         inner: (4, 2) inner black-frame corners matching ``outer`` one for one, or None.
         score: detector confidence, 0-1.
+        corner_sigma_px: the detector's own corner noise (px) when it knows it better than the pose
+            solver's residual can (a method with coarse corners); None: estimate from the residual.
     """
 
     outer: np.ndarray
     inner: np.ndarray | None = None
     score: float = 1.0
+    corner_sigma_px: float | None = None
 
     @property
     def points(self) -> np.ndarray:

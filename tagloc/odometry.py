@@ -6,7 +6,11 @@ bird's-eye image: :func:`cv2.remap` with maps built once. Consecutive bird's-eye
 floor differ by a 2-D rigid motion (the body's planar motion, seen from the patch):
 
 1. translation by :func:`cv2.phaseCorrelate` on high-passed, Hann-windowed images (robust to large
-   shifts, to lighting gradients and to heavy noise; its peak ``response`` is the quality);
+   shifts, to lighting gradients and to heavy noise; its peak ``response`` is the quality).
+   phase correlation sees translation only, so the earlier image is first pre-rotated by the turn
+   under way (the last measured turn rate), and if that fails by a grid of turn guesses, keeping
+   the one that correlates best: a corner taken at 90-180 deg/s turns the body 3-6 degrees
+   between frames, beyond what a translation-only match or ECC from no turn can follow;
 2. rotation and a sub-pixel refinement by :func:`cv2.findTransformECC` (``MOTION_EUCLIDEAN``) on
    half-resolution images, started from that translation (its correlation is a second quality).
 
@@ -58,6 +62,9 @@ class OdometryConfig:
       (median per session, lux 50-300), down to ~0.05 only under the heaviest blur.
     - ``min_ecc``: ECC correlation after alignment: < 0.1 on noise, >= 0.3 on matching frames.
     - ``max_shift_frac``: shifts beyond this fraction of the patch leave too little overlap.
+    - ``rotation_step``, ``max_rotation``: the grid of turn guesses tried when the match from the
+      turn under way fails (a person turns at up to ~4 rad/s, 7.6 degrees between frames at 30 Hz); 0 turns the
+      search off.
 
     Noise per frame (standard deviations of the step, added in quadrature), calibrated on simulated
     sessions so that the NEES of the delta against ground truth is about 3 (3 DoF):
@@ -78,7 +85,9 @@ class OdometryConfig:
     min_response: float = 0.1
     min_ecc: float = 0.3
     max_shift_frac: float = 0.3
-    ecc_iterations: int = 15
+    rotation_step: float = math.radians(3.0)
+    max_rotation: float = math.radians(9.0)
+    ecc_iterations: int = 8
     ecc_eps: float = 1e-4
     sigma_xy: float = 0.002
     sigma_yaw: float = math.radians(0.15)
@@ -214,25 +223,33 @@ class FloorOdometry:
         my = px[:, 1].reshape(m, m)
         self._map1, self._map2 = cv2.convertMaps(mx, my, cv2.CV_16SC2)
         self._levels = int(round(math.log2(ss))) if ss > 1 else 0
-        self._window = cv2.createHanningWindow((n, n), cv2.CV_32F)
-        self._prev: tuple[float, np.ndarray, np.ndarray] | None = None
+        self._window_half = cv2.createHanningWindow((n // 2, n // 2), cv2.CV_32F)
+        self._prev: tuple[float, np.ndarray] | None = None
+        self._last_turn: tuple[float, float] | None = None  # (time, yaw rate rad/s) of the last step
         self._criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, cfg.ecc_iterations, cfg.ecc_eps)
 
-    def birdseye(self, gray: np.ndarray) -> np.ndarray:
-        """The bird's-eye patch (patch_px, patch_px) float32, high-passed, of a (H, W) uint8 frame."""
+    def birdseye(self, gray: np.ndarray, level: int = 0) -> np.ndarray:
+        """The bird's-eye patch of a (H, W) uint8 frame, float32, high-passed.
+
+        ``level`` 0 gives (patch_px, patch_px); each level halves it (:func:`cv2.pyrDown`); the
+        high-pass sigma scales with it. :meth:`measure` matches at level 1.
+        """
         cam = self.rig_camera.camera
         if gray.ndim != 2 or gray.shape != (cam.height, cam.width):
             raise InputError(f"odometry wants a {cam.width}x{cam.height} greyscale frame, got shape {gray.shape}")
         img = cv2.remap(gray, self._map1, self._map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         for _ in range(self._levels):
             img = cv2.pyrDown(img)
-        f = img.astype(np.float32)
-        s = self.config.highpass_sigma_px
+        f = img.astype(np.float32)  # float before further reduction: keeps the averaged precision
+        for _ in range(level):
+            f = cv2.pyrDown(f)
+        s = self.config.highpass_sigma_px / 2**level
         return f - cv2.GaussianBlur(f, (0, 0), s) if s > 0 else f - float(f.mean())
 
     def reset(self) -> None:
         """Forget the previous frame (the next :meth:`measure` returns None)."""
         self._prev = None
+        self._last_turn = None
 
     def measure(self, gray: np.ndarray, t: float) -> OdometryStep | None:
         """Body motion from the previous frame to this one (``gray`` (H, W) uint8, time ``t`` s), or None.
@@ -241,37 +258,104 @@ class FloorOdometry:
         match is poor (texture-less floor, heavy blur, too large a shift).
         """
         cfg = self.config
-        cur = self.birdseye(gray)
-        small = cv2.pyrDown(cur)
-        prev, self._prev = self._prev, (float(t), cur, small)
+        # Matched at half the patch resolution: rotation and sub-pixel shift converge there, at a
+        # quarter of the cost.
+        small = self.birdseye(gray, level=1)
+        prev, self._prev = self._prev, (float(t), small)
         if prev is None:
             return None
-        t0, pcur, psmall = prev
+        t0, psmall = prev
         dt = float(t) - t0
         if not (0.0 < dt <= cfg.max_dt):
             return None
-        # Phase correlation: shift (sx, sy) such that cur(q) ~ prev(q - shift).
-        # phaseCorrelate applies the window in place: hand it copies.
-        (sx, sy), response = cv2.phaseCorrelate(pcur.copy(), cur.copy(), self._window)
         n = cfg.patch_px
-        if not math.isfinite(response) or response < cfg.min_response or max(abs(sx), abs(sy)) > cfg.max_shift_frac * n:
+        # First from the turn under way (the last measured rate; people's yaw acceleration is
+        # limited, so it is usually within a degree of this frame's turn); if phase correlation or
+        # ECC fails from there, or ECC ends far from it, also from the best of a grid of guesses.
+        g0 = 0.0
+        if self._last_turn is not None and 0.0 <= t0 - self._last_turn[0] <= 2 * cfg.max_dt:
+            g0 = float(np.clip(self._last_turn[1] * dt, -cfg.max_rotation, cfg.max_rotation))
+        best: tuple[float, np.ndarray, float] | None = None  # (rho, W, response)
+        for guesses in ([g0], self._turn_grid(g0)):
+            start = self._initial_alignment(psmall, small, guesses)
+            if start is None:
+                continue
+            try:
+                rho, W = cv2.findTransformECC(small, psmall, start[0], cv2.MOTION_EUCLIDEAN, self._criteria, None, 1)
+            except cv2.error:
+                continue
+            if not (math.isfinite(rho) and rho >= cfg.min_ecc):
+                continue
+            if best is None or rho > best[0]:
+                best = (float(rho), W, start[1])
+            # ECC that had to turn far from the guess may have stopped at a wrong optimum (the
+            # turn changed fast): then compare with the grid's start before trusting it.
+            turned = self._body_motion(W[:, :2].astype(np.float64), 2.0 * W[:, 2].astype(np.float64))[2]
+            if abs(turned - g0) <= 0.5 * cfg.rotation_step:
+                break
+        if best is None:
             return None
-        # ECC finds W with prev(W q) ~ cur(q): W maps current patch pixels to previous ones. Run at
-        # half resolution: rotation and sub-pixel shift converge there and it is 4x cheaper.
-        W = np.array([[1.0, 0.0, -sx / 2], [0.0, 1.0, -sy / 2]], np.float32)
-        try:
-            rho, W = cv2.findTransformECC(small, psmall, W, cv2.MOTION_EUCLIDEAN, self._criteria, None, 1)
-        except cv2.error:
-            return None
-        if not (math.isfinite(rho) and rho >= cfg.min_ecc):
-            return None
+        _, W, response = best
         W = W.astype(np.float64)
         # Back to full-resolution patch pixels (pyrDown: q_half = q / 2).
         Wl, w_full = W[:, :2], 2.0 * W[:, 2]
         if np.hypot(*w_full) > cfg.max_shift_frac * n * 1.5:
             return None
         delta = self._body_motion(Wl, w_full)
+        self._last_turn = (float(t), float(delta[2]) / dt)
         return OdometryStep(t0, float(t), delta, self._covariance(delta), float(response))
+
+    def _turn_grid(self, skip: float) -> list[float]:
+        """Turn guesses (rad) every ``rotation_step`` up to ``max_rotation`` either way, less ``skip``."""
+        cfg = self.config
+        if not (cfg.max_rotation > 0 and cfg.rotation_step > 0):
+            return []
+        k = int(round(cfg.max_rotation / cfg.rotation_step))
+        return [j * cfg.rotation_step for j in range(-k, k + 1) if abs(j * cfg.rotation_step - skip) > 1e-9]
+
+    def _initial_alignment(self, psmall: np.ndarray, small: np.ndarray, guesses: list[float]
+                           ) -> tuple[np.ndarray, float] | None:
+        """Start for ECC: the best of the turn ``guesses`` (rad), each completed by phase correlation.
+
+        Phase correlation sees translation only and its peak fades beyond ~3 degrees of turn, and
+        ECC started from no turn can settle on a wrong local optimum when the true turn is larger
+        (a corner at 150-180 deg/s turns the body 5-6 degrees between frames). So the earlier
+        half-resolution patch is pre-rotated by each guess, phase correlation adds the shift, and
+        with several guesses the alignment that correlates best (zero-mean normalised, over the
+        patch centre) wins.
+
+        Returns ECC's start ``W`` (2, 3) (half-resolution current -> earlier patch pixels) and the
+        winner's phase-correlation peak, or None when no guess has a peak of ``min_response``.
+        """
+        cfg = self.config
+        m = small.shape[0]
+        A = self.patch.A
+        c = np.full(2, (m - 1) / 2.0)
+        lo, hi = m // 6, m - m // 6
+        best: tuple[float, float, np.ndarray] | None = None
+        for g in guesses:
+            # Body turn g in patch pixels (the scale of A cancels), about the patch centre: the
+            # rest of the turn's lever arm is a shift, which phase correlation finds.
+            R = np.array([[math.cos(g), -math.sin(g)], [math.sin(g), math.cos(g)]])
+            Wl = np.linalg.solve(A, R @ A)
+            Wg = np.hstack([Wl, (c - Wl @ c)[:, None]])
+            warped = psmall if g == 0.0 else cv2.warpAffine(psmall, Wg.astype(np.float32), (m, m),
+                                                            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+            # phaseCorrelate applies the window in place: hand it copies.
+            (sx, sy), r = cv2.phaseCorrelate(warped.copy(), small.copy(), self._window_half)
+            if not (math.isfinite(r) and r >= cfg.min_response) or max(abs(sx), abs(sy)) > cfg.max_shift_frac * m:
+                continue
+            # cur(q) ~ warped(q - s) = prev(Wg (q - s)).
+            W = np.hstack([Wl, (Wg[:, 2] - Wl @ np.array([sx, sy]))[:, None]])
+            zncc = 0.0
+            if len(guesses) > 1:
+                aligned = cv2.warpAffine(psmall, W.astype(np.float32), (m, m), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+                zncc = float(cv2.matchTemplate(aligned[lo:hi, lo:hi], small[lo:hi, lo:hi], cv2.TM_CCOEFF_NORMED)[0, 0])
+            if best is None or zncc > best[0]:
+                best = (zncc, float(r), W)
+        if best is None:
+            return None
+        return best[2].astype(np.float32), best[1]
 
     def _body_motion(self, Wl: np.ndarray, wt: np.ndarray) -> np.ndarray:
         """(dx, dy, dyaw) of body1 in body0 from the patch-pixel map q0 = Wl q1 + wt."""

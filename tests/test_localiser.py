@@ -80,6 +80,13 @@ def test_eval_writes_report_and_plots(tmp_path):
     assert {r["mode"] for r in res["rows"]} == {"full", "decoded-only"}
     assert res["summary"]["full"]["wrong_id_fixes"] == 0
     assert res["summary"]["full"]["rmse_m"] < 0.3
+    # Frames binned by time since the last fix: every scored frame lands in one bin, and the
+    # pooled sums give back the session's RMSE.
+    full = next(r for r in res["rows"] if r["mode"] == "full")
+    bins = np.array(full["by_time_since_fix"])
+    assert bins[:, 0].sum() == full["frames"] and bins[0, 0] > 0
+    assert np.sqrt(bins[:, 1].sum() / bins[:, 0].sum()) == pytest.approx(full["rmse_m"], rel=1e-9)
+    assert "since last fix" in (tmp_path / "report.md").read_text()
 
 
 def test_cli_errors_are_one_line(tmp_path, capsys):

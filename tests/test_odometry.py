@@ -139,6 +139,32 @@ def test_textureless_or_noise_floor_is_refused():
         assert odo.measure(noise, k / FPS) is None
 
 
+@pytest.mark.parametrize("turns_deg", [[3.0, 4.5, 6.0], [-3.0, -4.5, -6.0], [-4.5]])
+def test_fast_turn_between_frames_is_measured(turns_deg):
+    """A corner sped up to 180 deg/s (3, 4.5, then 6 degrees between frames), or a sudden 4.5 degree
+    turn from rest, defeats phase correlation and ECC from no turn (-4.5 from rest was measured as
+    -2.8 degrees, 2.6 cm sideways, before the turn guesses)."""
+    from tagloc.floor import Floor, FloorConfig
+    from tagloc.geometry import planar_T
+    from tagloc.simulate import render_view
+
+    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0))
+    smap = grid_map(GridMapConfig(width_m=8, depth_m=8, spacing_min_m=1.6, spacing_max_m=2.0, seed=4))
+    floor = Floor(smap, FloorConfig(), seed=4)
+    turns = np.radians(turns_deg)
+    poses = [planar_T(3.1, 2.3, 0.4)]
+    for turn in turns:
+        poses.append(poses[-1] @ planar_T(0.01, 0.0, float(turn)))
+    imgs = [render_view(floor, rc.camera, T @ rc.T_body_camera, lux=150, seed=k).image for k, T in enumerate(poses)]
+    odo = FloorOdometry(rc)
+    odo.measure(imgs[0], 0.0)
+    steps = [odo.measure(img, (k + 1) / FPS) for k, img in enumerate(imgs[1:])]
+    assert all(s is not None for s in steps)
+    yaw_err = np.array([s.delta[2] for s in steps]) - turns
+    assert np.all(np.abs(yaw_err) < math.radians(0.4))
+    assert all(np.hypot(s.delta[0] - 0.01, s.delta[1]) < 0.01 for s in steps)
+
+
 def test_gaps_and_bad_input_are_refused(stop_walk):
     session = SessionReader(stop_walk)
     frames = [f for f, _ in zip(session.frames(), range(4))]

@@ -178,3 +178,19 @@ def test_bad_rotation_raises():
     body, sticker = scene(rng, rc, 1.5)
     with pytest.raises(InputError):
         solve_pose(corners(rc, body, sticker, 0, 0.0, rng), 4, sticker, rc)
+
+
+def test_detection_states_its_own_corner_noise():
+    """A coarse detector's stated corner noise (the paper's method) sets the covariance; an explicit
+    argument still wins."""
+    rng = np.random.default_rng(11)
+    rc = rig_camera()
+    body, sticker = scene(rng, rc, distance=1.5)
+    det = corners(rc, body, sticker, 0, 0.0, rng)
+    four = Detection(outer=det.outer, inner=None)
+    base = solve_pose(four, 0, sticker, rc).poses[0].cov
+    coarse = Detection(outer=det.outer, inner=None, corner_sigma_px=2.0)
+    sol = solve_pose(coarse, 0, sticker, rc)
+    assert sol.sigma_px == 2.0
+    assert np.allclose(sol.poses[0].cov, base * (2.0 / PoseConfig().sigma_4pt_px) ** 2, rtol=1e-6)
+    assert solve_pose(coarse, 0, sticker, rc, corner_sigma_px=0.5).sigma_px == 0.5

@@ -425,6 +425,28 @@ def test_same_frame_fixes_share_the_vest_floor():
     assert not res.accepted, res
 
 
+def test_consecutive_frames_share_the_vest_floor():
+    """A second of fixes at 30 Hz sees the same vest wobble, not 30 independent ones: the position
+    sigma stays of the order of the floor (the walking model's process noise keeps adding to it),
+    where a white floor lets it fall well below."""
+    tiny = np.diag([1e-6, 1e-6, 1e-8])
+
+    def sigma_after_a_second(cfg):
+        tr = Tracker(cfg)
+        for k in range(31):
+            t = k / 30.0
+            tr.predict(t)
+            assert tr.update([make_fix([0.0, 0.0, 0.0], tiny)], 1, IdSource.DECODED, t).accepted
+        return math.sqrt(tr.output().cov[0, 0])
+
+    cfg = TrackerConfig()
+    shared = sigma_after_a_second(cfg)
+    white = sigma_after_a_second(TrackerConfig(floor_corr_s=0.0))
+    assert shared > cfg.floor_sigma_xy
+    assert white < 0.5 * shared
+    assert shared < 3 * cfg.floor_sigma_xy
+
+
 def test_long_gap_goes_lost_and_recovers(rng):
     cfg = TrackerConfig()
     tr = _track(rng, cfg)

@@ -115,6 +115,7 @@ class Tracker:
         self._last_id: int | None = None
         self._last_source: IdSource | None = None
         self._frame: _Frame | None = None
+        self._fix_frames: list[float] = []  # times of recent frames with a fused fix (floor correlation)
         self._forgot = False  # speed and yaw rate dropped after a long time without fixes
         self._hyp: _Hypothesis | None = None
         self._clone: _Clone | None = None  # pose before the last advance, for odometry
@@ -290,8 +291,15 @@ class Tracker:
     def _frame_state(self) -> tuple[np.ndarray, np.ndarray]:
         """The frame-augmented state at the filter's time (fresh when no fix was fused at it yet)."""
         if self._frame is None or self._frame.t != self._t:
-            self._frame = _Frame(self._t, *frame_augment(self._ekf.mean, self._ekf.cov, self._floor))
+            self._frame = _Frame(self._t, *frame_augment(self._ekf.mean, self._ekf.cov, self._frame_floor()))
         return self._frame.x, self._frame.P
+
+    def _frame_floor(self) -> np.ndarray:
+        """This frame's vest floor: the floor times the number of frames with fused fixes within the
+        last ``floor_corr_s`` (this one included), as those share most of their vest error."""
+        horizon = self._t - self.config.floor_corr_s
+        self._fix_frames = [u for u in self._fix_frames if horizon < u < self._t]
+        return self._floor * (1 + len(self._fix_frames))
 
     def _fuse(self, z: np.ndarray, C: np.ndarray, lag: float) -> None:
         """Fuse an accepted fix (pose z, own covariance C): late fixes through retrodiction, current
@@ -308,6 +316,8 @@ class Tracker:
             xa, Pa = frame_update(x, P, z, C)
             self._ekf.set(xa[:5], Pa[:5, :5])
             self._frame = _Frame(self._t, xa, Pa)
+            if not self._fix_frames or self._fix_frames[-1] != self._t:
+                self._fix_frames.append(self._t)
 
         if not self._guarded(step):
             self._frame = None
