@@ -95,6 +95,21 @@ class DetectConfig:
     inner_max_dev_px: float = 0.8
     max_rms_px: float = 1.5
 
+    @classmethod
+    def for_camera(cls, camera: Camera) -> DetectConfig:
+        """Defaults scaled to ``camera``: the sizes above are for a focal length of ~1286 px (the
+        Pi camera v1 at 1296x972); a sticker's image size scales with the focal length, so the
+        window and side limits do too, and below ~0.75 of it the candidate stage runs at full
+        resolution, or a sticker 2 m away would be only ~15 px there."""
+        scale = float(camera.K[0, 0]) / _REFERENCE_FOCAL_PX
+        if 0.9 <= scale <= 1.1:
+            return cls()
+        return cls(downscale=1 if scale < 0.75 else 2, block_px=max(15, int(round(41 * scale))),
+                   min_side_px=max(12.0, 24.0 * scale), max_side_px=420.0 * scale)
+
+
+_REFERENCE_FOCAL_PX = 1285.7  # the focal length DetectConfig's defaults are set for
+
 
 def as_gray(image: np.ndarray) -> np.ndarray:
     """Return ``image`` as a (H, W) uint8 greyscale array.
@@ -470,13 +485,14 @@ def detect_stickers(gray: np.ndarray, camera: Camera, config: DetectConfig | Non
         gray: (H, W) image matching ``camera``'s size; colour or non-uint8 input is converted
             (see :func:`as_gray`).
         camera: intrinsics of the frame, used to fit edges as straight lines in undistorted space.
-        config: tuning; defaults suit 1296x972 frames with stickers 40-110 px wide.
+        config: tuning; by default :meth:`DetectConfig.for_camera` (sizes scaled to the focal length;
+            unchanged for 1296x972 frames with stickers 40-110 px wide).
 
     Returns:
         One Detection per sticker, largest first: outer (4, 2) and inner (4, 2) or None, distorted
         pixels, clockwise on screen, inner[i] matching outer[i]; score 0-1.
     """
-    cfg = config or DetectConfig()
+    cfg = config or DetectConfig.for_camera(camera)
     img = as_gray(gray)
     if img.shape != (camera.height, camera.width):
         raise InputError(f"image is {img.shape[1]}x{img.shape[0]} px but the camera calibration is "

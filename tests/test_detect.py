@@ -183,7 +183,7 @@ def test_bench_detection_summary():
 # -- heavy blur and distance on the physical simulator ----------------------------------------------
 
 
-def _sim_views(blur_px: float, distance_m: float, n: int, seed: int):
+def _sim_views(blur_px: float, distance_m: float, n: int, seed: int, cam=None):
     """``n`` simulator frames (Pi camera, gain-32 noise) of one sticker at the image centre,
     ``distance_m`` from the camera, random heading and blur direction, with its true corners."""
     import math
@@ -192,6 +192,7 @@ def _sim_views(blur_px: float, distance_m: float, n: int, seed: int):
     from tagloc.simulate import camera_pose_looking_at, render_view, true_corners
     from tagloc.stickermap import StickerMap
 
+    cam = cam or CAM
     rng = np.random.default_rng(seed)
     smap = StickerMap(np.array([4321]), np.zeros((1, 2)), np.array([rng.uniform(-np.pi, np.pi)]), "one")
     floor = Floor(smap, FloorConfig(distractors_per_m2=0.0), seed=seed)
@@ -200,9 +201,9 @@ def _sim_views(blur_px: float, distance_m: float, n: int, seed: int):
         h = rng.uniform(1.1, 1.5)
         pitch = math.degrees(math.asin(min(0.99, h / distance_m)))
         T = camera_pose_looking_at((0.0, 0.0), h, pitch, rng.uniform(-180, 180))
-        res = render_view(floor, CAM, T, 150.0, blur_px=blur_px or None, blur_direction_deg=rng.uniform(0, 180),
+        res = render_view(floor, cam, T, 150.0, blur_px=blur_px or None, blur_direction_deg=rng.uniform(0, 180),
                           seed=seed * 100 + k)
-        views.append((res.image, true_corners(floor, CAM, T, 4321)))
+        views.append((res.image, true_corners(floor, cam, T, 4321)))
     return views
 
 
@@ -231,6 +232,20 @@ def test_physical_far_foreshortened_sticker_is_detected():
             errs.extend(m[0].outer_err)
     assert found == 8  # the previous detector missed one
     assert np.median(errs) < 0.5
+
+
+def test_sizes_follow_the_camera():
+    """A half-resolution camera sees a sticker 2 m away at ~30 px: the defaults scale with the focal
+    length (candidates at full resolution), and the Pi camera keeps the plain defaults."""
+    from tagloc.detect import DetectConfig
+
+    assert DetectConfig.for_camera(CAM) == DetectConfig()
+    small = CAM.scaled(0.5)
+    cfg = DetectConfig.for_camera(small)
+    assert cfg.downscale == 1 and cfg.min_side_px < DetectConfig().min_side_px
+    found = sum(bool(match_detections(detect_stickers(img, small), [tc[:4]], [tc[4:]]))
+                for img, tc in _sim_views(0.0, 2.0, 6, seed=9, cam=small))
+    assert found == 6  # the unscaled defaults find 5
 
 
 def test_blurred_distractors_and_lines_give_nothing():
