@@ -87,7 +87,7 @@ class OdometryConfig:
     max_shift_frac: float = 0.3
     rotation_step: float = math.radians(3.0)
     max_rotation: float = math.radians(9.0)
-    ecc_iterations: int = 8
+    ecc_iterations: int = 5
     ecc_eps: float = 1e-4
     sigma_xy: float = 0.002
     sigma_yaw: float = math.radians(0.15)
@@ -224,6 +224,7 @@ class FloorOdometry:
         self._map1, self._map2 = cv2.convertMaps(mx, my, cv2.CV_16SC2)
         self._levels = int(round(math.log2(ss))) if ss > 1 else 0
         self._window_half = cv2.createHanningWindow((n // 2, n // 2), cv2.CV_32F)
+        self._A_inv = np.linalg.inv(p.A)
         self._prev: tuple[float, np.ndarray] | None = None
         self._last_turn: tuple[float, float] | None = None  # (time, yaw rate rad/s) of the last step
         self._criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, cfg.ecc_iterations, cfg.ecc_eps)
@@ -290,7 +291,8 @@ class FloorOdometry:
                 best = (float(rho), W, start[1])
             # ECC that had to turn far from the guess may have stopped at a wrong optimum (the
             # turn changed fast): then compare with the grid's start before trusting it.
-            turned = self._body_motion(W[:, :2].astype(np.float64), 2.0 * W[:, 2].astype(np.float64))[2]
+            M = self.patch.A @ W[:, :2].astype(np.float64) @ self._A_inv
+            turned = math.atan2(M[1, 0] - M[0, 1], M[0, 0] + M[1, 1])
             if abs(turned - g0) <= 0.5 * cfg.rotation_step:
                 break
         if best is None:

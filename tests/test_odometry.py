@@ -218,8 +218,13 @@ def _step(p0: np.ndarray, p1: np.ndarray, t0: float, t1: float, cov: np.ndarray,
 
 
 def _run(rng, odometry: bool, stop_at: float = 1.5, t_end: float = 4.0, fix_until: float = 1.0):
-    """Fixes every frame until ``fix_until``, then only odometry (if on). Returns errors and covs at the end."""
-    tr = Tracker()
+    """Fixes every frame until ``fix_until``, then only odometry (if on). Returns errors and covs at the end.
+
+    The synthetic steps' noise is exactly their stated covariance, so the tracker takes it as stated
+    (no calibration factor: that one scales the real odometry's covariance to its measured errors)."""
+    from tracker.config import TrackerConfig
+
+    tr = Tracker(TrackerConfig(odometry_inflation=(1.0, 1.0, 1.0)))
     t = np.arange(0.0, t_end, 1 / FPS)
     truth = _truth(t, stop_at)
     cov = np.diag([0.004**2, 0.004**2, math.radians(0.3) ** 2])
@@ -229,7 +234,8 @@ def _run(rng, odometry: bool, stop_at: float = 1.5, t_end: float = 4.0, fix_unti
         if odometry and k > 0:
             tr.update_odometry(_step(truth[k - 1], truth[k], t[k - 1], tk, cov, rng))
         if tk <= fix_until:
-            z = truth[k] + rng.multivariate_normal(np.zeros(3), fix_cov + tr._floor)
+            floor = np.diag([tr.config.floor_sigma_xy**2] * 2 + [tr.config.floor_sigma_yaw**2])
+            z = truth[k] + rng.multivariate_normal(np.zeros(3), fix_cov + floor)
             tr.update([PoseFix(np.eye(4), z, fix_cov, 0.3)], 1, IdSource.DECODED, tk)
     out = tr.output()
     return out.pose - truth[-1], out.cov, tr
@@ -253,7 +259,8 @@ def test_tracker_odometry_nees_is_honest():
     for seed in range(40):
         err, cov, _ = _run(np.random.default_rng(seed), True, t_end=3.0)
         nees.append(err[:2] @ np.linalg.solve(cov[:2, :2], err[:2]))
-    # 2 DoF: mean 2 if exact; inflation for correlated steps makes it smaller, never much larger.
+    # 2 DoF: mean 2 if exact; the filter takes the vest floor as correlated in time while these fixes
+    # draw it afresh each frame, which makes it smaller, never much larger.
     assert 0.3 < np.mean(nees) < 2.6
 
 

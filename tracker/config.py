@@ -51,14 +51,11 @@ class TrackerConfig:
     1.4^2) = 1.8 cm, the larger axis, used for both (``floor_sigma_xy``). Vertical bobbing does not
     count: the solver sees the camera higher, and the floor point under it stays put. The torso
     twists by ~2.5 deg semi-amplitude, 1.8 deg RMS (``floor_sigma_yaw``).
-    The floor is shared by all stickers seen in one frame (same vest pose), and the tracker fuses
-    same-frame fixes with that correlation. It is also shared, mostly, by consecutive frames: the
-    sway and the torso's tilt and twist swing at half the step frequency (~1 Hz) and keep their
-    sign for about half a period, ``floor_corr_s``. So a frame's floor is multiplied by the number of
-    frames with fused fixes within the last ``floor_corr_s`` (itself included): a run of N such
-    frames then carries the floor information of about ln N + 0.6 independent ones, not N, and a
-    steady stream of fixes gains about one independent floor sample per ``floor_corr_s``. Without it
-    the filter, fed 30 fixes a second, averages the vest's wobble away on paper but not in fact.
+    The floor is the stationary covariance of the vest offset, a state of the filter (see
+    :mod:`tracker.ekf`): first-order Gauss-Markov with correlation time ``floor_corr_s``. The sway
+    and the torso's tilt and twist swing at half the step frequency (~1 Hz) and keep their sign for
+    about half a period, 0.5 s. So fixes of one frame share the offset, consecutive frames share
+    most of it, and a stream of 30 fixes a second does not average the wobble away on paper.
 
     Gates (squared Mahalanobis distance of the innovation over x, y, yaw, 3 DoF):
 
@@ -90,15 +87,15 @@ class TrackerConfig:
     Floor odometry (:meth:`tracker.tracker.Tracker.update_odometry`), fused as a relative-pose
     measurement between consecutive frames (the pose at the earlier frame is cloned into the state):
 
-    - ``odometry_inflation``: factors on the variances (dx, dy, dyaw) of each step. The steps'
-      own covariances are honest frame by frame (NEES ~3), but their errors are not independent
-      from frame to frame: the vest's sway and torso yaw (~1 Hz) push several consecutive steps
-      the same way before swinging back. Each factor is the largest ratio, over windows of
-      0.13-3 s, of the variance of the summed step errors to the sum of the stated variances
-      (measured on 9 simulated 15-20 s sessions, lux 56-265, speed 0.9-1.5 m/s, pitch 46-66 deg:
-      forward 1.1, lateral 4.0, yaw 7.1, all at 4-15 frame windows; at 1 s and beyond they are
-      below 1 since the oscillations cancel). So the filter is never much surer of a walked
-      distance or turn than the odometry is, at any horizon.
+    - ``odometry_inflation``: factors on the variances (dx, dy, dyaw) of each step. A step measures
+      the vest's motion and the vest's wobble goes to the offset state, so the steps' covariances
+      are scaled to the vest's motion: each factor is the largest ratio, over windows of 1-60
+      frames, of the variance of the summed step errors to the sum of the stated variances,
+      against the vest's true motion (forward 0.82 at 8 frames, lateral 0.14, yaw 0.20 at 8-15
+      frames; six simulated 20 s walks, 56-265 lux, 0.9-1.5 m/s, pitch 46-66 deg). The stated
+      covariances (see :class:`tagloc.odometry.OdometryConfig`) were sized for the body's motion,
+      wobble included; against the body the same ratios reach 3-6 over 0.3-0.5 s and fall below 1
+      over a stride, which a body-only filter could not state honestly at every horizon.
     - ``odometry_gate_prob``: chi-square bound (3 DoF) on the relative-pose innovation.
     - ``odometry_max_dt``: the longest interval between the two frames of a step.
 
@@ -134,7 +131,7 @@ class TrackerConfig:
     w_var_cap: float = 9.0
     max_step_s: float = 0.2
     max_steps: int = 50
-    odometry_inflation: tuple[float, float, float] = (1.1, 4.0, 7.0)
+    odometry_inflation: tuple[float, float, float] = (0.85, 0.15, 0.2)
     odometry_gate_prob: float = 0.999
     odometry_max_dt: float = 0.25
 

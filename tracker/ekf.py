@@ -7,10 +7,13 @@ so :meth:`WalkingEKF.innovation` computes them from the prior; :meth:`WalkingEKF
 filterpy's ``update`` with an angle-wrapping residual. After every step the covariance is
 symmetrised, its eigenvalues floored and its variances capped, so it stays finite and SPD.
 
-Fixes from one frame share the vest's offset from the nominal rig (the "floor" covariance F): they
-are fused on a frame-augmented state ``[x (5), b (3)]`` where ``b ~ N(0, F)`` is that shared offset
-and each fix measures ``pose + b`` with its own covariance. Fused one by one this is exact; ``b`` is
-dropped when the frame ends. For a single fix it is the ordinary update with R = C + F.
+The state carries, besides the walking body (x, y, yaw, speed, yaw rate), the vest's offset from
+the nominal rig (dx, dy, dyaw, world axes): a first-order Gauss-Markov process with the floor
+covariance F as its stationary covariance and ``floor_corr_s`` as its correlation time. A fix
+measures the vest pose, ``body + offset``; an odometry step measures the vest's motion. So fixes of
+one frame share the offset exactly, consecutive frames share most of it, and the wobble the
+odometry integrates is bounded instead of accumulating: the filter separates the smooth walk
+(body) from the ~1 Hz wobble (offset) by their dynamics.
 """
 
 from __future__ import annotations
@@ -26,6 +29,9 @@ from tracker import motion
 from tracker.config import TrackerConfig
 
 POSE = slice(0, 3)
+DIM = motion.DIM + 3  # walking body + vest offset
+OFF = slice(motion.DIM, DIM)
+M_VEST = np.hstack([np.eye(3), np.zeros((3, motion.DIM - 3)), np.eye(3)])  # vest pose = body pose + offset
 
 
 def wrap(a: float | np.ndarray) -> float | np.ndarray:
@@ -43,43 +49,19 @@ def pose_residual(z: np.ndarray, hx: np.ndarray) -> np.ndarray:
 def sym_spd(C: np.ndarray, min_eig: float) -> np.ndarray:
     """``C`` symmetrised with eigenvalues floored at ``min_eig`` (non-finite entries -> caller)."""
     C = 0.5 * (C + C.T)
+    if min(np.diag(C)) > 1e6 * min_eig:
+        try:
+            # The common case, at a fifth of the cost of eigh: a Cholesky factor exists, so C is
+            # positive definite; with variances this far above the floor it is no borderline case.
+            np.linalg.cholesky(C)
+            return C
+        except np.linalg.LinAlgError:
+            pass
     w, V = np.linalg.eigh(C)
     if w[0] >= min_eig:
         return C
     C = (V * np.maximum(w, min_eig)) @ V.T
     return 0.5 * (C + C.T)
-
-
-_H_FRAME = np.hstack([np.eye(3), np.zeros((3, 2)), np.eye(3)])  # pose + shared offset
-
-
-def frame_augment(mean: np.ndarray, cov: np.ndarray, floor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Frame-augmented state: (8,) mean ``[x, 0, 0, 0]`` and (8, 8) ``blockdiag(cov, floor)``."""
-    x = np.r_[np.asarray(mean, float).ravel(), np.zeros(3)]
-    P = np.zeros((8, 8))
-    P[:5, :5] = cov
-    P[5:, 5:] = floor
-    return x, P
-
-
-def frame_innovation(x: np.ndarray, P: np.ndarray, z: np.ndarray,
-                     C: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """(y (3,), S (3, 3), NIS) of pose ``z`` with own covariance ``C`` on the frame-augmented state."""
-    y = pose_residual(z, _H_FRAME @ x)
-    S = _H_FRAME @ P @ _H_FRAME.T + C
-    S = 0.5 * (S + S.T)
-    return y, S, float(y @ np.linalg.solve(S, y))
-
-
-def frame_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Kalman update of the frame-augmented state with pose ``z`` (covariance ``C``)."""
-    hx = _H_FRAME @ x
-    # filterpy's functional update subtracts plainly: hand it the measurement with the yaw unwrapped
-    # next to the prediction, so that its residual is the wrapped one.
-    z_near = hx + pose_residual(z, hx)
-    x, P = kf_update(x, P, z_near, C, _H_FRAME)
-    x = np.asarray(x, float).ravel()
-    return x, 0.5 * (P + P.T)
 
 
 @dataclass
@@ -88,7 +70,7 @@ class Innovation:
 
     Attributes:
         y: (3,) residual z - h(x), yaw wrapped. S: (3, 3) its covariance. nis: y^T S^-1 y.
-        R: (3, 3) measurement covariance used (fix + floor + retrodiction noise).
+        R: (3, 3) measurement covariance used (fix + retrodiction noise).
     """
 
     y: np.ndarray
@@ -98,46 +80,59 @@ class Innovation:
 
 
 class WalkingEKF(ExtendedKalmanFilter):
-    """5-state CTRV EKF (x, y, yaw, v, w) with (x, y, yaw) measurements."""
+    """8-state EKF: CTRV body (x, y, yaw, v, w) and vest offset (dx, dy, dyaw); vest-pose measurements."""
 
     def __init__(self, config: TrackerConfig):
-        super().__init__(dim_x=motion.DIM, dim_z=3)
+        super().__init__(dim_x=DIM, dim_z=3)
         self.cfg = config
         self._dt = 0.0
-        self._caps = np.array([config.pos_var_cap, config.pos_var_cap, config.yaw_var_cap,
-                               config.v_var_cap, config.w_var_cap])
+        self._floor = np.diag([config.floor_sigma_xy**2, config.floor_sigma_xy**2, config.floor_sigma_yaw**2])
+        self._caps = np.r_[config.pos_var_cap, config.pos_var_cap, config.yaw_var_cap,
+                           config.v_var_cap, config.w_var_cap, 4.0 * np.diag(self._floor)]
+
+    def _decay(self, dt: float) -> float:
+        """Correlation left in the vest offset after ``dt`` s."""
+        tau = self.cfg.floor_corr_s
+        return math.exp(-abs(dt) / tau) if tau > 0 else 0.0
 
     # -- state access -------------------------------------------------------------------------
     @property
     def mean(self) -> np.ndarray:
-        """(5,) state mean."""
+        """(8,) state mean: body (x, y, yaw, v, w), vest offset (dx, dy, dyaw)."""
         return self.x[:, 0].copy()
 
     @property
     def cov(self) -> np.ndarray:
-        """(5, 5) state covariance."""
+        """(8, 8) state covariance."""
         return self.P.copy()
 
     def set(self, mean: np.ndarray, cov: np.ndarray) -> None:
-        """Replace the state (mean (5,), cov (5, 5)), then clip and condition it."""
-        self.x = np.asarray(mean, float).reshape(motion.DIM, 1).copy()
+        """Replace the state (mean (8,), cov (8, 8)), then clip and condition it."""
+        self.x = np.asarray(mean, float).reshape(DIM, 1).copy()
         self.P = np.asarray(cov, float).copy()
         self._tidy()
 
     def reset(self, pose: np.ndarray, R: np.ndarray) -> None:
-        """Start from a pose fix (3,) with covariance R (3, 3): speed and yaw rate unknown, zero mean."""
-        P = np.zeros((motion.DIM, motion.DIM))
-        P[POSE, POSE] = R
+        """Start from a fix of the vest pose (3,) with its own covariance R (3, 3): the body is the fix
+        less an offset of covariance F (so body and offset are anti-correlated); speed and yaw rate
+        unknown, zero mean."""
+        F = self._floor
+        P = np.zeros((DIM, DIM))
+        P[POSE, POSE] = R + F
+        P[OFF, OFF] = F
+        P[POSE, OFF] = -F
+        P[OFF, POSE] = -F
         P[motion.V, motion.V] = self.cfg.init_v_sigma**2
         P[motion.W, motion.W] = self.cfg.init_w_sigma**2
-        self.set(np.r_[np.asarray(pose, float), 0.0, 0.0], P)
+        self.set(np.r_[np.asarray(pose, float), 0.0, 0.0, 0.0, 0.0, 0.0], P)
 
     def forget_motion(self) -> None:
         """Drop what is known about speed and yaw rate (zero mean, initial variance, uncorrelated)."""
         x, P = self.mean, self.cov
-        x[3:] = 0.0
-        P[3:, :] = 0.0
-        P[:, 3:] = 0.0
+        vw = slice(motion.V, motion.W + 1)
+        x[vw] = 0.0
+        P[vw, :] = 0.0
+        P[:, vw] = 0.0
         P[motion.V, motion.V] = self.cfg.init_v_sigma**2
         P[motion.W, motion.W] = self.cfg.init_w_sigma**2
         self.set(x, P)
@@ -145,15 +140,30 @@ class WalkingEKF(ExtendedKalmanFilter):
     # -- prediction ---------------------------------------------------------------------------
     def predict_x(self, u: object = 0) -> None:
         """Nonlinear mean propagation (filterpy calls this from ``predict``)."""
-        self.x = motion.propagate(self.x[:, 0], self._dt).reshape(motion.DIM, 1)
+        x = self.x[:, 0]
+        body = motion.propagate(x[: motion.DIM], self._dt)
+        self.x = np.r_[body, self._decay(self._dt) * x[OFF]].reshape(DIM, 1)
+
+    def _transition(self, x: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+        """(F (8, 8), Q (8, 8)) of a step of ``h`` s (negative: backwards) from state ``x``."""
+        cfg = self.cfg
+        a = self._decay(h)
+        F = np.zeros((DIM, DIM))
+        Q = np.zeros((DIM, DIM))
+        F[: motion.DIM, : motion.DIM] = motion.jacobian(x[: motion.DIM], h)
+        F[OFF, OFF] = a * np.eye(3)
+        Q[: motion.DIM, : motion.DIM] = motion.process_noise(x[: motion.DIM], h, cfg.accel_psd, cfg.yaw_accel_psd,
+                                                             cfg.lateral_psd)
+        Q[OFF, OFF] = (1.0 - a * a) * self._floor
+        return F, Q
 
     def advance(self, dt: float) -> np.ndarray:
         """Predict ``dt`` >= 0 seconds ahead, in steps of at most ``max_step_s`` (then one last step).
 
-        Returns the (5, 5) Jacobian of the new state with respect to the old one (the steps'
+        Returns the (8, 8) Jacobian of the new state with respect to the old one (the steps'
         ``F`` multiplied), which gives the cross-covariance with a clone of the old state.
         """
-        F_total = np.eye(motion.DIM)
+        F_total = np.eye(DIM)
         if not dt > 0.0:
             return F_total
         cfg = self.cfg
@@ -162,9 +172,7 @@ class WalkingEKF(ExtendedKalmanFilter):
         steps.append(dt - sum(steps))
         for h in steps:
             self._dt = h
-            x = self.x[:, 0]
-            self.F = motion.jacobian(x, h)
-            self.Q = motion.process_noise(x, h, cfg.accel_psd, cfg.yaw_accel_psd, cfg.lateral_psd)
+            self.F, self.Q = self._transition(self.x[:, 0], h)
             self.predict()
             self._tidy()
             F_total = self.F @ F_total
@@ -172,28 +180,30 @@ class WalkingEKF(ExtendedKalmanFilter):
 
     # -- measurement --------------------------------------------------------------------------
     def _model(self, lag: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(h(x) (3,), H (3, 5), extra noise (3, 3)) of a pose measured ``lag`` s before the state."""
+        """(h(x) (3,), H (3, 8), extra noise (3, 3)) of a vest pose measured ``lag`` s before the state."""
         x = self.x[:, 0]
         if lag <= 0.0:
-            H = np.zeros((3, motion.DIM))
-            H[:, POSE] = np.eye(3)
-            return x[POSE].copy(), H, np.zeros((3, 3))
-        cfg = self.cfg
-        back = motion.propagate(x, -lag)
-        F = motion.jacobian(x, -lag)
-        Q = motion.process_noise(x, -lag, cfg.accel_psd, cfg.yaw_accel_psd, cfg.lateral_psd)
-        return back[POSE], F[POSE], Q[POSE, POSE]
+            return M_VEST @ x, M_VEST.copy(), np.zeros((3, 3))
+        # Retrodiction: the body runs CTRV backwards; a stationary Gauss-Markov offset is one
+        # backwards too (decay a, fresh variance (1 - a^2) F).
+        back = motion.propagate(x[: motion.DIM], -lag)
+        F, Q = self._transition(x, -lag)
+        a = self._decay(lag)
+        H = np.hstack([F[POSE, : motion.DIM], a * np.eye(3)])
+        Qb = Q[POSE, POSE] + Q[OFF, OFF]
+        return back[POSE] + a * x[OFF], H, Qb
 
     def innovation(self, z: np.ndarray, R: np.ndarray, lag: float = 0.0) -> Innovation:
-        """Innovation of pose ``z`` (3,) with covariance ``R`` (3, 3), measured ``lag`` s ago."""
+        """Innovation of vest pose ``z`` (3,) with its own covariance ``R`` (3, 3), measured ``lag`` s ago."""
         hx, H, Qb = self._model(lag)
         R = R + Qb
         y = pose_residual(z, hx)
-        S = 0.5 * (H @ self.P @ H.T + R + (H @ self.P @ H.T + R).T)
+        S = H @ self.P @ H.T + R
+        S = 0.5 * (S + S.T)
         return Innovation(y, S, float(y @ np.linalg.solve(S, y)), R)
 
     def fuse(self, z: np.ndarray, R: np.ndarray, lag: float = 0.0) -> None:
-        """Kalman update with one pose ``z`` (3,), covariance ``R`` (fix + floor), ``lag`` s old."""
+        """Kalman update with one vest pose ``z`` (3,), its own covariance ``R``, ``lag`` s old."""
         hx, H, Qb = self._model(lag)
         self.update(np.asarray(z, float).reshape(3, 1), lambda _x: H, lambda _x: hx.reshape(3, 1),
                     R=R + Qb, residual=pose_residual)
@@ -207,9 +217,10 @@ class WalkingEKF(ExtendedKalmanFilter):
         if not np.all(np.isfinite(x)):
             raise FloatingPointError("non-finite EKF state")
         x[motion.YAW] = wrap(x[motion.YAW])
+        x[DIM - 1] = wrap(x[DIM - 1])
         x[motion.V] = min(max(x[motion.V], cfg.v_min), cfg.v_max)
         x[motion.W] = min(max(x[motion.W], -cfg.w_max), cfg.w_max)
-        self.x = x.reshape(motion.DIM, 1)
+        self.x = x.reshape(DIM, 1)
         P = self.P
         if not np.all(np.isfinite(P)):
             raise FloatingPointError("non-finite EKF covariance")

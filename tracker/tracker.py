@@ -7,10 +7,10 @@ Rules, in one place:
   ``max_lag_s`` older than the filter is fused against the state retrodicted to its time (CTRV run
   backwards, plus the process noise over the lag); an older fix is rejected
   (``out_of_order_fixes``).
-- Every fix's covariance gets the rig/vest noise floor (see :class:`TrackerConfig`). Fixes from the
-  same frame share that floor (one vest pose): they are gated and fused on a frame-augmented state
-  that carries the shared offset (see :mod:`tracker.ekf`), so three stickers in one frame do not
-  count as three independent vest poses.
+- A fix measures the vest's pose: the body's plus the vest offset, a state of the filter (see
+  :mod:`tracker.ekf`) whose stationary covariance is the rig/vest floor (see :class:`TrackerConfig`).
+  Fixes of one frame share it exactly, so three stickers in one frame do not count as three
+  independent vest poses, and consecutive frames share most of it.
 - Two IPPE alternatives (ambiguous pose): while tracking, the one with the smaller Mahalanobis
   distance to the prediction is used; when (re)initialising, the first (best reprojection).
 - INITIALISING: only a DECODED fix starts the track. TRACKING: fixes must pass the chi-square gate
@@ -21,10 +21,11 @@ Rules, in one place:
 - Floor odometry (:meth:`Tracker.update_odometry`): each step is the body's relative pose between
   two consecutive frames. :meth:`Tracker.predict` keeps a clone of the pose at the time it
   advanced from, with its cross-covariance to the new state (stochastic cloning), and the step is
-  fused as a measurement of ``pose(t1) (-) clone(t0)``. That is exact for one step (forward,
-  lateral and turn alike, so sidesteps and stops are followed), and consecutive steps share no
-  clone, so fusing every frame never counts a frame twice. The steps' temporal correlation (vest
-  oscillations) is covered by inflating their covariance (see :class:`TrackerConfig`). Used while
+  fused as a measurement of ``vest(t1) (-) clone(t0)`` (the camera moves with the vest). That is
+  exact for one step (forward, lateral and turn alike, so sidesteps and stops are followed), and
+  consecutive steps share no clone, so fusing every frame never counts a frame twice. The vest's
+  wobble, which the steps follow, lands in the offset state and is bounded there instead of
+  accumulating in the body's pose. Used while
   TRACKING or LOST (it slows the growth of the uncertainty either way), gated, and only on the
   interval the filter just advanced over with nothing fused in between (so: before the frame's
   fixes); otherwise it is counted as ``odometry_unmatched``.
@@ -44,7 +45,7 @@ from tracker.candidates import select_candidates
 from tracker.config import TrackerConfig
 from filterpy.kalman import update as kf_update
 
-from tracker.ekf import WalkingEKF, frame_augment, frame_innovation, frame_update, sym_spd, wrap
+from tracker.ekf import DIM, M_VEST, WalkingEKF, sym_spd, wrap
 
 __all__ = ["Tracker", "TrackerConfig", "UpdateResult"]
 
@@ -67,17 +68,8 @@ class UpdateResult:
 
 
 @dataclass
-class _Frame:
-    """The frame-augmented state (see :mod:`tracker.ekf`) after the fixes fused at time ``t``."""
-
-    t: float
-    x: np.ndarray
-    P: np.ndarray
-
-
-@dataclass
 class _Clone:
-    """The pose at ``t0`` (3,), its covariance (3, 3) and its cross-covariance with the state (5, 3)."""
+    """The vest pose at ``t0`` (3,), its covariance (3, 3) and its cross-covariance with the state (8, 3)."""
 
     t0: float
     pose: np.ndarray
@@ -107,15 +99,12 @@ class Tracker:
         cfg = self.config
         self._gate = {IdSource.DECODED: cfg.gate, IdSource.ORB: cfg.gate_identified,
                       IdSource.APPEARANCE: cfg.gate_identified}
-        self._floor = np.diag([cfg.floor_sigma_xy**2, cfg.floor_sigma_xy**2, cfg.floor_sigma_yaw**2])
         self._ekf = WalkingEKF(cfg)
         self._state = TrackState.INITIALISING
         self._t: float | None = None
         self._last_fix_t = -math.inf
         self._last_id: int | None = None
         self._last_source: IdSource | None = None
-        self._frame: _Frame | None = None
-        self._fix_frames: list[float] = []  # times of recent frames with a fused fix (floor correlation)
         self._forgot = False  # speed and yaw rate dropped after a long time without fixes
         self._hyp: _Hypothesis | None = None
         self._clone: _Clone | None = None  # pose before the last advance, for odometry
@@ -144,10 +133,11 @@ class Tracker:
         return dict(self._stats)
 
     def prior(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """(mean (3,), cov (3, 3)) of the body pose for choosing candidates; None unless TRACKING."""
+        """(mean (3,), cov (3, 3)) of the vest pose (where the rig's cameras are) for choosing
+        candidates; None unless TRACKING."""
         if self._state is not TrackState.TRACKING:
             return None
-        return self._ekf.mean[:3], self._ekf.cov[:3, :3]
+        return M_VEST @ self._ekf.mean, M_VEST @ self._ekf.cov @ M_VEST.T
 
     def candidates(self, smap: StickerMap, rig_camera: RigCamera, observed_px: np.ndarray, k: int = 5) -> list[int]:
         """Sticker IDs that may be the one seen at ``observed_px``, most likely first ([] unless TRACKING)."""
@@ -165,13 +155,12 @@ class Tracker:
             self._stats["out_of_order_frames"] += 1
             return
         if self._t is not None and t > self._t:
-            self._frame = None
             self._clone = None
             if self._state is not TrackState.INITIALISING:
                 t0, x0, P0 = self._t, self._ekf.mean, self._ekf.cov
                 jac: list[np.ndarray] = []
                 if self._guarded(lambda: jac.append(self._ekf.advance(t - t0))):
-                    self._clone = _Clone(t0, x0[:3], P0[:3, :3], jac[0] @ P0[:, :3])
+                    self._clone = _Clone(t0, M_VEST @ x0, M_VEST @ P0 @ M_VEST.T, jac[0] @ P0 @ M_VEST.T)
         self._t = t
         self._check_lost()
 
@@ -184,7 +173,6 @@ class Tracker:
             # Long without a fix, the speed and turn rate are stale: keep the pose mean and let a
             # walker of unknown velocity spread from there instead of extrapolating for hours.
             self._forgot = True
-            self._frame = None
             self._clone = None
             self._guarded(self._ekf.forget_motion)
 
@@ -277,10 +265,7 @@ class Tracker:
         best = (0, math.inf)
         for i, (z, C) in enumerate(alts):
             try:
-                if lag > 0.0:
-                    nis = self._ekf.innovation(z, C + self._floor, lag).nis
-                else:
-                    nis = frame_innovation(*self._frame_state(), z, C)[2]
+                nis = self._ekf.innovation(z, C, lag).nis
             except np.linalg.LinAlgError:
                 self._stats["numeric_errors"] += 1
                 continue
@@ -288,39 +273,12 @@ class Tracker:
                 best = (i, nis)
         return best
 
-    def _frame_state(self) -> tuple[np.ndarray, np.ndarray]:
-        """The frame-augmented state at the filter's time (fresh when no fix was fused at it yet)."""
-        if self._frame is None or self._frame.t != self._t:
-            self._frame = _Frame(self._t, *frame_augment(self._ekf.mean, self._ekf.cov, self._frame_floor()))
-        return self._frame.x, self._frame.P
-
-    def _frame_floor(self) -> np.ndarray:
-        """This frame's vest floor: the floor times the number of frames with fused fixes within the
-        last ``floor_corr_s`` (this one included), as those share most of their vest error."""
-        horizon = self._t - self.config.floor_corr_s
-        self._fix_frames = [u for u in self._fix_frames if horizon < u < self._t]
-        return self._floor * (1 + len(self._fix_frames))
-
     def _fuse(self, z: np.ndarray, C: np.ndarray, lag: float) -> None:
-        """Fuse an accepted fix (pose z, own covariance C): late fixes through retrodiction, current
-        ones on the frame-augmented state so that fixes of one frame share the vest floor."""
+        """Fuse an accepted fix (vest pose z, own covariance C); a late one through retrodiction."""
         self._clone = None
+        self._guarded(lambda: self._ekf.fuse(z, C, lag))
         if lag > 0.0:
-            self._frame = None
-            self._guarded(lambda: self._ekf.fuse(z, C + self._floor, lag))
             self._stats["late_fixes_fused"] += 1
-            return
-        x, P = self._frame_state()
-
-        def step() -> None:
-            xa, Pa = frame_update(x, P, z, C)
-            self._ekf.set(xa[:5], Pa[:5, :5])
-            self._frame = _Frame(self._t, xa, Pa)
-            if not self._fix_frames or self._fix_frames[-1] != self._t:
-                self._fix_frames.append(self._t)
-
-        if not self._guarded(step):
-            self._frame = None
 
     def _accept(self, sticker_id: int, source: IdSource, t: float) -> None:
         self._stats[f"accepted_{source.value}"] += 1
@@ -334,16 +292,7 @@ class Tracker:
         self._hyp = None
         self._clone = None
         self._ekf = WalkingEKF(self.config)
-        self._ekf.reset(alt[0], alt[1] + self._floor)
-        self._frame = None
-        if t == self._t:
-            # Start this frame from a vague pose prior (10 m, uniform heading; vaguer only costs
-            # precision) and fuse the fix on it, so that more fixes of this frame share its floor.
-            self._ekf.set(self._ekf.mean, np.diag(np.r_[100.0, 100.0, self.config.yaw_var_cap,
-                                                        np.diag(self._ekf.cov)[3:]]))
-            self._fuse(alt[0], alt[1], 0.0)
-            if self._frame is None:  # numerical failure: fall back to the plain start
-                self._ekf.reset(alt[0], alt[1] + self._floor)
+        self._ekf.reset(alt[0], alt[1])
         self._stats[f"accepted_{source.value}"] += 1
         self._last_fix_t = t
         self._last_id, self._last_source = int(sticker_id), source
@@ -361,10 +310,10 @@ class Tracker:
                 with np.errstate(over="raise", invalid="raise"):
                     h.ekf.advance(t - h.t)
                     h.t = t
-                    best = min((h.ekf.innovation(z, C + self._floor).nis, i) for i, (z, C) in enumerate(alts))
+                    best = min((h.ekf.innovation(z, C).nis, i) for i, (z, C) in enumerate(alts))
                     if best[0] <= cfg.gate:
                         z, C = alts[best[1]]
-                        h.ekf.fuse(z, C + self._floor)
+                        h.ekf.fuse(z, C)
                         h.ids.add(int(sticker_id))
                         h.count += 1
                     else:
@@ -374,14 +323,13 @@ class Tracker:
                 h = None
         if h is None:
             ekf = WalkingEKF(cfg)
-            ekf.reset(alts[0][0], alts[0][1] + self._floor)
+            ekf.reset(alts[0][0], alts[0][1])
             h = _Hypothesis(ekf, t, t, {int(sticker_id)}, 1)
         self._hyp = h
         if h.count < cfg.reinit_fixes or len(h.ids) < cfg.reinit_min_ids:
             return False
         self._ekf = h.ekf
         self._hyp = None
-        self._frame = None
         self._clone = None
         self._accept(sticker_id, IdSource.DECODED, t)
         self._stats["reinitialisations"] += 1
@@ -414,21 +362,25 @@ class Tracker:
         if c is None or abs(c.t0 - t0) > tol or abs(self._t - t1) > tol:
             self._stats["odometry_unmatched"] += 1
             return UpdateResult(False, "odometry interval does not match the filter's last prediction")
-        x5, P5 = self._ekf.mean, self._ekf.cov
-        # Joint state [x (5), clone (3)]; the measurement is the pose at t1 seen from the clone.
-        x = np.r_[x5, c.pose]
-        P = np.zeros((8, 8))
-        P[:5, :5], P[5:, 5:], P[:5, 5:], P[5:, :5] = P5, c.P, c.cross, c.cross.T
+        x8, P8 = self._ekf.mean, self._ekf.cov
+        n = DIM
+        # Joint state [x (8), clone (3)]; the measurement is the vest pose at t1 seen from the clone.
+        x = np.r_[x8, c.pose]
+        P = np.zeros((n + 3, n + 3))
+        P[:n, :n], P[n:, n:], P[:n, n:], P[n:, :n] = P8, c.P, c.cross, c.cross.T
         P = sym_spd(P, cfg.min_eig)  # the caps applied while advancing may have bent it slightly
+        v1 = M_VEST @ x8
         yaw0 = c.pose[2]
         co, si = math.cos(yaw0), math.sin(yaw0)
         Rt = np.array([[co, si], [-si, co]])  # world -> body at t0
-        d = x5[:2] - c.pose[:2]
-        hx = np.r_[Rt @ d, wrap(x5[2] - yaw0)]
-        H = np.zeros((3, 8))
-        H[:2, 0:2], H[:2, 5:7] = Rt, -Rt
-        H[:2, 7] = np.array([[-si, co], [-co, -si]]) @ d
-        H[2, 2], H[2, 7] = 1.0, -1.0
+        d = v1[:2] - c.pose[:2]
+        hx = np.r_[Rt @ d, wrap(v1[2] - yaw0)]
+        H = np.zeros((3, n + 3))
+        H[:2, :n] = Rt @ M_VEST[:2]
+        H[:2, n : n + 2] = -Rt
+        H[:2, n + 2] = np.array([[-si, co], [-co, -si]]) @ d
+        H[2, :n] = M_VEST[2]
+        H[2, n + 2] = -1.0
         R = sym_spd(C * np.outer(self._odo_scale, self._odo_scale), cfg.min_eig)
         y = z - hx
         y[2] = wrap(y[2])
@@ -447,12 +399,11 @@ class Tracker:
             # measurement whose linear residual is our (wrapped) nonlinear one.
             xa, Pa = kf_update(x, P, H @ x + y, R, H)
             xa = np.asarray(xa, float).ravel()
-            self._ekf.set(xa[:5], 0.5 * (Pa[:5, :5] + Pa[:5, :5].T))
+            self._ekf.set(xa[:n], 0.5 * (Pa[:n, :n] + Pa[:n, :n].T))
 
         self._clone = None  # one step per interval: a second one would reuse the same frames
         if not self._guarded(fuse):
             return UpdateResult(False, "numerical failure fusing odometry", nis)
-        self._frame = None
         self._stats["odometry_accepted"] += 1
         return UpdateResult(True, "fused", nis)
 
