@@ -7,7 +7,7 @@ floor differ by a 2-D rigid motion (the body's planar motion, seen from the patc
 
 1. translation by :func:`cv2.phaseCorrelate` on high-passed, Hann-windowed images (robust to large
    shifts, to lighting gradients and to heavy noise; its peak ``response`` is the quality).
-   phase correlation sees translation only, so the earlier image is first pre-rotated by the turn
+   Phase correlation sees translation only, so the earlier image is first pre-rotated by the turn
    under way (the last measured turn rate), and if that fails by a grid of turn guesses, keeping
    the one that correlates best: a corner taken at 90-180 deg/s turns the body 3-6 degrees
    between frames, beyond what a translation-only match or ECC from no turn can follow;
@@ -63,8 +63,8 @@ class OdometryConfig:
     - ``min_ecc``: ECC correlation after alignment: < 0.1 on noise, >= 0.3 on matching frames.
     - ``max_shift_frac``: shifts beyond this fraction of the patch leave too little overlap.
     - ``rotation_step``, ``max_rotation``: the grid of turn guesses tried when the match from the
-      turn under way fails (a person turns at up to ~4 rad/s, 7.6 degrees between frames at 30 Hz); 0 turns the
-      search off.
+      turn under way fails (a person turns at up to ~4 rad/s, 7.6 degrees between frames at
+      30 Hz); 0 turns the search off.
 
     Noise per frame (standard deviations of the step, added in quadrature), calibrated on simulated
     sessions so that the NEES of the delta against ground truth is about 3 (3 DoF):
@@ -291,9 +291,7 @@ class FloorOdometry:
                 best = (float(rho), W, start[1])
             # ECC that had to turn far from the guess may have stopped at a wrong optimum (the
             # turn changed fast): then compare with the grid's start before trusting it.
-            M = self.patch.A @ W[:, :2].astype(np.float64) @ self._A_inv
-            turned = math.atan2(M[1, 0] - M[0, 1], M[0, 0] + M[1, 1])
-            if abs(turned - g0) <= 0.5 * cfg.rotation_step:
+            if abs(self._turn(W[:, :2].astype(np.float64)) - g0) <= 0.5 * cfg.rotation_step:
                 break
         if best is None:
             return None
@@ -339,7 +337,7 @@ class FloorOdometry:
             # Body turn g in patch pixels (the scale of A cancels), about the patch centre: the
             # rest of the turn's lever arm is a shift, which phase correlation finds.
             R = np.array([[math.cos(g), -math.sin(g)], [math.sin(g), math.cos(g)]])
-            Wl = np.linalg.solve(A, R @ A)
+            Wl = self._A_inv @ R @ A
             Wg = np.hstack([Wl, (c - Wl @ c)[:, None]])
             warped = psmall if g == 0.0 else cv2.warpAffine(psmall, Wg.astype(np.float32), (m, m),
                                                             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
@@ -359,13 +357,17 @@ class FloorOdometry:
             return None
         return best[2].astype(np.float32), best[1]
 
+    def _turn(self, Wl: np.ndarray) -> float:
+        """Body turn (rad) of the patch-pixel linear map ``Wl`` (2, 2): the angle of A Wl A^-1."""
+        M = self.patch.A @ Wl @ self._A_inv
+        return math.atan2(M[1, 0] - M[0, 1], M[0, 0] + M[1, 1])
+
     def _body_motion(self, Wl: np.ndarray, wt: np.ndarray) -> np.ndarray:
         """(dx, dy, dyaw) of body1 in body0 from the patch-pixel map q0 = Wl q1 + wt."""
         A, b = self.patch.A, self.patch.origin
         # Floor points p = A q + b; p0 = R p1 + t (T_body0_body1). Hence R = A Wl A^-1 and
         # t = A wt + b - R b: the rotation is about the body origin, not the patch centre.
-        M = A @ Wl @ np.linalg.inv(A)
-        yaw = math.atan2(M[1, 0] - M[0, 1], M[0, 0] + M[1, 1])
+        yaw = self._turn(Wl)
         R = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
         t = A @ wt + b - R @ b
         return np.array([t[0], t[1], yaw])

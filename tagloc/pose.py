@@ -58,22 +58,22 @@ class PoseSolution:
 
 
 def _body_from_rt(r: np.ndarray, t: np.ndarray, T_world_sticker: np.ndarray,
-                  T_body_camera: np.ndarray) -> np.ndarray:
+                  T_camera_body: np.ndarray) -> np.ndarray:
     """Body (x, y, yaw) for sticker-in-camera pose (rvec ``r``, tvec ``t``)."""
     T_world_camera = T_world_sticker @ invert(T_from_rvec_tvec(r, t))
-    return np.array(planar_from_T(T_world_camera @ invert(T_body_camera)))
+    return np.array(planar_from_T(T_world_camera @ T_camera_body))
 
 
 def _body_jacobian(rvec: np.ndarray, tvec: np.ndarray, T_world_sticker: np.ndarray,
-                   T_body_camera: np.ndarray, h: float = 1e-6) -> np.ndarray:
+                   T_camera_body: np.ndarray, h: float = 1e-6) -> np.ndarray:
     """(3, 6) d body(x, y, yaw) / d (rvec, tvec), central differences."""
     x0 = np.concatenate([rvec.ravel(), tvec.ravel()])
     J = np.empty((3, 6))
     for i in range(6):
         d = np.zeros(6)
         d[i] = h
-        bp = _body_from_rt((x0 + d)[:3], (x0 + d)[3:], T_world_sticker, T_body_camera)
-        bm = _body_from_rt((x0 - d)[:3], (x0 - d)[3:], T_world_sticker, T_body_camera)
+        bp = _body_from_rt((x0 + d)[:3], (x0 + d)[3:], T_world_sticker, T_camera_body)
+        bm = _body_from_rt((x0 - d)[:3], (x0 - d)[3:], T_world_sticker, T_camera_body)
         diff = bp - bm
         diff[2] = wrap_angle(diff[2])
         J[:, i] = diff / (2 * h)
@@ -141,17 +141,17 @@ def solve_pose(detection: Detection, rotation: int, T_world_sticker: np.ndarray,
     if len(uniq) > 1 and uniq[1][0] - uniq[0][0] < config.ambiguity_chi2 * sigma**2:
         keep.append(uniq[1])
 
-    T_body_camera = rig_camera.T_body_camera
+    T_camera_body = invert(rig_camera.T_body_camera)
     poses = []
     for ssr, rvec, tvec, J in keep:
         rms = float(np.sqrt(ssr / n))
         if rms > config.max_reprojection_px:
             continue
         cov6 = sigma**2 * np.linalg.pinv(J.T @ J)
-        Jb = _body_jacobian(rvec, tvec, T_world_sticker, T_body_camera)
+        Jb = _body_jacobian(rvec, tvec, T_world_sticker, T_camera_body)
         cov = Jb @ cov6 @ Jb.T
         cov = (cov + cov.T) / 2
         T_world_camera = T_world_sticker @ invert(T_from_rvec_tvec(rvec, tvec))
-        body = np.array(planar_from_T(T_world_camera @ invert(T_body_camera)))
+        body = np.array(planar_from_T(T_world_camera @ T_camera_body))
         poses.append(PoseFix(T_world_camera, body, cov, rms))
     return PoseSolution(poses, len(poses) > 1, (time.perf_counter() - t0) * 1e3, sigma)

@@ -43,8 +43,8 @@ class TrackerConfig:
     Physical limits (the state is clipped to them after every step): speed ``v_min``..``v_max``
     (walking backwards slowly .. running 2.5 m/s), yaw rate +-``w_max``.
 
-    Rig/vest noise floor added to every fix's covariance, because the pose solver assumes the
-    nominal rig while the vest moves on the walking body. Per axis, as standard deviations (RMS,
+    Rig/vest noise floor: how far the vest's pose strays from the body's through the nominal rig
+    that the pose solver assumes, as the vest moves on the walking body. Per axis, as standard deviations (RMS,
     not peak): a pitch wobble of ~1 deg semi-amplitude (0.7 deg RMS) swings the 1.3 m lever from
     camera to floor by 1.6 cm forward; a roll of ~0.7 deg (0.5 deg RMS) moves it 1.1 cm sideways,
     and the torso's lateral sway (2 cm semi-amplitude, 1.4 cm RMS) adds to that: sqrt(1.1^2 +

@@ -23,7 +23,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
-from filterpy.kalman import update as kf_update
 
 from tracker import motion
 from tracker.config import TrackerConfig

@@ -18,8 +18,8 @@ Rules, in one place:
   ``lost_after_s``; after ``lost_after_s`` speed and yaw rate are also forgotten): only decoded
   fixes are taken; one that passes the gate is fused, one that does not re-initialises the track.
 - ``reinit_fixes`` gated-out DECODED fixes that agree with each other re-initialise the track.
-- Floor odometry (:meth:`Tracker.update_odometry`): each step is the body's relative pose between
-  two consecutive frames. :meth:`Tracker.predict` keeps a clone of the pose at the time it
+- Floor odometry (:meth:`Tracker.update_odometry`): each step is the vest's relative pose between
+  two consecutive frames. :meth:`Tracker.predict` keeps a clone of the vest pose at the time it
   advanced from, with its cross-covariance to the new state (stochastic cloning), and the step is
   fused as a measurement of ``vest(t1) (-) clone(t0)`` (the camera moves with the vest). That is
   exact for one step (forward, lateral and turn alike, so sidesteps and stops are followed), and
