@@ -234,7 +234,7 @@ def _run(rng, odometry: bool, stop_at: float = 1.5, t_end: float = 4.0, fix_unti
         if odometry and k > 0:
             tr.update_odometry(_step(truth[k - 1], truth[k], t[k - 1], tk, cov, rng))
         if tk <= fix_until:
-            floor = np.diag([tr.config.floor_sigma_xy**2] * 2 + [tr.config.floor_sigma_yaw**2])
+            floor = tr.config.floor_cov(truth[k][2])
             z = truth[k] + rng.multivariate_normal(np.zeros(3), fix_cov + floor)
             tr.update([PoseFix(np.eye(4), z, fix_cov, 0.3)], 1, IdSource.DECODED, tk)
     out = tr.output()

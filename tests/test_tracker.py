@@ -20,8 +20,9 @@ def wrap(a):
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
-def floor_cov(cfg: TrackerConfig) -> np.ndarray:
-    return np.diag([cfg.floor_sigma_xy**2, cfg.floor_sigma_xy**2, cfg.floor_sigma_yaw**2])
+def floor_cov(cfg: TrackerConfig, yaw: float = 0.0) -> np.ndarray:
+    """The full-gait vest floor for a walker heading ``yaw`` (what a fix's real error carries)."""
+    return cfg.floor_cov(yaw)
 
 
 def make_fix(pose, cov=FIX_COV) -> PoseFix:
@@ -209,16 +210,19 @@ def test_turn_on_the_spot_tracked(rng):
 
 
 def test_nees_is_consistent_with_the_model(rng):
-    """Truth drawn from the tracker's own motion and fix noise: mean NEES (x, y, yaw) should be ~3."""
+    """Truth drawn from the tracker's own model: walking motion, a Gauss-Markov vest offset whose
+    floor follows heading and speed, and fix noise. Mean NEES (x, y, yaw) should be ~3."""
     cfg = TrackerConfig(v_min=-50, v_max=50, w_max=50, lost_sigma_m=1e3)
     nees = []
     offered = rejected = 0
     sub = 0.01
+    decay = math.exp(-sub / cfg.floor_corr_s)
     for _ in range(20):
         tr = Tracker(cfg)
         x = np.array([0.0, 0.0, rng.uniform(-np.pi, np.pi), 0.0, 0.0])
         x[3] = rng.normal(0, cfg.init_v_sigma)
         x[4] = rng.normal(0, cfg.init_w_sigma)
+        offset = rng.multivariate_normal(np.zeros(3), cfg.floor_cov(x[2]))
         next_fix = 0.0
         for i in range(int(10.0 / sub) + 1):
             t = i * sub
@@ -226,7 +230,8 @@ def test_nees_is_consistent_with_the_model(rng):
                 tr.predict(t)
                 if t >= next_fix - 1e-9:
                     offered += 1
-                    rejected += not tr.update([noisy_fix(x[:3], rng, cfg)], offered, IdSource.DECODED, t).accepted
+                    z = x[:3] + offset + rng.multivariate_normal(np.zeros(3), FIX_COV)
+                    rejected += not tr.update([make_fix(z)], offered, IdSource.DECODED, t).accepted
                     next_fix = t + rng.uniform(0.2, 0.6)
                 if t > 2.0:
                     out = tr.output(t)
@@ -242,6 +247,7 @@ def test_nees_is_consistent_with_the_model(rng):
             x[2] += x[4] * sub
             x[3] += a * sub
             x[4] += alpha * sub
+            offset = decay * offset + rng.multivariate_normal(np.zeros(3), (1 - decay**2) * cfg.floor_cov(x[2], x[3]))
     mean = float(np.mean(nees))
     assert 2.4 < mean < 3.8, mean
     # The 99.9% gate may refuse the odd true fix (model linearisation), never many.
@@ -440,12 +446,14 @@ def test_consecutive_frames_share_the_vest_floor():
             assert tr.update([make_fix([0.0, 0.0, 0.0], tiny)], 1, IdSource.DECODED, t).accepted
         return math.sqrt(tr.output().cov[0, 0])
 
-    cfg = TrackerConfig()
+    # The walker stands here, so the floor is the standing one; make it as large as a walking one.
+    still = dict(floor_still_sigma_xy=0.02, floor_still_sigma_yaw=math.radians(1.8))
+    cfg = TrackerConfig(**still)
     shared = sigma_after_a_second(cfg)
-    white = sigma_after_a_second(TrackerConfig(floor_corr_s=0.0))
-    assert shared > 0.8 * cfg.floor_sigma_xy
+    white = sigma_after_a_second(TrackerConfig(floor_corr_s=0.0, **still))
+    assert shared > 0.8 * cfg.floor_still_sigma_xy
     assert white < 0.75 * shared
-    assert shared < 3 * cfg.floor_sigma_xy
+    assert shared < 3 * cfg.floor_still_sigma_xy
 
 
 def test_long_gap_goes_lost_and_recovers(rng):
@@ -593,6 +601,8 @@ def test_same_frame_fixes_after_hours_lost_stay_precise(rng):
     one = tr.output().cov
     assert tr.update([make_fix(here, tiny)], 2, IdSource.DECODED, t).accepted
     two = tr.output().cov
-    np.testing.assert_allclose(np.diag(one)[:2], cfg.floor_sigma_xy**2 + 1e-6, rtol=0.01)
+    # The fix's own variance plus the full-gait floor (its axes follow the heading the track had).
+    floor = cfg.floor_cov(0.0)
+    assert np.trace(one[:2, :2]) == pytest.approx(floor[0, 0] + floor[1, 1] + 2e-6, rel=0.01)
     np.testing.assert_allclose(np.diag(two), np.diag(one), rtol=0.05)
     np.testing.assert_allclose(tr.output().pose, here, atol=1e-3)  # yaw prior capped at pi^2/3, not flat

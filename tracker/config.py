@@ -10,6 +10,7 @@ import math
 from dataclasses import dataclass
 from functools import lru_cache
 
+import numpy as np
 from scipy.stats import chi2
 
 
@@ -44,15 +45,29 @@ class TrackerConfig:
     (walking backwards slowly .. running 2.5 m/s), yaw rate +-``w_max``.
 
     Rig/vest noise floor: how far the vest's pose strays from the body's through the nominal rig
-    that the pose solver assumes, as the vest moves on the walking body. Per axis, as standard deviations (RMS,
-    not peak): a pitch wobble of ~1 deg semi-amplitude (0.7 deg RMS) swings the 1.3 m lever from
-    camera to floor by 1.6 cm forward; a roll of ~0.7 deg (0.5 deg RMS) moves it 1.1 cm sideways,
-    and the torso's lateral sway (2 cm semi-amplitude, 1.4 cm RMS) adds to that: sqrt(1.1^2 +
-    1.4^2) = 1.8 cm, the larger axis, used for both (``floor_sigma_xy``). Vertical bobbing does not
-    count: the solver sees the camera higher, and the floor point under it stays put. The torso
-    twists by ~2.5 deg semi-amplitude, 1.8 deg RMS (``floor_sigma_yaw``).
+    that the pose solver assumes, as the vest moves on the body. As standard deviations (RMS, not
+    peak), along and across the walk, since the gait moves the chest differently in the two
+    directions. Each tilt of the chest moves the floor point under the camera through the 1.3 m
+    lever (1 deg: 2.3 cm). Two parts:
+
+    - Posture, walking or not (``floor_still_sigma_xy`` 1 cm, ``floor_still_sigma_yaw`` 0.5 deg,
+      correlation ``floor_still_corr_s`` 2 s): people lean, bend and shift their weight by about
+      0.5 deg RMS over seconds.
+    - Gait, on top of it, scaled by ``min(1, |v| / floor_walk_speed)^2`` (sway and tilt grow with
+      step length; 1.2 m/s is an ordinary pace; ``v`` is the filter's own speed estimate),
+      correlation ``floor_corr_s``:
+
+      - forward (``floor_sigma_forward``): the chest nods ~0.6 deg (semi-amplitude) with each
+        step, 0.45 deg RMS: 1.0 cm;
+      - sideways (``floor_sigma_lateral``): the torso sways ~2 cm over the stance foot and rolls
+        ~0.7 deg with it (1.6 cm through the lever); both follow the stance at half the step
+        frequency, so they add in amplitude, not in quadrature: 3.6 cm semi-amplitude, 2.5 cm RMS;
+      - heading (``floor_sigma_yaw``): the torso twists by ~2.5 deg semi-amplitude, 1.8 deg RMS.
+
+    Vertical bobbing does not count: the solver sees the camera higher, and the floor point under
+    it stays put. The offset's correlation time is the two parts' times weighted by their variances.
     The floor is the stationary covariance of the vest offset, a state of the filter (see
-    :mod:`tracker.ekf`): first-order Gauss-Markov with correlation time ``floor_corr_s``. The sway
+    :mod:`tracker.ekf`): first-order Gauss-Markov. The gait's sway
     and the torso's tilt and twist swing at half the step frequency (~1 Hz) and keep their sign for
     about half a period, 0.5 s. So fixes of one frame share the offset, consecutive frames share
     most of it, and a stream of 30 fixes a second does not average the wobble away on paper.
@@ -89,13 +104,16 @@ class TrackerConfig:
 
     - ``odometry_inflation``: factors on the variances (dx, dy, dyaw) of each step. A step measures
       the vest's motion and the vest's wobble goes to the offset state, so the steps' covariances
-      are scaled to the vest's motion: each factor is the largest ratio, over windows of 1-60
-      frames, of the variance of the summed step errors to the sum of the stated variances,
-      against the vest's true motion (forward 0.82 at 8 frames, lateral 0.14, yaw 0.20 at 8-15
-      frames; six simulated 20 s walks, 56-265 lux, 0.9-1.5 m/s, pitch 46-66 deg). The stated
-      covariances (see :class:`tagloc.odometry.OdometryConfig`) were sized for the body's motion,
-      wobble included; against the body the same ratios reach 3-6 over 0.3-0.5 s and fall below 1
-      over a stride, which a body-only filter could not state honestly at every horizon.
+      are scaled to the vest's motion. Odometry carries the pose across the gaps between sticker
+      passes, 0.5-2 s (15-60 frames) and more; over fewer frames the fixes of the pass dominate.
+      So each factor is the ratio, over windows of 15, 30 and 60 frames, of the variance of the
+      summed step errors to the sum of the stated variances, against the vest's true motion,
+      measured on six simulated 20 s walks (56-265 lux, 0.9-1.5 m/s, pitch 46-66 deg): forward
+      0.21-0.35, lateral 0.11-0.14, yaw 0.16-0.20; the factors are 0.3, 0.12 and 0.18. (Over 4-8
+      frames the forward ratio reaches 0.82: the step errors there are correlated, which white
+      per-step noise cannot state at every horizon.) The stated covariances (see
+      :class:`tagloc.odometry.OdometryConfig`) were sized for the body's motion, wobble included;
+      against the body the same ratios reach 3-6 over 0.3-0.5 s and fall below 1 over a stride.
     - ``odometry_gate_prob``: chi-square bound (3 DoF) on the relative-pose innovation.
     - ``odometry_max_dt``: the longest interval between the two frames of a step.
 
@@ -113,8 +131,13 @@ class TrackerConfig:
     w_max: float = 4.0
     init_v_sigma: float = 1.0
     init_w_sigma: float = 1.0
-    floor_sigma_xy: float = 0.018
+    floor_sigma_forward: float = 0.010
+    floor_sigma_lateral: float = 0.025
     floor_sigma_yaw: float = math.radians(1.8)
+    floor_walk_speed: float = 1.2
+    floor_still_sigma_xy: float = 0.01
+    floor_still_sigma_yaw: float = math.radians(0.5)
+    floor_still_corr_s: float = 2.0
     floor_corr_s: float = 0.5
     gate_prob: float = 0.999
     gate_prob_identified: float = 0.99
@@ -131,9 +154,39 @@ class TrackerConfig:
     w_var_cap: float = 9.0
     max_step_s: float = 0.2
     max_steps: int = 50
-    odometry_inflation: tuple[float, float, float] = (0.85, 0.15, 0.2)
+    odometry_inflation: tuple[float, float, float] = (0.3, 0.12, 0.18)
     odometry_gate_prob: float = 0.999
     odometry_max_dt: float = 0.25
+
+    def _gait(self, speed: float | None) -> float:
+        """Share of the gait wobble at ``speed`` (m/s; None: unknown, taken as walking)."""
+        return 1.0 if speed is None else min(1.0, abs(speed) / self.floor_walk_speed) ** 2
+
+    def floor_corr(self, speed: float | None = None) -> float:
+        """Correlation time (s) of the vest offset: the gait's and the posture's, weighted by their variances."""
+        g = self._gait(speed)
+        still = self.floor_still_sigma_xy**2
+        gait = g * 0.5 * (self.floor_sigma_forward**2 + self.floor_sigma_lateral**2)
+        if self.floor_corr_s <= 0.0 or self.floor_still_corr_s <= 0.0:
+            return 0.0
+        return (still * self.floor_still_corr_s + gait * self.floor_corr_s) / max(still + gait, 1e-12)
+
+    def floor_cov(self, yaw: float, speed: float | None = None) -> np.ndarray:
+        """(3, 3) rig/vest floor covariance in world axes (x, y, yaw).
+
+        ``yaw`` (rad) is the walker's heading; ``speed`` (m/s) scales the gait part (None: full
+        gait, for when the speed is not known yet).
+        """
+        g = self._gait(speed)
+        c, s = math.cos(yaw), math.sin(yaw)
+        st2 = self.floor_still_sigma_xy**2
+        f2 = st2 + g * self.floor_sigma_forward**2
+        l2 = st2 + g * self.floor_sigma_lateral**2
+        # R diag(f2, l2) R^T with R the heading rotation.
+        xy = (f2 - l2) * c * s
+        return np.array([[f2 * c * c + l2 * s * s, xy, 0.0],
+                         [xy, f2 * s * s + l2 * c * c, 0.0],
+                         [0.0, 0.0, self.floor_still_sigma_yaw**2 + g * self.floor_sigma_yaw**2]])
 
     @property
     def gate(self) -> float:

@@ -9,7 +9,10 @@ symmetrised, its eigenvalues floored and its variances capped, so it stays finit
 
 The state carries, besides the walking body (x, y, yaw, speed, yaw rate), the vest's offset from
 the nominal rig (dx, dy, dyaw, world axes): a first-order Gauss-Markov process with the floor
-covariance F as its stationary covariance and ``floor_corr_s`` as its correlation time. A fix
+covariance F as its stationary covariance. F and the correlation time follow the walk
+(:meth:`TrackerConfig.floor_cov`, :meth:`TrackerConfig.floor_corr`): stated along and across the
+walk, turned into world axes with the current heading, and grown with the speed (the gait makes
+most of the wobble). A fix
 measures the vest pose, ``body + offset``; an odometry step measures the vest's motion. So fixes of
 one frame share the offset exactly, consecutive frames share most of it, and the wobble the
 odometry integrates is bounded instead of accumulating: the filter separates the smooth walk
@@ -85,13 +88,14 @@ class WalkingEKF(ExtendedKalmanFilter):
         super().__init__(dim_x=DIM, dim_z=3)
         self.cfg = config
         self._dt = 0.0
-        self._floor = np.diag([config.floor_sigma_xy**2, config.floor_sigma_xy**2, config.floor_sigma_yaw**2])
+        full = config.floor_cov(0.0)
+        big = max(full[0, 0], full[1, 1])
         self._caps = np.r_[config.pos_var_cap, config.pos_var_cap, config.yaw_var_cap,
-                           config.v_var_cap, config.w_var_cap, 4.0 * np.diag(self._floor)]
+                           config.v_var_cap, config.w_var_cap, 4.0 * np.array([big, big, full[2, 2]])]
 
     def _decay(self, dt: float) -> float:
-        """Correlation left in the vest offset after ``dt`` s."""
-        tau = self.cfg.floor_corr_s
+        """Correlation left in the vest offset after ``dt`` s at the current speed estimate."""
+        tau = self.cfg.floor_corr(float(self.x[motion.V, 0]))
         return math.exp(-abs(dt) / tau) if tau > 0 else 0.0
 
     # -- state access -------------------------------------------------------------------------
@@ -115,7 +119,7 @@ class WalkingEKF(ExtendedKalmanFilter):
         """Start from a fix of the vest pose (3,) with its own covariance R (3, 3): the body is the fix
         less an offset of covariance F (so body and offset are anti-correlated); speed and yaw rate
         unknown, zero mean."""
-        F = self._floor
+        F = self.cfg.floor_cov(float(pose[2]))
         P = np.zeros((DIM, DIM))
         P[POSE, POSE] = R + F
         P[OFF, OFF] = F
@@ -153,7 +157,7 @@ class WalkingEKF(ExtendedKalmanFilter):
         F[OFF, OFF] = a * np.eye(3)
         Q[: motion.DIM, : motion.DIM] = motion.process_noise(x[: motion.DIM], h, cfg.accel_psd, cfg.yaw_accel_psd,
                                                              cfg.lateral_psd)
-        Q[OFF, OFF] = (1.0 - a * a) * self._floor
+        Q[OFF, OFF] = (1.0 - a * a) * cfg.floor_cov(float(x[motion.YAW]), float(x[motion.V]))
         return F, Q
 
     def advance(self, dt: float) -> np.ndarray:
