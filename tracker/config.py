@@ -163,12 +163,12 @@ class TrackerConfig:
         return 1.0 if speed is None else min(1.0, abs(speed) / self.floor_walk_speed) ** 2
 
     def floor_corr(self, speed: float | None = None) -> float:
-        """Correlation time (s) of the vest offset: the gait's and the posture's, weighted by their variances."""
-        g = self._gait(speed)
-        still = self.floor_still_sigma_xy**2
-        gait = g * 0.5 * (self.floor_sigma_forward**2 + self.floor_sigma_lateral**2)
+        """Correlation time (s) of the vest offset: the gait's and the posture's, weighted by their
+        variances; 0 (white) if either is set to 0."""
         if self.floor_corr_s <= 0.0 or self.floor_still_corr_s <= 0.0:
             return 0.0
+        still = self.floor_still_sigma_xy**2
+        gait = self._gait(speed) * 0.5 * (self.floor_sigma_forward**2 + self.floor_sigma_lateral**2)
         return (still * self.floor_still_corr_s + gait * self.floor_corr_s) / max(still + gait, 1e-12)
 
     def floor_cov(self, yaw: float, speed: float | None = None) -> np.ndarray:

@@ -145,7 +145,8 @@ class WalkingEKF(ExtendedKalmanFilter):
         """Nonlinear mean propagation (filterpy calls this from ``predict``)."""
         x = self.x[:, 0]
         body = motion.propagate(x[: motion.DIM], self._dt)
-        self.x = np.r_[body, self._decay(self._dt) * x[OFF]].reshape(DIM, 1)
+        # The offset is linear: its block of F (set by ``advance`` for this step) is its decay.
+        self.x = np.r_[body, self.F[OFF, OFF] @ x[OFF]].reshape(DIM, 1)
 
     def _transition(self, x: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
         """(F (8, 8), Q (8, 8)) of a step of ``h`` s (negative: backwards) from state ``x``."""
@@ -191,10 +192,9 @@ class WalkingEKF(ExtendedKalmanFilter):
         # backwards too (decay a, fresh variance (1 - a^2) F).
         back = motion.propagate(x[: motion.DIM], -lag)
         F, Q = self._transition(x, -lag)
-        a = self._decay(lag)
-        H = np.hstack([F[POSE, : motion.DIM], a * np.eye(3)])
+        H = np.hstack([F[POSE, : motion.DIM], F[OFF, OFF]])
         Qb = Q[POSE, POSE] + Q[OFF, OFF]
-        return back[POSE] + a * x[OFF], H, Qb
+        return back[POSE] + F[OFF, OFF] @ x[OFF], H, Qb
 
     def innovation(self, z: np.ndarray, R: np.ndarray, lag: float = 0.0) -> Innovation:
         """Innovation of vest pose ``z`` (3,) with its own covariance ``R`` (3, 3), measured ``lag`` s ago."""
