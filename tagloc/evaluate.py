@@ -78,11 +78,12 @@ def scenarios(cfg: EvalConfig) -> list[Scenario]:
 def make_session(sc: Scenario, root: Path, progress: bool) -> Path:
     """Simulate a scenario's session (reused when already made with the same conditions)."""
     from tagloc.mapgen import GridMapConfig, grid_map
-    from tagloc.simulate import SimConfig, simulate_session
+    from tagloc.simulate import SIM_REVISION, SimConfig, simulate_session
 
     path = root / "sessions" / sc.name
     stamp = path / "scenario.json"
-    if stamp.exists() and json.loads(stamp.read_text()) == asdict(sc) and (path / "frames.csv").exists():
+    made = {**asdict(sc), "simulator": SIM_REVISION}
+    if stamp.exists() and json.loads(stamp.read_text()) == made and (path / "frames.csv").exists():
         return path
     if path.exists():
         import shutil
@@ -93,7 +94,7 @@ def make_session(sc: Scenario, root: Path, progress: bool) -> Path:
     simulate_session(smap, path, SimConfig(seconds=sc.seconds, lux=sc.lux, speed_mps=sc.speed, seed=sc.seed,
                                            pitch_deg=sc.pitch_deg, missing_fraction=sc.missing_fraction,
                                            unmapped=sc.unmapped), progress=progress)
-    stamp.write_text(json.dumps(asdict(sc)))
+    stamp.write_text(json.dumps(made))
     return path
 
 
@@ -135,6 +136,19 @@ def by_time_since_fix(log: RunLog, gt: tuple[np.ndarray, np.ndarray]) -> list[li
             for i in range(len(GAP_BINS_S) - 1)]
 
 
+def _timed_on_one_core(run):
+    """``run()`` with OpenCV on one thread: real time means one core of the vest's computer, and the
+    per-frame timings in the report are taken inside it."""
+    import cv2
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        return run()
+    finally:
+        cv2.setNumThreads(before)
+
+
 def evaluate(cfg: EvalConfig) -> dict:
     """Run every scenario and mode; write ``report.md``, ``results.json`` and PNG plots under ``cfg.out``."""
     from tqdm import tqdm
@@ -147,7 +161,7 @@ def evaluate(cfg: EvalConfig) -> dict:
         path = make_session(sc, out, cfg.progress)
         for mode in cfg.modes:
             session = SessionReader(path)
-            log = run_session(session, LocaliserConfig(mode=mode), progress=cfg.progress)
+            log = _timed_on_one_core(lambda: run_session(session, LocaliserConfig(mode=mode), progress=cfg.progress))
             gt = session.groundtruth()
             m = trajectory_metrics(log.stamps[log.valid], log.poses[log.valid], log.covs[log.valid], *gt)
             wrong, checked = wrong_id_fixes(path, log)

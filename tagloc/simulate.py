@@ -41,6 +41,10 @@ from tagloc.sticker import INNER_CORNERS, OUTER_CORNERS
 from tagloc.stickermap import StickerMap, load_map
 from tagloc.walk import Walk, WalkConfig, plan_walk
 
+# Bumped whenever the simulated physics change, so that sessions cached by ``tagloc eval`` are made
+# again (2: slow roll drift of the vest).
+SIM_REVISION = 2
+
 
 @dataclass
 class SimConfig:
@@ -369,5 +373,5 @@ def true_corners(scene: Floor | StickerMap, camera: Camera, T_world_camera: np.n
     return _project_corners(camera, np.asarray(T_world_camera, float), pts)
 
 
-__all__ = ["SimConfig", "SimSummary", "simulate_walk", "simulate_session", "visible_stickers", "render_view",
+__all__ = ["SIM_REVISION", "SimConfig", "SimSummary", "simulate_walk", "simulate_session", "visible_stickers", "render_view",
            "camera_pose_looking_at", "true_corners", "read_groundtruth_frames"]

@@ -10,12 +10,13 @@ Two motions are kept apart on purpose:
   the heading is smooth. ``groundtruth.tum`` stores this pose.
 * **Vest motion** (not in the ground truth): what the torso does to the camera on top of the body
   path, ``T_body_vest``: vertical bobbing at the step frequency, lateral sway and torso yaw at half
-  the step frequency, pitch jitter (gait part plus slow drift) and a little roll. The rotation is
+  the step frequency, pitch jitter (gait part plus slow drift) and a little roll (gait part plus
+  slow drift: standing people shift their weight side to side as well as back and forth). The rotation is
   about the camera's mounting point. A localiser that assumes a rigid rig sees it as real,
   unmodelled motion: ``T_world_camera = T_world_body @ T_body_vest @ T_body_camera``.
 
-All amplitudes are semi-amplitudes (half peak-to-peak), scaled by how fast the operator walks
-(none when standing).
+All gait amplitudes are semi-amplitudes (half peak-to-peak), scaled by how fast the operator walks
+(none when standing); the slow drifts of pitch and roll go on when standing.
 """
 
 from __future__ import annotations
@@ -55,6 +56,9 @@ class WalkConfig:
         bob_m, sway_m: vertical bobbing (at step frequency) and lateral sway (at half of it).
         torso_yaw_deg, roll_deg: torso yaw and roll oscillation at half the step frequency.
         pitch_jitter_deg: camera pitch wobble (half at the step frequency, half slow drift).
+        roll_drift_deg: slow roll drift of the vest (RMS, 1.5 s correlation like the pitch drift),
+            walking or standing: people sway side to side less than back and forth (quiet-standing
+            sway is ~0.7 times as large sideways), so 0.7 of the pitch drift's 0.5 deg.
     """
 
     seconds: float = 20.0
@@ -74,6 +78,7 @@ class WalkConfig:
     torso_yaw_deg: float = 2.5
     roll_deg: float = 0.7
     pitch_jitter_deg: float = 1.0
+    roll_drift_deg: float = 0.35
 
     def __post_init__(self) -> None:
         if not self.seconds > 0 or not self.speed_mps > 0:
@@ -295,7 +300,9 @@ def plan_walk(smap: StickerMap, cfg: WalkConfig) -> Walk:
     bob = cfg.bob_m * g * np.cos(phase)
     sway = cfg.sway_m * g * np.sin(phase / 2)
     tyaw = math.radians(cfg.torso_yaw_deg) * g * np.sin(phase / 2 + 0.4)
-    roll = math.radians(cfg.roll_deg) * g * np.sin(phase / 2 - 0.3)
+    # Drawn from its own stream, so that adding it left every other draw (and so the paths) as it was.
+    roll_drift = _ou(np.random.default_rng([cfg.seed, 8]), n, 1.5)
+    roll = math.radians(cfg.roll_deg) * g * np.sin(phase / 2 - 0.3) + math.radians(cfg.roll_drift_deg) * roll_drift
     pj = math.radians(cfg.pitch_jitter_deg)
     pitch = pj * (0.5 * g * np.sin(phase + 1.0) + 0.5 * drift)
     cols = np.column_stack([states, bob, sway, tyaw, pitch, roll])

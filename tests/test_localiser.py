@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -74,7 +75,8 @@ def test_load_setup_from_a_session_directory(walk):
     assert len(smap) > 10 and rig[0].camera.width == 1296
 
 
-def test_eval_writes_report_and_plots(tmp_path):
+def test_eval_writes_report_and_plots(tmp_path, monkeypatch):
+    threads_before = cv2.getNumThreads()
     res = evaluate(EvalConfig(sessions=1, seconds=3, out=tmp_path, modes=("full", "decoded-only"), progress=False))
     assert (tmp_path / "report.md").exists() and (tmp_path / "s00.png").exists()
     assert {r["mode"] for r in res["rows"]} == {"full", "decoded-only"}
@@ -87,6 +89,19 @@ def test_eval_writes_report_and_plots(tmp_path):
     assert bins[:, 0].sum() == full["frames"] and bins[0, 0] > 0
     assert np.sqrt(bins[:, 1].sum() / bins[:, 0].sum()) == pytest.approx(full["rmse_m"], rel=1e-9)
     assert "since last fix" in (tmp_path / "report.md").read_text()
+    # Timed with OpenCV on one thread, and the caller's setting is given back.
+    assert cv2.getNumThreads() == threads_before
+    # Cached sessions are reused, and remade once the simulated physics change.
+    import tagloc.simulate
+    from tagloc.evaluate import make_session, scenarios
+
+    sc = scenarios(EvalConfig(sessions=1, seconds=3))[0]
+    frames = tmp_path / "sessions" / sc.name / "frames.csv"
+    made = frames.stat().st_mtime_ns
+    assert make_session(sc, tmp_path, False) and frames.stat().st_mtime_ns == made
+    monkeypatch.setattr(tagloc.simulate, "SIM_REVISION", tagloc.simulate.SIM_REVISION + 1)
+    make_session(sc, tmp_path, False)
+    assert frames.stat().st_mtime_ns != made
 
 
 def test_cli_errors_are_one_line(tmp_path, capsys):

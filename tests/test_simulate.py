@@ -191,6 +191,24 @@ def test_walk_vest_bobbing_at_step_frequency():
     assert 0.2 < pitch.std() < 1.5
 
 
+def test_vest_drifts_in_roll_while_standing(long_walk):
+    """Standing people shift their weight sideways: the vest's roll drifts (0.35 deg RMS) with no gait."""
+    smap, walk = long_walk
+    T_bc = np.eye(4)
+    T_bc[2, 3] = 1.3
+    standing = np.concatenate([np.linspace(a + 0.1, b - 0.1, 50) for a, b in walk.stops if 0 < a and b < 60])
+    assert walk.speed(standing).max() < 0.05
+    R = walk.T_body_vest(standing, T_bc[:3, 3])[:, :3, :3]
+    roll = np.degrees(np.arctan2(R[:, 2, 1], R[:, 2, 2]))
+    assert 0.1 < np.sqrt(np.mean(roll**2)) < 0.8
+    still = plan_walk(smap, WalkConfig(seconds=60.0, seed=4, stop_every_s=10.0, roll_drift_deg=0.0))
+    R0 = still.T_body_vest(standing, T_bc[:3, 3])[:, :3, :3]
+    assert np.allclose(np.arctan2(R0[:, 2, 1], R0[:, 2, 2]), 0.0, atol=1e-9)
+    # Drawn from a stream of its own: the path is the same with or without it.
+    t = np.linspace(0.0, 60.0, 500)
+    assert np.allclose(still.planar(t), walk.planar(t))
+
+
 # -- floor ----------------------------------------------------------------------------------------
 
 

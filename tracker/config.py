@@ -53,9 +53,11 @@ class TrackerConfig:
     - Posture, walking or not (``floor_still_sigma_xy`` 1 cm, ``floor_still_sigma_yaw`` 0.5 deg,
       correlation ``floor_still_corr_s`` 2 s): people lean, bend and shift their weight by about
       0.5 deg RMS over seconds.
-    - Gait, on top of it, scaled by ``min(1, |v| / floor_walk_speed)^2`` (sway and tilt grow with
-      step length; 1.2 m/s is an ordinary pace; ``v`` is the filter's own speed estimate),
-      correlation ``floor_corr_s``:
+    - Gait, on top of it, scaled by ``min(1, |v| / floor_walk_speed)^2`` (``v`` is the filter's own
+      speed estimate): the wobble builds up over the first steps and is all there from a slow walk,
+      0.6 m/s, on (sideways sway does not grow with speed, people sway as much or more at a slow
+      pace; the nod and twist grow a little with step length, so this is conservative for them
+      between a slow and a brisk pace), with correlation ``floor_corr_s``:
 
       - forward (``floor_sigma_forward``): the chest nods ~0.6 deg (semi-amplitude) with each
         step, 0.45 deg RMS: 1.0 cm;
@@ -102,18 +104,12 @@ class TrackerConfig:
     Floor odometry (:meth:`tracker.tracker.Tracker.update_odometry`), fused as a relative-pose
     measurement between consecutive frames (the pose at the earlier frame is cloned into the state):
 
-    - ``odometry_inflation``: factors on the variances (dx, dy, dyaw) of each step. A step measures
-      the vest's motion and the vest's wobble goes to the offset state, so the steps' covariances
-      are scaled to the vest's motion. Odometry carries the pose across the gaps between sticker
-      passes, 0.5-2 s (15-60 frames) and more; over fewer frames the fixes of the pass dominate.
-      So each factor is the ratio, over windows of 15, 30 and 60 frames, of the variance of the
-      summed step errors to the sum of the stated variances, against the vest's true motion,
-      measured on six simulated 20 s walks (56-265 lux, 0.9-1.5 m/s, pitch 46-66 deg): forward
-      0.21-0.35, lateral 0.11-0.14, yaw 0.16-0.20; the factors are 0.3, 0.12 and 0.18. (Over 4-8
-      frames the forward ratio reaches 0.82: the step errors there are correlated, which white
-      per-step noise cannot state at every horizon.) The stated covariances (see
-      :class:`tagloc.odometry.OdometryConfig`) were sized for the body's motion, wobble included;
-      against the body the same ratios reach 3-6 over 0.3-0.5 s and fall below 1 over a stride.
+    - ``odometry_inflation``: factors on the variances (dx, dy, dyaw) of each step (the covariance's
+      rows and columns scaled by their square roots, which keeps it positive definite), for an
+      odometry source whose covariance is not stated against the vest's motion. A step measures the
+      vest's motion (the camera's) and the vest's wobble on the body goes to the offset state, and
+      tagloc's floor odometry states its covariance against exactly that motion (see
+      :class:`tagloc.odometry.OdometryConfig`), so the factors are 1.
     - ``odometry_gate_prob``: chi-square bound (3 DoF) on the relative-pose innovation.
     - ``odometry_max_dt``: the longest interval between the two frames of a step.
 
@@ -134,7 +130,7 @@ class TrackerConfig:
     floor_sigma_forward: float = 0.010
     floor_sigma_lateral: float = 0.025
     floor_sigma_yaw: float = math.radians(1.8)
-    floor_walk_speed: float = 1.2
+    floor_walk_speed: float = 0.6
     floor_still_sigma_xy: float = 0.01
     floor_still_sigma_yaw: float = math.radians(0.5)
     floor_still_corr_s: float = 2.0
@@ -154,7 +150,7 @@ class TrackerConfig:
     w_var_cap: float = 9.0
     max_step_s: float = 0.2
     max_steps: int = 50
-    odometry_inflation: tuple[float, float, float] = (0.3, 0.12, 0.18)
+    odometry_inflation: tuple[float, float, float] = (1.0, 1.0, 1.0)
     odometry_gate_prob: float = 0.999
     odometry_max_dt: float = 0.25
 

@@ -25,6 +25,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg.lapack import dpotrf
 from filterpy.kalman import ExtendedKalmanFilter
 
 from tracker import motion
@@ -51,14 +52,13 @@ def pose_residual(z: np.ndarray, hx: np.ndarray) -> np.ndarray:
 def sym_spd(C: np.ndarray, min_eig: float) -> np.ndarray:
     """``C`` symmetrised with eigenvalues floored at ``min_eig`` (non-finite entries -> caller)."""
     C = 0.5 * (C + C.T)
-    if min(np.diag(C)) > 1e6 * min_eig:
-        try:
-            # The common case, at a fifth of the cost of eigh: a Cholesky factor exists, so C is
-            # positive definite; with variances this far above the floor it is no borderline case.
-            np.linalg.cholesky(C)
-            return C
-        except np.linalg.LinAlgError:
-            pass
+    # The common case, at a tenth of the cost of eigh: C - min_eig I has a Cholesky factor, so every
+    # eigenvalue of C exceeds min_eig and C stands as it is (LAPACK directly: numpy's wrapper costs
+    # four times the factorisation of an 8x8 matrix).
+    D = C.copy()
+    D.flat[:: len(C) + 1] -= min_eig
+    if dpotrf(D, lower=1, clean=0, overwrite_a=1)[1] == 0:
+        return C
     w, V = np.linalg.eigh(C)
     if w[0] >= min_eig:
         return C
