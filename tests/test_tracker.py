@@ -83,6 +83,25 @@ def test_motion_limits_and_textbook_form():
                                motion.jacobian([0, 0, 0.4, 1.2, 0.0], 0.7), atol=1e-10)
 
 
+def test_covariance_helpers_match_lapack():
+    """The closed-form 2x2 eigenvalue and the Cholesky shortcut of sym_spd agree with eigh."""
+    from tracker.ekf import largest_eig_2x2, sym_spd
+
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        A = rng.normal(size=(2, 2)) * 10.0 ** rng.uniform(-4, 3)
+        P = A @ A.T
+        assert largest_eig_2x2(P) == pytest.approx(np.linalg.eigvalsh(P)[-1], rel=1e-9, abs=1e-15)
+    for _ in range(200):
+        A = rng.normal(size=(8, 8)) * 10.0 ** rng.uniform(-6, 1)
+        C = A @ A.T
+        C[:, 0] = C[0, :] = 0.0  # singular: one eigenvalue 0, below the floor
+        out = sym_spd(C + 1e-3 * rng.normal(size=(8, 8)) * 1e-12, 1e-10)
+        assert np.allclose(out, out.T) and np.linalg.eigvalsh(out)[0] >= 1e-10 * (1 - 1e-6)
+        D = A @ A.T + np.eye(8) * 1e-6  # well above the floor: returned as it is (symmetrised)
+        assert np.array_equal(sym_spd(D, 1e-10), 0.5 * (D + D.T))
+
+
 def test_process_noise_is_psd_and_scales():
     Q = motion.process_noise([0, 0, 0.3, 1.0, 0.5], 0.5, 0.3, 0.5, 0.05)
     np.testing.assert_allclose(Q, Q.T)

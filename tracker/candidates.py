@@ -30,6 +30,7 @@ from scipy.stats import chi2
 from tagloc.geometry import invert, planar_T
 from tagloc.rig import RigCamera
 from tagloc.stickermap import StickerMap
+from tracker.ekf import largest_eig_2x2
 
 #: Default gate: 99.9% of a 2-D Gaussian (sqrt of the chi-square bound, about 3.72 sigma).
 GATE_SIGMA = math.sqrt(float(chi2.ppf(0.999, 2)))
@@ -137,7 +138,7 @@ def _query_rows(mean: np.ndarray, cov: np.ndarray | None, smap: StickerMap, fp: 
     cx, cy = x + c * fp.centre[0] - s * fp.centre[1], y + s * fp.centre[0] + c * fp.centre[1]
     radius = fp.radius + 0.1
     if cov is not None:
-        pos_sigma = math.sqrt(max(np.linalg.eigvalsh(cov[:2, :2])[-1], 0.0))
+        pos_sigma = math.sqrt(max(largest_eig_2x2(cov), 0.0))
         reach = float(np.hypot(*fp.centre)) + fp.radius
         # A heading error swings the footprint about the body by at most a chord of 2 * reach.
         radius += n_sigma * pos_sigma + min(n_sigma * math.sqrt(max(cov[2, 2], 0.0)), 2.0) * reach

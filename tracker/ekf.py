@@ -49,6 +49,12 @@ def pose_residual(z: np.ndarray, hx: np.ndarray) -> np.ndarray:
     return y
 
 
+def largest_eig_2x2(P: np.ndarray) -> float:
+    """Largest eigenvalue of the symmetric (x, y) block ``P[:2, :2]`` (closed form, no LAPACK call)."""
+    a, b, c = float(P[0, 0]), 0.5 * float(P[0, 1] + P[1, 0]), float(P[1, 1])
+    return 0.5 * (a + c) + math.hypot(0.5 * (a - c), b)
+
+
 def sym_spd(C: np.ndarray, min_eig: float) -> np.ndarray:
     """``C`` symmetrised with eigenvalues floored at ``min_eig`` (non-finite entries -> caller)."""
     C = 0.5 * (C + C.T)
@@ -146,7 +152,7 @@ class WalkingEKF(ExtendedKalmanFilter):
         x = self.x[:, 0]
         body = motion.propagate(x[: motion.DIM], self._dt)
         # The offset is linear: its block of F (set by ``advance`` for this step) is its decay.
-        self.x = np.r_[body, self.F[OFF, OFF] @ x[OFF]].reshape(DIM, 1)
+        self.x = np.concatenate((body, self.F[OFF, OFF] @ x[OFF])).reshape(DIM, 1)
 
     def _transition(self, x: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
         """(F (8, 8), Q (8, 8)) of a step of ``h`` s (negative: backwards) from state ``x``."""

@@ -45,7 +45,7 @@ from tracker.candidates import select_candidates
 from tracker.config import TrackerConfig
 from filterpy.kalman import update as kf_update
 
-from tracker.ekf import DIM, M_VEST, WalkingEKF, sym_spd, wrap
+from tracker.ekf import DIM, M_VEST, WalkingEKF, largest_eig_2x2, sym_spd, wrap
 
 __all__ = ["Tracker", "TrackerConfig", "UpdateResult"]
 
@@ -177,7 +177,7 @@ class Tracker:
             self._guarded(self._ekf.forget_motion)
 
     def _is_lost(self, P: np.ndarray, t: float) -> bool:
-        sigma = math.sqrt(max(np.linalg.eigvalsh(P[:2, :2])[-1], 0.0))
+        sigma = math.sqrt(max(largest_eig_2x2(P), 0.0))
         return sigma > self.config.lost_sigma_m or t - self._last_fix_t > self.config.lost_after_s
 
     def _guarded(self, step) -> bool:
@@ -365,7 +365,7 @@ class Tracker:
         x8, P8 = self._ekf.mean, self._ekf.cov
         n = DIM
         # Joint state [x (8), clone (3)]; the measurement is the vest pose at t1 seen from the clone.
-        x = np.r_[x8, c.pose]
+        x = np.concatenate((x8, c.pose))
         P = np.zeros((n + 3, n + 3))
         P[:n, :n], P[n:, n:], P[:n, n:], P[n:, :n] = P8, c.P, c.cross, c.cross.T
         P = sym_spd(P, cfg.min_eig)  # the caps applied while advancing may have bent it slightly
@@ -374,7 +374,7 @@ class Tracker:
         co, si = math.cos(yaw0), math.sin(yaw0)
         Rt = np.array([[co, si], [-si, co]])  # world -> body at t0
         d = v1[:2] - c.pose[:2]
-        hx = np.r_[Rt @ d, wrap(v1[2] - yaw0)]
+        hx = np.append(Rt @ d, wrap(v1[2] - yaw0))
         H = np.zeros((3, n + 3))
         H[:2, :n] = Rt @ M_VEST[:2]
         H[:2, n : n + 2] = -Rt
