@@ -420,8 +420,8 @@ def _end_to_end(runner: _Runner, gray: np.ndarray, body: tuple[float, float, flo
 
     One localiser serves every frame, as on the vest (its one-off set-up, such as the odometry's
     remap tables, is not a per-frame cost). Before each timed frame the tracker is started afresh at
-    the true pose and the odometry is handed the same image one frame period earlier, so the timed
-    call runs the full odometry match as it does while walking.
+    the true pose and the odometry is handed the same image two and one frame periods earlier, so
+    the timed call runs the odometry match as it does while walking (from the turn under way).
     """
     from tagloc.localiser import Localiser
     from tagloc.session import Frame
@@ -433,10 +433,10 @@ def _end_to_end(runner: _Runner, gray: np.ndarray, body: tuple[float, float, flo
     loc.tracker = Tracker(loc.config.tracker)
     prime = PoseFix(T_wc, np.asarray(body, float), np.diag([1e-4, 1e-4, 1e-4]), 0.0)
     loc.tracker.update([prime], int(runner.scene.smap.ids[0]), IdSource.DECODED, -1.0 / 30.0)
-    loc._odometry_step(gray, 0, -1.0 / 30.0)
-    odo = loc._odometry.get(0)
+    odo = loc.floor_odometry(0)
     if odo is not None:
         odo.reset()
+        odo.measure(gray, -2.0 / 30.0)
         odo.measure(gray, -1.0 / 30.0)
     return _timed(loc.process, Frame(0, 0.0, gray))[1]
 

@@ -177,14 +177,19 @@ class Localiser:
         times["total"] = (time.perf_counter() - t0) * 1e3
         return FrameResult(frame.index, t, observations, out, times)
 
-    def _odometry_step(self, gray: np.ndarray, camera: int, t: float) -> None:
+    def floor_odometry(self, camera: int) -> FloorOdometry | None:
+        """The floor odometry of rig camera ``camera`` (made on first use), or None if that camera
+        sees too little floor for it."""
         if camera not in self._odometry:
             try:
                 self._odometry[camera] = FloorOdometry(self.rig[camera], self.config.odometry_config)
             except CalibrationError:
                 self._odometry[camera] = None
                 self.counts["odometry_unavailable"] += 1
-        odo = self._odometry[camera]
+        return self._odometry[camera]
+
+    def _odometry_step(self, gray: np.ndarray, camera: int, t: float) -> None:
+        odo = self.floor_odometry(camera)
         step = odo.measure(gray, t) if odo is not None else None
         if step is not None:
             self.counts["odometry_steps"] += 1
