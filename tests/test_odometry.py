@@ -244,11 +244,8 @@ def _step(p0: np.ndarray, p1: np.ndarray, t0: float, t1: float, cov: np.ndarray,
 def _run(rng, odometry: bool, stop_at: float = 1.5, t_end: float = 4.0, fix_until: float = 1.0):
     """Fixes every frame until ``fix_until``, then only odometry (if on). Returns errors and covs at the end.
 
-    The synthetic steps' noise is exactly their stated covariance, so the tracker takes it as stated
-    (no calibration factor: that one scales the real odometry's covariance to its measured errors)."""
-    from tracker.config import TrackerConfig
-
-    tr = Tracker(TrackerConfig(odometry_inflation=(1.0, 1.0, 1.0)))
+    The synthetic steps' noise is exactly their stated covariance, which the tracker takes as stated."""
+    tr = Tracker()
     t = np.arange(0.0, t_end, 1 / FPS)
     truth = _truth(t, stop_at)
     cov = np.diag([0.004**2, 0.004**2, math.radians(0.3) ** 2])
