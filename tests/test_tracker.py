@@ -530,6 +530,38 @@ def test_kidnapped_operator_reinitialises(rng):
     assert np.hypot(*(tr.output().pose[:2] - moved(tr.time)[:2])) < 0.10
 
 
+def test_track_resting_on_one_sticker_yields_to_it():
+    """A track built on one sticker's fixes only, 1 m off (a bad start), rests on that sticker alone,
+    so the sticker's own consistent fixes re-initialise it after three rejections (before this rule
+    they were rejected until the track was lost); a track that two stickers support is not
+    overruled by one sticker's run."""
+    cfg = TrackerConfig()
+    here = np.array([2.0, 1.0, 0.4])
+    off = here + np.array([1.0, 0.0, 0.0])
+
+    def run(start_ids):
+        tr = Tracker(cfg)
+        for k, sid in enumerate(start_ids):
+            tr.predict(k / 30)
+            assert tr.update([make_fix(off)], sid, IdSource.DECODED, k / 30).accepted
+        results = []
+        for k in range(len(start_ids), len(start_ids) + 5):
+            tr.predict(k / 30)
+            results.append(tr.update([make_fix(here)], 11, IdSource.DECODED, k / 30))
+        return tr, results
+
+    tr, results = run([11] * 6)
+    assert [r.accepted for r in results[:2]] == [False, False]
+    assert results[2].accepted and results[2].reason.startswith("reinitialised")
+    assert all(r.accepted and r.reason == "fused" for r in results[3:])
+    assert tr.stats["reinit_consistent"] == 1
+    assert np.hypot(*(tr.output().pose[:2] - here[:2])) < 0.02
+
+    tr, results = run([12, 13] * 3)  # stickers 12 and 13 support the track: sticker 11 alone cannot overrule it
+    assert not any(r.accepted for r in results)
+    assert tr.stats["reinitialisations"] == 0
+
+
 def test_inconsistent_rejections_do_not_reinitialise(rng):
     """Three rejected decoded fixes scattered around (not one consistent motion) leave the track alone."""
     cfg = TrackerConfig()

@@ -99,7 +99,10 @@ class TrackerConfig:
     - Re-initialisation: ``reinit_fixes`` decoded fixes rejected by the gate but consistent with
       each other (each passing the decoded gate of a fresh filter started from the first), from at
       least ``reinit_min_ids`` different stickers, within ``reinit_window_s``, replace the track:
-      the filter was wrong, not the stickers (a "kidnapped" operator, a missed turn).
+      the filter was wrong, not the stickers (a "kidnapped" operator, a missed turn). One sticker is
+      enough when every sticker the track took fixes from since it (re)started is among them: such
+      a track has no other support (seen just after a start from that sticker, when one bad
+      odometry step had moved the young track and its own sticker's fixes were gated for 0.6 s).
 
     Floor odometry (:meth:`tracker.tracker.Tracker.update_odometry`), fused as a relative-pose
     measurement between consecutive frames (the pose at the earlier frame is cloned into the state):

@@ -105,6 +105,7 @@ class Tracker:
         self._last_fix_t = -math.inf
         self._last_id: int | None = None
         self._last_source: IdSource | None = None
+        self._track_ids: set[int] = set()  # stickers whose fixes the track took since it (re)started
         self._forgot = False  # speed and yaw rate dropped after a long time without fixes
         self._hyp: _Hypothesis | None = None
         self._clone: _Clone | None = None  # pose before the last advance, for odometry
@@ -282,6 +283,7 @@ class Tracker:
 
     def _accept(self, sticker_id: int, source: IdSource, t: float) -> None:
         self._stats[f"accepted_{source.value}"] += 1
+        self._track_ids.add(int(sticker_id))
         self._last_fix_t = max(self._last_fix_t, t)
         self._last_id, self._last_source = int(sticker_id), source
         self._state = TrackState.TRACKING
@@ -294,6 +296,7 @@ class Tracker:
         self._ekf = WalkingEKF(self.config)
         self._ekf.reset(alt[0], alt[1])
         self._stats[f"accepted_{source.value}"] += 1
+        self._track_ids = {int(sticker_id)}
         self._last_fix_t = t
         self._last_id, self._last_source = int(sticker_id), source
         self._state = TrackState.TRACKING
@@ -326,11 +329,15 @@ class Tracker:
             ekf.reset(alts[0][0], alts[0][1])
             h = _Hypothesis(ekf, t, t, {int(sticker_id)}, 1)
         self._hyp = h
-        if h.count < cfg.reinit_fixes or len(h.ids) < cfg.reinit_min_ids:
+        # Several stickers are needed to overrule a track that other stickers support; a track that
+        # rests only on stickers now disagreeing with it (one just after it started, say, when a
+        # bad odometry step moved it) has nothing else to defend.
+        if h.count < cfg.reinit_fixes or (len(h.ids) < cfg.reinit_min_ids and not self._track_ids <= h.ids):
             return False
         self._ekf = h.ekf
         self._hyp = None
         self._clone = None
+        self._track_ids = set(h.ids)
         self._accept(sticker_id, IdSource.DECODED, t)
         self._stats["reinitialisations"] += 1
         self._stats["reinit_consistent"] += 1
