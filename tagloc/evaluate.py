@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -136,7 +137,7 @@ def by_time_since_fix(log: RunLog, gt: tuple[np.ndarray, np.ndarray]) -> list[li
             for i in range(len(GAP_BINS_S) - 1)]
 
 
-def _timed_on_one_core(run):
+def _timed_on_one_core(run: Callable[[], RunLog]) -> RunLog:
     """``run()`` with OpenCV on one thread: real time means one core of the vest's computer, and the
     per-frame timings in the report are taken inside it."""
     import cv2
