@@ -155,6 +155,11 @@ class FloorPatch:
     origin: np.ndarray
     A: np.ndarray
 
+    @property
+    def centre(self) -> np.ndarray:
+        """(2,) centre of the square, body frame (m)."""
+        return np.array([0.5 * (self.x_near + self.x_far), self.y_left - 0.5 * self.side])
+
 
 def _floor_from_pixels(rig_camera: RigCamera, px: np.ndarray, min_depression: float) -> np.ndarray:
     """Body-frame floor points (N, 2) under distorted pixels (N, 2); NaN where the ray misses the floor."""
@@ -250,7 +255,8 @@ class FloorOdometry:
         self._levels = int(round(math.log2(ss))) if ss > 1 else 0
         self._window_half = cv2.createHanningWindow((n // 2, n // 2), cv2.CV_32F)
         self._A_inv = np.linalg.inv(p.A)
-        cx, cy = 0.5 * (p.x_near + p.x_far), p.y_left - 0.5 * p.side  # patch centre, body frame
+        self._centre = p.centre
+        cx, cy = self._centre
         self._lever = np.array([[1.0, 0.0, cy], [0.0, 1.0, -cx], [0.0, 0.0, 1.0]])
         self._prev: tuple[float, np.ndarray] | None = None
         self._last_turn: tuple[float, float] | None = None  # (time, yaw rate rad/s) of the last step
@@ -417,7 +423,7 @@ class FloorOdometry:
         # The image motion drives the errors (blur, perspective), so they grow with how far the
         # patch centre moved, which on a turn on the spot is far more than the body origin.
         co, si = math.cos(delta[2]), math.sin(delta[2])
-        cx, cy = -self._lever[1, 2], self._lever[0, 2]
+        cx, cy = self._centre
         d2 = float((delta[0] + (co - 1.0) * cx - si * cy) ** 2 + (delta[1] + si * cx + (co - 1.0) * cy) ** 2)
         D = np.diag([cfg.sigma_forward**2 + cfg.sigma_forward_per_m**2 * d2,
                      cfg.sigma_lateral**2 + cfg.sigma_lateral_per_m**2 * d2,

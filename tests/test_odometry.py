@@ -133,8 +133,8 @@ def test_deltas_match_groundtruth(stop_walk):
 def test_step_covariance_carries_the_lever_to_the_patch():
     rc = rig_camera(55.0, 0.5)
     odo = FloorOdometry(rc)
-    cfg, p = odo.config, odo.patch
-    cx = 0.5 * (p.x_near + p.x_far)
+    cfg = odo.config
+    cx = odo.patch.centre[0]
     C = odo.covariance(np.zeros(3))  # standing still
     assert C[2, 2] == pytest.approx(cfg.sigma_yaw**2)
     assert C[1, 2] == pytest.approx(-cx * cfg.sigma_yaw**2)

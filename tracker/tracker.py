@@ -45,7 +45,7 @@ from tracker.candidates import select_candidates
 from tracker.config import TrackerConfig
 from filterpy.kalman import update as kf_update
 
-from tracker.ekf import DIM, M_VEST, WalkingEKF, largest_eig_2x2, sym_spd, wrap
+from tracker.ekf import DIM, M_VEST, WalkingEKF, largest_eig_2x2, pose_residual, sym_spd, wrap
 
 __all__ = ["Tracker", "TrackerConfig", "UpdateResult"]
 
@@ -389,8 +389,7 @@ class Tracker:
         H[2, :n] = M_VEST[2]
         H[2, n + 2] = -1.0
         R = sym_spd(C * np.outer(self._odo_scale, self._odo_scale), cfg.min_eig)
-        y = z - hx
-        y[2] = wrap(y[2])
+        y = pose_residual(z, hx)
         S = H @ P @ H.T + R
         try:
             nis = float(y @ np.linalg.solve(0.5 * (S + S.T), y))
