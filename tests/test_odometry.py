@@ -60,6 +60,16 @@ def test_camera_seeing_no_floor_is_refused():
         floor_patch(RigCamera("up", default_camera(), looking_forward(1.3, -30.0)))
 
 
+def test_supersample_must_be_a_power_of_two():
+    with pytest.raises(InputError, match="power of 2"):
+        FloorOdometry(rig_camera(), OdometryConfig(supersample=3))
+    # The patch comes out at the matched resolution whatever the supersampling.
+    for ss in (1, 2, 4):
+        odo = FloorOdometry(rig_camera(), OdometryConfig(supersample=ss))
+        cam = odo.rig_camera.camera
+        assert odo.birdseye(np.zeros((cam.height, cam.width), np.uint8)).shape == (80, 80)
+
+
 def test_body_motion_of_a_synthetic_shift_and_turn():
     """A bird's-eye image moved by a known body motion is measured back (no camera in the loop)."""
     rc = rig_camera(55.0, 0.5)

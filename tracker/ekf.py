@@ -42,6 +42,16 @@ def wrap(a: float | np.ndarray) -> float | np.ndarray:
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
+def vest_cov(P: np.ndarray) -> np.ndarray:
+    """(3, 3) covariance of the vest pose (body pose + offset) from the state covariance ``P`` (8, 8)."""
+    return P[POSE, POSE] + P[POSE, OFF] + P[OFF, POSE] + P[OFF, OFF]
+
+
+def wrap_angle(a: float) -> float:
+    """One angle wrapped to [-pi, pi) (Python floats: a tenth of the cost of :func:`wrap` on a scalar)."""
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
 def pose_residual(z: np.ndarray, hx: np.ndarray) -> np.ndarray:
     """``z - hx`` for stacked (x, y, yaw) blocks, each yaw difference wrapped."""
     y = np.asarray(z, float) - np.asarray(hx, float)
@@ -223,19 +233,21 @@ class WalkingEKF(ExtendedKalmanFilter):
         """Wrap yaw, clip speed and yaw rate to their limits, keep P symmetric, SPD and capped."""
         cfg = self.cfg
         x = self.x[:, 0]
-        if not np.all(np.isfinite(x)):
+        # A NaN or an infinity anywhere makes the sum non-finite (the caps keep finite sums finite).
+        if not math.isfinite(float(x.sum())):
             raise FloatingPointError("non-finite EKF state")
-        x[motion.YAW] = wrap(x[motion.YAW])
-        x[DIM - 1] = wrap(x[DIM - 1])
+        x[motion.YAW] = wrap_angle(float(x[motion.YAW]))
+        x[DIM - 1] = wrap_angle(float(x[DIM - 1]))
         x[motion.V] = min(max(x[motion.V], cfg.v_min), cfg.v_max)
         x[motion.W] = min(max(x[motion.W], -cfg.w_max), cfg.w_max)
         self.x = x.reshape(DIM, 1)
         P = self.P
-        if not np.all(np.isfinite(P)):
+        if not math.isfinite(float(P.sum())):
             raise FloatingPointError("non-finite EKF covariance")
         P = sym_spd(P, cfg.min_eig)
-        # Scaling rows and columns by the same positive factors keeps P SPD (a congruence).
-        d = np.sqrt(np.minimum(1.0, self._caps / np.diag(P)))
-        if d.min() < 1.0:
+        diag = P.diagonal()
+        if (diag > self._caps).any():
+            # Scaling rows and columns by the same positive factors keeps P SPD (a congruence).
+            d = np.sqrt(np.minimum(1.0, self._caps / diag))
             P = P * np.outer(d, d)
         self.P = P

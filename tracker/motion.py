@@ -60,7 +60,7 @@ def dsinc(u: float) -> float:
 
 def propagate(state: np.ndarray, dt: float) -> np.ndarray:
     """State (5,) after ``dt`` seconds of constant turn rate and speed (yaw not wrapped)."""
-    x, y, yaw, v, w = (float(s) for s in np.asarray(state, float).ravel())
+    x, y, yaw, v, w = np.asarray(state, float).ravel().tolist()
     half = 0.5 * w * dt
     a = yaw + half
     chord = v * dt * sinc(half)
@@ -69,7 +69,7 @@ def propagate(state: np.ndarray, dt: float) -> np.ndarray:
 
 def jacobian(state: np.ndarray, dt: float) -> np.ndarray:
     """``F`` (5, 5): derivative of :func:`propagate` with respect to the state (see module doc)."""
-    _, _, yaw, v, w = (float(s) for s in np.asarray(state, float).ravel())
+    _, _, yaw, v, w = np.asarray(state, float).ravel().tolist()
     half = 0.5 * w * dt
     a = yaw + half
     ca, sa = math.cos(a), math.sin(a)
@@ -87,7 +87,7 @@ def jacobian(state: np.ndarray, dt: float) -> np.ndarray:
 def process_noise(state: np.ndarray, dt: float, accel_psd: float, yaw_accel_psd: float,
                   lateral_psd: float) -> np.ndarray:
     """``Q`` (5, 5) accumulated over ``dt`` (see module doc); symmetric positive semi-definite."""
-    _, _, yaw, _, w = (float(s) for s in np.asarray(state, float).ravel())
+    _, _, yaw, _, w = np.asarray(state, float).ravel().tolist()
     a = yaw + 0.5 * w * dt
     u = np.array([math.cos(a), math.sin(a)])
     n = np.array([-u[1], u[0]])

@@ -45,7 +45,8 @@ from tracker.candidates import select_candidates
 from tracker.config import TrackerConfig
 from filterpy.kalman import update as kf_update
 
-from tracker.ekf import DIM, M_VEST, WalkingEKF, largest_eig_2x2, pose_residual, sym_spd, wrap
+from tracker.ekf import (DIM, M_VEST, OFF, POSE, WalkingEKF, largest_eig_2x2, pose_residual, sym_spd, vest_cov, wrap,
+                         wrap_angle)
 
 __all__ = ["Tracker", "TrackerConfig", "UpdateResult"]
 
@@ -158,10 +159,12 @@ class Tracker:
         if self._t is not None and t > self._t:
             self._clone = None
             if self._state is not TrackState.INITIALISING:
-                t0, x0, P0 = self._t, self._ekf.mean, self._ekf.cov
+                # The filter replaces its arrays rather than writing into them: x0, P0 stay as they were.
+                t0, x0, P0 = self._t, self._ekf.x[:, 0], self._ekf.P
                 jac: list[np.ndarray] = []
                 if self._guarded(lambda: jac.append(self._ekf.advance(t - t0))):
-                    self._clone = _Clone(t0, M_VEST @ x0, M_VEST @ P0 @ M_VEST.T, jac[0] @ P0 @ M_VEST.T)
+                    JP = jac[0] @ P0
+                    self._clone = _Clone(t0, x0[POSE] + x0[OFF], vest_cov(P0), JP[:, POSE] + JP[:, OFF])
         self._t = t
         self._check_lost()
 
@@ -183,7 +186,7 @@ class Tracker:
 
     def _guarded(self, step) -> bool:
         """Run a filter step; on a numerical failure restore the state before it, count it, return False."""
-        x, P = self._ekf.mean, self._ekf.cov
+        x, P = self._ekf.x[:, 0].copy(), self._ekf.P
         try:
             with np.errstate(over="raise", invalid="raise"):
                 step()
@@ -369,19 +372,19 @@ class Tracker:
         if c is None or abs(c.t0 - t0) > tol or abs(self._t - t1) > tol:
             self._stats["odometry_unmatched"] += 1
             return UpdateResult(False, "odometry interval does not match the filter's last prediction")
-        x8, P8 = self._ekf.mean, self._ekf.cov
+        x8, P8 = self._ekf.x[:, 0], self._ekf.P
         n = DIM
         # Joint state [x (8), clone (3)]; the measurement is the vest pose at t1 seen from the clone.
         x = np.concatenate((x8, c.pose))
         P = np.zeros((n + 3, n + 3))
         P[:n, :n], P[n:, n:], P[:n, n:], P[n:, :n] = P8, c.P, c.cross, c.cross.T
         P = sym_spd(P, cfg.min_eig)  # the caps applied while advancing may have bent it slightly
-        v1 = M_VEST @ x8
+        v1 = x8[POSE] + x8[OFF]
         yaw0 = c.pose[2]
         co, si = math.cos(yaw0), math.sin(yaw0)
         Rt = np.array([[co, si], [-si, co]])  # world -> body at t0
         d = v1[:2] - c.pose[:2]
-        hx = np.append(Rt @ d, wrap(v1[2] - yaw0))
+        hx = np.append(Rt @ d, wrap_angle(float(v1[2] - yaw0)))
         H = np.zeros((3, n + 3))
         H[:2, :n] = Rt @ M_VEST[:2]
         H[:2, n : n + 2] = -Rt
@@ -443,6 +446,6 @@ class Tracker:
             if state is TrackState.TRACKING and self._is_lost(P, target):
                 state = TrackState.LOST
         else:
-            x, P = self._ekf.mean, self._ekf.cov
+            x, P = self._ekf.x[:, 0], self._ekf.P
         cov = sym_spd(P[:3, :3], cfg.min_eig)
         return TrackerOutput(target, x[:3].copy(), cov, state, since, self._last_id, self._last_source)
