@@ -35,6 +35,9 @@ POSE = slice(0, 3)
 DIM = motion.DIM + 3  # walking body + vest offset
 OFF = slice(motion.DIM, DIM)
 M_VEST = np.hstack([np.eye(3), np.zeros((3, motion.DIM - 3)), np.eye(3)])  # vest pose = body pose + offset
+M_VEST.flags.writeable = False
+_NO_NOISE = np.zeros((3, 3))
+_NO_NOISE.flags.writeable = False
 
 
 def wrap(a: float | np.ndarray) -> float | np.ndarray:
@@ -203,7 +206,8 @@ class WalkingEKF(ExtendedKalmanFilter):
         """(h(x) (3,), H (3, 8), extra noise (3, 3)) of a vest pose measured ``lag`` s before the state."""
         x = self.x[:, 0]
         if lag <= 0.0:
-            return M_VEST @ x, M_VEST.copy(), np.zeros((3, 3))
+            # Shared read-only constants: callers only combine them into new arrays.
+            return x[POSE] + x[OFF], M_VEST, _NO_NOISE
         # Retrodiction: the body runs CTRV backwards; a stationary Gauss-Markov offset is one
         # backwards too (decay a, fresh variance (1 - a^2) F).
         back = motion.propagate(x[: motion.DIM], -lag)

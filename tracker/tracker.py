@@ -45,7 +45,7 @@ from tracker.candidates import select_candidates
 from tracker.config import TrackerConfig
 from filterpy.kalman import update as kf_update
 
-from tracker.ekf import (DIM, M_VEST, OFF, POSE, WalkingEKF, largest_eig_2x2, pose_residual, sym_spd, vest_cov, wrap,
+from tracker.ekf import (DIM, M_VEST, OFF, POSE, WalkingEKF, largest_eig_2x2, pose_residual, sym_spd, vest_cov,
                          wrap_angle)
 
 __all__ = ["Tracker", "TrackerConfig", "UpdateResult"]
@@ -209,7 +209,7 @@ class Tracker:
             if np.abs(C).max() > 1e12 or np.abs(z[:2]).max() > 1e9:
                 continue
             z = z.copy()
-            z[2] = float(wrap(z[2]))
+            z[2] = wrap_angle(float(z[2]))
             out.append((z, sym_spd(C, self.config.min_eig)))
         return out
 
