@@ -164,6 +164,12 @@ class FloorPatch:
         return np.array([0.5 * (self.x_near + self.x_far), self.y_left - 0.5 * self.side])
 
 
+def _rot2(a: float) -> np.ndarray:
+    """(2, 2) rotation by ``a`` rad."""
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s], [s, c]])
+
+
 def _floor_from_pixels(rig_camera: RigCamera, px: np.ndarray, min_depression: float) -> np.ndarray:
     """Body-frame floor points (N, 2) under distorted pixels (N, 2); NaN where the ray misses the floor."""
     cam = rig_camera.camera
@@ -372,7 +378,7 @@ class FloorOdometry:
         for g in guesses:
             # Body turn g in patch pixels (the scale of A cancels), about the patch centre: the
             # rest of the turn's lever arm is a shift, which phase correlation finds.
-            R = np.array([[math.cos(g), -math.sin(g)], [math.sin(g), math.cos(g)]])
+            R = _rot2(g)
             Wl = self._A_inv @ R @ A
             Wg = np.hstack([Wl, (c - Wl @ c)[:, None]])
             warped = psmall if g == 0.0 else cv2.warpAffine(psmall, Wg.astype(np.float32), (m, m),
@@ -404,7 +410,7 @@ class FloorOdometry:
         # Floor points p = A q + b; p0 = R p1 + t (T_body0_body1). Hence R = A Wl A^-1 and
         # t = A wt + b - R b: the rotation is about the body origin, not the patch centre.
         yaw = self._turn(Wl)
-        R = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+        R = _rot2(yaw)
         t = A @ wt + b - R @ b
         return np.array([t[0], t[1], yaw])
 

@@ -28,6 +28,7 @@ import numpy as np
 from scipy.linalg.lapack import dpotrf
 from filterpy.kalman import ExtendedKalmanFilter
 
+from tagloc.geometry import wrap_angle
 from tracker import motion
 from tracker.config import TrackerConfig
 
@@ -40,9 +41,9 @@ _NO_NOISE = np.zeros((3, 3))
 _NO_NOISE.flags.writeable = False
 
 
-def wrap(a: float | np.ndarray) -> float | np.ndarray:
-    """Angle(s) wrapped to [-pi, pi)."""
-    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+def vest_pose(x: np.ndarray) -> np.ndarray:
+    """(3,) vest pose (body pose + offset) from the state mean ``x`` (8,); yaw not wrapped."""
+    return x[POSE] + x[OFF]
 
 
 def vest_cov(P: np.ndarray) -> np.ndarray:
@@ -50,15 +51,10 @@ def vest_cov(P: np.ndarray) -> np.ndarray:
     return P[POSE, POSE] + P[POSE, OFF] + P[OFF, POSE] + P[OFF, OFF]
 
 
-def wrap_angle(a: float) -> float:
-    """One angle wrapped to [-pi, pi) (Python floats: a tenth of the cost of :func:`wrap` on a scalar)."""
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
 def pose_residual(z: np.ndarray, hx: np.ndarray) -> np.ndarray:
     """``z - hx`` for stacked (x, y, yaw) blocks, each yaw difference wrapped."""
     y = np.asarray(z, float) - np.asarray(hx, float)
-    y[2::3] = wrap(y[2::3])
+    y[2::3] = wrap_angle(y[2::3])
     return y
 
 
@@ -207,7 +203,7 @@ class WalkingEKF(ExtendedKalmanFilter):
         x = self.x[:, 0]
         if lag <= 0.0:
             # Shared read-only constants: callers only combine them into new arrays.
-            return x[POSE] + x[OFF], M_VEST, _NO_NOISE
+            return vest_pose(x), M_VEST, _NO_NOISE
         # Retrodiction: the body runs CTRV backwards; a stationary Gauss-Markov offset is one
         # backwards too (decay a, fresh variance (1 - a^2) F).
         back = motion.propagate(x[: motion.DIM], -lag)

@@ -45,8 +45,9 @@ from tracker.candidates import select_candidates
 from tracker.config import TrackerConfig
 from filterpy.kalman import update as kf_update
 
+from tagloc.geometry import wrap_angle
 from tracker.ekf import (DIM, M_VEST, OFF, POSE, WalkingEKF, largest_eig_2x2, pose_residual, sym_spd, vest_cov,
-                         wrap_angle)
+                         vest_pose)
 
 __all__ = ["Tracker", "TrackerConfig", "UpdateResult"]
 
@@ -139,7 +140,7 @@ class Tracker:
         candidates; None unless TRACKING."""
         if self._state is not TrackState.TRACKING:
             return None
-        return M_VEST @ self._ekf.mean, M_VEST @ self._ekf.cov @ M_VEST.T
+        return vest_pose(self._ekf.x[:, 0]), vest_cov(self._ekf.P)
 
     def candidates(self, smap: StickerMap, rig_camera: RigCamera, observed_px: np.ndarray, k: int = 5) -> list[int]:
         """Sticker IDs that may be the one seen at ``observed_px``, most likely first ([] unless TRACKING)."""
@@ -164,7 +165,7 @@ class Tracker:
                 jac: list[np.ndarray] = []
                 if self._guarded(lambda: jac.append(self._ekf.advance(t - t0))):
                     JP = jac[0] @ P0
-                    self._clone = _Clone(t0, x0[POSE] + x0[OFF], vest_cov(P0), JP[:, POSE] + JP[:, OFF])
+                    self._clone = _Clone(t0, vest_pose(x0), vest_cov(P0), JP[:, POSE] + JP[:, OFF])
         self._t = t
         self._check_lost()
 
@@ -298,12 +299,10 @@ class Tracker:
         self._clone = None
         self._ekf = WalkingEKF(self.config)
         self._ekf.reset(alt[0], alt[1])
-        self._stats[f"accepted_{source.value}"] += 1
-        self._track_ids = {int(sticker_id)}
-        self._last_fix_t = t
-        self._last_id, self._last_source = int(sticker_id), source
-        self._state = TrackState.TRACKING
-        self._forgot = False
+        # A fresh track: its sticker set and last-fix time start from this fix alone.
+        self._track_ids = set()
+        self._last_fix_t = -math.inf
+        self._accept(sticker_id, source, t)
 
     def _feed_hypothesis(self, alts, sticker_id: int, t: float) -> bool:
         """Add a rejected decoded fix to the competing hypothesis; True when it replaced the track."""
@@ -379,7 +378,7 @@ class Tracker:
         P = np.zeros((n + 3, n + 3))
         P[:n, :n], P[n:, n:], P[:n, n:], P[n:, :n] = P8, c.P, c.cross, c.cross.T
         P = sym_spd(P, cfg.min_eig)  # the caps applied while advancing may have bent it slightly
-        v1 = x8[POSE] + x8[OFF]
+        v1 = vest_pose(x8)
         yaw0 = c.pose[2]
         co, si = math.cos(yaw0), math.sin(yaw0)
         Rt = np.array([[co, si], [-si, co]])  # world -> body at t0
