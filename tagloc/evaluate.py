@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tagloc.consistency import nees_blocks, nees_test
 from tagloc.localiser import MODES, LocaliserConfig
 from tagloc.metrics import trajectory_errors, trajectory_metrics
 from tagloc.run import RunLog, run_session
@@ -137,6 +138,13 @@ def by_time_since_fix(log: RunLog, gt: tuple[np.ndarray, np.ndarray]) -> list[li
             for i in range(len(GAP_BINS_S) - 1)]
 
 
+def _nees_blocks(log: RunLog, gt: tuple[np.ndarray, np.ndarray]) -> list[list[float]]:
+    """The run's position NEES in blocks (:func:`tagloc.consistency.nees_blocks`), to pool across sessions."""
+    v = log.valid
+    e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *gt)
+    return nees_blocks(e.stamps, e.nees).tolist()
+
+
 def _timed_on_one_core(run: Callable[[], RunLog]) -> RunLog:
     """``run()`` with OpenCV on one thread: real time means one core of the vest's computer, and the
     per-frame timings in the report are taken inside it."""
@@ -181,6 +189,7 @@ def evaluate(cfg: EvalConfig) -> dict:
                    "tracking_ms_median": float(np.median(log.tracker_ms + log.odometry_ms)) if len(log.tracker_ms) else math.nan,
                    "tracking_ms_p95": float(np.percentile(log.tracker_ms + log.odometry_ms, 95)) if len(log.tracker_ms) else math.nan,
                    "by_time_since_fix": by_time_since_fix(log, gt),
+                   "nees_blocks": _nees_blocks(log, gt),
                    "counts": log.counts}
             rows.append(row)
             if mode == "full":
@@ -208,7 +217,7 @@ def summarise(rows: list[dict]) -> dict:
             "within_25cm": float(np.sum(w * np.array([r["within_25cm"] for r in rs]))),
             "heading_rmse_deg": float(np.sqrt(np.sum(w * np.array([r["heading_rmse_deg"] for r in rs]) ** 2))),
             "nees_mean": float(np.sum(w * np.array([r["nees_mean"] for r in rs]))),
-            "nees_bounds_95": _nees_bounds(int(n.sum())),
+            **_nees_summary(rs),
             "wrong_id_fixes": int(sum(r["wrong_id_fixes"] for r in rs)),
             "fixes": int(sum(r["fixes"] for r in rs)),
             "rejected_fixes": int(sum(r["rejected_fixes"] for r in rs)),
@@ -224,16 +233,13 @@ def summarise(rows: list[dict]) -> dict:
     return summary
 
 
-def _nees_bounds(frames: int) -> list[float]:
-    """95% chi-square bounds of a mean 2-DoF NEES over ``frames`` samples, as if independent.
-
-    Consecutive frames of a filter are correlated, so these bounds are tighter than the truth: a
-    mean inside them is consistent; just outside is not yet proof of inconsistency.
-    """
-    from scipy.stats import chi2
-
-    n = max(frames, 1)
-    return [float(chi2.ppf(0.025, 2 * n) / n), float(chi2.ppf(0.975, 2 * n) / n)]
+def _nees_summary(rows: list[dict]) -> dict:
+    """Pooled NEES test of the rows (see :mod:`tagloc.consistency`): bounds for independent frames and
+    for the effective number of independent samples, and the verdict."""
+    blocks = [b for r in rows for b in r.get("nees_blocks", [])]
+    test = nees_test(np.array(blocks, float).reshape(-1, 3))
+    return {"nees_bounds_95": list(test.bounds_independent), "nees_effective_samples": test.effective_samples,
+            "nees_bounds_95_effective": list(test.bounds_effective), "nees_verdict": test.verdict}
 
 
 def format_table(rows: list[dict], summary: dict) -> str:
@@ -262,8 +268,11 @@ def format_notes(summary: dict) -> str:
     parts = ["## Consistency", ""]
     for mode, s in summary.items():
         lo, hi = s["nees_bounds_95"]
-        parts.append(f"- {mode}: mean position NEES {s['nees_mean']:.2f} (2 DoF; 95% bounds for independent samples"
-                     f" [{lo:.2f}, {hi:.2f}]; below means the stated uncertainty is conservative, above overconfident)")
+        elo, ehi = s["nees_bounds_95_effective"]
+        parts.append(f"- {mode}: mean position NEES {s['nees_mean']:.2f} (2 DoF), **{s['nees_verdict']}**: 95% bounds"
+                     f" [{elo:.2f}, {ehi:.2f}] for the {s['nees_effective_samples']:.0f} independent samples the frames"
+                     f" are worth (batch means); [{lo:.2f}, {hi:.2f}] if every frame were independent, which they are"
+                     f" not (below the bounds: conservative; above: overconfident)")
     full = summary.get("full")
     if full is not None and full.get("by_time_since_fix"):
         parts += ["", "Position error and NEES of `full` by time since the last accepted fix (all sessions pooled):", "",
@@ -287,8 +296,9 @@ def report_markdown(rows: list[dict], summary: dict, plots: list[Path], out: Pat
     parts = ["# tagloc eval", "", "Modes: `full` = tagloc (EKF + candidate identification); `decoded-only` = the paper's"
              " decoded fixes without a filter; `orb-all` = the paper's ORB identification against every reference.",
              "Errors are horizontal position errors of the body frame against the simulator's ground truth, over the"
-             " frames where the mode had a pose (`covered`). NEES is the mean normalised position error (2 DoF; 95%"
-             " bounds for the mean depend on the number of independent samples, about [1.8, 2.2] for a few hundred).",
+             " frames where the mode had a pose (`covered`). NEES is the mean normalised position error (2 DoF; its 95%"
+             " bounds depend on how many independent samples the correlated frames are worth, see"
+             " `tagloc/consistency.py`).",
              "", format_table(rows, summary)]
     parts += ["", format_notes(summary)]
     parts += ["", "## Plots", ""]

@@ -89,6 +89,14 @@ def test_eval_writes_report_and_plots(tmp_path, monkeypatch):
     assert bins[:, 0].sum() == full["frames"] and bins[0, 0] > 0
     assert np.sqrt(bins[:, 1].sum() / bins[:, 0].sum()) == pytest.approx(full["rmse_m"], rel=1e-9)
     assert "since last fix" in (tmp_path / "report.md").read_text()
+    # The NEES blocks pool back to the session's mean, and are worth no more samples than frames.
+    blocks = np.array(full["nees_blocks"])
+    assert blocks[:, 0].sum() == full["frames"]
+    assert blocks[:, 1].sum() / full["frames"] == pytest.approx(full["nees_mean"], rel=1e-9)
+    s_full = res["summary"]["full"]
+    assert 1 <= s_full["nees_effective_samples"] <= full["frames"]
+    assert s_full["nees_bounds_95_effective"][0] <= s_full["nees_bounds_95"][0]
+    assert s_full["nees_verdict"] in ("consistent", "conservative", "overconfident")
     # Timed with OpenCV on one thread, and the caller's setting is given back.
     assert cv2.getNumThreads() == threads_before
     # Cached sessions are reused, and remade once the simulated physics change.

@@ -1,0 +1,54 @@
+"""The NEES consistency test: bounds for correlated frames, checked on filters consistent by construction."""
+
+import numpy as np
+import pytest
+
+from tagloc.consistency import calibrate, chi2_mean_bounds, nees_blocks, nees_test
+
+
+def test_blocks_sum_frames_nees_and_squares():
+    t = np.array([0.0, 1.0, 4.9, 5.0, 12.0])
+    b = nees_blocks(t, np.array([1.0, 2.0, 3.0, 4.0, 5.0]), block_s=5.0)
+    assert b.tolist() == [[3, 6, 14], [1, 4, 16], [1, 5, 25]]  # the empty 5-10 s block is left out
+
+
+def test_independent_frames_are_worth_about_their_number():
+    rng = np.random.default_rng(3)
+    nees = rng.chisquare(2, 6000)
+    test = nees_test(nees_blocks(np.arange(6000) / 30.0, nees))
+    assert test.effective_samples == pytest.approx(6000, rel=0.35)
+    assert test.mean == pytest.approx(nees.mean())
+    assert test.bounds_independent == pytest.approx(chi2_mean_bounds(6000))
+
+
+def test_repeated_frames_count_once():
+    rng = np.random.default_rng(4)
+    nees = np.repeat(rng.chisquare(2, 400), 30)  # each independent value held for 1 s at 30 fps
+    test = nees_test(nees_blocks(np.arange(len(nees)) / 30.0, nees))
+    assert test.effective_samples == pytest.approx(400, rel=0.35)
+    lo, hi = test.bounds_effective
+    assert lo < 1.85 and hi > 2.15  # wider than for 12000 frames ...
+    assert test.bounds_independent[1] - test.bounds_independent[0] < 0.15  # ... which would be this tight
+
+
+def test_verdict_names_the_side():
+    def verdict(scale):
+        rng = np.random.default_rng(5)
+        nees = scale * rng.chisquare(2, 3000)
+        return nees_test(nees_blocks(np.arange(3000) / 30.0, nees)).verdict
+    assert verdict(1.0) == "consistent"
+    assert verdict(0.6) == "conservative"
+    assert verdict(1.6) == "overconfident"
+
+
+def test_calibration_on_filters_consistent_by_construction():
+    rates = calibrate(trials=100, seed=0, scales=(1.0, 0.5, 2.0))
+    ind, eff = rates[1.0]
+    assert ind > 0.5  # the independent-frames bound throws out most honest runs
+    assert eff < 0.2  # the effective bound keeps most of them (nominal 5 %: it leans strict)
+    assert rates[0.5][1] > 0.9 and rates[2.0][1] > 0.9  # and catches a covariance off by 2
+
+
+def test_empty_input():
+    test = nees_test(np.zeros((0, 3)))
+    assert test.frames == 0 and np.isnan(test.mean) and test.verdict == "no data"
