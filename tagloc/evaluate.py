@@ -19,7 +19,7 @@ import numpy as np
 
 from tagloc.consistency import nees_blocks, nees_test
 from tagloc.localiser import MODES, LocaliserConfig
-from tagloc.metrics import trajectory_errors, trajectory_metrics
+from tagloc.metrics import TrajectoryErrors, error_metrics, trajectory_errors
 from tagloc.run import RunLog, run_session
 from tagloc.session import SessionReader
 
@@ -121,12 +121,10 @@ def wrong_id_fixes(session: Path, log: RunLog, radius_px: float = 40.0) -> tuple
 GAP_BINS_S = (0.0, 1e-6, 0.2, 0.5, 1.0, 2.0, 5.0, math.inf)
 
 
-def by_time_since_fix(log: RunLog, gt: tuple[np.ndarray, np.ndarray]) -> list[list[float]]:
+def by_time_since_fix(log: RunLog, e: TrajectoryErrors) -> list[list[float]]:
     """Per bin of time since the last accepted fix (``GAP_BINS_S``; the first bin is frames with a
-    fix): [frames, sum of squared position error (m^2), sum of position NEES]. Sums, so that
-    sessions pool."""
-    v = log.valid
-    e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *gt)
+    fix): [frames, sum of squared position error (m^2), sum of position NEES] of the run's scored
+    errors ``e``. Sums, so that sessions pool."""
     fix_t = np.unique([f["t"] for f in log.fixes])
     t = e.stamps
     since = np.full(len(t), np.inf)
@@ -136,13 +134,6 @@ def by_time_since_fix(log: RunLog, gt: tuple[np.ndarray, np.ndarray]) -> list[li
     b = np.digitize(since, GAP_BINS_S[1:])
     return [[int(np.sum(b == i)), float(np.sum(e.position[b == i] ** 2)), float(np.sum(e.nees[b == i]))]
             for i in range(len(GAP_BINS_S) - 1)]
-
-
-def _nees_blocks(log: RunLog, gt: tuple[np.ndarray, np.ndarray]) -> list[list[float]]:
-    """The run's position NEES in blocks (:func:`tagloc.consistency.nees_blocks`), to pool across sessions."""
-    v = log.valid
-    e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *gt)
-    return nees_blocks(e.stamps, e.nees).tolist()
 
 
 def _timed_on_one_core(run: Callable[[], RunLog]) -> RunLog:
@@ -172,7 +163,9 @@ def evaluate(cfg: EvalConfig) -> dict:
             session = SessionReader(path)
             log = _timed_on_one_core(lambda: run_session(session, LocaliserConfig(mode=mode), progress=cfg.progress))
             gt = session.groundtruth()
-            m = trajectory_metrics(log.stamps[log.valid], log.poses[log.valid], log.covs[log.valid], *gt)
+            v = log.valid
+            e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *gt)
+            m = error_metrics(e)
             wrong, checked = wrong_id_fixes(path, log)
             by_source: dict[str, int] = {}
             for fx in log.fixes:
@@ -188,8 +181,8 @@ def evaluate(cfg: EvalConfig) -> dict:
                    # selection and the floor odometry that feeds it, summed frame by frame.
                    "tracking_ms_median": float(np.median(log.tracker_ms + log.odometry_ms)) if len(log.tracker_ms) else math.nan,
                    "tracking_ms_p95": float(np.percentile(log.tracker_ms + log.odometry_ms, 95)) if len(log.tracker_ms) else math.nan,
-                   "by_time_since_fix": by_time_since_fix(log, gt),
-                   "nees_blocks": _nees_blocks(log, gt),
+                   "by_time_since_fix": by_time_since_fix(log, e),
+                   "nees_blocks": nees_blocks(e.stamps, e.nees).tolist(),
                    "counts": log.counts}
             rows.append(row)
             if mode == "full":

@@ -97,7 +97,11 @@ def trajectory_metrics(est_stamps: np.ndarray, est_poses: np.ndarray, est_covs: 
         position NEES; about 2 for a consistent filter). Figures are NaN (fractions 0) when nothing
         was scored.
     """
-    e = trajectory_errors(est_stamps, est_poses, est_covs, gt_stamps, gt_T)
+    return error_metrics(trajectory_errors(est_stamps, est_poses, est_covs, gt_stamps, gt_T))
+
+
+def error_metrics(e: TrajectoryErrors) -> dict:
+    """The figures of :func:`trajectory_metrics` from errors already computed."""
     n = len(e.position)
     out = {"frames": n, "outside_gt": int(len(e.inside) - n)}
     if n == 0:
