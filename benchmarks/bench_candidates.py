@@ -13,9 +13,9 @@ import time
 
 import numpy as np
 
-from tagloc.observation import IdSource, PoseFix
-from tagloc.rig import default_rig
-from tagloc.stickermap import StickerMap
+from tagloc.core.rig import default_rig
+from tagloc.core.stickermap import StickerMap
+from tagloc.core.types import IdSource, PoseFix
 from tracker.candidates import project_map, select_candidates
 from tracker.tracker import Tracker
 

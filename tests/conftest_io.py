@@ -1,6 +1,6 @@
 """Small simulated sessions and videos for the live/replay tests (imported by those tests).
 
-The simulator (:mod:`tagloc.simulate`) walks the default rig (Pi camera 1.3 m up, pitched 55
+The simulator (:mod:`tagloc.sim.simulate`) walks the default rig (Pi camera 1.3 m up, pitched 55
 degrees down) over three rows of stickers 0.5 m apart, so every frame sees stickers.
 """
 
@@ -11,10 +11,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from tagloc.metrics import interpolate_groundtruth
-from tagloc.session import read_tum
-from tagloc.simulate import SimConfig, simulate_session
-from tagloc.stickermap import StickerMap
+from tagloc.core.stickermap import StickerMap
+from tagloc.eval.metrics import interpolate_groundtruth
+from tagloc.io.session import read_tum
+from tagloc.sim.simulate import SimConfig, simulate_session
 
 
 def line_map() -> StickerMap:
@@ -28,8 +28,9 @@ def line_map() -> StickerMap:
 
 def make_session(path: Path, n_frames: int = 20, fps: float = 10.0, corrupt: tuple[int, ...] = ()) -> Path:
     """Simulate a walk of ``n_frames`` frames into ``path``; frames in ``corrupt`` are then overwritten with garbage."""
-    simulate_session(line_map(), path, SimConfig(seconds=n_frames / fps, fps=fps, lux=200.0, speed_mps=0.8, seed=3),
-                     progress=False)
+    simulate_session(
+        line_map(), path, SimConfig(seconds=n_frames / fps, fps=fps, lux=200.0, speed_mps=0.8, seed=3), progress=False
+    )
     for k in corrupt:
         (path / "frames" / f"{k:06d}.jpg").write_bytes(b"not a jpeg")
     return path

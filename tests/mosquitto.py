@@ -32,7 +32,7 @@ class Broker:
         self.log = Path(workdir) / "mosquitto.log"
         self.proc: subprocess.Popen | None = None
 
-    def start(self, timeout: float = 10.0) -> "Broker":
+    def start(self, timeout: float = 10.0) -> Broker:
         with self.log.open("a") as log:
             self.proc = subprocess.Popen([MOSQUITTO, "-c", str(self.conf)], stdout=log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + timeout
@@ -72,7 +72,7 @@ class Subscriber:
 
     def _on_message(self, client, userdata, message) -> None:
         doc = json.loads(message.payload)
-        assert doc["schema"] == "tagloc.pose/1"
+        assert doc["schema"] == "tagloc.vision.pose/1"
         with self.lock:
             self.indices.append(doc["index"])
 

@@ -5,7 +5,7 @@ noise is additive Gaussian, which is enough to exercise detection and pose code 
 
 Rendering is exact to a few hundredths of a pixel: every output pixel is 8x8 super-sampled, each
 sub-sample is traced through the lens distortion (undistort) and the sticker-plane homography into
-the canonical raster of :func:`tagloc.sticker.render_sticker`, so the sticker's edges land where
+the canonical raster of :func:`tagloc.core.sticker.render_sticker`, so the sticker's edges land where
 ``Camera.project`` puts its corners. Intensities are composed in linear light (0-1), blurred,
 gamma-encoded, then noise is added and values quantised to uint8.
 
@@ -20,16 +20,16 @@ Typical use::
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from tagloc.camera import Camera
-from tagloc.geometry import invert, make_T, transform_points
-from tagloc.sticker import INNER_CORNERS, OUTER_CORNERS, SIZE_M, render_sticker
+from tagloc.core.camera import Camera
+from tagloc.core.geometry import invert, make_T, transform_points
+from tagloc.core.sticker import INNER_CORNERS, OUTER_CORNERS, SIZE_M, render_sticker
 
 _SUPER = 8  # sub-samples per pixel side
 _RASTER = 600  # sticker raster resolution used for sampling (px per 100 mm; a multiple of 200 keeps it exact)
@@ -66,8 +66,14 @@ def distort_ideal(camera: Camera, pixels: np.ndarray) -> np.ndarray:
     return camera.project(np.c_[norm, np.ones(len(norm))])
 
 
-def sticker_pose(camera: Camera, centre_px: tuple[float, float], distance_m: float, tilt_deg: float,
-                 yaw_deg: float = 0.0, tilt_dir_deg: float = 0.0) -> np.ndarray:
+def sticker_pose(
+    camera: Camera,
+    centre_px: tuple[float, float],
+    distance_m: float,
+    tilt_deg: float,
+    yaw_deg: float = 0.0,
+    tilt_dir_deg: float = 0.0,
+) -> np.ndarray:
     """``T_camera_sticker`` (4, 4) putting a sticker's centre on the ray through ``centre_px``.
 
     ``distance_m`` is the range along that ray, ``tilt_deg`` the angle between the viewing ray and
@@ -137,8 +143,9 @@ def _ideal_corners(H: np.ndarray, corners: np.ndarray) -> np.ndarray:
     return p[:, :2] / p[:, 2:]
 
 
-def _paint_sticker(lin: np.ndarray, camera: Camera, H: np.ndarray, raster: np.ndarray, alpha_r: np.ndarray,
-                   outer_px: np.ndarray) -> None:
+def _paint_sticker(
+    lin: np.ndarray, camera: Camera, H: np.ndarray, raster: np.ndarray, alpha_r: np.ndarray, outer_px: np.ndarray
+) -> None:
     """Composite one sticker into the linear image ``lin`` in place."""
     h, w = lin.shape
     # Edges bow under distortion, so take the box of densely sampled outline points.
@@ -180,11 +187,21 @@ def _sticker_rasters(sticker_id: int) -> tuple[np.ndarray, np.ndarray]:
     return val, alpha
 
 
-def synth_frame(stickers: Sequence[tuple[int, np.ndarray]], camera: Camera, T_world_camera: np.ndarray | None = None,
-                *, blur_px: float = 0.0, blur_angle_deg: float = 0.0, noise: float = 0.0, gamma: float = 1.0,
-                exposure: float = 1.0, distractors: Sequence[tuple[float, float, float, float]] = (),
-                lines: Sequence[tuple[float, float, float, float, float]] = (), background: np.ndarray | None = None,
-                seed: int = 0) -> SynthFrame:
+def synth_frame(
+    stickers: Sequence[tuple[int, np.ndarray]],
+    camera: Camera,
+    T_world_camera: np.ndarray | None = None,
+    *,
+    blur_px: float = 0.0,
+    blur_angle_deg: float = 0.0,
+    noise: float = 0.0,
+    gamma: float = 1.0,
+    exposure: float = 1.0,
+    distractors: Sequence[tuple[float, float, float, float]] = (),
+    lines: Sequence[tuple[float, float, float, float, float]] = (),
+    background: np.ndarray | None = None,
+    seed: int = 0,
+) -> SynthFrame:
     """Render a frame of ``camera`` showing the given stickers on a concrete floor.
 
     Args:

@@ -9,11 +9,11 @@ import cv2
 import numpy as np
 import pytest
 
-from tagloc.bench import BenchConfig, _aruco_frame, _view_at_distance, bench_command, format_tables, run_bench
-from tagloc.camera import default_camera
-from tagloc.errors import InputError
-from tagloc.simulate import camera_pose_looking_at, render_view, true_corners
-from tagloc.stickermap import StickerMap
+from tagloc.core.camera import default_camera
+from tagloc.core.errors import InputError
+from tagloc.core.stickermap import StickerMap
+from tagloc.eval.bench import BenchConfig, _aruco_frame, _view_at_distance, bench_command, format_tables, run_bench
+from tagloc.sim.simulate import camera_pose_looking_at, render_view, true_corners
 
 
 @pytest.fixture(scope="module")
@@ -82,7 +82,7 @@ def test_targets_and_tables(quick):
     # Aligned: every line of a table has the width of its header line.
     lines = text.splitlines()
     k = next(i for i, line in enumerate(lines) if line.startswith("blur px  stickers"))
-    assert len({len(line.rstrip()) for line in lines[k:k + 4]}) <= 2
+    assert len({len(line.rstrip()) for line in lines[k : k + 4]}) <= 2
 
 
 def test_view_at_distance_is_exact():

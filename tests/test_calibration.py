@@ -8,10 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
-from tagloc.camera import Camera, default_camera, load_calibration, save_calibration
-from tagloc.errors import CalibrationError
-from tagloc.geometry import invert
-from tagloc.rig import Rig, RigCamera, default_rig, load_rig, looking_forward, save_rig
+from tagloc.core.camera import Camera, default_camera, load_calibration, save_calibration
+from tagloc.core.errors import CalibrationError
+from tagloc.core.geometry import invert
+from tagloc.core.rig import Rig, RigCamera, default_rig, load_rig, looking_forward, save_rig
 
 K = np.array([[1010.5, 0.0, 640.25], [0.0, 1008.75, 479.5], [0.0, 0.0, 1.0]])
 DIST = np.array([0.11, -0.23, 0.001, -0.002, 0.05])
@@ -97,18 +97,21 @@ def test_ros_camera_info_dump(tmp_path):
     _same(load_calibration(p))
 
 
-@pytest.mark.parametrize("text, fragment", [
-    ("image_width: [1, 2\n", "not valid YAML"),
-    ("- 1\n- 2\n", "not a calibration mapping"),
-    ("image_width: 10\nimage_height: 10\n", "no camera_matrix or K"),
-    (CAMERA_INFO.replace("K: [1010.5, 0.0, 640.25,", "K: [1010.5,"), "camera matrix has 7 values"),
-    (CAMERA_INFO.replace("width: 1280\n", ""), "width/height"),
-    (CAMERA_INFO.replace("K: [1010.5", "K: [-1010.5"), "not a valid intrinsic"),
-    (CAMERA_INFO.replace("K: [1010.5", "K: [.nan"), "NaN or inf"),
-    (CAMERA_INFO.replace("D: [0.11, -0.23, 0.001, -0.002, 0.05]", "D: [0.1, 0.2, 0.3]"), "distortion"),
-    (CAMERA_INFO.replace("K: [1010.5", "K: [abc"), "not a list of numbers"),
-    (OST.replace("image_width: 1280", "image_width: 0"), "not positive"),
-])
+@pytest.mark.parametrize(
+    "text, fragment",
+    [
+        ("image_width: [1, 2\n", "not valid YAML"),
+        ("- 1\n- 2\n", "not a calibration mapping"),
+        ("image_width: 10\nimage_height: 10\n", "no camera_matrix or K"),
+        (CAMERA_INFO.replace("K: [1010.5, 0.0, 640.25,", "K: [1010.5,"), "camera matrix has 7 values"),
+        (CAMERA_INFO.replace("width: 1280\n", ""), "width/height"),
+        (CAMERA_INFO.replace("K: [1010.5", "K: [-1010.5"), "not a valid intrinsic"),
+        (CAMERA_INFO.replace("K: [1010.5", "K: [.nan"), "NaN or inf"),
+        (CAMERA_INFO.replace("D: [0.11, -0.23, 0.001, -0.002, 0.05]", "D: [0.1, 0.2, 0.3]"), "distortion"),
+        (CAMERA_INFO.replace("K: [1010.5", "K: [abc"), "not a list of numbers"),
+        (OST.replace("image_width: 1280", "image_width: 0"), "not positive"),
+    ],
+)
 def test_malformed_ros_files_refused(tmp_path, text, fragment):
     p = tmp_path / "bad.yaml"
     p.write_text(text)
@@ -152,8 +155,12 @@ def test_looking_forward_geometry():
 
 def test_rig_round_trip(tmp_path):
     side = Camera(K, DIST, 1280, 960)
-    rig = Rig([RigCamera("front", default_camera(), looking_forward(1.3, 55.0)),
-               RigCamera("left", side, looking_forward(1.2, 60.0, yaw_deg=90.0, y_m=0.1), "left.yaml")])
+    rig = Rig(
+        [
+            RigCamera("front", default_camera(), looking_forward(1.3, 55.0)),
+            RigCamera("left", side, looking_forward(1.2, 60.0, yaw_deg=90.0, y_m=0.1), "left.yaml"),
+        ]
+    )
     save_rig(rig, tmp_path / "rig.json")
     assert (tmp_path / "camera.yaml").exists() and (tmp_path / "left.yaml").exists()
     back = load_rig(tmp_path / "rig.json")
@@ -169,14 +176,17 @@ def _rig_doc(T) -> str:
     return json.dumps({"cameras": [{"name": "front", "calibration": "camera.yaml", "T_body_camera": T}]})
 
 
-@pytest.mark.parametrize("T, fragment", [
-    (np.eye(3).tolist(), "finite 4x4"),
-    ([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, float("nan")]], "finite 4x4"),
-    ((np.diag([2.0, 1, 1, 1])).tolist(), "not a rigid transform"),
-    ((np.diag([1.0, 1, -1, 1])).tolist(), "not a rigid transform"),  # a reflection
-    ([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1]], "not a rigid transform"),
-    ([["a", 0, 0, 0]] * 4, "not a 4x4 matrix of numbers"),
-])
+@pytest.mark.parametrize(
+    "T, fragment",
+    [
+        (np.eye(3).tolist(), "finite 4x4"),
+        ([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, float("nan")]], "finite 4x4"),
+        ((np.diag([2.0, 1, 1, 1])).tolist(), "not a rigid transform"),
+        ((np.diag([1.0, 1, -1, 1])).tolist(), "not a rigid transform"),  # a reflection
+        ([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1]], "not a rigid transform"),
+        ([["a", 0, 0, 0]] * 4, "not a 4x4 matrix of numbers"),
+    ],
+)
 def test_bad_T_body_camera_refused(tmp_path, T, fragment):
     save_calibration(default_camera(), tmp_path / "camera.yaml")
     p = tmp_path / "rig.json"

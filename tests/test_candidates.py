@@ -8,10 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
-from tagloc.geometry import invert, planar_T, transform_points
-from tagloc.observation import IdSource, PoseFix
-from tagloc.rig import RigCamera, default_rig
-from tagloc.stickermap import StickerMap
+from tagloc.core.geometry import invert, planar_T, transform_points
+from tagloc.core.rig import RigCamera, default_rig
+from tagloc.core.stickermap import StickerMap
+from tagloc.core.types import IdSource, PoseFix
 from tracker.candidates import CandidateConfig, footprint, predicted_pixels, project_map, select_candidates
 from tracker.tracker import Tracker
 
@@ -44,7 +44,7 @@ def test_footprint_of_the_default_rig():
     assert abs(fp.polygon[:, 1].max() + fp.polygon[:, 1].min()) < 1e-6  # symmetric left/right
     assert footprint(rc) is fp  # cached
     # A camera looking at the horizon is clipped at the configured range.
-    from tagloc.rig import looking_forward
+    from tagloc.core.rig import looking_forward
 
     flat = RigCamera("flat", rc.camera, looking_forward(1.3, 5.0))
     assert footprint(flat, CandidateConfig(max_range=4.0)).polygon[:, 0].max() == pytest.approx(4.0, abs=1e-6)
@@ -66,8 +66,14 @@ def test_project_map_matches_brute_force(rng):
         p_c = transform_points(T_cam_world, np.c_[smap.xy, np.zeros(len(smap))])
         with np.errstate(divide="ignore", invalid="ignore"):
             r = np.hypot(p_c[:, 0], p_c[:, 1]) / p_c[:, 2]
-        inside = (front & (r <= r_max * 1.01) & (pix[:, 0] >= 0) & (pix[:, 0] <= cam.width - 1)
-                  & (pix[:, 1] >= 0) & (pix[:, 1] <= cam.height - 1))
+        inside = (
+            front
+            & (r <= r_max * 1.01)
+            & (pix[:, 0] >= 0)
+            & (pix[:, 0] <= cam.width - 1)
+            & (pix[:, 1] >= 0)
+            & (pix[:, 1] <= cam.height - 1)
+        )
         assert set(pr.rows[pr.in_image].tolist()) == set(np.flatnonzero(inside).tolist())
         np.testing.assert_allclose(pr.pixels, pix[pr.rows], atol=1e-6)
         np.testing.assert_array_equal(pr.ids, smap.ids[pr.rows])

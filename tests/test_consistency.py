@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from tagloc.consistency import calibrate, chi2_mean_bounds, nees_blocks, nees_test
+from tagloc.eval.consistency import calibrate, chi2_mean_bounds, nees_blocks, nees_test
 
 
 def test_blocks_sum_frames_nees_and_squares():
@@ -36,6 +36,7 @@ def test_verdict_names_the_side():
         rng = np.random.default_rng(5)
         nees = scale * rng.chisquare(2, 3000)
         return nees_test(nees_blocks(np.arange(3000) / 30.0, nees)).verdict
+
     assert verdict(1.0) == "consistent"
     assert verdict(0.6) == "conservative"
     assert verdict(1.6) == "overconfident"

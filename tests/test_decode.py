@@ -8,14 +8,14 @@ import cv2
 import numpy as np
 import pytest
 
-from tagloc.camera import Camera, default_camera
-from tagloc.decode import DecodeConfig, DecodeResult, combine_reads, decode, verify_id
-from tagloc.errors import BackendUnavailable
-from tagloc.geometry import invert, planar_T, transform_points
-from tagloc.observation import Detection
-from tagloc.rectify import RectifyConfig, distorted_mapping, rectify
-from tagloc.rig import looking_forward
-from tagloc.sticker import INNER_CORNERS, OUTER_CORNERS, render_sticker
+from tagloc.core.camera import Camera, default_camera
+from tagloc.core.errors import BackendUnavailable
+from tagloc.core.geometry import invert, planar_T, transform_points
+from tagloc.core.rig import looking_forward
+from tagloc.core.sticker import INNER_CORNERS, OUTER_CORNERS, render_sticker
+from tagloc.core.types import Detection
+from tagloc.vision.decode import DecodeConfig, DecodeResult, combine_reads, decode, verify_id
+from tagloc.vision.rectify import RectifyConfig, distorted_mapping, rectify
 
 # --- a small frame synthesiser (kept local so this file stands alone) -------------------------
 
@@ -55,9 +55,19 @@ def motion_kernel(length_px: float, angle: float) -> np.ndarray:
     return kern / kern.sum()
 
 
-def render_view(sticker_id: int, T_cs: np.ndarray, camera: Camera, rng: np.random.Generator, blur_px: float = 0.0,
-                blur_angle: float | None = None, noise: float = 2.0, ss: int = 3, black: float = 35.0,
-                white: float = 205.0, floor: float = 115.0) -> np.ndarray:
+def render_view(
+    sticker_id: int,
+    T_cs: np.ndarray,
+    camera: Camera,
+    rng: np.random.Generator,
+    blur_px: float = 0.0,
+    blur_angle: float | None = None,
+    noise: float = 2.0,
+    ss: int = 3,
+    black: float = 35.0,
+    white: float = 205.0,
+    floor: float = 115.0,
+) -> np.ndarray:
     """Greyscale frame (H, W) uint8 of one sticker at ``T_cs``: supersampled, optics + motion blur, noise."""
     tex_n = 400
     tex = render_sticker(sticker_id, tex_n).astype(np.float32) * ((white - black) / 255.0) + black
@@ -78,8 +88,14 @@ def render_view(sticker_id: int, T_cs: np.ndarray, camera: Camera, rng: np.rando
     A = np.array([[s, 0, -0.05 + 0.5 * s], [0, -s, 0.05 - 0.5 * s], [0, 0, 1]])
     H = camera.K @ np.column_stack([T_cs[:3, 0], T_cs[:3, 1], T_cs[:3, 3]]) @ A
     tc = cv2.perspectiveTransform(ideal.reshape(-1, 1, 2), np.linalg.inv(H)).reshape(h * ss, w * ss, 2)
-    roi = cv2.remap(tex, tc[..., 0].astype(np.float32), tc[..., 1].astype(np.float32), cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_CONSTANT, borderValue=floor)
+    roi = cv2.remap(
+        tex,
+        tc[..., 0].astype(np.float32),
+        tc[..., 1].astype(np.float32),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=floor,
+    )
     roi = cv2.resize(roi, (w, h), interpolation=cv2.INTER_AREA)
     img = np.full((camera.height, camera.width), floor, np.float32)
     img += cv2.GaussianBlur(rng.normal(0, 6, img.shape).astype(np.float32), (0, 0), 3)  # floor texture
@@ -135,7 +151,7 @@ def test_rectify_homography_shortcut_is_accurate():
     c = np.arange(200.0)
     pix = np.stack(np.meshgrid(c, c), -1).reshape(-1, 1, 2)
     approx = cv2.perspectiveTransform(pix, H).reshape(200, 200, 2)
-    from tagloc.rectify import _distort, ideal_homography
+    from tagloc.vision.rectify import _distort, ideal_homography
 
     exact = _distort(cv2.perspectiveTransform(pix, ideal_homography(det, cam, 200)).reshape(-1, 2), cam)
     exact = exact.reshape(200, 200, 2)
@@ -241,7 +257,7 @@ def test_libdmtx_backend_reads_or_reports_missing():
 
 
 def test_decode_unknown_backend_raises():
-    from tagloc.errors import InputError
+    from tagloc.core.errors import InputError
 
     gray, det, _ = synth_case(12, 5)
     with pytest.raises(InputError):
@@ -250,8 +266,8 @@ def test_decode_unknown_backend_raises():
 
 def test_blur_extent_matches_true_motion():
     """The frame-edge fit recovers the motion blur's extent along the raster axes (RMS < 2 px)."""
-    from tagloc.decode import blur_extent
-    from tagloc.rectify import ideal_homography
+    from tagloc.vision.decode import blur_extent
+    from tagloc.vision.rectify import ideal_homography
 
     cam = default_camera()
     errs = []
@@ -291,8 +307,8 @@ def test_module_estimates_recover_modules_under_known_blur():
     """Noise-free raster, blurred in linear light by a known PSF that smears modules into each other:
     the least-squares estimates threshold to exactly the true modules, close to 0/1, while plain
     centre sampling of the same raster gets modules wrong."""
-    from tagloc.decode import _psf, module_estimates, module_samples
-    from tagloc.sticker import payload, symbol_modules
+    from tagloc.core.sticker import payload, symbol_modules
+    from tagloc.vision.decode import _psf, module_estimates, module_samples
 
     psf = _psf(np.diag([4.0, 4.0]), (10.0, 6.0))  # sigma 2 raster px + a 12 px diagonal motion
     lin = (render_sticker(31337, 200).astype(np.float32) / 255.0) ** 2.2
@@ -309,10 +325,10 @@ def test_module_estimates_recover_modules_under_known_blur():
 
 
 def _sim_case(seed: int, distance_m: float, blur_px: float):
-    """One physically simulated frame (tagloc.simulate) of sticker 52817 at ``distance_m`` with
+    """One physically simulated frame (tagloc.sim.simulate) of sticker 52817 at ``distance_m`` with
     ``blur_px`` of motion, and a detection from its true corners (0.3 px noise, random start)."""
-    from tagloc.simulate import render_view, true_corners
-    from tagloc.stickermap import StickerMap
+    from tagloc.core.stickermap import StickerMap
+    from tagloc.sim.simulate import render_view, true_corners
 
     rng = np.random.default_rng(seed)
     cam = default_camera()
@@ -323,8 +339,7 @@ def _sim_case(seed: int, distance_m: float, blur_px: float):
     axis = T[:3, 2]
     T[:3, 3] -= T[:3, 3] + axis * (h / -axis[2])  # optical axis meets the floor at the sticker
     T[2, 3] = h
-    res = render_view(smap, cam, T, 150.0, blur_px=blur_px, blur_direction_deg=rng.uniform(0, 180),
-                      seed=seed)
+    res = render_view(smap, cam, T, 150.0, blur_px=blur_px, blur_direction_deg=rng.uniform(0, 180), seed=seed)
     tc = true_corners(smap, cam, T, 52817) + rng.normal(0, 0.3, (8, 2))
     r = int(rng.integers(4))
     det = Detection(np.roll(tc[:4], r, 0), np.roll(tc[4:], r, 0), 1.0)

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from tagloc.bench_detect import FrameTruth, bench_detection, match_detections
-from tagloc.camera import Camera, default_camera
-from tagloc.detect import DetectConfig, as_gray, detect, detect_stickers
-from tagloc.errors import InputError
 from synth import floor_point_at_pixel, floor_view, sticker_pose, synth_frame
+
+from tagloc.core.camera import Camera, default_camera
+from tagloc.core.errors import InputError
+from tagloc.eval.bench_detect import FrameTruth, bench_detection, match_detections
+from tagloc.vision.detect import DetectConfig, detect, detect_stickers
+from tagloc.vision.image import as_gray
 
 CAM = default_camera()
 
@@ -40,8 +41,9 @@ def test_rotations_keep_clockwise_order_and_inner_pairing(yaw):
 
 @pytest.mark.parametrize("tilt,dist", [(20, 1.3), (45, 1.1), (70, 0.75)])
 def test_viewing_angles_20_to_70_degrees(tilt, dist):
-    f = synth_frame([(99, sticker_pose(CAM, (700, 520), dist, tilt, 33, tilt_dir_deg=60))], CAM, noise=2,
-                    gamma=2.2, seed=tilt)
+    f = synth_frame(
+        [(99, sticker_pose(CAM, (700, 520), dist, tilt, 33, tilt_dir_deg=60))], CAM, noise=2, gamma=2.2, seed=tilt
+    )
     dets, matches = _one(f)
     assert len(dets) == 1 and len(matches) == 1
     assert np.median(matches[0].outer_err) < 0.25
@@ -51,7 +53,7 @@ def _floor_scene(n: int, seed: int, **kw):
     """A vest view (1.3 m, 55 deg pitch) with ``n`` stickers at fixed pixels, random headings."""
     rng = np.random.default_rng(seed)
     Twc = floor_view(CAM, 1.3, 55)
-    from tagloc.geometry import planar_T
+    from tagloc.core.geometry import planar_T
 
     spots = [(350, 700), (900, 600), (650, 300)][:n]
     stickers = []
@@ -63,8 +65,7 @@ def _floor_scene(n: int, seed: int, **kw):
 
 @pytest.mark.parametrize("n", [1, 2, 3])
 def test_one_to_three_stickers_on_a_floor_view(n):
-    f = _floor_scene(n, seed=10 + n, noise=3, distractors=[(1100, 250, 45, 20)],
-                     lines=[(0, 900, 1296, 820, 14)])
+    f = _floor_scene(n, seed=10 + n, noise=3, distractors=[(1100, 250, 45, 20)], lines=[(0, 900, 1296, 820, 14)])
     dets, matches = _one(f)
     assert len(matches) == n and len(dets) == n
     errs = np.concatenate([m.outer_err for m in matches])
@@ -85,16 +86,24 @@ def test_corner_error_unblurred_and_at_6px_blur():
 
 @pytest.mark.parametrize("angle", [0, 60, 120])
 def test_blur_8px_still_detected(angle):
-    f = synth_frame([(7, sticker_pose(CAM, (640, 480), 1.0, 30, 20))], CAM, blur_px=8, blur_angle_deg=angle, noise=3,
-                    gamma=2.2, seed=angle)
+    f = synth_frame(
+        [(7, sticker_pose(CAM, (640, 480), 1.0, 30, 20))],
+        CAM,
+        blur_px=8,
+        blur_angle_deg=angle,
+        noise=3,
+        gamma=2.2,
+        seed=angle,
+    )
     dets, matches = _one(f)
     assert len(matches) == 1 and len(dets) == 1
     assert np.median(matches[0].outer_err) < 1.0
 
 
 def test_dim_noisy_frame():
-    f = synth_frame([(31337, sticker_pose(CAM, (500, 400), 1.4, 40, 70))], CAM, exposure=0.25, noise=6, gamma=2.2,
-                    blur_px=2, seed=5)
+    f = synth_frame(
+        [(31337, sticker_pose(CAM, (500, 400), 1.4, 40, 70))], CAM, exposure=0.25, noise=6, gamma=2.2, blur_px=2, seed=5
+    )
     dets, matches = _one(f)
     assert len(matches) == 1 and len(dets) == 1
     assert np.median(matches[0].outer_err) < 0.4
@@ -120,8 +129,13 @@ def test_frames_without_stickers_give_nothing(kind):
 
 def test_sticker_cut_by_border_is_rejected():
     # A sticker centred 30 px from the right edge: about half of it is outside.
-    f = synth_frame([(5, sticker_pose(CAM, (CAM.width - 30, 480), 1.1, 20, 10)),
-                     (6, sticker_pose(CAM, (500, 480), 1.1, 20, 10))], CAM, noise=2, gamma=2.2, seed=8)
+    f = synth_frame(
+        [(5, sticker_pose(CAM, (CAM.width - 30, 480), 1.1, 20, 10)), (6, sticker_pose(CAM, (500, 480), 1.1, 20, 10))],
+        CAM,
+        noise=2,
+        gamma=2.2,
+        seed=8,
+    )
     assert f.inside == [False, True]
     dets, matches = _one(f)
     assert len(dets) == 1 and matches[0].truth == 1
@@ -155,8 +169,9 @@ def test_input_conversion_and_errors():
 
 def test_without_distortion_and_linear_response():
     cam = Camera(CAM.K, np.zeros(5), CAM.width, CAM.height)
-    f = synth_frame([(77, sticker_pose(cam, (300, 700), 1.2, 45, 200))], cam, blur_px=4, blur_angle_deg=30, noise=2,
-                    seed=9)
+    f = synth_frame(
+        [(77, sticker_pose(cam, (300, 700), 1.2, 45, 200))], cam, blur_px=4, blur_angle_deg=30, noise=2, seed=9
+    )
     _, matches = _one(f, cam, config=DetectConfig(response_gamma=1.0))
     assert len(matches) == 1 and np.median(matches[0].outer_err) < 0.3
 
@@ -188,9 +203,9 @@ def _sim_views(blur_px: float, distance_m: float, n: int, seed: int, cam=None):
     ``distance_m`` from the camera, random heading and blur direction, with its true corners."""
     import math
 
-    from tagloc.floor import Floor, FloorConfig
-    from tagloc.simulate import camera_pose_looking_at, render_view, true_corners
-    from tagloc.stickermap import StickerMap
+    from tagloc.core.stickermap import StickerMap
+    from tagloc.sim.floor import Floor, FloorConfig
+    from tagloc.sim.simulate import camera_pose_looking_at, render_view, true_corners
 
     cam = cam or CAM
     rng = np.random.default_rng(seed)
@@ -201,8 +216,9 @@ def _sim_views(blur_px: float, distance_m: float, n: int, seed: int, cam=None):
         h = rng.uniform(1.1, 1.5)
         pitch = math.degrees(math.asin(min(0.99, h / distance_m)))
         T = camera_pose_looking_at((0.0, 0.0), h, pitch, rng.uniform(-180, 180))
-        res = render_view(floor, cam, T, 150.0, blur_px=blur_px or None, blur_direction_deg=rng.uniform(0, 180),
-                          seed=seed * 100 + k)
+        res = render_view(
+            floor, cam, T, 150.0, blur_px=blur_px or None, blur_direction_deg=rng.uniform(0, 180), seed=seed * 100 + k
+        )
         views.append((res.image, true_corners(floor, cam, T, 4321)))
     return views
 
@@ -237,26 +253,35 @@ def test_physical_far_foreshortened_sticker_is_detected():
 def test_sizes_follow_the_camera():
     """A half-resolution camera sees a sticker 2 m away at ~30 px: the defaults scale with the focal
     length (candidates at full resolution), and the Pi camera keeps the plain defaults."""
-    from tagloc.detect import DetectConfig
+    from tagloc.vision.detect import DetectConfig
 
     assert DetectConfig.for_camera(CAM) == DetectConfig()
     small = CAM.scaled(0.5)
     cfg = DetectConfig.for_camera(small)
     assert cfg.downscale == 1 and cfg.min_side_px < DetectConfig().min_side_px
-    found = sum(bool(match_detections(detect_stickers(img, small), [tc[:4]], [tc[4:]]))
-                for img, tc in _sim_views(0.0, 2.0, 6, seed=9, cam=small))
+    found = sum(
+        bool(match_detections(detect_stickers(img, small), [tc[:4]], [tc[4:]]))
+        for img, tc in _sim_views(0.0, 2.0, 6, seed=9, cam=small)
+    )
     assert found == 6  # the unscaled defaults find 5
 
 
 def test_blurred_distractors_and_lines_give_nothing():
-    img = synth_frame([], CAM, noise=3, seed=6, blur_px=8, blur_angle_deg=30,
-                      distractors=[(300, 300, 70, 10), (700, 500, 50, 40), (1000, 250, 90, 0), (760, 540, 45, 5)],
-                      lines=[(0, 800, 1296, 760, 12), (200, 0, 260, 972, 8)]).image
+    img = synth_frame(
+        [],
+        CAM,
+        noise=3,
+        seed=6,
+        blur_px=8,
+        blur_angle_deg=30,
+        distractors=[(300, 300, 70, 10), (700, 500, 50, 40), (1000, 250, 90, 0), (760, 540, 45, 5)],
+        lines=[(0, 800, 1296, 760, 12), (200, 0, 260, 972, 8)],
+    ).image
     assert detect_stickers(img, CAM) == []
 
 
 def test_cut_corners_back_restores_a_clipped_square():
-    from tagloc.detect import _cut_corners_back
+    from tagloc.vision.detect import _cut_corners_back
 
     square = np.array([[0, 0], [40, 0], [40, 40], [0, 40]], float)
     clipped = np.array([[0, 0], [36, 0], [40, 4], [40, 40], [0, 40]], float)  # top-right cut off
@@ -267,7 +292,7 @@ def test_cut_corners_back_restores_a_clipped_square():
 
 
 def test_robust_line_drops_a_gross_outlier():
-    from tagloc.detect import _robust_line
+    from tagloc.vision.detect import _robust_line
 
     rng = np.random.default_rng(0)
     x = np.linspace(0, 60, 20)

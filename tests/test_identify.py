@@ -1,7 +1,7 @@
 """Identification of undecodable stickers against tracker candidates, and the reference bank cache.
 
 Views come from tests/synth.py (an independent renderer: 8x8 super-sampling, linear light, gamma),
-not from the generator the thresholds were tuned on (tagloc.bench_identify), so these tests also
+not from the generator the thresholds were tuned on (tagloc.eval.bench_identify), so these tests also
 check that the thresholds carry over.
 """
 
@@ -16,12 +16,12 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from synth import concrete, sticker_pose, synth_frame  # noqa: E402
 
-from tagloc.camera import default_camera  # noqa: E402
 from tagloc.cli import main as cli_main  # noqa: E402
-from tagloc.errors import InputError  # noqa: E402
-from tagloc.identify import IdResult, identify, motion_kernel  # noqa: E402
-from tagloc.observation import Detection, IdSource  # noqa: E402
-from tagloc.refs import build_refs, default_cache_path, load_or_build_refs, load_refs  # noqa: E402
+from tagloc.core.camera import default_camera  # noqa: E402
+from tagloc.core.errors import InputError  # noqa: E402
+from tagloc.core.types import Detection, IdSource  # noqa: E402
+from tagloc.vision.identify import IdResult, identify, motion_kernel  # noqa: E402
+from tagloc.vision.refs import build_refs, default_cache_path, load_or_build_refs, load_refs  # noqa: E402
 
 CAM = default_camera()
 # Consecutive IDs, as maps number them: neighbours share leading digits and Data Matrix codewords.
@@ -44,8 +44,17 @@ def view(sid: int, rotation: int, tilt_deg: float, blur_px: float, seed: int, fl
     centre = (rng.uniform(350, 950), rng.uniform(280, 700))
     dist = CAM.fx * 0.1 / 85 * np.sqrt(np.cos(np.radians(tilt_deg)))
     T = sticker_pose(CAM, centre, dist, tilt_deg, yaw_deg=rng.uniform(0, 360), tilt_dir_deg=rng.uniform(0, 360))
-    f = synth_frame([(sid, T)], CAM, blur_px=blur_px, blur_angle_deg=rng.uniform(0, 180), noise=2.5,
-                    gamma=2.2, exposure=rng.uniform(0.7, 1.0), background=floor, seed=seed)
+    f = synth_frame(
+        [(sid, T)],
+        CAM,
+        blur_px=blur_px,
+        blur_angle_deg=rng.uniform(0, 180),
+        noise=2.5,
+        gamma=2.2,
+        exposure=rng.uniform(0.7, 1.0),
+        background=floor,
+        seed=seed,
+    )
     sigma = 0.5 + 0.1 * blur_px  # blurred edges are located less well
     # synth gives canonical order (TL first); a detector may start at any corner: rotation r.
     outer = np.roll(f.outer[0], rotation, 0) + rng.normal(0, sigma, (4, 2))

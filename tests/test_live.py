@@ -15,15 +15,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
-from mosquitto import MOSQUITTO, Broker, Subscriber
 from conftest_io import line_map, make_session, truth_xy, write_video
-from tagloc.capture import CaptureThread, FrameSource, SessionSource, VideoSource, open_source
-from tagloc.errors import InputError, SessionError
-from tagloc.live import LiveConfig, run_live
-from tagloc.observation import FrameResult, IdSource, TrackerOutput, TrackState
-from tagloc.rig import default_rig
-from tagloc.session import Frame, SessionInfo, SessionReader, SessionWriter
+from mosquitto import MOSQUITTO, Broker, Subscriber
+
+from tagloc.apps.live import LiveConfig, run_live
+from tagloc.core.errors import InputError, SessionError
+from tagloc.core.rig import default_rig
+from tagloc.core.types import Frame, FrameResult, IdSource, TrackerOutput, TrackState
+from tagloc.io.capture import CaptureThread, FrameSource, SessionSource, VideoSource, open_source
+from tagloc.io.session import SessionInfo, SessionReader, SessionWriter
 
 FPS = 10.0
 N = 20
@@ -107,8 +107,9 @@ def test_full_buffer_drops_the_oldest_frames():
 
 
 def test_unpaced_file_loses_nothing_even_with_a_slow_consumer(tmp_path):
-    cap = CaptureThread(VideoSource(str(counter_video(tmp_path / "c.avi", 15, 100.0)), live=False),
-                        buffer=1, pace=False).start()
+    cap = CaptureThread(
+        VideoSource(str(counter_video(tmp_path / "c.avi", 15, 100.0)), live=False), buffer=1, pace=False
+    ).start()
     got = []
     while (item := cap.get(timeout=10)) is not None:
         got.append(level(item.frame))
@@ -121,8 +122,9 @@ def test_unpaced_file_loses_nothing_even_with_a_slow_consumer(tmp_path):
 def test_paced_file_drops_when_processing_falls_behind(tmp_path):
     # 50 fps source, a consumer needing 100 ms per frame: about 4 of 5 frames must be dropped, and
     # what is processed is always recent (newest-first buffer, no growing lag).
-    cap = CaptureThread(VideoSource(str(counter_video(tmp_path / "c.avi", 30, 50.0)), live=False),
-                        buffer=1, pace=True).start()
+    cap = CaptureThread(
+        VideoSource(str(counter_video(tmp_path / "c.avi", 30, 50.0)), live=False), buffer=1, pace=True
+    ).start()
     got = []
     while (item := cap.get(timeout=10)) is not None:
         got.append(item.frame.index)
@@ -155,8 +157,15 @@ class EchoLocaliser:
         self.map, self.rig = r.map, r.rig
 
     def process(self, frame: Frame) -> FrameResult:
-        out = TrackerOutput(frame.timestamp, np.array([frame.index * 0.1, 1.0, 0.0]), np.eye(3) * 1e-3,
-                            TrackState.TRACKING, 0.0, 100 + frame.index, IdSource.DECODED)
+        out = TrackerOutput(
+            frame.timestamp,
+            np.array([frame.index * 0.1, 1.0, 0.0]),
+            np.eye(3) * 1e-3,
+            TrackState.TRACKING,
+            0.0,
+            100 + frame.index,
+            IdSource.DECODED,
+        )
         return FrameResult(frame.index, frame.timestamp, [], out, {"total": 1.0})
 
 
@@ -172,15 +181,22 @@ def receive_all(rx: socket.socket) -> list[dict]:
     while True:
         try:
             msgs.append(json.loads(rx.recv(65536)))
-        except socket.timeout:
+        except TimeoutError:
             return msgs
 
 
 def test_live_loop_publishes_records_and_logs(session, video, tmp_path):
     rx = udp_listener()
-    cfg = LiveConfig(source=str(video), publish=[f"udp://127.0.0.1:{rx.getsockname()[1]}"], vest="v9",
-                     record=tmp_path / "rec", log=tmp_path / "frames.jsonl", rerun_save=tmp_path / "live.rrd",
-                     pace=False, max_frames=20)
+    cfg = LiveConfig(
+        source=str(video),
+        publish=[f"udp://127.0.0.1:{rx.getsockname()[1]}"],
+        vest="v9",
+        record=tmp_path / "rec",
+        log=tmp_path / "frames.jsonl",
+        rerun_save=tmp_path / "live.rrd",
+        pace=False,
+        max_frames=20,
+    )
     summary = run_live(cfg, localiser=EchoLocaliser(session))
     msgs = receive_all(rx)
     rx.close()
@@ -196,7 +212,7 @@ def test_live_loop_publishes_records_and_logs(session, video, tmp_path):
     assert [f.index for f in frames] == list(range(20)) and not rec.skipped
     assert np.allclose(rec.timestamps, np.arange(20) / FPS)
     assert len((tmp_path / "frames.jsonl").read_text().splitlines()) == 20
-    from tagloc.rerun_view import read_rrd
+    from tagloc.io.rerun_view import read_rrd
 
     assert read_rrd(tmp_path / "live.rrd")["world/body"].frames == list(range(20))
 
@@ -208,15 +224,26 @@ def test_live_loop_stops_on_max_seconds(session, tmp_path):
 
 
 def cli(*args: str, **kw) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "tagloc", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, **kw)
+    return subprocess.Popen(
+        [sys.executable, "-m", "tagloc", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw
+    )
 
 
 def test_tagloc_live_publishes_poses_over_udp(session, video):
     rx = udp_listener()
     port = rx.getsockname()[1]
-    p = cli("live", "--camera", str(video), "--config", str(session), "--publish", f"udp://127.0.0.1:{port}",
-            "--vest", "v1", "--no-pace")
+    p = cli(
+        "live",
+        "--camera",
+        str(video),
+        "--config",
+        str(session),
+        "--publish",
+        f"udp://127.0.0.1:{port}",
+        "--vest",
+        "v1",
+        "--no-pace",
+    )
     out, err = p.communicate(timeout=120)
     msgs = receive_all(rx)
     rx.close()

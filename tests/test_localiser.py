@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 
 from tagloc.cli import main
-from tagloc.evaluate import EvalConfig, evaluate, wrong_id_fixes
-from tagloc.localiser import LocaliserConfig, load_setup
-from tagloc.mapgen import GridMapConfig, grid_map
-from tagloc.metrics import trajectory_metrics
-from tagloc.run import run_session
-from tagloc.session import SessionReader
-from tagloc.simulate import SimConfig, simulate_session
+from tagloc.eval.evaluate import EvalConfig, evaluate, wrong_id_fixes
+from tagloc.eval.metrics import trajectory_metrics
+from tagloc.io.session import SessionReader
+from tagloc.pipeline.localiser import LocaliserConfig, load_setup
+from tagloc.pipeline.run import run_session
+from tagloc.sim.mapgen import GridMapConfig, grid_map
+from tagloc.sim.simulate import SimConfig, simulate_session
 
 
 @pytest.fixture(scope="module")
@@ -26,8 +26,12 @@ def walk(tmp_path_factory) -> Path:
     """A 6 s walk at 150 lux on a small warehouse map, with unmapped stickers and missing ones."""
     path = tmp_path_factory.mktemp("loc") / "walk"
     smap = grid_map(GridMapConfig(width_m=12, depth_m=10, spacing_min_m=1.2, spacing_max_m=1.6, seed=5))
-    simulate_session(smap, path, SimConfig(seconds=6, lux=150, speed_mps=1.2, seed=11, unmapped=15,
-                                           missing_fraction=0.1), progress=False)
+    simulate_session(
+        smap,
+        path,
+        SimConfig(seconds=6, lux=150, speed_mps=1.2, seed=11, unmapped=15, missing_fraction=0.1),
+        progress=False,
+    )
     return path
 
 
@@ -64,7 +68,7 @@ def test_baselines_run_on_the_same_frames(walk):
 
 
 def test_bad_mode_is_refused(walk):
-    from tagloc.errors import InputError
+    from tagloc.core.errors import InputError
 
     with pytest.raises(InputError, match="mode"):
         run_session(SessionReader(walk), LocaliserConfig(mode="nonsense"))
@@ -100,14 +104,14 @@ def test_eval_writes_report_and_plots(tmp_path, monkeypatch):
     # Timed with OpenCV on one thread, and the caller's setting is given back.
     assert cv2.getNumThreads() == threads_before
     # Cached sessions are reused, and remade once the simulated physics change.
-    import tagloc.simulate
-    from tagloc.evaluate import make_session, scenarios
+    import tagloc.sim.simulate
+    from tagloc.eval.evaluate import make_session, scenarios
 
     sc = scenarios(EvalConfig(sessions=1, seconds=3))[0]
     frames = tmp_path / "sessions" / sc.name / "frames.csv"
     made = frames.stat().st_mtime_ns
     assert make_session(sc, tmp_path, False) and frames.stat().st_mtime_ns == made
-    monkeypatch.setattr(tagloc.simulate, "SIM_REVISION", tagloc.simulate.SIM_REVISION + 1)
+    monkeypatch.setattr(tagloc.sim.simulate, "SIM_REVISION", tagloc.sim.simulate.SIM_REVISION + 1)
     make_session(sc, tmp_path, False)
     assert frames.stat().st_mtime_ns != made
 
@@ -125,8 +129,12 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
 
 def test_demo_runs_without_arguments_beyond_output(tmp_path):
     out = tmp_path / "demo"
-    r = subprocess.run([sys.executable, "-m", "tagloc", "demo", "--seconds", "2", "--quiet", "-o", str(out)],
-                       capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [sys.executable, "-m", "tagloc", "demo", "--seconds", "2", "--quiet", "-o", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr
     assert "rerun " in r.stdout and (out / "demo.rrd").exists() and (out / "estimate.tum").exists()
     assert "RMSE" in r.stdout

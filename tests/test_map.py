@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from tagloc.cli import main
-from tagloc.errors import InputError, MapError
-from tagloc.mapgen import GridMapConfig, grid_map, summarise_map, write_grid_map
-from tagloc.stickermap import StickerMap, load_map, save_map
+from tagloc.core.errors import InputError, MapError
+from tagloc.core.stickermap import StickerMap, load_map, save_map
+from tagloc.sim.mapgen import GridMapConfig, grid_map, summarise_map, write_grid_map
 
 HEADER = "id,x_m,y_m,yaw_deg\n"
 GOOD_ROW = "7,10.0,10.0,0\n"  # line 2 of every case below; the bad row is line 3
@@ -23,21 +23,24 @@ def _write(tmp_path, text: str, name: str = "m.csv"):
     return p
 
 
-@pytest.mark.parametrize("row, fragment", [
-    ("1,0.0,0.0\n", "3 columns"),
-    ("1,0,0,0,5\n", "5 columns"),
-    ("1,abc,0,0\n", "x_m 'abc' is not a number"),
-    ("1,nan,0,0\n", "finite"),
-    ("1,0,inf,0\n", "finite"),
-    ("1,0,0,-inf\n", "finite"),
-    ("7,5,5,0\n", "duplicate id 7"),
-    ("-1,0,0,0\n", "not an integer in 0-99999"),
-    ("100000,0,0,0\n", "not an integer in 0-99999"),
-    ("1.5,0,0,0\n", "not an integer in 0-99999"),
-    ("x,0,0,0\n", "id 'x' is not a number"),
-    ("8,10.05,10.0,0\n", "closer than 0.100 m"),
-    ("8,10.0,10.099,45\n", "closer than 0.100 m"),
-])
+@pytest.mark.parametrize(
+    "row, fragment",
+    [
+        ("1,0.0,0.0\n", "3 columns"),
+        ("1,0,0,0,5\n", "5 columns"),
+        ("1,abc,0,0\n", "x_m 'abc' is not a number"),
+        ("1,nan,0,0\n", "finite"),
+        ("1,0,inf,0\n", "finite"),
+        ("1,0,0,-inf\n", "finite"),
+        ("7,5,5,0\n", "duplicate id 7"),
+        ("-1,0,0,0\n", "not an integer in 0-99999"),
+        ("100000,0,0,0\n", "not an integer in 0-99999"),
+        ("1.5,0,0,0\n", "not an integer in 0-99999"),
+        ("x,0,0,0\n", "id 'x' is not a number"),
+        ("8,10.05,10.0,0\n", "closer than 0.100 m"),
+        ("8,10.0,10.099,45\n", "closer than 0.100 m"),
+    ],
+)
 def test_bad_row_refused_naming_file_and_line(tmp_path, row, fragment):
     p = _write(tmp_path, HEADER + GOOD_ROW + row)
     with pytest.raises(MapError) as info:
@@ -48,14 +51,17 @@ def test_bad_row_refused_naming_file_and_line(tmp_path, row, fragment):
     assert "\n" not in msg
 
 
-@pytest.mark.parametrize("text, fragment", [
-    ("", "empty file"),
-    ("id,x,y,yaw\n" + GOOD_ROW, ":1: header"),
-    ("x_m,id,y_m,yaw_deg\n" + GOOD_ROW, ":1: header"),
-    (GOOD_ROW, ":1: header"),
-    (HEADER, "no stickers"),
-    (HEADER + "\n\n", "no stickers"),
-])
+@pytest.mark.parametrize(
+    "text, fragment",
+    [
+        ("", "empty file"),
+        ("id,x,y,yaw\n" + GOOD_ROW, ":1: header"),
+        ("x_m,id,y_m,yaw_deg\n" + GOOD_ROW, ":1: header"),
+        (GOOD_ROW, ":1: header"),
+        (HEADER, "no stickers"),
+        (HEADER + "\n\n", "no stickers"),
+    ],
+)
 def test_bad_file_refused(tmp_path, text, fragment):
     p = _write(tmp_path, text)
     with pytest.raises(MapError) as info:
@@ -105,8 +111,13 @@ def test_within_matches_brute_force(rng):
 
 def test_in_polygon_matches_brute_force(rng):
     m = _random_map(rng)
-    star = [(30 + (20 if k % 2 == 0 else 7) * math.cos(k * math.pi / 5),
-             30 + (20 if k % 2 == 0 else 7) * math.sin(k * math.pi / 5)) for k in range(10)]
+    star = [
+        (
+            30 + (20 if k % 2 == 0 else 7) * math.cos(k * math.pi / 5),
+            30 + (20 if k % 2 == 0 else 7) * math.sin(k * math.pi / 5),
+        )
+        for k in range(10)
+    ]
     sliver = [(1, 1), (59, 3), (2, 4)]  # long, thin: vertex mean far from the tip
     for _ in range(20):
         box = rng.uniform(0, 60, (2, 2))
@@ -114,8 +125,9 @@ def test_in_polygon_matches_brute_force(rng):
         rect = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
         for poly in (rect, star, sliver):
             contour = np.asarray(poly, np.float32).reshape(-1, 1, 2)
-            truth = [k for k, (x, y) in enumerate(m.xy)
-                     if cv2.pointPolygonTest(contour, (float(x), float(y)), False) > 0]
+            truth = [
+                k for k, (x, y) in enumerate(m.xy) if cv2.pointPolygonTest(contour, (float(x), float(y)), False) > 0
+            ]
             assert m.in_polygon(np.asarray(poly)).tolist() == truth
     assert len(m.in_polygon(np.array([(100, 100), (101, 100), (101, 101)]))) == 0
 
@@ -163,16 +175,19 @@ def test_grid_map_sequential_ids_and_small_floor(tmp_path):
     assert m.ids.tolist() == list(range(500, 500 + len(m)))
 
 
-@pytest.mark.parametrize("kwargs, fragment", [
-    ({"spacing_min_m": 2.5}, "spacing-min"),
-    ({"spacing_min_m": 0.05, "spacing_max_m": 0.5}, "spacing-min"),
-    ({"jitter_m": -0.1}, "jitter"),
-    ({"width_m": 1.5}, "margin"),
-    ({"aisle_spacing_m": 0.5}, "aisle spacing"),
-    ({"cross_aisles": 40}, "cross aisles"),
-    ({"ids": "sequential", "first_id": 99990}, "beyond"),
-    ({"ids": "shuffled"}, "ids"),
-])
+@pytest.mark.parametrize(
+    "kwargs, fragment",
+    [
+        ({"spacing_min_m": 2.5}, "spacing-min"),
+        ({"spacing_min_m": 0.05, "spacing_max_m": 0.5}, "spacing-min"),
+        ({"jitter_m": -0.1}, "jitter"),
+        ({"width_m": 1.5}, "margin"),
+        ({"aisle_spacing_m": 0.5}, "aisle spacing"),
+        ({"cross_aisles": 40}, "cross aisles"),
+        ({"ids": "sequential", "first_id": 99990}, "beyond"),
+        ({"ids": "shuffled"}, "ids"),
+    ],
+)
 def test_grid_map_refuses_bad_config(kwargs, fragment):
     with pytest.raises(InputError, match=fragment):
         grid_map(GridMapConfig(**kwargs))
@@ -180,8 +195,11 @@ def test_grid_map_refuses_bad_config(kwargs, fragment):
 
 def test_demo_map_is_the_documented_grid(demo_map_path):
     demo = load_map(demo_map_path)
-    ref = grid_map(GridMapConfig(width_m=40, depth_m=25, aisle_spacing_m=3.0, spacing_min_m=1.2,
-                                 spacing_max_m=2.0, jitter_m=0.05, seed=7))
+    ref = grid_map(
+        GridMapConfig(
+            width_m=40, depth_m=25, aisle_spacing_m=3.0, spacing_min_m=1.2, spacing_max_m=2.0, jitter_m=0.05, seed=7
+        )
+    )
     assert np.array_equal(demo.ids, ref.ids)
     assert demo.xy == pytest.approx(ref.xy, abs=1e-4)
     assert demo.yaw == pytest.approx(ref.yaw, abs=1e-4)
@@ -208,3 +226,46 @@ def test_cli_map_grid_and_info(tmp_path, capsys):
     bad = _write(tmp_path, HEADER + "1,0,0\n", "bad.csv")
     assert main(["map", "info", str(bad)]) == 2
     assert f"{bad}:2:" in capsys.readouterr().err
+
+
+def test_survey_sigma_columns_round_trip(tmp_path):
+    path = tmp_path / "m.csv"
+    path.write_text("id,x_m,y_m,yaw_deg,sigma_m,sigma_deg\n1,0,0,0,0.02,1.5\n2,1,0,90,,\n")
+    smap = load_map(path)
+    assert smap.sigma_xy[0] == pytest.approx(0.02) and smap.sigma_yaw[0] == pytest.approx(math.radians(1.5))
+    assert np.isnan(smap.sigma_xy[1]) and np.isnan(smap.sigma_yaw[1])  # empty cells: not stated
+    save_map(smap, tmp_path / "again.csv")
+    again = load_map(tmp_path / "again.csv")
+    np.testing.assert_allclose(again.sigma_xy, smap.sigma_xy)
+    np.testing.assert_allclose(again.sigma_yaw, smap.sigma_yaw)
+    # One column alone, the other left to the default.
+    (tmp_path / "deg.csv").write_text("id,x_m,y_m,yaw_deg,sigma_deg\n1,0,0,0,2\n")
+    one = load_map(tmp_path / "deg.csv")
+    assert np.isnan(one.sigma_xy[0]) and one.sigma_yaw[0] == pytest.approx(math.radians(2))
+    # A map without them writes the plain four-column header.
+    save_map(load_map(tmp_path / "deg.csv"), tmp_path / "deg2.csv")
+    assert (tmp_path / "deg2.csv").read_text().startswith("id,x_m,y_m,yaw_deg,sigma_m,sigma_deg\n")
+    plain = StickerMap([1], [[0.0, 0.0]], [0.0])
+    save_map(plain, tmp_path / "plain.csv")
+    assert (tmp_path / "plain.csv").read_text().splitlines()[0] == "id,x_m,y_m,yaw_deg"
+
+
+@pytest.mark.parametrize(
+    "text, fragment",
+    [
+        ("id,x_m,y_m,yaw_deg,sigma_m\n1,0,0,0,-0.01\n", "m.csv:2: sigma_m '-0.01' is negative"),
+        ("id,x_m,y_m,yaw_deg,sigma_m\n1,0,0,0,abc\n", "m.csv:2: sigma_m 'abc' is not a number"),
+        ("id,x_m,y_m,yaw_deg,colour\n1,0,0,0,red\n", "m.csv:1: header"),
+        ("id,x_m,y_m,yaw_deg,sigma_m,sigma_m\n1,0,0,0,1,1\n", "m.csv:1: header"),
+    ],
+)
+def test_bad_sigma_columns_refused(tmp_path, text, fragment):
+    (tmp_path / "m.csv").write_text(text)
+    with pytest.raises(MapError, match=fragment.replace("(", r"\(").replace(")", r"\)")):
+        load_map(tmp_path / "m.csv")
+
+
+def test_map_with_byte_order_mark_loads(tmp_path):
+    (tmp_path / "bom.csv").write_bytes("\ufeffid,x_m,y_m,yaw_deg\n5,1.0,2.0,30\n".encode())
+    smap = load_map(tmp_path / "bom.csv")
+    assert smap.ids.tolist() == [5] and smap.yaw[0] == pytest.approx(math.radians(30))

@@ -10,19 +10,19 @@ import cv2
 import numpy as np
 import pytest
 
-from tagloc.camera import default_camera
-from tagloc.errors import InputError
-from tagloc.geometry import planar_from_T
-from tagloc.localiser import LocaliserConfig
-from tagloc.mapgen import GridMapConfig, grid_map
-from tagloc.metrics import trajectory_metrics
-from tagloc.observation import IdSource, PoseFix, TrackState
-from tagloc.odometry import FloorOdometry, OdometryConfig, OdometryStep, floor_patch
-from tagloc.rig import RigCamera, looking_forward
-from tagloc.run import run_session
-from tagloc.session import SessionReader
-from tagloc.simulate import SimConfig, simulate_session
-from tagloc.walk import WalkConfig
+from tagloc.core.camera import default_camera
+from tagloc.core.errors import InputError
+from tagloc.core.geometry import planar_from_T
+from tagloc.core.rig import RigCamera, looking_forward
+from tagloc.core.types import IdSource, PoseFix, TrackState
+from tagloc.eval.metrics import trajectory_metrics
+from tagloc.io.session import SessionReader
+from tagloc.pipeline.localiser import LocaliserConfig
+from tagloc.pipeline.run import run_session
+from tagloc.sim.mapgen import GridMapConfig, grid_map
+from tagloc.sim.simulate import SimConfig, simulate_session
+from tagloc.sim.walk import WalkConfig
+from tagloc.vision.odometry import FloorOdometry, OdometryConfig, OdometryStep, floor_patch
 from tracker.tracker import Tracker
 
 FPS = 30.0
@@ -44,8 +44,14 @@ def test_patch_is_in_view_for_any_pitch(pitch, scale):
     assert 0.5 <= p.side <= 1.0 + 1e-9
     assert p.x_near >= -0.05
     # The patch's corners project inside the image, in front of the camera.
-    corners = np.array([[p.x_near, p.y_left, 0], [p.x_far, p.y_left, 0], [p.x_near, p.y_left - p.side, 0],
-                        [p.x_far, p.y_left - p.side, 0]])
+    corners = np.array(
+        [
+            [p.x_near, p.y_left, 0],
+            [p.x_far, p.y_left, 0],
+            [p.x_near, p.y_left - p.side, 0],
+            [p.x_far, p.y_left - p.side, 0],
+        ]
+    )
     T_cb = np.linalg.inv(rc.T_body_camera)
     pc = corners @ T_cb[:3, :3].T + T_cb[:3, 3]
     assert np.all(pc[:, 2] > 0.3)
@@ -54,7 +60,7 @@ def test_patch_is_in_view_for_any_pitch(pitch, scale):
 
 
 def test_camera_seeing_no_floor_is_refused():
-    from tagloc.errors import CalibrationError
+    from tagloc.core.errors import CalibrationError
 
     with pytest.raises(CalibrationError):
         floor_patch(RigCamera("up", default_camera(), looking_forward(1.3, -30.0)))
@@ -93,8 +99,9 @@ def stop_walk(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("odo") / "walk"
     smap = grid_map(GridMapConfig(width_m=12, depth_m=10, spacing_min_m=1.6, spacing_max_m=2.0, seed=8))
     walk = WalkConfig(stop_every_s=1.0, stop_s=(1.4, 1.6))
-    simulate_session(smap, path, SimConfig(seconds=5, lux=120, speed_mps=1.3, seed=21, pitch_deg=60.0, walk=walk),
-                     progress=False)
+    simulate_session(
+        smap, path, SimConfig(seconds=5, lux=120, speed_mps=1.3, seed=21, pitch_deg=60.0, walk=walk), progress=False
+    )
     return path
 
 
@@ -156,7 +163,8 @@ def test_step_covariance_carries_the_lever_to_the_patch():
     turn = math.radians(3.0)
     moved = 2 * cx * math.sin(turn / 2)
     assert odo.covariance(np.array([0.0, 0.0, turn]))[2, 2] == pytest.approx(
-        cfg.sigma_yaw**2 + (cfg.sigma_yaw_per_m * moved) ** 2, rel=1e-6)
+        cfg.sigma_yaw**2 + (cfg.sigma_yaw_per_m * moved) ** 2, rel=1e-6
+    )
 
 
 def test_textureless_or_noise_floor_is_refused():
@@ -178,9 +186,9 @@ def test_fast_turn_between_frames_is_measured(turns_deg):
     """A corner sped up to 180 deg/s (3, 4.5, then 6 degrees between frames), or a sudden 4.5 degree
     turn from rest, defeats phase correlation and ECC from no turn (-4.5 from rest was measured as
     -2.8 degrees, 2.6 cm sideways, before the turn guesses)."""
-    from tagloc.floor import Floor, FloorConfig
-    from tagloc.geometry import planar_T
-    from tagloc.simulate import render_view
+    from tagloc.core.geometry import planar_T
+    from tagloc.sim.floor import Floor, FloorConfig
+    from tagloc.sim.simulate import render_view
 
     rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0))
     smap = grid_map(GridMapConfig(width_m=8, depth_m=8, spacing_min_m=1.6, spacing_max_m=2.0, seed=4))
@@ -217,7 +225,9 @@ def test_localiser_with_odometry_follows_the_stop(stop_walk):
     results = {}
     for use in (False, True):
         states = []
-        log = run_session(session, LocaliserConfig(odometry=use), on_result=lambda r: states.append(r.output.state))
+        log = run_session(
+            session, LocaliserConfig(odometry=use), on_result=lambda r, s=states: s.append(r.output.state)
+        )
         v = log.valid
         results[use] = (trajectory_metrics(log.stamps[v], log.poses[v], log.covs[v], *gt), states, log.counts)
     m_off, _, _ = results[False]

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from tagloc.camera import default_camera
-from tagloc.geometry import invert, planar_from_T, planar_T, transform_points, wrap_angle
-from tagloc.observation import Detection
-from tagloc.pose import PoseConfig, solve_pose
-from tagloc.rig import RigCamera, looking_forward
-from tagloc.sticker import INNER_CORNERS, OUTER_CORNERS
+from tagloc.core.camera import default_camera
+from tagloc.core.geometry import invert, planar_from_T, planar_T, transform_points, wrap_angle
+from tagloc.core.rig import RigCamera, looking_forward
+from tagloc.core.sticker import INNER_CORNERS, OUTER_CORNERS
+from tagloc.core.types import Detection
+from tagloc.vision.pose import PoseConfig, solve_pose
 
 
 def rig_camera(height=1.3, pitch=55.0) -> RigCamera:
@@ -59,8 +59,13 @@ def test_exact_corners_recover_pose(rotation):
     rc = rig_camera()
     body, sticker = scene(rng, rc, 1.6, 0.2)
     for use_inner in (False, True):
-        sol = solve_pose(corners(rc, body, sticker, rotation, 0.0, rng), rotation, sticker, rc,
-                         config=PoseConfig(use_inner=use_inner))
+        sol = solve_pose(
+            corners(rc, body, sticker, rotation, 0.0, rng),
+            rotation,
+            sticker,
+            rc,
+            config=PoseConfig(use_inner=use_inner),
+        )
         cam_err, d = pose_error(sol.poses[0], body, rc)
         assert cam_err < 1e-6 and np.all(np.abs(d) < 1e-6), (cam_err, d)
         assert sol.poses[0].reprojection_px < 1e-6
@@ -125,8 +130,9 @@ def test_covariance_is_honest(estimated):
         body, sticker = scene(rng, rc, rng.uniform(1.3, 2.0), rng.uniform(-0.4, 0.4))
         r = int(rng.integers(4))
         det = corners(rc, body, sticker, r, sigma, rng)
-        sol = solve_pose(det, r, sticker, rc, corner_sigma_px=None if estimated else sigma,
-                         config=PoseConfig(min_sigma_px=0.05))
+        sol = solve_pose(
+            det, r, sticker, rc, corner_sigma_px=None if estimated else sigma, config=PoseConfig(min_sigma_px=0.05)
+        )
         _, d = pose_error(sol.poses[0], body, rc)
         nees.append(d @ np.linalg.solve(sol.poses[0].cov, d))
     mean = np.mean(nees)
@@ -171,7 +177,7 @@ def test_head_on_is_ambiguous_oblique_is_not():
 
 
 def test_bad_rotation_raises():
-    from tagloc.errors import InputError
+    from tagloc.core.errors import InputError
 
     rng = np.random.default_rng(6)
     rc = rig_camera()

@@ -11,9 +11,9 @@ import zxingcpp
 from PIL import Image
 
 from tagloc.cli import main
-from tagloc.errors import InputError
-from tagloc.printing import PAPER_MM, SheetConfig, page_paths, parse_ids, sheet_layout, write_sheets
-from tagloc.sticker import payloads, render_sticker
+from tagloc.core.errors import InputError
+from tagloc.core.sticker import payloads, render_sticker
+from tagloc.io.printing import PAPER_MM, SheetConfig, page_paths, parse_ids, sheet_layout, write_sheets
 
 A4_PT = (210 / 25.4 * 72, 297 / 25.4 * 72)
 
@@ -24,10 +24,19 @@ def test_parse_ids_tokens_and_ranges():
     assert parse_ids(["3", "1-3"]) == [3, 1, 2]  # order kept, duplicates dropped
 
 
-@pytest.mark.parametrize("tokens, fragment", [
-    (["12x"], "'12x'"), (["-3"], "'-3'"), (["1.5"], "'1.5'"), (["29-20"], "reversed"),
-    (["100000"], "outside"), (["99990-100001"], "outside"), ([], "no sticker"), (["0-99999"], "at most"),
-])
+@pytest.mark.parametrize(
+    "tokens, fragment",
+    [
+        (["12x"], "'12x'"),
+        (["-3"], "'-3'"),
+        (["1.5"], "'1.5'"),
+        (["29-20"], "reversed"),
+        (["100000"], "outside"),
+        (["99990-100001"], "outside"),
+        ([], "no sticker"),
+        (["0-99999"], "at most"),
+    ],
+)
 def test_parse_ids_refuses_bad_tokens(tokens, fragment):
     with pytest.raises(InputError, match=re.escape(fragment)):
         parse_ids(tokens)

@@ -10,11 +10,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest_io import line_map, make_session, truth_xy
-from tagloc.geometry import planar_T
-from tagloc.metrics import interpolate_groundtruth, trajectory_metrics
-from tagloc.session import read_tum
+
+from tagloc.core.geometry import planar_T
+from tagloc.eval.metrics import interpolate_groundtruth, trajectory_metrics
+from tagloc.io.session import read_tum
 
 FPS = 10.0
 N = 20
@@ -56,7 +56,9 @@ def test_metrics_against_numpy_on_random_errors():
     assert m["p95_m"] == pytest.approx(np.percentile(d, 95), rel=1e-9)
     assert m["max_m"] == pytest.approx(d.max(), rel=1e-9)
     assert m["heading_rmse_deg"] == pytest.approx(np.degrees(np.sqrt(np.mean(dyaw**2))), rel=1e-6)
-    assert m["within_10cm"] == pytest.approx(np.mean(d <= 0.1)) and m["within_25cm"] == pytest.approx(np.mean(d <= 0.25))
+    assert m["within_10cm"] == pytest.approx(np.mean(d <= 0.1)) and m["within_25cm"] == pytest.approx(
+        np.mean(d <= 0.25)
+    )
     nees = err[:, 0] ** 2 / sig**2 + err[:, 1] ** 2 / (2 * sig) ** 2
     assert m["nees_mean"] == pytest.approx(nees.mean(), rel=1e-9)
 
@@ -87,8 +89,9 @@ def session(tmp_path_factory) -> Path:
 
 
 def replay_cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "tagloc", "replay", *args, "--quiet"], capture_output=True,
-                          text=True, timeout=180)
+    return subprocess.run(
+        [sys.executable, "-m", "tagloc", "replay", *args, "--quiet"], capture_output=True, text=True, timeout=180
+    )
 
 
 def test_replay_is_deterministic_and_scores_against_ground_truth(session, tmp_path):
@@ -114,7 +117,7 @@ def test_replay_is_deterministic_and_scores_against_ground_truth(session, tmp_pa
     decoded = [o["sticker_id"] for d in lines for o in d["observations"] if o["source"] == "decoded"]
     assert set(decoded) <= set(line_map().ids.tolist()) and len(decoded) >= N // 2
 
-    from tagloc.rerun_view import read_rrd
+    from tagloc.io.rerun_view import read_rrd
 
     ents = read_rrd(tmp_path / "r.rrd")
     assert ents["world/body/front/image"].frames == [k for k in range(N) if k != 5]
@@ -123,7 +126,7 @@ def test_replay_is_deterministic_and_scores_against_ground_truth(session, tmp_pa
 
 
 def test_replay_metrics_match_the_library(session, tmp_path):
-    from tagloc.replay import ReplayConfig, replay
+    from tagloc.apps.replay import ReplayConfig, replay
 
     res = replay(ReplayConfig(session=session, out=tmp_path / "e.tum", progress=False))
     assert res.frames == N and res.skipped == 1 and res.metrics is not None

@@ -6,13 +6,12 @@ import cv2
 import numpy as np
 import pytest
 
-import tagloc.rerun_view as rv
-from tagloc.geometry import planar_T
-from tagloc.observation import Detection, FrameResult, IdSource, Observation, TrackerOutput, TrackState
-from tagloc.rerun_view import RerunView, read_rrd
-from tagloc.rig import default_rig
-from tagloc.session import Frame
-from tagloc.stickermap import StickerMap
+import tagloc.io.rerun_view as rv
+from tagloc.core.geometry import planar_T
+from tagloc.core.rig import default_rig
+from tagloc.core.stickermap import StickerMap
+from tagloc.core.types import Detection, Frame, FrameResult, IdSource, Observation, TrackerOutput, TrackState
+from tagloc.io.rerun_view import RerunView, read_rrd
 
 N = 12
 FIRST_POSE = 2  # frames 0-1 initialising
@@ -48,12 +47,15 @@ def recording(tmp_path_factory):
     for k in range(N):
         img = rng.integers(0, 255, (972, 1296), dtype=np.uint8)
         outer = np.array([[100.0, 100.0], [300.0, 110.0], [290.0, 300.0], [95.0, 290.0]])
-        obs = [Observation(Detection(outer), 0, 7, IdSource.DECODED, 0, 1.0, accepted=True),
-               Observation(Detection(outer + 400), 0, 8, IdSource.ORB, 2, 0.8, accepted=False, gate_reason="gate"),
-               Observation(Detection(outer + [600, 0]), 0, None)]
+        obs = [
+            Observation(Detection(outer), 0, 7, IdSource.DECODED, 0, 1.0, accepted=True),
+            Observation(Detection(outer + 400), 0, 8, IdSource.ORB, 2, 0.8, accepted=False, gate_reason="gate"),
+            Observation(Detection(outer + [600, 0]), 0, None),
+        ]
         state = TrackState.INITIALISING if k < FIRST_POSE else TrackState.TRACKING
-        out = TrackerOutput(k / 10, np.array([0.1 * k, OFFSET, 0.0]), np.diag([4e-4, 1e-4, 1e-3]), state, 0.1, 7,
-                            IdSource.DECODED)
+        out = TrackerOutput(
+            k / 10, np.array([0.1 * k, OFFSET, 0.0]), np.diag([4e-4, 1e-4, 1e-3]), state, 0.1, 7, IdSource.DECODED
+        )
         view.log(Frame(k, k / 10, img), FrameResult(k, k / 10, obs, out, {"detect": 4.0, "total": 6.0}))
     view.close()
     rv.PATH_PIECE = 256
@@ -70,8 +72,14 @@ def test_entities_and_frame_counts(recording):
     assert "EncodedImage:blob" in image.components and "Pinhole:image_from_camera" in image.components
     assert ents["world/body/front/image/detections"].frames == list(range(N))
     posed = list(range(FIRST_POSE, N))
-    for name in ("world/body", "world/estimate/ellipse", "plots/error/position_m", "plots/error/yaw_deg",
-                 "plots/uncertainty/position_2sigma_m", "plots/uncertainty/yaw_sigma_deg"):
+    for name in (
+        "world/body",
+        "world/estimate/ellipse",
+        "plots/error/position_m",
+        "plots/error/yaw_deg",
+        "plots/uncertainty/position_2sigma_m",
+        "plots/uncertainty/yaw_sigma_deg",
+    ):
         assert ents[name].frames == posed, name
     for name in ("plots/timing/detect_ms", "plots/timing/total_ms", "status", "world/groundtruth/body"):
         assert ents[name].frames == list(range(N)), name
@@ -121,7 +129,7 @@ def test_trajectory_pieces_join(recording):
 
 
 def test_missing_viewer_is_a_clear_error(monkeypatch, tmp_path):
-    from tagloc.errors import BackendUnavailable
+    from tagloc.core.errors import BackendUnavailable
 
     monkeypatch.setenv("PATH", str(tmp_path))  # no `rerun` executable to spawn
     with pytest.raises(BackendUnavailable, match="Rerun viewer"):

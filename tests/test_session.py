@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from tagloc.errors import SessionError
-from tagloc.geometry import make_T
-from tagloc.rig import default_rig
-from tagloc.session import SessionInfo, SessionReader, SessionWriter, read_tum, write_tum
-from tagloc.stickermap import StickerMap
+from tagloc.core.errors import SessionError
+from tagloc.core.geometry import make_T
+from tagloc.core.rig import default_rig
+from tagloc.core.stickermap import StickerMap
+from tagloc.io.session import SessionInfo, SessionReader, SessionWriter, read_tum, write_tum
 
 N = 6
 
@@ -18,8 +18,10 @@ N = 6
 def _images(rng, n=N, shape=(48, 64)) -> list[np.ndarray]:
     # Smooth content so JPEG is close; noise would make the JPEG check meaningless.
     yy, xx = np.mgrid[: shape[0], : shape[1]]
-    return [np.clip(100 + 60 * np.sin(xx / 7.0 + k) * np.cos(yy / 9.0) + rng.normal(0, 2, shape), 0, 255)
-            .astype(np.uint8) for k in range(n)]
+    return [
+        np.clip(100 + 60 * np.sin(xx / 7.0 + k) * np.cos(yy / 9.0) + rng.normal(0, 2, shape), 0, 255).astype(np.uint8)
+        for k in range(n)
+    ]
 
 
 def _write_session(path, images, ext=".png", stamps=None) -> np.ndarray:

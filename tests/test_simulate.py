@@ -9,17 +9,30 @@ import cv2
 import numpy as np
 import pytest
 
-from tagloc.camera import Camera
 from tagloc.cli import main
-from tagloc.errors import InputError
-from tagloc.floor import Floor, FloorConfig
-from tagloc.render import (ExposureConfig, OpticsConfig, SensorConfig, choose_gain, electrons_per_lux_s,
-                           expected_blur_px, exposure_time)
-from tagloc.session import SessionReader
-from tagloc.simulate import (SimConfig, camera_pose_looking_at, read_groundtruth_frames, render_view,
-                             simulate_session, true_corners)
-from tagloc.stickermap import StickerMap, save_map
-from tagloc.walk import WalkConfig, plan_walk
+from tagloc.core.camera import Camera
+from tagloc.core.errors import InputError
+from tagloc.core.stickermap import StickerMap, save_map
+from tagloc.io.session import SessionReader
+from tagloc.sim.floor import Floor, FloorConfig
+from tagloc.sim.render import (
+    ExposureConfig,
+    OpticsConfig,
+    SensorConfig,
+    choose_gain,
+    electrons_per_lux_s,
+    expected_blur_px,
+    exposure_time,
+)
+from tagloc.sim.simulate import (
+    SimConfig,
+    camera_pose_looking_at,
+    read_groundtruth_frames,
+    render_view,
+    simulate_session,
+    true_corners,
+)
+from tagloc.sim.walk import WalkConfig, plan_walk
 
 
 def aisle_map(rows: int = 3, length_m: float = 12.0, spacing_m: float = 1.5, aisle_m: float = 3.0) -> StickerMap:
@@ -63,8 +76,12 @@ def test_motion_blur_matches_f_v_t_over_d(blur):
     D, t_exp = 0.25, 0.004
     T = camera_pose_looking_at((0.0, 0.0), height_m=D, pitch_deg=90.0)
     v = blur * D / (cam.fx * t_exp)
-    lin = dict(optics=OpticsConfig(psf_sigma_px=0.0, vignetting=0.0), noise=False,
-               sensor=SensorConfig(gamma=1.0, prnu=0.0), exposure=ExposureConfig(px_per_subframe=0.25, max_subframes=64))
+    lin = dict(
+        optics=OpticsConfig(psf_sigma_px=0.0, vignetting=0.0),
+        noise=False,
+        sensor=SensorConfig(gamma=1.0, prnu=0.0),
+        exposure=ExposureConfig(px_per_subframe=0.25, max_subframes=64),
+    )
     # Straight down with yaw 0, image +x is world -y: move along world y.
     res = render_view(floor, cam, T, 300.0, velocity=(0.0, v, 0.0), exposure_s=t_exp, gain=4.0, **lin)
     sharp = render_view(floor, cam, T, 300.0, exposure_s=t_exp, gain=4.0, **lin)
@@ -74,8 +91,8 @@ def test_motion_blur_matches_f_v_t_over_d(blur):
     row = int(round(corners[:4, 1].mean()))
     x_edge = corners[:4, 0].min()  # the sticker's left outer edge: floor -> black frame
     x0 = int(x_edge) - 20  # the frame is 20 px wide: 14 px of black past the edge, minus half the blur
-    prof = res.image[row - 3:row + 4, x0:x0 + 34].astype(float).mean(axis=0)
-    prof_sharp = sharp.image[row - 3:row + 4, x0:x0 + 34].astype(float).mean(axis=0)
+    prof = res.image[row - 3 : row + 4, x0 : x0 + 34].astype(float).mean(axis=0)
+    prof_sharp = sharp.image[row - 3 : row + 4, x0 : x0 + 34].astype(float).mean(axis=0)
     w_sharp = edge_width_10_90(prof_sharp)
     assert w_sharp < 1.5
     # A box blur of length L has a 10-90 % width of 0.8 L; interpolation adds a fraction of a pixel.
@@ -96,7 +113,8 @@ def test_exposure_policy_and_gain():
         exposure_time(0.0, cfg)
     # Photometry: e- per pixel per lux s = T / (4 N^2) * photons * pitch^2 * QE.
     assert electrons_per_lux_s(OpticsConfig(), SensorConfig()) == pytest.approx(
-        0.9 / (4 * 2.9 ** 2) * 1e16 * 2.8e-6 ** 2 * 0.25, rel=1e-9)
+        0.9 / (4 * 2.9**2) * 1e16 * 2.8e-6**2 * 0.25, rel=1e-9
+    )
     assert choose_gain(1e6, SensorConfig(), cfg) == 1.0
     assert choose_gain(1.0, SensorConfig(), cfg) == SensorConfig().max_gain
 
@@ -163,7 +181,7 @@ def test_walk_vest_bobbing_at_step_frequency():
     smap = aisle_map(rows=1, length_m=40.0)
     cfg = WalkConfig(seconds=30.0, seed=2, stop_every_s=0.0, speed_variation=0.05)
     walk = plan_walk(smap, cfg)
-    from tagloc.rig import looking_forward
+    from tagloc.core.rig import looking_forward
 
     T_bc = looking_forward(1.3, 55.0)
     fs = 100.0
@@ -172,7 +190,7 @@ def test_walk_vest_bobbing_at_step_frequency():
     walking = np.r_[False, walk.speed(t_all) > 1.0, False].astype(int)
     starts, ends = np.flatnonzero(np.diff(walking) == 1), np.flatnonzero(np.diff(walking) == -1)
     k = int(np.argmax(ends - starts))
-    t = t_all[starts[k] + 100:ends[k] - 100]
+    t = t_all[starts[k] + 100 : ends[k] - 100]
     assert len(t) > 8 * fs
     Tc = walk.T_world_camera(t, T_bc)
     z = Tc[:, 2, 3] - 1.3
@@ -249,7 +267,9 @@ def test_floor_missing_and_unmapped():
 
 def test_render_view_ground_truth_corners_on_dark_frame():
     """The true corners (with lens distortion) outline the sticker's black frame in the image."""
-    cam = Camera(np.array([[643.0, 0, 323.5], [0, 643.0, 242.5], [0, 0, 1]]), np.array([0.10, -0.20, 0, 0, 0]), 648, 486)
+    cam = Camera(
+        np.array([[643.0, 0, 323.5], [0, 643.0, 242.5], [0, 0, 1]]), np.array([0.10, -0.20, 0, 0, 0]), 648, 486
+    )
     smap = StickerMap([11, 12], [[0.0, 0.0], [0.35, 0.25]], [0.3, 1.2])
     floor = Floor(smap, FloorConfig(texture=False))
     T = camera_pose_looking_at((0.1, 0.1), 0.9, 60.0, 20.0)
@@ -325,8 +345,9 @@ def test_session_ground_truth_matches_images(session):
             mask = np.zeros(img.shape, np.uint8)
             cv2.polylines(mask, [np.round(pts * 16).astype(np.int32)], True, 1, 1, cv2.LINE_8, 4)
             ring = np.zeros(img.shape, np.uint8)
-            cv2.polylines(ring, [np.round((centre + 1.35 * (c - centre)) * 16).astype(np.int32)], True, 1, 2,
-                          cv2.LINE_8, 4)
+            cv2.polylines(
+                ring, [np.round((centre + 1.35 * (c - centre)) * 16).astype(np.int32)], True, 1, 2, cv2.LINE_8, 4
+            )
             # Measured: 0.35-0.52 on the true corners; 0.5-0.75 with them 1 px off, 0.8-0.97 at 2 px.
             assert img[mask > 0].mean() < 0.62 * img[ring > 0].mean(), (r["index"], v["id"])
             checked += 1
@@ -344,7 +365,9 @@ def test_session_is_deterministic(tmp_path, session):
     other = tmp_path / "other"
     simulate_session(smap, other, sim_config(missing_fraction=0.2, unmapped=10, seed=4, seconds=0.3), progress=False)
     assert (other / "frames/000000.jpg").read_bytes() != (out / "frames/000000.jpg").read_bytes()
-    assert (other / "groundtruth.tum").read_text() != (out / "groundtruth.tum").read_text()[:len((other / "groundtruth.tum").read_text())]
+    assert (other / "groundtruth.tum").read_text() != (out / "groundtruth.tum").read_text()[
+        : len((other / "groundtruth.tum").read_text())
+    ]
 
 
 def test_rolling_shutter_ground_truth(tmp_path):
@@ -363,8 +386,9 @@ def test_rolling_shutter_ground_truth(tmp_path):
                 mid = (c + np.array(v["inner"])) / 2
                 cv2.polylines(mask, [np.round(mid * 16).astype(np.int32)], True, 1, 1, cv2.LINE_8, 4)
                 ring = np.zeros(img.shape, np.uint8)
-                cv2.polylines(ring, [np.round((centre + 1.35 * (c - centre)) * 16).astype(np.int32)], True, 1, 2,
-                              cv2.LINE_8, 4)
+                cv2.polylines(
+                    ring, [np.round((centre + 1.35 * (c - centre)) * 16).astype(np.int32)], True, 1, 2, cv2.LINE_8, 4
+                )
                 assert img[mask > 0].mean() < 0.62 * img[ring > 0].mean()
                 checked += 1
     assert checked >= 2
@@ -373,14 +397,40 @@ def test_rolling_shutter_ground_truth(tmp_path):
 def test_cli_simulate(tmp_path, capsys):
     smap = aisle_map(rows=1)
     save_map(smap, tmp_path / "m.csv")
-    rc = main(["simulate", "--map", str(tmp_path / "m.csv"), "--seconds", "0.2", "--fps", "10", "--scale", "0.25",
-               "--quiet", "--unmapped", "2", "-o", str(tmp_path / "cli")])
+    rc = main(
+        [
+            "simulate",
+            "--map",
+            str(tmp_path / "m.csv"),
+            "--seconds",
+            "0.2",
+            "--fps",
+            "10",
+            "--scale",
+            "0.25",
+            "--quiet",
+            "--unmapped",
+            "2",
+            "-o",
+            str(tmp_path / "cli"),
+        ]
+    )
     assert rc == 0
     assert len(list((tmp_path / "cli" / "frames").glob("*.jpg"))) == 2
     assert "2 frames" in capsys.readouterr().out
     rc = main(["simulate", "--map", str(tmp_path / "nope.csv"), "--quiet", "-o", str(tmp_path / "x")])
     err = capsys.readouterr().err
     assert rc == 2 and "nope.csv" in err and err.count("\n") == 1
-    rc = main(["simulate", "--map", str(tmp_path / "m.csv"), "--missing-fraction", "1.5", "--quiet",
-               "-o", str(tmp_path / "y")])
+    rc = main(
+        [
+            "simulate",
+            "--map",
+            str(tmp_path / "m.csv"),
+            "--missing-fraction",
+            "1.5",
+            "--quiet",
+            "-o",
+            str(tmp_path / "y"),
+        ]
+    )
     assert rc == 2 and "missing fraction" in capsys.readouterr().err

@@ -10,13 +10,22 @@ import time
 
 import numpy as np
 import pytest
-
 from mosquitto import MOSQUITTO, Broker, Subscriber
-from tagloc.errors import InputError
-from tagloc.observation import Detection, FrameResult, IdSource, Observation, PoseFix, TrackerOutput, TrackState
-from tagloc.session import read_tum
-from tagloc.sinks import (SCHEMA, FrameLog, JsonLinesSink, MqttSink, PoseMessage, TumSink, UdpSink,
-                          frame_result_json, open_sink)
+
+from tagloc.core.errors import InputError
+from tagloc.core.types import Detection, FrameResult, IdSource, Observation, PoseFix, TrackerOutput, TrackState
+from tagloc.io.session import read_tum
+from tagloc.io.sinks import (
+    SCHEMA,
+    FrameLog,
+    JsonLinesSink,
+    MqttSink,
+    PoseMessage,
+    TumSink,
+    UdpSink,
+    frame_result_json,
+    open_sink,
+)
 
 
 def output(t: float = 1.25, state: TrackState = TrackState.TRACKING, yaw: float = 0.5) -> TrackerOutput:
@@ -27,14 +36,13 @@ def output(t: float = 1.25, state: TrackState = TrackState.TRACKING, yaw: float 
 def result(index: int, t: float) -> FrameResult:
     det = Detection(np.array([[10.0, 10.0], [60.0, 12.0], [58.0, 61.0], [9.0, 59.0]]))
     fix = PoseFix(np.eye(4), np.array([3.5, -1.25, 0.5]), np.eye(3) * 1e-4, 0.42)
-    obs = Observation(det, 0, 42, IdSource.DECODED, 1, 1.0, poses=[fix], times_ms={"decode": 3.14159},
-                      accepted=True)
+    obs = Observation(det, 0, 42, IdSource.DECODED, 1, 1.0, poses=[fix], times_ms={"decode": 3.14159}, accepted=True)
     return FrameResult(index, t, [obs], output(t), {"detect": 5.5, "total": 9.25})
 
 
 def test_message_schema_fields_and_units():
     msg = PoseMessage("v07", 12, output(), latency_ms=23.456).to_json()
-    assert msg["schema"] == SCHEMA == "tagloc.pose/1"
+    assert msg["schema"] == SCHEMA == "tagloc.vision.pose/1"
     assert (msg["vest"], msg["frame"], msg["index"], msg["t"]) == ("v07", "world", 12, 1.25)
     assert (msg["x"], msg["y"]) == pytest.approx((3.5, -1.25))
     assert msg["yaw"] == pytest.approx(0.5) and msg["yaw_deg"] == pytest.approx(math.degrees(0.5), abs=1e-4)

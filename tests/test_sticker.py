@@ -8,9 +8,18 @@ import pytest
 import zxingcpp
 from pylibdmtx import pylibdmtx
 
-from tagloc.errors import InputError
-from tagloc.sticker import (ALL_CORNERS, INNER_CORNERS, OUTER_CORNERS, parse_payload, payload, payloads,
-                            render_sticker, sticker_pixel_to_metres, symbol_modules)
+from tagloc.core.errors import InputError
+from tagloc.core.sticker import (
+    ALL_CORNERS,
+    INNER_CORNERS,
+    OUTER_CORNERS,
+    parse_payload,
+    payload,
+    payloads,
+    render_sticker,
+    sticker_pixel_to_metres,
+    symbol_modules,
+)
 
 IDS = (0, 7, 42, 31337, 99999)
 SIZES = (120, 200, 400)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from tagloc.observation import IdSource, PoseFix, TrackState
+from tagloc.core.types import IdSource, PoseFix, TrackState
 from tracker import motion
 from tracker.config import TrackerConfig
 from tracker.tracker import Tracker
@@ -79,8 +79,9 @@ def test_motion_limits_and_textbook_form():
     # Backwards undoes forwards.
     np.testing.assert_allclose(motion.propagate(motion.propagate(s, dt), -dt), s, atol=1e-12)
     # Jacobian continuous through w = 0.
-    np.testing.assert_allclose(motion.jacobian([0, 0, 0.4, 1.2, 1e-12], 0.7),
-                               motion.jacobian([0, 0, 0.4, 1.2, 0.0], 0.7), atol=1e-10)
+    np.testing.assert_allclose(
+        motion.jacobian([0, 0, 0.4, 1.2, 1e-12], 0.7), motion.jacobian([0, 0, 0.4, 1.2, 0.0], 0.7), atol=1e-10
+    )
 
 
 def test_covariance_helpers_match_lapack():
@@ -112,6 +113,7 @@ def test_process_noise_is_psd_and_scales():
 
 
 # -- simulated walks --------------------------------------------------------------------------------
+
 
 def simulate(truth, t_end, fix_gaps, rng, cfg=None, frame_dt=0.1, extra=None):
     """Run a tracker over ``truth(t) -> (x, y, yaw)`` with decoded fixes every ``fix_gaps`` (low, high) s.
@@ -274,6 +276,7 @@ def test_nees_is_consistent_with_the_model(rng):
 
 
 # -- gating, identities, life cycle ------------------------------------------------------------------
+
 
 def test_outliers_rejected_and_counted(rng):
     cfg = TrackerConfig()
@@ -581,7 +584,7 @@ def test_random_inputs_never_break_the_covariance():
     rng = np.random.default_rng(7)
     steps = [0.0, 0.0, 1e-4, 0.03, 0.1, 0.7, 3.0, -0.05, -2.0, 600.0, 7200.0, math.nan, math.inf]
     sources = [IdSource.DECODED, IdSource.DECODED, IdSource.ORB, IdSource.APPEARANCE, IdSource.NONE]
-    for seed in range(4):
+    for _seed in range(4):
         tr = Tracker()
         t = float(rng.uniform(-100, 100))
         for _ in range(250):
@@ -595,8 +598,14 @@ def test_random_inputs_never_break_the_covariance():
                 for _k in range(n):
                     body = rng.normal(0, [5, 5, 10]) + tr.output().pose * (rng.random() < 0.7)
                     kind = rng.integers(6)
-                    cov = [np.diag(rng.uniform(1e-6, 1e-2, 3)), np.zeros((3, 3)), np.diag([1e8, 1e8, 1e3]),
-                           -np.eye(3), np.full((3, 3), np.nan), rng.normal(size=(3, 3))][kind]
+                    cov = [
+                        np.diag(rng.uniform(1e-6, 1e-2, 3)),
+                        np.zeros((3, 3)),
+                        np.diag([1e8, 1e8, 1e3]),
+                        -np.eye(3),
+                        np.full((3, 3), np.nan),
+                        rng.normal(size=(3, 3)),
+                    ][kind]
                     if rng.random() < 0.05:
                         body[0] = np.nan
                     fixes.append(make_fix(body, cov))

@@ -27,9 +27,9 @@ import cv2
 import numpy as np
 from scipy.stats import chi2
 
-from tagloc.geometry import invert, planar_T
-from tagloc.rig import RigCamera
-from tagloc.stickermap import StickerMap
+from tagloc.core.geometry import invert, planar_T
+from tagloc.core.rig import RigCamera
+from tagloc.core.stickermap import StickerMap
 from tracker.ekf import largest_eig_2x2
 
 #: Default gate: 99.9% of a 2-D Gaussian (sqrt of the chi-square bound, about 3.72 sigma).
@@ -97,8 +97,12 @@ _FOOTPRINTS: dict[int, tuple[bytes, Footprint]] = {}
 
 def _key(rc: RigCamera, cfg: CandidateConfig) -> bytes:
     c = rc.camera
-    return (rc.T_body_camera.tobytes() + c.K.tobytes() + c.dist.tobytes()
-            + np.array([c.width, c.height, cfg.max_range], float).tobytes())
+    return (
+        rc.T_body_camera.tobytes()
+        + c.K.tobytes()
+        + c.dist.tobytes()
+        + np.array([c.width, c.height, cfg.max_range], float).tobytes()
+    )
 
 
 def footprint(rig_camera: RigCamera, config: CandidateConfig | None = None) -> Footprint:
@@ -111,8 +115,9 @@ def footprint(rig_camera: RigCamera, config: CandidateConfig | None = None) -> F
     cam = rig_camera.camera
     w, h = cam.width - 1.0, cam.height - 1.0
     s = np.linspace(0.0, 1.0, 17)
-    border = np.vstack([np.c_[s * w, 0 * s], np.c_[w + 0 * s, s * h], np.c_[(1 - s) * w, h + 0 * s],
-                        np.c_[0 * s, (1 - s) * h]])
+    border = np.vstack(
+        [np.c_[s * w, 0 * s], np.c_[w + 0 * s, s * h], np.c_[(1 - s) * w, h + 0 * s], np.c_[0 * s, (1 - s) * h]]
+    )
     norm = cv2.undistortPoints(border.reshape(-1, 1, 2), cam.K, cam.dist).reshape(-1, 2)
     rays = rig_camera.T_body_camera[:3, :3] @ np.c_[norm, np.ones(len(norm))].T  # (3, M), body
     origin = rig_camera.T_body_camera[:3, 3]
@@ -130,8 +135,9 @@ def footprint(rig_camera: RigCamera, config: CandidateConfig | None = None) -> F
     return fp
 
 
-def _query_rows(mean: np.ndarray, cov: np.ndarray | None, smap: StickerMap, fp: Footprint,
-                n_sigma: float) -> np.ndarray:
+def _query_rows(
+    mean: np.ndarray, cov: np.ndarray | None, smap: StickerMap, fp: Footprint, n_sigma: float
+) -> np.ndarray:
     """Map rows near the footprint, widened by ``n_sigma`` of position and heading uncertainty."""
     x, y, yaw = (float(v) for v in mean)
     c, s = math.cos(yaw), math.sin(yaw)
@@ -145,8 +151,9 @@ def _query_rows(mean: np.ndarray, cov: np.ndarray | None, smap: StickerMap, fp: 
     return smap.within(cx, cy, radius)
 
 
-def _project(mean: np.ndarray, smap: StickerMap, rig_camera: RigCamera, rows: np.ndarray,
-             cfg: CandidateConfig, jacobians: bool):
+def _project(
+    mean: np.ndarray, smap: StickerMap, rig_camera: RigCamera, rows: np.ndarray, cfg: CandidateConfig, jacobians: bool
+):
     """Project map rows' centres; returns (kept rows, pixels (N,2), depth (N,), p_b (N,3), J (2N,15) | None)."""
     T_world_body = planar_T(*mean)
     T_cam_body = invert(rig_camera.T_body_camera)
@@ -171,8 +178,9 @@ def _project(mean: np.ndarray, smap: StickerMap, rig_camera: RigCamera, rows: np
     return rows, pix.reshape(-1, 2), p_c[:, 2], p_b, (J if jacobians else None)
 
 
-def project_map(mean: np.ndarray, smap: StickerMap, rig_camera: RigCamera,
-                config: CandidateConfig | None = None) -> Projection:
+def project_map(
+    mean: np.ndarray, smap: StickerMap, rig_camera: RigCamera, config: CandidateConfig | None = None
+) -> Projection:
     """Every mapped sticker whose centre falls in (or near) ``rig_camera``'s view from body pose ``mean`` (3,).
 
     For visualisation and for spotting mapped stickers that should have been seen; ``in_image``
@@ -187,9 +195,14 @@ def project_map(mean: np.ndarray, smap: StickerMap, rig_camera: RigCamera,
     return Projection(rows, smap.ids[rows], pix, depth, inside)
 
 
-def predicted_pixels(mean: np.ndarray, cov: np.ndarray, smap: StickerMap, rig_camera: RigCamera,
-                     rows: np.ndarray, config: CandidateConfig | None = None
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def predicted_pixels(
+    mean: np.ndarray,
+    cov: np.ndarray,
+    smap: StickerMap,
+    rig_camera: RigCamera,
+    rows: np.ndarray,
+    config: CandidateConfig | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Predicted pixels of map ``rows`` with their covariances.
 
     Returns (kept rows (N,), pixels (N, 2), covariances (N, 2, 2) in px^2) for the rows in front of
@@ -218,9 +231,16 @@ def predicted_pixels(mean: np.ndarray, cov: np.ndarray, smap: StickerMap, rig_ca
     return rows, pix, C
 
 
-def select_candidates(mean: np.ndarray, cov: np.ndarray, smap: StickerMap, rig_camera: RigCamera,
-                      observed_px: np.ndarray, k: int = 5, gate_sigma: float = GATE_SIGMA,
-                      config: CandidateConfig | None = None) -> list[int]:
+def select_candidates(
+    mean: np.ndarray,
+    cov: np.ndarray,
+    smap: StickerMap,
+    rig_camera: RigCamera,
+    observed_px: np.ndarray,
+    k: int = 5,
+    gate_sigma: float = GATE_SIGMA,
+    config: CandidateConfig | None = None,
+) -> list[int]:
     """IDs of the mapped stickers that may be the one whose centre was seen at ``observed_px``.
 
     Args:

@@ -112,7 +112,7 @@ class TrackerConfig:
       odometry source whose covariance is not stated against the vest's motion. A step measures the
       vest's motion (the camera's) and the vest's wobble on the body goes to the offset state, and
       tagloc's floor odometry states its covariance against exactly that motion (see
-      :class:`tagloc.odometry.OdometryConfig`), so the factors are 1.
+      :class:`tagloc.vision.odometry.OdometryConfig`), so the factors are 1.
     - ``odometry_gate_prob``: chi-square bound (3 DoF) on the relative-pose innovation.
     - ``odometry_max_dt``: the longest interval between the two frames of a step.
 
@@ -183,9 +183,13 @@ class TrackerConfig:
         l2 = st2 + g * self.floor_sigma_lateral**2
         # R diag(f2, l2) R^T with R the heading rotation.
         xy = (f2 - l2) * c * s
-        return np.array([[f2 * c * c + l2 * s * s, xy, 0.0],
-                         [xy, f2 * s * s + l2 * c * c, 0.0],
-                         [0.0, 0.0, self.floor_still_sigma_yaw**2 + g * self.floor_sigma_yaw**2]])
+        return np.array(
+            [
+                [f2 * c * c + l2 * s * s, xy, 0.0],
+                [xy, f2 * s * s + l2 * c * c, 0.0],
+                [0.0, 0.0, self.floor_still_sigma_yaw**2 + g * self.floor_sigma_yaw**2],
+            ]
+        )
 
     @property
     def gate(self) -> float:

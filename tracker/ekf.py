@@ -25,10 +25,10 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg.lapack import dpotrf
 from filterpy.kalman import ExtendedKalmanFilter
+from scipy.linalg.lapack import dpotrf
 
-from tagloc.geometry import wrap_angle
+from tagloc.core.geometry import wrap_angle
 from tracker import motion
 from tracker.config import TrackerConfig
 
@@ -105,8 +105,14 @@ class WalkingEKF(ExtendedKalmanFilter):
         self._dt = 0.0
         full = config.floor_cov(0.0)
         big = max(full[0, 0], full[1, 1])
-        self._caps = np.r_[config.pos_var_cap, config.pos_var_cap, config.yaw_var_cap,
-                           config.v_var_cap, config.w_var_cap, 4.0 * np.array([big, big, full[2, 2]])]
+        self._caps = np.r_[
+            config.pos_var_cap,
+            config.pos_var_cap,
+            config.yaw_var_cap,
+            config.v_var_cap,
+            config.w_var_cap,
+            4.0 * np.array([big, big, full[2, 2]]),
+        ]
 
     def _decay(self, dt: float) -> float:
         """Correlation left in the vest offset after ``dt`` s at the current speed estimate."""
@@ -171,8 +177,9 @@ class WalkingEKF(ExtendedKalmanFilter):
         Q = np.zeros((DIM, DIM))
         F[: motion.DIM, : motion.DIM] = motion.jacobian(x[: motion.DIM], h)
         F[OFF, OFF] = a * np.eye(3)
-        Q[: motion.DIM, : motion.DIM] = motion.process_noise(x[: motion.DIM], h, cfg.accel_psd, cfg.yaw_accel_psd,
-                                                             cfg.lateral_psd)
+        Q[: motion.DIM, : motion.DIM] = motion.process_noise(
+            x[: motion.DIM], h, cfg.accel_psd, cfg.yaw_accel_psd, cfg.lateral_psd
+        )
         Q[OFF, OFF] = (1.0 - a * a) * cfg.floor_cov(float(x[motion.YAW]), float(x[motion.V]))
         return F, Q
 
@@ -224,8 +231,13 @@ class WalkingEKF(ExtendedKalmanFilter):
     def fuse(self, z: np.ndarray, R: np.ndarray, lag: float = 0.0) -> None:
         """Kalman update with one vest pose ``z`` (3,), its own covariance ``R``, ``lag`` s old."""
         hx, H, Qb = self._model(lag)
-        self.update(np.asarray(z, float).reshape(3, 1), lambda _x: H, lambda _x: hx.reshape(3, 1),
-                    R=R + Qb, residual=pose_residual)
+        self.update(
+            np.asarray(z, float).reshape(3, 1),
+            lambda _x: H,
+            lambda _x: hx.reshape(3, 1),
+            R=R + Qb,
+            residual=pose_residual,
+        )
         self._tidy()
 
     # -- guards -------------------------------------------------------------------------------

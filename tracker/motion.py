@@ -84,8 +84,9 @@ def jacobian(state: np.ndarray, dt: float) -> np.ndarray:
     return F
 
 
-def process_noise(state: np.ndarray, dt: float, accel_psd: float, yaw_accel_psd: float,
-                  lateral_psd: float) -> np.ndarray:
+def process_noise(
+    state: np.ndarray, dt: float, accel_psd: float, yaw_accel_psd: float, lateral_psd: float
+) -> np.ndarray:
     """``Q`` (5, 5) accumulated over ``dt`` (see module doc); symmetric positive semi-definite."""
     _, _, yaw, _, w = np.asarray(state, float).ravel().tolist()
     a = yaw + 0.5 * w * dt

@@ -37,17 +37,15 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-
-from tagloc.observation import IdSource, PoseFix, TrackerOutput, TrackState
-from tagloc.rig import RigCamera
-from tagloc.stickermap import StickerMap
-from tracker.candidates import select_candidates
-from tracker.config import TrackerConfig
 from filterpy.kalman import update as kf_update
 
-from tagloc.geometry import wrap_angle
-from tracker.ekf import (DIM, M_VEST, OFF, POSE, WalkingEKF, largest_eig_2x2, pose_residual, sym_spd, vest_cov,
-                         vest_pose)
+from tagloc.core.geometry import wrap_angle
+from tagloc.core.rig import RigCamera
+from tagloc.core.stickermap import StickerMap
+from tagloc.core.types import IdSource, PoseFix, TrackerOutput, TrackState
+from tracker.candidates import select_candidates
+from tracker.config import TrackerConfig
+from tracker.ekf import DIM, M_VEST, OFF, POSE, WalkingEKF, largest_eig_2x2, pose_residual, sym_spd, vest_cov, vest_pose
 
 __all__ = ["Tracker", "TrackerConfig", "UpdateResult"]
 
@@ -99,8 +97,11 @@ class Tracker:
     def __init__(self, config: TrackerConfig | None = None):
         self.config = config or TrackerConfig()
         cfg = self.config
-        self._gate = {IdSource.DECODED: cfg.gate, IdSource.ORB: cfg.gate_identified,
-                      IdSource.APPEARANCE: cfg.gate_identified}
+        self._gate = {
+            IdSource.DECODED: cfg.gate,
+            IdSource.ORB: cfg.gate_identified,
+            IdSource.APPEARANCE: cfg.gate_identified,
+        }
         self._ekf = WalkingEKF(cfg)
         self._state = TrackState.INITIALISING
         self._t: float | None = None
@@ -113,11 +114,30 @@ class Tracker:
         self._clone: _Clone | None = None  # pose before the last advance, for odometry
         self._odo_scale = np.sqrt(np.asarray(cfg.odometry_inflation, float))
         self._stats: dict[str, int] = {f"{v}_{s.value}": 0 for s in _SOURCES for v in ("accepted", "rejected")}
-        self._stats.update(dict.fromkeys(
-            ("initialisations", "reinitialisations", "reinit_consistent", "reinit_lost", "lost",
-             "ignored_initialising", "ignored_lost", "out_of_order_frames", "out_of_order_fixes",
-             "late_fixes_fused", "invalid_fixes", "invalid_times", "numeric_errors", "odometry_accepted",
-             "odometry_rejected", "odometry_unmatched", "odometry_ignored"), 0))
+        self._stats.update(
+            dict.fromkeys(
+                (
+                    "initialisations",
+                    "reinitialisations",
+                    "reinit_consistent",
+                    "reinit_lost",
+                    "lost",
+                    "ignored_initialising",
+                    "ignored_lost",
+                    "out_of_order_frames",
+                    "out_of_order_fixes",
+                    "late_fixes_fused",
+                    "invalid_fixes",
+                    "invalid_times",
+                    "numeric_errors",
+                    "odometry_accepted",
+                    "odometry_rejected",
+                    "odometry_unmatched",
+                    "odometry_ignored",
+                ),
+                0,
+            )
+        )
 
     # -- read-only views --------------------------------------------------------------------------
     @property
@@ -260,8 +280,13 @@ class Tracker:
             self._stats["reinit_lost"] += 1
             return UpdateResult(True, f"reinitialised (lost, {reason})", nis, 0)
         if source is IdSource.DECODED and self._feed_hypothesis(alts, sticker_id, t):
-            return UpdateResult(True, f"reinitialised: {self.config.reinit_fixes} consistent decoded fixes "
-                                      f"disagreed with the track ({reason})", nis, 0)
+            return UpdateResult(
+                True,
+                f"reinitialised: {self.config.reinit_fixes} consistent decoded fixes "
+                f"disagreed with the track ({reason})",
+                nis,
+                0,
+            )
         self._stats[f"rejected_{source.value}"] += 1
         return UpdateResult(False, reason, nis, k)
 
@@ -347,7 +372,7 @@ class Tracker:
 
     # -- odometry ---------------------------------------------------------------------------------
     def update_odometry(self, step) -> UpdateResult:
-        """Fuse one floor-odometry step (:class:`tagloc.odometry.OdometryStep`): the body pose at
+        """Fuse one floor-odometry step (:class:`tagloc.vision.odometry.OdometryStep`): the body pose at
         ``step.t1`` relative to ``step.t0`` (``delta`` (3,) in the body frame at ``t0``, ``cov`` (3, 3)).
 
         The filter is moved to ``t1`` if it is behind. The step must cover the interval the filter
@@ -357,8 +382,13 @@ class Tracker:
         z = np.asarray(step.delta, float).ravel()
         C = np.asarray(step.cov, float)
         t0, t1 = float(step.t0), float(step.t1)
-        if (z.shape != (3,) or C.shape != (3, 3) or not (np.all(np.isfinite(z)) and np.all(np.isfinite(C)))
-                or not (math.isfinite(t0) and math.isfinite(t1)) or not 0.0 < t1 - t0 <= cfg.odometry_max_dt):
+        if (
+            z.shape != (3,)
+            or C.shape != (3, 3)
+            or not (np.all(np.isfinite(z)) and np.all(np.isfinite(C)))
+            or not (math.isfinite(t0) and math.isfinite(t1))
+            or not 0.0 < t1 - t0 <= cfg.odometry_max_dt
+        ):
             self._stats["invalid_fixes"] += 1
             return UpdateResult(False, "unusable odometry step (malformed, NaN, or bad interval)")
         if self._state is TrackState.INITIALISING:

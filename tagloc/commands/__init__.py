@@ -1,1 +1,0 @@
-"""Thin CLI subcommands: each module parses its arguments and calls one library function."""

@@ -1,0 +1,177 @@
+"""Camera intrinsics with OpenCV's distortion model, and their calibration files.
+
+Two file formats are read: OpenCV FileStorage YAML (what ``cv2.calibrateCamera`` users write with
+``cv2.FileStorage``: ``camera_matrix``, ``distortion_coefficients``, ``image_width``,
+``image_height``) and ROS ``camera_info`` YAML (``camera_calibration``'s output, or a dumped
+``sensor_msgs/CameraInfo`` with ``K``/``D``/``width``/``height``). tagloc writes the OpenCV form.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from tagloc.core.errors import CalibrationError
+
+
+@dataclass
+class Camera:
+    """A pinhole camera with OpenCV distortion.
+
+    Attributes:
+        K: (3, 3) intrinsic matrix, pixels.
+        dist: (N,) OpenCV distortion coefficients (k1, k2, p1, p2[, k3, ...]), N in 4, 5, 8, 12, 14.
+        width, height: image size, pixels.
+    """
+
+    K: np.ndarray
+    dist: np.ndarray = field(default_factory=lambda: np.zeros(5))
+    width: int = 1296
+    height: int = 972
+
+    def __post_init__(self) -> None:
+        self.K = np.asarray(self.K, float).reshape(3, 3)
+        self.dist = np.asarray(self.dist, float).ravel()
+        self.width = int(self.width)
+        self.height = int(self.height)
+
+    @property
+    def fx(self) -> float:
+        return float(self.K[0, 0])
+
+    @property
+    def fy(self) -> float:
+        return float(self.K[1, 1])
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height) as OpenCV wants it."""
+        return self.width, self.height
+
+    def project(self, points_cam: np.ndarray) -> np.ndarray:
+        """Project camera-frame points (N, 3) (z forward, must be > 0) to distorted pixels (N, 2)."""
+        pts = np.asarray(points_cam, float).reshape(-1, 1, 3)
+        if len(pts) == 0:
+            return np.zeros((0, 2))
+        img, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), self.K, self.dist)
+        return img.reshape(-1, 2)
+
+    def undistort_pixels(self, pixels: np.ndarray) -> np.ndarray:
+        """Map distorted pixels (N, 2) to ideal (undistorted) pixels of the same K, (N, 2)."""
+        pts = np.asarray(pixels, float).reshape(-1, 1, 2)
+        if len(pts) == 0 or not np.any(self.dist):
+            return pts.reshape(-1, 2).copy()
+        return cv2.undistortPoints(pts, self.K, self.dist, P=self.K).reshape(-1, 2)
+
+    def scaled(self, factor: float) -> Camera:
+        """The same camera at another resolution (K scaled, distortion unchanged)."""
+        K = self.K.copy()
+        K[:2] *= factor
+        # Pixel centres: OpenCV's (0,0) is a pixel centre, so the principal point shifts by half.
+        K[0, 2] = (self.K[0, 2] + 0.5) * factor - 0.5
+        K[1, 2] = (self.K[1, 2] + 0.5) * factor - 0.5
+        return Camera(K, self.dist.copy(), round(self.width * factor), round(self.height * factor))
+
+
+def default_camera() -> Camera:
+    """Raspberry Pi camera v1 (OV5647) at 1296x972: 3.6 mm lens, 1.4 um pixels binned 2x2.
+
+    fx = fy = 3.6 mm / 2.8 um = 1285.7 px, principal point at the image centre. The mild barrel
+    distortion is typical of that lens, so that undistortion is always exercised.
+    """
+    f = 3.6e-3 / 2.8e-6
+    K = np.array([[f, 0.0, (1296 - 1) / 2], [0.0, f, (972 - 1) / 2], [0.0, 0.0, 1.0]])
+    return Camera(K, np.array([0.10, -0.20, 0.0, 0.0, 0.0]), 1296, 972)
+
+
+def save_calibration(camera: Camera, path: str | Path) -> None:
+    """Write ``camera`` as OpenCV FileStorage YAML."""
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    if not fs.isOpened():
+        raise CalibrationError(f"{path}: cannot write calibration")
+    fs.write("image_width", camera.width)
+    fs.write("image_height", camera.height)
+    fs.write("camera_matrix", camera.K)
+    fs.write("distortion_coefficients", camera.dist.reshape(1, -1))
+    fs.release()
+
+
+def _check(camera: Camera, path: Path) -> Camera:
+    K = camera.K
+    if not np.all(np.isfinite(K)) or not np.all(np.isfinite(camera.dist)):
+        raise CalibrationError(f"{path}: calibration contains NaN or inf")
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1 or np.any(K[2, :2] != 0) or K[1, 0] != 0:
+        raise CalibrationError(f"{path}: camera_matrix is not a valid intrinsic matrix: {K.tolist()}")
+    if camera.width <= 0 or camera.height <= 0:
+        raise CalibrationError(f"{path}: image size {camera.width}x{camera.height} is not positive")
+    if camera.dist.size not in (4, 5, 8, 12, 14):
+        raise CalibrationError(f"{path}: {camera.dist.size} distortion coefficients (want 4, 5, 8, 12 or 14)")
+    return camera
+
+
+def _load_opencv(path: Path) -> Camera:
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    if not fs.isOpened():
+        raise CalibrationError(f"{path}: not a readable OpenCV FileStorage file")
+    try:
+        names = {"camera_matrix", "distortion_coefficients", "image_width", "image_height"}
+        missing = [n for n in sorted(names) if fs.getNode(n).empty()]
+        if missing:
+            raise CalibrationError(f"{path}: missing {', '.join(missing)}")
+        K = fs.getNode("camera_matrix").mat()
+        dist = fs.getNode("distortion_coefficients").mat()
+        if K is None or dist is None or K.shape != (3, 3):
+            raise CalibrationError(f"{path}: camera_matrix must be a 3x3 matrix")
+        return Camera(K, dist.ravel(), int(fs.getNode("image_width").real()), int(fs.getNode("image_height").real()))
+    finally:
+        fs.release()
+
+
+def _ros_matrix(node: object, path: Path, name: str) -> np.ndarray:
+    data = node.get("data") if isinstance(node, dict) else node
+    try:
+        return np.asarray(data, float)
+    except (TypeError, ValueError) as exc:
+        raise CalibrationError(f"{path}: {name} is not a list of numbers") from exc
+
+
+def _load_ros(path: Path, doc: dict) -> Camera:
+    if "camera_matrix" in doc:  # camera_calibration's ost.yaml
+        K = _ros_matrix(doc["camera_matrix"], path, "camera_matrix")
+        dist = _ros_matrix(doc.get("distortion_coefficients", [0, 0, 0, 0, 0]), path, "distortion_coefficients")
+        w, h = doc.get("image_width"), doc.get("image_height")
+    elif "K" in doc or "k" in doc:  # a dumped sensor_msgs/CameraInfo
+        K = _ros_matrix(doc.get("K", doc.get("k")), path, "K")
+        dist = _ros_matrix(doc.get("D", doc.get("d")) or [0, 0, 0, 0, 0], path, "D")
+        w, h = doc.get("width"), doc.get("height")
+    else:
+        raise CalibrationError(f"{path}: neither OpenCV nor ROS camera_info calibration (no camera_matrix or K)")
+    if K.size != 9:
+        raise CalibrationError(f"{path}: camera matrix has {K.size} values, want 9")
+    if w is None or h is None:
+        raise CalibrationError(f"{path}: missing image width/height")
+    return Camera(K.reshape(3, 3), dist, int(w), int(h))
+
+
+def load_calibration(path: str | Path) -> Camera:
+    """Load a camera from OpenCV FileStorage YAML or ROS camera_info YAML (format auto-detected)."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except OSError as exc:
+        raise CalibrationError(f"{path}: cannot read calibration ({exc.strerror})") from exc
+    if text.lstrip().startswith("%YAML") or "!!opencv-matrix" in text:
+        return _check(_load_opencv(path), path)
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        line = getattr(getattr(exc, "problem_mark", None), "line", None)
+        where = f" line {line + 1}" if line is not None else ""
+        raise CalibrationError(f"{path}:{where} not valid YAML") from exc
+    if not isinstance(doc, dict):
+        raise CalibrationError(f"{path}: not a calibration mapping")
+    return _check(_load_ros(path, doc), path)

@@ -1,0 +1,117 @@
+"""The camera rig on the operator's vest: each camera's calibration and pose in the body frame.
+
+Body frame: origin on the floor under the vest, +x forward, +y left, +z up. ``rig.json``::
+
+    {"cameras": [{"name": "front", "calibration": "camera.yaml",
+                  "T_body_camera": [[...4 rows of 4...]]}]}
+
+``T_body_camera`` (row-major, metres) maps points from the OpenCV camera frame (x right, y down,
+z along the optical axis) into the body frame. ``calibration`` is relative to the rig file.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from tagloc.core.camera import Camera, default_camera, load_calibration, save_calibration
+from tagloc.core.errors import CalibrationError
+from tagloc.core.geometry import make_T
+
+
+@dataclass
+class RigCamera:
+    """One camera of the rig: a name, its intrinsics and ``T_body_camera`` (4, 4)."""
+
+    name: str
+    camera: Camera
+    T_body_camera: np.ndarray
+    calibration_file: str = "camera.yaml"
+
+
+@dataclass
+class Rig:
+    """All cameras worn by the operator."""
+
+    cameras: list[RigCamera]
+
+    def __getitem__(self, index: int) -> RigCamera:
+        return self.cameras[index]
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+
+def looking_forward(
+    height_m: float = 1.3, pitch_deg: float = 55.0, yaw_deg: float = 0.0, x_m: float = 0.0, y_m: float = 0.0
+) -> np.ndarray:
+    """``T_body_camera`` of a camera at ``height_m`` looking along body yaw, pitched down by ``pitch_deg``."""
+    p, a = math.radians(pitch_deg), math.radians(yaw_deg)
+    fwd = np.array([math.cos(p) * math.cos(a), math.cos(p) * math.sin(a), -math.sin(p)])  # optical axis
+    right = np.array([math.sin(a), -math.cos(a), 0.0])
+    down = np.cross(fwd, right)
+    return make_T(np.column_stack([right, down, fwd]), (x_m, y_m, height_m))
+
+
+def default_rig(height_m: float = 1.3, pitch_deg: float = 55.0, camera: Camera | None = None) -> Rig:
+    """One forward camera ``height_m`` up, pitched ``pitch_deg`` below horizontal (default Pi camera)."""
+    return Rig([RigCamera("front", camera or default_camera(), looking_forward(height_m, pitch_deg))])
+
+
+def _check_T(value: object, where: str) -> np.ndarray:
+    try:
+        T = np.asarray(value, float)
+    except (TypeError, ValueError) as exc:
+        raise CalibrationError(f"{where}: T_body_camera is not a 4x4 matrix of numbers") from exc
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise CalibrationError(f"{where}: T_body_camera must be a finite 4x4 matrix")
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0 or not np.allclose(T[3], [0, 0, 0, 1]):
+        raise CalibrationError(f"{where}: T_body_camera is not a rigid transform")
+    return T
+
+
+def load_rig(path: str | Path, calibration: Camera | None = None) -> Rig:
+    """Load ``rig.json``; each camera's calibration is read relative to the rig file.
+
+    ``calibration`` overrides the file named in the rig (for ``--calibration`` on the CLI).
+    """
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise CalibrationError(f"{path}: cannot read rig ({exc.strerror})") from exc
+    except json.JSONDecodeError as exc:
+        raise CalibrationError(f"{path}: line {exc.lineno}: not valid JSON ({exc.msg})") from exc
+    cams = doc.get("cameras") if isinstance(doc, dict) else None
+    if not isinstance(cams, list) or not cams:
+        raise CalibrationError(f'{path}: needs a non-empty "cameras" list')
+    out = []
+    for i, entry in enumerate(cams):
+        where = f"{path}: cameras[{i}]"
+        if not isinstance(entry, dict) or "T_body_camera" not in entry:
+            raise CalibrationError(f"{where}: needs T_body_camera")
+        name = str(entry.get("name", f"cam{i}"))
+        calib_file = str(entry.get("calibration", "camera.yaml"))
+        cam = calibration if calibration is not None else load_calibration(path.parent / calib_file)
+        out.append(RigCamera(name, cam, _check_T(entry["T_body_camera"], where), calib_file))
+    return Rig(out)
+
+
+def save_rig(rig: Rig, path: str | Path, write_calibrations: bool = True) -> None:
+    """Write ``rig.json`` (and, by default, each camera's calibration file next to it)."""
+    path = Path(path)
+    doc = {
+        "cameras": [
+            {"name": c.name, "calibration": c.calibration_file, "T_body_camera": np.round(c.T_body_camera, 12).tolist()}
+            for c in rig.cameras
+        ]
+    }
+    path.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+    if write_calibrations:
+        for c in rig.cameras:
+            save_calibration(c.camera, path.parent / c.calibration_file)

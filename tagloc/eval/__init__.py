@@ -1,0 +1,1 @@
+"""Evaluation: metrics against ground truth, the NEES test, eval, bench, the paper's baselines, the demo."""

@@ -1,0 +1,415 @@
+"""``tagloc eval``: tagloc and the paper's two baselines over a set of simulated walks.
+
+Each scenario draws its conditions from the ranges the tracker issue names (illuminance 50-300
+lux, speed 0.8-1.6 m/s, sticker spacing 1.2-2.0 m, camera pitch 45-70 degrees), makes its own
+map and session with the simulator, then runs the three localiser modes on the same frames.
+Wrong-ID fixes are counted against the simulator's per-frame ground truth of which sticker is
+where in the image.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from tagloc.eval.consistency import nees_blocks, nees_test
+from tagloc.eval.metrics import TrajectoryErrors, error_metrics, trajectory_errors
+from tagloc.io.session import SessionReader
+from tagloc.pipeline.localiser import MODES, LocaliserConfig
+from tagloc.pipeline.run import RunLog, run_session
+
+
+@dataclass
+class Scenario:
+    """The conditions of one simulated walk."""
+
+    name: str
+    seed: int
+    lux: float
+    speed: float
+    spacing: float
+    pitch_deg: float
+    seconds: float
+    missing_fraction: float = 0.0
+    unmapped: int = 0
+
+
+@dataclass
+class EvalConfig:
+    """What ``tagloc eval`` runs.
+
+    Attributes:
+        sessions: number of scenarios; conditions are drawn from ``seed``.
+        seconds: length of each walk, s.
+        out: directory for sessions (cached by scenario), report and plots.
+        modes: localiser modes to run ("full" and the baselines).
+        hard: add sessions' pathologies: stickers missing from the floor, stickers not in the map.
+    """
+
+    sessions: int = 6
+    seconds: float = 20.0
+    seed: int = 1
+    out: Path = Path("out/eval")
+    modes: tuple[str, ...] = MODES
+    hard: bool = True
+    progress: bool = True
+
+
+def scenarios(cfg: EvalConfig) -> list[Scenario]:
+    """Scenario conditions spread over the ranges (stratified, then jittered with ``cfg.seed``)."""
+    rng = np.random.default_rng(cfg.seed)
+    n = cfg.sessions
+    out = []
+    # Stratify each range so even a few sessions cover it, and shuffle the pairings.
+    strata = [rng.permutation(n) for _ in range(4)]
+    for i in range(n):
+        u = [(strata[k][i] + rng.uniform()) / n for k in range(4)]
+        hard = cfg.hard and i % 2 == 1
+        out.append(
+            Scenario(
+                name=f"s{i:02d}",
+                seed=int(cfg.seed * 1000 + i),
+                lux=round(50 + 250 * u[0]),
+                speed=round(0.8 + 0.8 * u[1], 2),
+                spacing=round(1.2 + 0.8 * u[2], 2),
+                pitch_deg=round(45 + 25 * u[3], 1),
+                seconds=cfg.seconds,
+                missing_fraction=0.1 if hard else 0.0,
+                unmapped=20 if hard else 0,
+            )
+        )
+    return out
+
+
+def make_session(sc: Scenario, root: Path, progress: bool) -> Path:
+    """Simulate a scenario's session (reused when already made with the same conditions)."""
+    from tagloc.sim.mapgen import GridMapConfig, grid_map
+    from tagloc.sim.simulate import SIM_REVISION, SimConfig, simulate_session
+
+    path = root / "sessions" / sc.name
+    stamp = path / "scenario.json"
+    made = {**asdict(sc), "simulator": SIM_REVISION}
+    if stamp.exists() and json.loads(stamp.read_text()) == made and (path / "frames.csv").exists():
+        return path
+    if path.exists():
+        import shutil
+
+        shutil.rmtree(path)
+    smap = grid_map(
+        GridMapConfig(
+            width_m=24.0, depth_m=14.0, spacing_min_m=sc.spacing * 0.92, spacing_max_m=sc.spacing * 1.08, seed=sc.seed
+        )
+    )
+    simulate_session(
+        smap,
+        path,
+        SimConfig(
+            seconds=sc.seconds,
+            lux=sc.lux,
+            speed_mps=sc.speed,
+            seed=sc.seed,
+            pitch_deg=sc.pitch_deg,
+            missing_fraction=sc.missing_fraction,
+            unmapped=sc.unmapped,
+        ),
+        progress=progress,
+    )
+    stamp.write_text(json.dumps(made))
+    return path
+
+
+def wrong_id_fixes(session: Path, log: RunLog, radius_px: float = 40.0) -> tuple[int, int]:
+    """(wrong, checked): accepted fixes whose ID is not the sticker the simulator put there."""
+    gt_file = session / "groundtruth_frames.jsonl"
+    if not gt_file.exists():
+        return 0, 0
+    truth: dict[int, list[tuple[int, np.ndarray]]] = {}
+    with gt_file.open(encoding="utf-8") as f:
+        for line in f:
+            rec = json.loads(line)
+            truth[int(rec["index"])] = [
+                (int(v["id"]), np.mean(np.asarray(v["corners"], float), axis=0)) for v in rec.get("visible", [])
+            ]
+    wrong = 0
+    for fix in log.fixes:
+        near = [sid for sid, c in truth.get(fix["frame"], []) if np.hypot(*(c - fix["centre"])) < radius_px]
+        wrong += fix["id"] not in near
+    return wrong, len(log.fixes)
+
+
+GAP_BINS_S = (0.0, 1e-6, 0.2, 0.5, 1.0, 2.0, 5.0, math.inf)
+
+
+def by_time_since_fix(log: RunLog, e: TrajectoryErrors) -> list[list[float]]:
+    """Per bin of time since the last accepted fix (``GAP_BINS_S``; the first bin is frames with a
+    fix): [frames, sum of squared position error (m^2), sum of position NEES] of the run's scored
+    errors ``e``. Sums, so that sessions pool."""
+    fix_t = np.unique([f["t"] for f in log.fixes])
+    t = e.stamps
+    since = np.full(len(t), np.inf)
+    if len(fix_t):
+        k = np.searchsorted(fix_t, t + 1e-9, side="right") - 1
+        since = np.where(k >= 0, t - fix_t[np.clip(k, 0, None)], np.inf)
+    b = np.digitize(since, GAP_BINS_S[1:])
+    return [
+        [int(np.sum(b == i)), float(np.sum(e.position[b == i] ** 2)), float(np.sum(e.nees[b == i]))]
+        for i in range(len(GAP_BINS_S) - 1)
+    ]
+
+
+def _timed_on_one_core(run: Callable[[], RunLog]) -> RunLog:
+    """``run()`` with OpenCV on one thread: real time means one core of the vest's computer, and the
+    per-frame timings in the report are taken inside it."""
+    import cv2
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        return run()
+    finally:
+        cv2.setNumThreads(before)
+
+
+def evaluate(cfg: EvalConfig) -> dict:
+    """Run every scenario and mode; write ``report.md``, ``results.json`` and PNG plots under ``cfg.out``."""
+    from tqdm import tqdm
+
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    plots = []
+    for sc in tqdm(scenarios(cfg), desc="eval", unit="session", disable=not cfg.progress):
+        path = make_session(sc, out, cfg.progress)
+        for mode in cfg.modes:
+            session = SessionReader(path)
+            log = _timed_on_one_core(
+                functools.partial(run_session, session, LocaliserConfig(mode=mode), progress=cfg.progress)
+            )
+            gt = session.groundtruth()
+            v = log.valid
+            e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *gt)
+            m = error_metrics(e)
+            wrong, checked = wrong_id_fixes(path, log)
+            by_source: dict[str, int] = {}
+            for fx in log.fixes:
+                by_source[fx["source"]] = by_source.get(fx["source"], 0) + 1
+            row = {
+                "session": sc.name,
+                "mode": mode,
+                **asdict(sc),
+                **m,
+                "wrong_id_fixes": wrong,
+                "fixes": len(log.fixes),
+                "fixes_by_source": by_source,
+                "rejected_fixes": len(log.rejected),
+                "coverage": float(np.mean(log.valid)) if len(log.valid) else 0.0,
+                "frame_ms_median": float(np.median(log.frame_ms)) if len(log.frame_ms) else math.nan,
+                "tracker_ms_median": float(np.median(log.tracker_ms)) if len(log.tracker_ms) else math.nan,
+                "tracker_ms_p95": float(np.percentile(log.tracker_ms, 95)) if len(log.tracker_ms) else math.nan,
+                "odometry_ms_median": float(np.median(log.odometry_ms)) if len(log.odometry_ms) else math.nan,
+                # What tracking adds to a frame over the per-frame stage: the filter, candidate
+                # selection and the floor odometry that feeds it, summed frame by frame.
+                "tracking_ms_median": float(np.median(log.tracker_ms + log.odometry_ms))
+                if len(log.tracker_ms)
+                else math.nan,
+                "tracking_ms_p95": float(np.percentile(log.tracker_ms + log.odometry_ms, 95))
+                if len(log.tracker_ms)
+                else math.nan,
+                "by_time_since_fix": by_time_since_fix(log, e),
+                "nees_blocks": nees_blocks(e.stamps, e.nees).tolist(),
+                "counts": log.counts,
+            }
+            rows.append(row)
+            if mode == "full":
+                plots.append(plot_run(session, log, gt, out / f"{sc.name}.png", title=f"{sc.name} ({_cond(sc)})"))
+    summary = summarise(rows)
+    (out / "results.json").write_text(json.dumps({"rows": rows, "summary": summary}, indent=1, default=float))
+    (out / "report.md").write_text(report_markdown(rows, summary, plots, out), encoding="utf-8")
+    return {"rows": rows, "summary": summary, "report": str(out / "report.md")}
+
+
+def _cond(sc: Scenario) -> str:
+    return f"{sc.lux:.0f} lx, {sc.speed} m/s, {sc.spacing} m, {sc.pitch_deg} deg"
+
+
+def summarise(rows: list[dict]) -> dict:
+    """Overall figures per mode (errors pooled by frame over all sessions)."""
+    summary = {}
+    for mode in dict.fromkeys(r["mode"] for r in rows):
+        rs = [r for r in rows if r["mode"] == mode]
+        n = np.array([r["frames"] for r in rs], float)
+        w = n / max(n.sum(), 1)
+        summary[mode] = {
+            "rmse_m": float(np.sqrt(np.sum(w * np.array([r["rmse_m"] for r in rs]) ** 2))),
+            "within_10cm": float(np.sum(w * np.array([r["within_10cm"] for r in rs]))),
+            "within_25cm": float(np.sum(w * np.array([r["within_25cm"] for r in rs]))),
+            "heading_rmse_deg": float(np.sqrt(np.sum(w * np.array([r["heading_rmse_deg"] for r in rs]) ** 2))),
+            "nees_mean": float(np.sum(w * np.array([r["nees_mean"] for r in rs]))),
+            **_nees_summary(rs),
+            "wrong_id_fixes": int(sum(r["wrong_id_fixes"] for r in rs)),
+            "fixes": int(sum(r["fixes"] for r in rs)),
+            "rejected_fixes": int(sum(r["rejected_fixes"] for r in rs)),
+            "coverage": float(np.mean([r["coverage"] for r in rs])),
+            "tracker_ms_median": float(np.median([r["tracker_ms_median"] for r in rs])),
+            "tracker_ms_p95": float(np.median([r["tracker_ms_p95"] for r in rs])),
+            "odometry_ms_median": float(np.median([r["odometry_ms_median"] for r in rs])),
+            "tracking_ms_median": float(np.median([r["tracking_ms_median"] for r in rs])),
+            "tracking_ms_p95": float(np.median([r["tracking_ms_p95"] for r in rs])),
+            "frame_ms_median": float(np.median([r["frame_ms_median"] for r in rs])),
+            "by_time_since_fix": np.sum([r["by_time_since_fix"] for r in rs], axis=0).tolist(),
+        }
+    return summary
+
+
+def _nees_summary(rows: list[dict]) -> dict:
+    """Pooled NEES test of the rows (see :mod:`tagloc.eval.consistency`): bounds for independent frames and
+    for the effective number of independent samples, and the verdict."""
+    blocks = [b for r in rows for b in r.get("nees_blocks", [])]
+    test = nees_test(np.array(blocks, float).reshape(-1, 3))
+    return {
+        "nees_bounds_95": list(test.bounds_independent),
+        "nees_effective_samples": test.effective_samples,
+        "nees_bounds_95_effective": list(test.bounds_effective),
+        "nees_verdict": test.verdict,
+    }
+
+
+def format_table(rows: list[dict], summary: dict) -> str:
+    """The terminal/Markdown table of per-session and overall figures."""
+    head = (
+        "| session | mode | conditions | RMSE cm | median cm | p95 cm | max cm | heading deg | <10 cm | <25 cm |"
+        " fixes (by source) | rejected | wrong IDs | NEES | covered |"
+    )
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for r in rows:
+        src = " ".join(f"{k[:3]}:{v}" for k, v in sorted(r["fixes_by_source"].items())) or "-"
+        lines.append(
+            f"| {r['session']} | {r['mode']} | {r['lux']:.0f} lx {r['speed']} m/s {r['spacing']} m {r['pitch_deg']} deg |"
+            f" {100 * r['rmse_m']:.1f} | {100 * r['median_m']:.1f} | {100 * r['p95_m']:.1f} | {100 * r['max_m']:.1f} |"
+            f" {r['heading_rmse_deg']:.2f} | {100 * r['within_10cm']:.0f}% | {100 * r['within_25cm']:.0f}% |"
+            f" {r['fixes']} ({src}) | {r['rejected_fixes']} | {r['wrong_id_fixes']} | {r['nees_mean']:.2f} |"
+            f" {100 * r['coverage']:.0f}% |"
+        )
+    for mode, s in summary.items():
+        lines.append(
+            f"| **all** | {mode} | | **{100 * s['rmse_m']:.1f}** | | | | {s['heading_rmse_deg']:.2f} |"
+            f" {100 * s['within_10cm']:.0f}% | {100 * s['within_25cm']:.0f}% | {s['fixes']} | {s['rejected_fixes']} |"
+            f" **{s['wrong_id_fixes']}** | {s['nees_mean']:.2f} | {100 * s['coverage']:.0f}% |"
+        )
+    return "\n".join(lines)
+
+
+def format_notes(summary: dict) -> str:
+    """Consistency (NEES against its bounds) and timing per mode, as Markdown lines."""
+    parts = ["## Consistency", ""]
+    for mode, s in summary.items():
+        lo, hi = s["nees_bounds_95"]
+        elo, ehi = s["nees_bounds_95_effective"]
+        parts.append(
+            f"- {mode}: mean position NEES {s['nees_mean']:.2f} (2 DoF), **{s['nees_verdict']}**: 95% bounds"
+            f" [{elo:.2f}, {ehi:.2f}] for the {s['nees_effective_samples']:.0f} independent samples the frames"
+            f" are worth (batch means); [{lo:.2f}, {hi:.2f}] if every frame were independent, which they are"
+            f" not (below the bounds: conservative; above: overconfident)"
+        )
+    full = summary.get("full")
+    if full is not None and full.get("by_time_since_fix"):
+        parts += [
+            "",
+            "Position error and NEES of `full` by time since the last accepted fix (all sessions pooled):",
+            "",
+            "| since last fix | frames | RMSE cm | NEES |",
+            "|---|---|---|---|",
+        ]
+        for i, (n, sq, ne) in enumerate(full["by_time_since_fix"]):
+            lo, hi = GAP_BINS_S[i], GAP_BINS_S[i + 1]
+            label = (
+                "fix in this frame"
+                if i == 0
+                else (f"> {lo:g} s" if math.isinf(hi) else f"{lo if lo >= 1e-3 else 0:g}-{hi:g} s")
+            )
+            if n:
+                parts.append(f"| {label} | {int(n)} | {100 * math.sqrt(sq / n):.1f} | {ne / n:.2f} |")
+    parts += ["", "## Timing (per frame)", ""]
+    for mode, s in summary.items():
+        parts.append(
+            f"- {mode}: median frame {s['frame_ms_median']:.1f} ms, of which tracker {s['tracker_ms_median']:.2f} ms"
+            f" (p95 {s['tracker_ms_p95']:.2f} ms) and floor odometry {s['odometry_ms_median']:.2f} ms;"
+            f" tracking in all (tracker + odometry, per frame) {s['tracking_ms_median']:.2f} ms"
+            f" (p95 {s['tracking_ms_p95']:.2f} ms; target: at most 2 ms over the per-frame stage)"
+        )
+    return "\n".join(parts)
+
+
+def report_markdown(rows: list[dict], summary: dict, plots: list[Path], out: Path) -> str:
+    """The Markdown report: conditions, the table, timing, and the plots."""
+    parts = [
+        "# tagloc eval",
+        "",
+        "Modes: `full` = tagloc (EKF + candidate identification); `decoded-only` = the paper's"
+        " decoded fixes without a filter; `orb-all` = the paper's ORB identification against every reference.",
+        "Errors are horizontal position errors of the body frame against the simulator's ground truth, over the"
+        " frames where the mode had a pose (`covered`). NEES is the mean normalised position error (2 DoF; its 95%"
+        " bounds depend on how many independent samples the correlated frames are worth, see"
+        " `tagloc/eval/consistency.py`).",
+        "",
+        format_table(rows, summary),
+    ]
+    parts += ["", format_notes(summary)]
+    parts += ["", "## Plots", ""]
+    parts += [f"![{p.stem}]({p.relative_to(out)})" for p in plots if p is not None]
+    return "\n".join(parts) + "\n"
+
+
+def plot_run(
+    session: SessionReader, log: RunLog, gt: tuple[np.ndarray, np.ndarray] | None, path: Path, title: str = ""
+) -> Path | None:
+    """Trajectory over the map, and error over time with the 2-sigma band, as one PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from tagloc.eval.metrics import trajectory_errors
+
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(13, 5), gridspec_kw={"width_ratios": [1.3, 1]})
+    ax0.scatter(session.map.xy[:, 0], session.map.xy[:, 1], s=6, c="0.6", marker="s", label="stickers")
+    v = log.valid
+    if gt is not None:
+        gx = np.array([T[0, 3] for T in gt[1]])
+        gy = np.array([T[1, 3] for T in gt[1]])
+        ax0.plot(gx, gy, "k-", lw=1.2, label="ground truth")
+    ax0.plot(log.poses[v, 0], log.poses[v, 1], "-", c="tab:blue", lw=1, label="tagloc")
+    fx = np.array([log.poses[np.searchsorted(log.stamps, f["t"])][:2] for f in log.fixes]) if log.fixes else None
+    if fx is not None and len(fx):
+        ax0.plot(fx[:, 0], fx[:, 1], ".", c="tab:green", ms=4, label="after a fix")
+    if gt is not None and v.any():
+        ax0.set_xlim(min(gx.min(), log.poses[v, 0].min()) - 1.5, max(gx.max(), log.poses[v, 0].max()) + 1.5)
+        ax0.set_ylim(min(gy.min(), log.poses[v, 1].min()) - 1.5, max(gy.max(), log.poses[v, 1].max()) + 1.5)
+    ax0.set_aspect("equal")
+    ax0.set_xlabel("x (m)")
+    ax0.set_ylabel("y (m)")
+    ax0.legend(loc="best", fontsize=8)
+    ax0.set_title(title, fontsize=9)
+    if gt is not None and v.any():
+        e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *gt)
+        covs = log.covs[v][e.inside]
+        sig = np.sqrt(np.maximum(np.linalg.eigvalsh(covs[:, :2, :2])[:, 1], 0))
+        ax1.fill_between(e.stamps, 0, 100 * 2 * sig, color="tab:blue", alpha=0.2, label="2 sigma (major axis)")
+        ax1.plot(e.stamps, 100 * e.position, c="tab:red", lw=1, label="position error")
+        for f in log.fixes:
+            ax1.axvline(f["t"], c="tab:green", lw=0.3, alpha=0.5)
+        ax1.set_ylim(0, max(30.0, float(np.percentile(100 * e.position, 99)) * 1.2))
+    ax1.set_xlabel("time (s)")
+    ax1.set_ylabel("cm")
+    ax1.legend(loc="upper right", fontsize=8)
+    ax1.set_title("error and stated uncertainty (green: fixes)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

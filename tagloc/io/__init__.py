@@ -1,0 +1,1 @@
+"""Input and output: the session format, capture, sinks, Rerun view and printing."""

@@ -1,0 +1,346 @@
+"""Rerun visualisation of a localisation run: one recording, one blueprint.
+
+Entity tree (``CAM`` is the rig camera's name, e.g. ``front``)::
+
+    world/map/stickers              static: sticker outlines on the floor, labelled with their IDs
+    world/body                      estimated body pose (Transform3D), per frame once tracking
+    world/body/CAM                  static: T_body_camera
+    world/body/CAM/image            static Pinhole (scaled to the logged image) + JPEG image per frame
+    world/body/CAM/image/detections sticker outlines, coloured by how they were identified, with IDs
+    world/estimate/path/NNNN        estimated trajectory, in pieces of PATH_PIECE frames
+    world/estimate/ellipse          2-sigma position ellipse on the floor
+    world/groundtruth/path          static: the whole ground-truth trajectory (when known)
+    world/groundtruth/body          ground truth at the frame time (when known)
+    plots/error/{position_m,yaw_deg}                     when ground truth is known
+    plots/uncertainty/{position_2sigma_m,yaw_sigma_deg,since_fix_s}
+    plots/timing/<stage>_ms         per-stage wall time of the localiser
+    status                          text: tracker state, last sticker
+
+Timelines: ``frame`` (sequence: frame index) and ``time`` (the frame clock: a duration for a
+session's clock, a timestamp for a live camera's epoch-based clock).
+
+The trajectory is logged in pieces (each piece re-logged as it grows) so that every frame adds
+a bounded amount of data and scrubbing back in time still shows the path as it was then.
+
+Open a saved recording with ``rerun out.rrd``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from tagloc.core.errors import BackendUnavailable, InputError
+from tagloc.core.geometry import interpolate_groundtruth
+from tagloc.core.rig import Rig
+from tagloc.core.sticker import OUTER_CORNERS
+from tagloc.core.stickermap import StickerMap
+from tagloc.core.types import Frame, FrameResult, IdSource, TrackState
+
+PATH_PIECE = 256  # frames per trajectory piece
+NETWORK_FLUSH_S = 5.0  # longest wait for a viewer when closing
+
+log = logging.getLogger(__name__)
+
+SOURCE_COLOURS: dict[IdSource, tuple[int, int, int]] = {
+    IdSource.DECODED: (40, 200, 60),
+    IdSource.ORB: (40, 140, 255),
+    IdSource.APPEARANCE: (230, 140, 20),
+    IdSource.NONE: (220, 40, 40),
+}
+ESTIMATE_COLOUR = (255, 200, 0)
+TRUTH_COLOUR = (160, 160, 160)
+
+
+def _rr():
+    try:
+        import rerun as rr
+    except ImportError as exc:  # pragma: no cover - rerun-sdk is a dependency
+        raise BackendUnavailable("rerun-sdk is not installed; pip install rerun-sdk") from exc
+    return rr
+
+
+def image_entity(rig: Rig, camera: int) -> str:
+    """Entity path of a rig camera's image (also the origin of its 2D view)."""
+    return f"world/body/{rig[camera].name}/image"
+
+
+def blueprint(rig: Rig, groundtruth: bool = False):
+    """3D view and camera image(s) on the left, time series on the right."""
+    import rerun.blueprint as rrb
+
+    images = [
+        rrb.Spatial2DView(origin=image_entity(rig, k), name=f"camera {rc.name}") for k, rc in enumerate(rig.cameras)
+    ]
+    series = [
+        rrb.TimeSeriesView(origin="plots/uncertainty", name="uncertainty"),
+        rrb.TimeSeriesView(origin="plots/timing", name="timing (ms)"),
+    ]
+    if groundtruth:
+        series.insert(0, rrb.TimeSeriesView(origin="plots/error", name="error"))
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(rrb.Spatial3DView(origin="world", name="map"), rrb.Horizontal(*images), row_shares=[3, 2]),
+            rrb.Vertical(*series, rrb.TextDocumentView(origin="status", name="status")),
+            column_shares=[3, 2],
+        ),
+        collapse_panels=True,
+    )
+
+
+class RerunView:
+    """Log a localisation run to Rerun: a file (``save``), a spawned viewer (``spawn``) or a viewer's gRPC URL.
+
+    Args:
+        smap, rig: the map and rig being localised against.
+        save: .rrd file to write.
+        spawn: start a local viewer and stream to it.
+        connect: stream to a running viewer, e.g. ``rerun+http://127.0.0.1:9876/proxy``.
+        groundtruth: (stamps (M,), T_world_body (M, 4, 4)) when known.
+        image_scale: factor applied to the logged camera image (keeps .rrd files small).
+        jpeg_quality: JPEG quality of the logged image.
+        clock: "duration" (a session's clock, seconds from its start) or "timestamp" (epoch seconds).
+    """
+
+    def __init__(
+        self,
+        smap: StickerMap,
+        rig: Rig,
+        *,
+        save: str | Path | None = None,
+        spawn: bool = False,
+        connect: str | None = None,
+        groundtruth: tuple[np.ndarray, np.ndarray] | None = None,
+        image_scale: float = 0.5,
+        jpeg_quality: int = 75,
+        clock: str = "duration",
+        app_id: str = "tagloc",
+        recording_id: str | None = None,
+    ):
+        rr = _rr()
+        if not (save or spawn or connect):
+            raise InputError("Rerun: give a file to save to, spawn=True or a viewer URL")
+        if clock not in ("duration", "timestamp"):
+            raise InputError(f"Rerun clock must be 'duration' or 'timestamp', not {clock!r}")
+        if not 0.0 < image_scale <= 1.0:
+            raise InputError(f"Rerun image scale must be in (0, 1], not {image_scale}")
+        self.rig = rig
+        self.image_scale = float(image_scale)
+        self.jpeg_quality = int(jpeg_quality)
+        self.clock = clock
+        self.gt = groundtruth if groundtruth is not None and len(groundtruth[0]) else None
+        self.rec = rr.RecordingStream(app_id, recording_id=recording_id)
+        bp = blueprint(rig, groundtruth=self.gt is not None)
+        sinks = []
+        if save:
+            Path(save).parent.mkdir(parents=True, exist_ok=True)
+            sinks.append(rr.FileSink(str(save)))
+        if spawn:
+            # Start the viewer only; the stream is attached below with the other sinks.
+            try:
+                self.rec.spawn(connect=False)
+            except RuntimeError as exc:  # the viewer executable is missing
+                raise BackendUnavailable(
+                    f"cannot start the Rerun viewer ({str(exc).splitlines()[0].strip()}); "
+                    "put `rerun` on PATH or save a recording instead"
+                ) from exc
+            sinks.append(rr.GrpcSink())
+        if connect:
+            sinks.append(rr.GrpcSink(connect))
+        self._network = bool(spawn or connect)
+        self.rec.set_sinks(*sinks, default_blueprint=bp)
+        self._path: list[list[float]] = []
+        self._log_static(smap)
+
+    def _log_static(self, smap: StickerMap) -> None:
+        rr = _rr()
+        rec = self.rec
+        rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        if len(smap):
+            corners = np.stack(
+                [(smap.T_world_sticker(int(i)) @ np.c_[OUTER_CORNERS, np.ones(4)].T).T[:, :3] for i in smap.ids]
+            )
+            strips = np.concatenate([corners, corners[:, :1]], axis=1)  # close each square
+            rec.log(
+                "world/map/stickers",
+                rr.LineStrips3D(strips, labels=[str(int(i)) for i in smap.ids], colors=(90, 90, 90), radii=0.004),
+                static=True,
+            )
+        for k, rc in enumerate(self.rig.cameras):
+            T = rc.T_body_camera
+            rec.log(f"world/body/{rc.name}", rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]), static=True)
+            cam = rc.camera.scaled(self.image_scale) if self.image_scale != 1.0 else rc.camera
+            rec.log(
+                image_entity(self.rig, k),
+                rr.Pinhole(
+                    image_from_camera=cam.K,
+                    resolution=[cam.width, cam.height],
+                    camera_xyz=rr.ViewCoordinates.RDF,
+                    image_plane_distance=0.3,
+                ),
+                static=True,
+            )
+        if self.gt is not None:
+            xyz = self.gt[1][:, :3, 3].copy()
+            xyz[:, 2] = 0.0
+            rec.log("world/groundtruth/path", rr.LineStrips3D([xyz], colors=TRUTH_COLOUR, radii=0.01), static=True)
+
+    def _set_time(self, result: FrameResult) -> None:
+        self.rec.set_time("frame", sequence=int(result.index))
+        if self.clock == "duration":
+            self.rec.set_time("time", duration=float(result.timestamp))
+        else:
+            self.rec.set_time("time", timestamp=float(result.timestamp))
+
+    def log(self, frame: Frame, result: FrameResult) -> None:
+        """Log one frame: image, detections, pose, uncertainty, errors and timings."""
+        rr = _rr()
+        rec = self.rec
+        self._set_time(result)
+        out = result.output
+        if frame.image is not None:
+            self._log_image(frame, result)
+        tracking = out.state != TrackState.INITIALISING
+        if tracking:
+            x, y, yaw = (float(v) for v in out.pose)
+            rec.log(
+                "world/body",
+                rr.Transform3D(
+                    translation=[x, y, 0.0], rotation_axis_angle=rr.RotationAxisAngle([0, 0, 1], radians=yaw)
+                ),
+            )
+            self._path.append([x, y, 0.0])
+            piece = (len(self._path) - 1) // PATH_PIECE
+            # Each piece starts at the last point of the previous one so the line has no gaps.
+            start = max(0, piece * PATH_PIECE - 1)
+            rec.log(
+                f"world/estimate/path/{piece:04d}",
+                rr.LineStrips3D([self._path[start:]], colors=ESTIMATE_COLOUR, radii=0.012),
+            )
+            evals, evecs = np.linalg.eigh(out.cov[:2, :2])
+            half = 2.0 * np.sqrt(np.clip(evals, 0.0, None))
+            angle = math.atan2(evecs[1, 1], evecs[0, 1])  # direction of the major axis
+            rec.log(
+                "world/estimate/ellipse",
+                rr.Ellipsoids3D(
+                    centers=[[x, y, 0.002]],
+                    half_sizes=[[half[1], half[0], 1e-4]],
+                    rotation_axis_angles=[rr.RotationAxisAngle([0, 0, 1], radians=angle)],
+                    colors=ESTIMATE_COLOUR,
+                    fill_mode=rr.components.FillMode.MajorWireframe,
+                ),
+            )
+            rec.log("plots/uncertainty/position_2sigma_m", rr.Scalars(float(half[1])))
+            rec.log("plots/uncertainty/yaw_sigma_deg", rr.Scalars(math.degrees(math.sqrt(max(out.cov[2, 2], 0.0)))))
+            if self.gt is not None:
+                self._log_error(result)
+        if math.isfinite(out.since_fix):
+            rec.log("plots/uncertainty/since_fix_s", rr.Scalars(float(out.since_fix)))
+        for stage, ms in result.times_ms.items():
+            rec.log(f"plots/timing/{stage}_ms", rr.Scalars(float(ms)))
+        if self.gt is not None:
+            gt, inside = interpolate_groundtruth(self.gt[0], self.gt[1], np.array([result.timestamp]))
+            if inside[0]:
+                rec.log(
+                    "world/groundtruth/body", rr.Points3D([[gt[0, 0], gt[0, 1], 0.0]], colors=TRUTH_COLOUR, radii=0.04)
+                )
+        last = "-" if out.last_id is None else f"{out.last_id} ({out.last_source.value if out.last_source else '?'})"
+        since = f"{out.since_fix:.2f} s" if math.isfinite(out.since_fix) else "never"
+        seen = (
+            ", ".join(
+                f"{o.sticker_id if o.sticker_id is not None else '?'} {o.source.value}" for o in result.observations
+            )
+            or "none"
+        )
+        rec.log(
+            "status",
+            rr.TextDocument(
+                f"**{out.state.value}**  \nframe {result.index}, t = {result.timestamp:.3f} s  \n"
+                f"last fix: {last}, {since} ago  \nseen: {seen}"
+                + (f"  \nskipped: {result.skipped}" if result.skipped else ""),
+                media_type=rr.MediaType.MARKDOWN,
+            ),
+        )
+
+    def _log_error(self, result: FrameResult) -> None:
+        rr = _rr()
+        gt, inside = interpolate_groundtruth(self.gt[0], self.gt[1], np.array([result.timestamp]))
+        if not inside[0]:
+            return
+        p = result.output.pose
+        self.rec.log("plots/error/position_m", rr.Scalars(float(np.hypot(p[0] - gt[0, 0], p[1] - gt[0, 1]))))
+        dyaw = (p[2] - gt[0, 2] + math.pi) % (2 * math.pi) - math.pi
+        self.rec.log("plots/error/yaw_deg", rr.Scalars(math.degrees(abs(dyaw))))
+
+    def _log_image(self, frame: Frame, result: FrameResult) -> None:
+        rr = _rr()
+        s = self.image_scale
+        img = frame.image
+        if s != 1.0:
+            img = cv2.resize(img, (round(img.shape[1] * s), round(img.shape[0] * s)), interpolation=cv2.INTER_AREA)
+        ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
+        if not ok:  # pragma: no cover - encoding a valid uint8 image does not fail
+            return
+        entity = image_entity(self.rig, frame.camera)
+        self.rec.log(entity, rr.EncodedImage(contents=buf.tobytes(), media_type="image/jpeg"))
+        obs = [o for o in result.observations if o.camera == frame.camera]
+        # Pixel centres sit at integers in OpenCV, so scaling maps p -> (p + 0.5) * s - 0.5.
+        strips = [np.vstack([o.detection.outer, o.detection.outer[:1]]) * s + 0.5 * s - 0.5 for o in obs]
+        labels = []
+        for o in obs:
+            text = "?" if o.sticker_id is None else str(o.sticker_id)
+            text += f" {o.source.value}"
+            if o.accepted is False:
+                text += f" (refused: {o.gate_reason})" if o.gate_reason else " (refused)"
+            labels.append(text)
+        self.rec.log(
+            f"{entity}/detections",
+            rr.LineStrips2D(
+                strips, colors=[SOURCE_COLOURS[o.source] for o in obs], labels=labels, radii=1.5, draw_order=10.0
+            )
+            if obs
+            else rr.Clear(recursive=False),
+        )
+
+    def close(self) -> None:
+        """Flush everything to the sinks and detach (waiting at most ``NETWORK_FLUSH_S`` for a viewer)."""
+        try:
+            # A file flushes in full; a viewer that died or never started must not hang the run.
+            self.rec.flush(timeout_sec=NETWORK_FLUSH_S if self._network else 1e9)
+        except Exception as exc:  # noqa: BLE001 - rerun raises a bare RuntimeError on timeout
+            log.warning("Rerun: could not flush everything to the viewer (%s)", exc)
+        self.rec.disconnect()
+
+
+@dataclass
+class RrdEntity:
+    """What an .rrd holds for one entity: whether static, the frame indices logged, the components."""
+
+    path: str
+    static: bool = False
+    frames: list[int] = field(default_factory=list)
+    components: set[str] = field(default_factory=set)
+
+
+def read_rrd(path: str | Path) -> dict[str, RrdEntity]:
+    """Entities of the first recording in an .rrd file (for tests and checks), keyed by path without the leading /."""
+    from rerun.chunk import RrdReader
+
+    out: dict[str, RrdEntity] = {}
+    for chunk in RrdReader(str(path)).stream():
+        name = chunk.entity_path.lstrip("/")
+        ent = out.setdefault(name, RrdEntity(name))
+        batch = chunk.to_record_batch()
+        ent.components.update(n for n in batch.schema.names if ":" in n)
+        if chunk.is_static:
+            ent.static = True
+        elif "frame" in chunk.timeline_names:
+            ent.frames.extend(int(v) for v in batch.column("frame").to_pylist())
+    for ent in out.values():
+        ent.frames.sort()
+    return out

@@ -1,0 +1,257 @@
+"""The one session layout, for recorded, simulated and logged sessions alike.
+
+A session is a directory::
+
+    session.json       {"format": "tagloc-session", "version": 1, "source": ..., "fps": ..., "notes": ...}
+    camera.yaml        calibration (OpenCV FileStorage YAML or ROS camera_info)
+    rig.json           camera poses in the body frame (see tagloc.core.rig)
+    map.csv            id,x_m,y_m,yaw_deg
+    frames/000000.jpg  one image per frame (.jpg or .png), named by zero-padded index
+    frames.csv         index,timestamp_s (one line per frame, appended as frames are written)
+    groundtruth.tum    optional: "timestamp x y z qx qy qz qw" of the body frame in the world
+
+``session.json`` may be missing. Reading streams frame by frame and skips (and counts) frames that
+are missing or corrupt. Writing is crash-safe: each image is written to a temporary name and
+renamed, then its line is appended and flushed to ``frames.csv``, so a kill at any moment leaves
+every listed frame readable.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from tagloc.core.camera import Camera
+from tagloc.core.errors import SessionError
+from tagloc.core.geometry import T_from_tum, T_to_tum
+from tagloc.core.rig import Rig, load_rig, save_rig
+from tagloc.core.stickermap import StickerMap, load_map, save_map
+from tagloc.core.types import Frame
+
+FORMAT = "tagloc-session"
+VERSION = 1
+IMAGE_EXTENSIONS = (".jpg", ".png", ".jpeg", ".bmp", ".tif", ".tiff")
+
+
+@dataclass
+class SessionInfo:
+    """Contents of ``session.json``."""
+
+    source: str = "unknown"
+    fps: float = 30.0
+    notes: str = ""
+    extra: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        return {
+            "format": FORMAT,
+            "version": VERSION,
+            "source": self.source,
+            "fps": self.fps,
+            "notes": self.notes,
+            **self.extra,
+        }
+
+
+def write_tum(path: str | Path, stamps: np.ndarray, poses: list[np.ndarray] | np.ndarray) -> None:
+    """Write 4x4 poses with timestamps as a TUM trajectory file."""
+    with Path(path).open("w", encoding="utf-8") as f:
+        for t, T in zip(stamps, poses):
+            f.write(f"{t:.6f} " + " ".join(f"{v:.6f}" for v in T_to_tum(T)) + "\n")
+
+
+def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a TUM file: timestamps (N,) and poses (N, 4, 4). Lines starting with # are comments."""
+    path = Path(path)
+    stamps, poses = [], []
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except OSError as exc:
+        raise SessionError(f"{path}: cannot read ({exc.strerror})") from exc
+    for n, line in enumerate(lines, 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.replace(",", " ").split()
+        try:
+            values = [float(p) for p in parts]
+        except ValueError:
+            raise SessionError(f"{path}:{n}: not a TUM line (timestamp x y z qx qy qz qw)") from None
+        if len(values) != 8 or not np.all(np.isfinite(values)):
+            raise SessionError(f"{path}:{n}: want 8 finite numbers, got {len(values)}")
+        stamps.append(values[0])
+        poses.append(T_from_tum(values[1:]))
+    return np.array(stamps), np.array(poses).reshape(-1, 4, 4)
+
+
+class SessionReader:
+    """Read a session directory lazily (frames are loaded one at a time)."""
+
+    def __init__(self, path: str | Path, calibration: Camera | None = None):
+        self.path = Path(path)
+        if not self.path.is_dir():
+            raise SessionError(f"{self.path}: not a session directory")
+        self.info = self._read_info()
+        self.map: StickerMap = load_map(self._need("map.csv"))
+        self.rig: Rig = (
+            load_rig(self._need("rig.json"), calibration)
+            if (self.path / "rig.json").exists()
+            else self._rig_from_camera(calibration)
+        )
+        self.index, self.timestamps = self._read_frames_csv()
+        self.skipped: list[tuple[int, str]] = []
+
+    def _need(self, name: str) -> Path:
+        p = self.path / name
+        if not p.exists():
+            raise SessionError(f"{self.path}: missing {name}")
+        return p
+
+    def _rig_from_camera(self, calibration: Camera | None) -> Rig:
+        from tagloc.core.camera import load_calibration
+        from tagloc.core.rig import default_rig
+
+        return default_rig(camera=calibration or load_calibration(self._need("camera.yaml")))
+
+    def _read_info(self) -> SessionInfo:
+        p = self.path / "session.json"
+        if not p.exists():
+            return SessionInfo(source="unknown", fps=0.0)
+        try:
+            doc = json.loads(p.read_text(encoding="utf-8"))
+        except json.JSONDecodeError as exc:
+            raise SessionError(f"{p}: line {exc.lineno}: not valid JSON ({exc.msg})") from exc
+        if not isinstance(doc, dict):
+            raise SessionError(f"{p}: not a JSON object")
+        extra = {k: v for k, v in doc.items() if k not in ("format", "version", "source", "fps", "notes")}
+        return SessionInfo(
+            str(doc.get("source", "unknown")), float(doc.get("fps", 0.0) or 0.0), str(doc.get("notes", "")), extra
+        )
+
+    def _read_frames_csv(self) -> tuple[np.ndarray, np.ndarray]:
+        p = self.path / "frames.csv"
+        if not p.exists():
+            # Without frames.csv, fall back to the images and session fps (documented, for hand-made sessions).
+            files = sorted(f for f in (self.path / "frames").glob("*") if f.suffix.lower() in IMAGE_EXTENSIONS)
+            if not files:
+                raise SessionError(f"{self.path}: missing frames.csv and no images in frames/")
+            fps = self.info.fps or 30.0
+            idx = np.array([int(f.stem) for f in files if f.stem.isdigit()])
+            return idx, idx / fps
+        index, stamps = [], []
+        lines = p.read_text(encoding="utf-8", errors="replace").splitlines(keepends=True)
+        if lines and not lines[-1].endswith("\n") and (self.path / "session.json").exists():
+            # tagloc ends every line with a newline: an unterminated last line is a write cut short by a
+            # crash, and its number may be cut too ("12.5" -> "1"), so it is not trusted.
+            lines = lines[:-1]
+        for n, row in enumerate(csv.reader(lines), 1):
+            if not row or (n == 1 and row[0].strip().lower() == "index"):
+                continue
+            try:
+                i, t = int(row[0]), float(row[1])
+            except (ValueError, IndexError):
+                if n == len(lines):  # a last line cut short by a crash while recording: stop there
+                    break
+                raise SessionError(f"{p}:{n}: want 'index,timestamp_s', got {','.join(row)!r}") from None
+            if not np.isfinite(t):
+                raise SessionError(f"{p}:{n}: timestamp is not finite")
+            index.append(i)
+            stamps.append(t)
+        return np.array(index, np.int64), np.array(stamps, float)
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    @property
+    def camera(self) -> Camera:
+        """The first camera's calibration."""
+        return self.rig.cameras[0].camera
+
+    def frame_path(self, index: int) -> Path | None:
+        """Path of frame ``index``'s image, whatever its extension, or None."""
+        stem = self.path / "frames" / f"{index:06d}"
+        for ext in IMAGE_EXTENSIONS:
+            p = stem.with_suffix(ext)
+            if p.exists():
+                return p
+        return None
+
+    def frames(self, with_images: bool = True) -> Iterator[Frame]:
+        """Yield every frame in order; unreadable frames come with ``image=None`` and ``error`` set."""
+        for i, t in zip(self.index, self.timestamps):
+            if not with_images:
+                yield Frame(int(i), float(t), None)
+                continue
+            p = self.frame_path(int(i))
+            if p is None:
+                err = f"frame {i}: image file missing"
+                img = None
+            else:
+                img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+                err = None if img is not None else f"frame {i}: {p.name} is corrupt or unreadable"
+            if err:
+                self.skipped.append((int(i), err))
+            yield Frame(int(i), float(t), img, 0, err)
+
+    def groundtruth(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(timestamps (N,), T_world_body (N, 4, 4)) when the session has ground truth, else None."""
+        p = self.path / "groundtruth.tum"
+        return read_tum(p) if p.exists() else None
+
+
+class SessionWriter:
+    """Write a session as frames arrive; safe to kill at any moment."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        smap: StickerMap,
+        rig: Rig,
+        info: SessionInfo,
+        jpeg_quality: int = 90,
+        image_ext: str = ".jpg",
+    ):
+        self.path = Path(path)
+        (self.path / "frames").mkdir(parents=True, exist_ok=True)
+        if (self.path / "frames.csv").exists() and any((self.path / "frames").iterdir()):
+            raise SessionError(f"{self.path}: already holds a session; choose a new directory")
+        (self.path / "session.json").write_text(json.dumps(info.to_json(), indent=2) + "\n", encoding="utf-8")
+        save_map(smap, self.path / "map.csv")
+        save_rig(rig, self.path / "rig.json")
+        self.jpeg_quality = int(jpeg_quality)
+        self.image_ext = image_ext
+        self._csv = (self.path / "frames.csv").open("w", encoding="utf-8", buffering=1)
+        self._csv.write("index,timestamp_s\n")
+        self._csv.flush()
+        self.count = 0
+
+    def write(self, index: int, timestamp: float, image: np.ndarray) -> None:
+        """Write one frame: image first (atomic rename), then its frames.csv line, flushed."""
+        final = self.path / "frames" / f"{index:06d}{self.image_ext}"
+        tmp = final.with_name(final.stem + ".tmp" + self.image_ext)
+        params = [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality] if self.image_ext == ".jpg" else []
+        if not cv2.imwrite(str(tmp), image, params):
+            raise SessionError(f"{tmp}: cannot write frame")
+        os.replace(tmp, final)
+        self._csv.write(f"{index},{timestamp:.6f}\n")
+        self._csv.flush()
+        self.count += 1
+
+    def close(self) -> None:
+        if not self._csv.closed:
+            self._csv.flush()
+            os.fsync(self._csv.fileno())
+            self._csv.close()
+
+    def __enter__(self) -> SessionWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

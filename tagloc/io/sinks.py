@@ -1,0 +1,372 @@
+"""Where poses go: JSON lines (stdout or file), UDP datagrams, MQTT, TUM trajectories, frame logs.
+
+Every published pose is one JSON object of schema ``tagloc.vision.pose/1``::
+
+    {"schema": "tagloc.vision.pose/1", "vest": "vest-07", "frame": "world", "index": 1234, "t": 41.133333,
+     "x": 12.3456, "y": 3.21, "yaw": 1.570796, "yaw_deg": 90.0,
+     "cov": [[sxx, sxy, sxyaw], [syx, syy, syyaw], [syawx, syawy, syawyaw]],
+     "state": "tracking", "since_fix": 0.2667, "last_id": 42, "last_source": "decoded",
+     "latency_ms": 23.4}
+
+``t`` is the frame's timestamp (s, the source clock), ``frame`` names the frame the pose is in and
+``index`` the camera frame it follows. ``x``, ``y`` (m) and ``yaw`` (rad, CCW from world +x) place
+the body frame (on the floor under the vest, +x forward) in the world; ``cov`` is their 3x3
+covariance (m^2, m*rad, rad^2). ``state`` is "initialising" (no pose yet: x, y, yaw are zeros and
+meaningless), "tracking" or "lost". ``since_fix`` is seconds since the last accepted sticker fix
+(null before the first). ``latency_ms`` is from frame capture to publication (null offline).
+
+Sinks never listen: UDP only sends, MQTT only connects out. A network sink never blocks or stops
+localisation: UDP errors are counted, MQTT messages are dropped (and counted) while the broker is
+away and the client reconnects in the background.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import socket
+import sys
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, TYPE_CHECKING
+from urllib.parse import urlsplit
+
+import numpy as np
+
+from tagloc.core.errors import BackendUnavailable, InputError
+from tagloc.core.geometry import T_to_tum, planar_T
+from tagloc.core.types import FrameResult, TrackerOutput, TrackState
+
+if TYPE_CHECKING:
+    import paho.mqtt.client as mqtt
+
+SCHEMA = "tagloc.vision.pose/1"
+
+
+@dataclass
+class PoseMessage:
+    """One published pose: the tracker's output after a frame, tagged with the vest and frame.
+
+    Attributes:
+        vest: operator/vest ID.
+        index: index of the frame the pose follows.
+        output: the tracker's output.
+        latency_ms: capture-to-publication latency, ms, or None (offline replay).
+        frame: name of the frame the pose is expressed in.
+    """
+
+    vest: str
+    index: int
+    output: TrackerOutput
+    latency_ms: float | None = None
+    frame: str = "world"
+
+    def to_json(self) -> dict:
+        """The ``tagloc.vision.pose/1`` object."""
+        o = self.output.to_json()
+        return {
+            "schema": SCHEMA,
+            "vest": self.vest,
+            "frame": self.frame,
+            "index": int(self.index),
+            "t": o["t"],
+            "x": o["x"],
+            "y": o["y"],
+            "yaw": o["yaw"],
+            "yaw_deg": round(math.degrees(o["yaw"]), 4),
+            "cov": o["cov"],
+            "state": o["state"],
+            "since_fix": o["since_fix"],
+            "last_id": o["last_id"],
+            "last_source": o["last_source"],
+            "latency_ms": None if self.latency_ms is None else round(float(self.latency_ms), 3),
+        }
+
+    def encode(self) -> bytes:
+        """Compact UTF-8 JSON, as sent on the wire."""
+        return json.dumps(self.to_json(), separators=(",", ":")).encode()
+
+
+class Sink:
+    """A destination for poses. ``sent`` and ``dropped`` count messages."""
+
+    name = "sink"
+
+    def __init__(self) -> None:
+        self.sent = 0
+        self.dropped = 0
+
+    def publish(self, message: PoseMessage) -> bool:
+        """Send one pose; True if it went out (never raises for network trouble)."""
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Flush and release resources."""
+
+    def __enter__(self) -> Sink:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class JsonLinesSink(Sink):
+    """One ``tagloc.vision.pose/1`` object per line, to a stream or a file (flushed per line)."""
+
+    def __init__(self, target: str | Path | IO[str]):
+        super().__init__()
+        if isinstance(target, (str, Path)):
+            self.name = str(target)
+            try:
+                self._f: IO[str] = Path(target).open("w", encoding="utf-8")
+            except OSError as exc:
+                raise InputError(f"{target}: cannot write ({exc.strerror})") from exc
+            self._own = True
+        else:
+            self.name = getattr(target, "name", "stream")
+            self._f, self._own = target, False
+
+    def publish(self, message: PoseMessage) -> bool:
+        self._f.write(message.encode().decode() + "\n")
+        self._f.flush()
+        self.sent += 1
+        return True
+
+    def close(self) -> None:
+        if self._own and not self._f.closed:
+            self._f.close()
+        elif not self._own:
+            self._f.flush()
+
+
+class UdpSink(Sink):
+    """One datagram per pose to ``host:port`` (sendto only: nothing is bound or listened on)."""
+
+    def __init__(self, host: str, port: int):
+        super().__init__()
+        self.name = f"udp://{host}:{port}"
+        try:
+            family, _, _, _, addr = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)[0]
+        except socket.gaierror as exc:
+            raise InputError(f"{self.name}: cannot resolve host ({exc.strerror})") from exc
+        self._addr = addr
+        self._sock = socket.socket(family, socket.SOCK_DGRAM)
+        self.errors = 0
+
+    def publish(self, message: PoseMessage) -> bool:
+        try:
+            self._sock.sendto(message.encode(), self._addr)
+        except OSError:
+            # Network trouble (no route, ICMP refusals) must never stop localisation.
+            self.errors += 1
+            self.dropped += 1
+            return False
+        self.sent += 1
+        return True
+
+    def close(self) -> None:
+        self._sock.close()
+
+
+class MqttSink(Sink):
+    """Publish poses at QoS 0 to an MQTT broker, reconnecting in the background.
+
+    While the broker is unreachable messages are dropped, not queued; while connected at most
+    ``max_pending`` messages may wait to be written to the socket, beyond that they are dropped.
+    Both are counted in ``dropped``. ``connects`` counts successful (re)connections.
+    """
+
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        topic: str,
+        client_id: str = "",
+        keepalive: int = 10,
+        max_pending: int = 10,
+        reconnect_max_s: float = 2.0,
+    ):
+        super().__init__()
+        try:
+            import paho.mqtt.client as mqtt
+        except ImportError as exc:  # pragma: no cover - paho is a dependency
+            raise BackendUnavailable("paho-mqtt is not installed; pip install paho-mqtt") from exc
+        self.name = f"mqtt://{host}:{port}/{topic}"
+        self._success = mqtt.MQTT_ERR_SUCCESS
+        self.topic = topic
+        self.max_pending = int(max_pending)
+        self.connects = 0
+        self._lock = threading.Lock()
+        self._pending = 0
+        self._client: mqtt.Client = mqtt.Client(
+            callback_api_version=mqtt.CallbackAPIVersion.VERSION2, client_id=client_id, clean_session=True
+        )
+        self._client.reconnect_delay_set(min_delay=1, max_delay=max(1, int(math.ceil(reconnect_max_s))))
+        self._client.on_connect = self._on_connect
+        self._client.on_publish = self._on_publish
+        self._client.connect_async(host, port, keepalive=keepalive)
+        self._client.loop_start()
+
+    def _on_connect(
+        self, client: mqtt.Client, userdata: object, flags: object, reason: object, properties: object
+    ) -> None:
+        if not getattr(reason, "is_failure", False):
+            with self._lock:
+                # paho discards unsent packets when it reconnects; start counting afresh.
+                self._pending = 0
+                self.connects += 1
+
+    def _on_publish(self, client: mqtt.Client, userdata: object, mid: int, reason: object, properties: object) -> None:
+        with self._lock:
+            self._pending = max(0, self._pending - 1)
+
+    @property
+    def connected(self) -> bool:
+        """Whether the client is connected to the broker now."""
+        return self._client.is_connected()
+
+    def publish(self, message: PoseMessage) -> bool:
+        with self._lock:
+            if not self._client.is_connected() or self._pending >= self.max_pending:
+                self.dropped += 1
+                return False
+            self._pending += 1
+        info = self._client.publish(self.topic, message.encode(), qos=0)
+        if info.rc != self._success:
+            with self._lock:
+                self._pending = max(0, self._pending - 1)
+                self.dropped += 1
+            return False
+        self.sent += 1
+        return True
+
+    def close(self) -> None:
+        self._client.disconnect()
+        self._client.loop_stop()
+
+
+class TumSink(Sink):
+    """TUM trajectory of the body frame (``timestamp x y z qx qy qz qw``, z = 0).
+
+    Outputs while initialising carry no pose and are not written (counted in ``dropped``).
+    """
+
+    def __init__(self, path: str | Path):
+        super().__init__()
+        self.name = str(path)
+        try:
+            self._f = Path(path).open("w", encoding="utf-8")
+        except OSError as exc:
+            raise InputError(f"{path}: cannot write ({exc.strerror})") from exc
+
+    def publish(self, message: PoseMessage) -> bool:
+        return self.write(message.output)
+
+    def write(self, out: TrackerOutput) -> bool:
+        """Append one pose line (same number format as :func:`tagloc.io.session.write_tum`)."""
+        if out.state == TrackState.INITIALISING:
+            self.dropped += 1
+            return False
+        T = planar_T(float(out.pose[0]), float(out.pose[1]), float(out.pose[2]))
+        # "+ 0.0" turns -0.0 into 0.0 so that equal poses always print equal.
+        self._f.write(f"{out.t:.6f} " + " ".join(f"{v + 0.0:.6f}" for v in T_to_tum(T)) + "\n")
+        self._f.flush()
+        self.sent += 1
+        return True
+
+    def close(self) -> None:
+        if not self._f.closed:
+            self._f.close()
+
+
+def frame_result_json(result: FrameResult, include_times: bool = False) -> dict:
+    """Plain-data form of a frame's result, for the per-frame log.
+
+    Wall-clock stage timings vary run to run, so they are left out unless ``include_times``:
+    without them a replay's log is byte-for-byte reproducible.
+    """
+    obs = []
+    for o in result.observations:
+        d = o.to_json()
+        if not include_times:
+            d.pop("times_ms", None)
+        obs.append(d)
+    doc = {
+        "index": int(result.index),
+        "t": round(float(result.timestamp), 6),
+        "skipped": result.skipped,
+        "output": result.output.to_json(),
+        "observations": obs,
+    }
+    if include_times:
+        doc["times_ms"] = {k: round(float(v), 3) for k, v in result.times_ms.items()}
+    return doc
+
+
+class FrameLog:
+    """Per-frame JSON lines log: observations and tracker output of every frame."""
+
+    def __init__(self, path: str | Path, include_times: bool = False):
+        self.path = Path(path)
+        self.include_times = include_times
+        try:
+            self._f = self.path.open("w", encoding="utf-8")
+        except OSError as exc:
+            raise InputError(f"{path}: cannot write ({exc.strerror})") from exc
+
+    def write(self, result: FrameResult) -> None:
+        """Append one frame's line."""
+        self._f.write(
+            json.dumps(frame_result_json(result, self.include_times), separators=(",", ":"), default=_json_default)
+            + "\n"
+        )
+        self._f.flush()
+
+    def close(self) -> None:
+        if not self._f.closed:
+            self._f.close()
+
+    def __enter__(self) -> FrameLog:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _json_default(value: object) -> object:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def open_sink(target: str, vest: str = "vest") -> Sink:
+    """Open a sink from its description.
+
+    ``stdout`` or ``-``: JSON lines on stdout. ``udp://HOST:PORT``: datagrams. ``mqtt://HOST[:PORT][/TOPIC]``:
+    MQTT (default port 1883, default topic ``tagloc/VEST/pose``). A path ending in ``.tum``: TUM
+    trajectory. Any other path: JSON lines file.
+    """
+    if target in ("stdout", "-"):
+        return JsonLinesSink(sys.stdout)
+    if "://" in target:
+        url = urlsplit(target)
+        try:
+            port = url.port
+        except ValueError:
+            raise InputError(f"{target}: bad port") from None
+        if not url.hostname:
+            raise InputError(f"{target}: no host (want {url.scheme}://HOST:PORT)")
+        if url.scheme == "udp":
+            if port is None:
+                raise InputError(f"{target}: UDP needs a port (udp://HOST:PORT)")
+            return UdpSink(url.hostname, port)
+        if url.scheme == "mqtt":
+            topic = url.path.lstrip("/") or f"tagloc/{vest}/pose"
+            return MqttSink(url.hostname, port or 1883, topic, client_id=f"tagloc-{vest}")
+        raise InputError(f"{target}: unknown sink scheme {url.scheme!r} (want udp://, mqtt://, stdout or a file)")
+    if target.lower().endswith(".tum"):
+        return TumSink(target)
+    return JsonLinesSink(target)

@@ -1,0 +1,1 @@
+"""The localiser (one frame through the stages and the tracker), the session loop, live and replay."""

@@ -1,0 +1,1 @@
+"""The simulator: walks, floors, the camera renderer and whole sessions, and map generation."""

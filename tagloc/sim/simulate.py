@@ -1,0 +1,450 @@
+"""Simulated sessions: an operator walking over a sticker map, filmed by the vest camera.
+
+:func:`simulate_session` writes the standard session layout (see :mod:`tagloc.io.session`) plus
+``groundtruth_frames.jsonl``, one JSON object per frame::
+
+    {"index": 12, "t": 0.4, "T_world_body": 4x4, "T_world_camera": 4x4, "exposure_s": 0.003,
+     "gain": 12.1, "blur_px": 3.4, "subframes": 4, "mean_signal_e": 95.2,
+     "visible": [{"id": 4242, "in_map": true, "corners": [[u, v] x 4], "inner": [[u, v] x 4],
+                  "inside": true, "distance_m": 1.52}, ...]}
+
+``T_world_body`` is the ground-truth body pose (also in ``groundtruth.tum``): the floor-projected
+body frame, z = 0, without the vest motion. ``T_world_camera`` is the true camera pose at the frame's
+time, vest motion included. ``corners``/``inner`` are the sticker's outer and inner frame corners in
+distorted pixels, canonical order (top-left first, clockwise on the sticker); ``inside`` says all
+eight are in the image. Stickers in the map but left off the floor never appear; stickers on the
+floor but not in the map appear with ``in_map: false``. Frame ``k`` is exposed around ``t = k / fps``
+(with a rolling shutter: the middle row; corners are then projected at their own rows' times).
+
+:func:`render_view` renders one frame from a given camera pose (with an optional straight motion
+that makes a chosen blur length), for tests and benchmarks of the other stages.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+
+import numpy as np
+
+from tagloc.core.camera import Camera, default_camera, load_calibration
+from tagloc.core.errors import InputError
+from tagloc.core.geometry import make_T, planar_T
+from tagloc.core.rig import Rig, RigCamera, default_rig, load_rig, looking_forward
+from tagloc.core.sticker import INNER_CORNERS, OUTER_CORNERS
+from tagloc.core.stickermap import StickerMap, load_map
+from tagloc.io.session import SessionInfo, SessionWriter, write_tum
+from tagloc.sim.floor import Floor, FloorConfig
+from tagloc.sim.render import ExposureConfig, OpticsConfig, Renderer, RenderResult, SensorConfig, exposure_time
+from tagloc.sim.walk import Walk, WalkConfig, plan_walk
+
+# Bumped whenever the simulated physics change, so that sessions cached by ``tagloc eval`` are made
+# again (2: slow roll drift of the vest).
+SIM_REVISION = 2
+
+
+@dataclass
+class SimConfig:
+    """Everything a simulated session depends on. Same config (and map), same bytes.
+
+    Attributes:
+        seconds, fps: length of the session (s) and frame rate.
+        lux: illuminance on the floor.
+        speed_mps: nominal walking speed.
+        seed: random seed of walk, floor, and noise.
+        pitch_deg, height_m: camera pitch below horizontal and height (default rig only).
+        rolling_shutter: expose rows at staggered times (``exposure.readout_s`` from top to bottom).
+        jpeg_quality: JPEG quality of the written frames.
+        distractors_per_m2: dark squares (8-15 cm) on the floor per square metre.
+        missing_fraction: share of the map's stickers that are not on the floor.
+        unmapped: number of stickers on the floor whose IDs are not in the map.
+        scale: image resolution factor (0.5: half-size frames and intrinsics, for fast tests).
+        calibration: true camera (Camera or a calibration file); default: Pi camera v1.
+        rig: rig (Rig or rig.json); default: one camera at ``height_m`` pitched ``pitch_deg``.
+            Only its first camera is simulated.
+        walk, floor, optics, sensor, exposure: detailed models; the fields above override their
+            seconds/speed/seed, distractors/missing/unmapped and rolling_shutter.
+    """
+
+    seconds: float = 20.0
+    fps: float = 30.0
+    lux: float = 100.0
+    speed_mps: float = 1.3
+    seed: int = 1
+    pitch_deg: float = 55.0
+    height_m: float = 1.3
+    rolling_shutter: bool = False
+    jpeg_quality: int = 85
+    distractors_per_m2: float = 0.05
+    missing_fraction: float = 0.0
+    unmapped: int = 0
+    scale: float = 1.0
+    calibration: Camera | str | Path | None = None
+    rig: Rig | str | Path | None = None
+    walk: WalkConfig = field(default_factory=WalkConfig)
+    floor: FloorConfig = field(default_factory=FloorConfig)
+    optics: OpticsConfig = field(default_factory=OpticsConfig)
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    exposure: ExposureConfig = field(default_factory=ExposureConfig)
+
+    def __post_init__(self) -> None:
+        if not self.seconds > 0 or not self.fps > 0 or not self.lux > 0 or not self.speed_mps > 0:
+            raise InputError("seconds, fps, lux and speed must be positive")
+        if not 0 < self.scale <= 4:
+            raise InputError(f"scale {self.scale} must be in (0, 4]")
+        if not 1 <= self.jpeg_quality <= 100:
+            raise InputError(f"JPEG quality {self.jpeg_quality} is not in 1-100")
+
+    def walk_config(self) -> WalkConfig:
+        """The walk model with this config's seconds, speed and seed."""
+        return replace(self.walk, seconds=self.seconds, speed_mps=self.speed_mps, seed=self.seed)
+
+    def floor_config(self) -> FloorConfig:
+        """The floor model with this config's distractors and missing/unmapped stickers."""
+        return replace(
+            self.floor,
+            distractors_per_m2=self.distractors_per_m2,
+            missing_fraction=self.missing_fraction,
+            unmapped=self.unmapped,
+        )
+
+    def exposure_config(self) -> ExposureConfig:
+        """The exposure model with this config's shutter type."""
+        return replace(self.exposure, rolling_shutter=self.rolling_shutter)
+
+    def build_rig(self) -> Rig:
+        """The rig to simulate (first camera used), with the camera scaled by ``scale``."""
+        cam = self.calibration
+        if isinstance(cam, (str, Path)):
+            cam = load_calibration(cam)
+        if self.rig is None:
+            rig = default_rig(self.height_m, self.pitch_deg, cam or default_camera())
+        else:
+            rig = self.rig if isinstance(self.rig, Rig) else load_rig(self.rig, cam)
+        rc = rig.cameras[0]
+        camera = rc.camera.scaled(self.scale) if self.scale != 1 else rc.camera
+        return Rig([RigCamera(rc.name, camera, rc.T_body_camera.copy(), rc.calibration_file)])
+
+    def to_json(self) -> dict:
+        """Plain-data description for ``session.json`` (files by name; objects summarised)."""
+        out = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name in ("calibration", "rig"):
+                out[f.name] = str(v) if isinstance(v, (str, Path)) else (None if v is None else "given")
+            elif hasattr(v, "__dataclass_fields__"):
+                out[f.name] = asdict(v)
+            else:
+                out[f.name] = v
+        return out
+
+
+@dataclass
+class SimSummary:
+    """What :func:`simulate_session` produced.
+
+    Attributes:
+        path: session directory.
+        frames: frames written.
+        wall_s: rendering time, s.
+        exposure_s, gain, blur_px: means over the frames.
+        max_subframes: most sub-frames used by one frame.
+        missing_ids: map IDs not on the floor; unmapped_ids: floor IDs not in the map.
+    """
+
+    path: Path
+    frames: int
+    wall_s: float
+    exposure_s: float
+    gain: float
+    blur_px: float
+    max_subframes: int
+    missing_ids: list[int]
+    unmapped_ids: list[int]
+
+
+def simulate_walk(smap: StickerMap, config: SimConfig) -> Walk:
+    """The walk of a simulated session (see :mod:`tagloc.sim.walk`)."""
+    return plan_walk(smap, config.walk_config())
+
+
+def _project_corners(camera: Camera, T_world_camera: np.ndarray, pts_world: np.ndarray) -> np.ndarray | None:
+    """Distorted pixels (N, 2) of world points, or None if any is behind or far outside the view."""
+    pc = pts_world @ np.linalg.inv(T_world_camera)[:3, :3].T + np.linalg.inv(T_world_camera)[:3, 3]
+    if np.any(pc[:, 2] < 0.05):
+        return None
+    xn = pc[:, :2] / pc[:, 2:]
+    # Far outside the field of view the distortion polynomial folds back into the image.
+    lim = 1.3 * np.array([camera.width, camera.height]) / np.array([camera.fx, camera.fy])
+    if np.any(np.abs(xn) > lim):
+        return None
+    return camera.project(pc)
+
+
+def visible_stickers(floor: Floor, renderer: Renderer, pose_at, t: float, readout_s: float = 0.0) -> list[dict]:
+    """Ground truth of the floor stickers in view at ``t``: see the module docstring.
+
+    With ``readout_s`` > 0 (rolling shutter) each corner is projected with the pose at its own row's
+    time (two fixed-point iterations).
+    """
+    cam = renderer.camera
+    T_mid = pose_at(np.array([t]))[0]
+    out = []
+    for row in renderer.visible_rows(T_mid[None]):
+        T_ws = floor.stickers.T_world_sticker(int(floor.stickers.ids[row]))
+        pts = np.vstack([OUTER_CORNERS, INNER_CORNERS]) @ T_ws[:3, :3].T + T_ws[:3, 3]
+        px = _project_corners(cam, T_mid, pts)
+        if px is None:
+            continue
+        if readout_s > 0:
+            for _ in range(2):
+                tc = t + readout_s * (np.clip(px[:, 1], 0, cam.height - 1) / max(cam.height - 1, 1) - 0.5)
+                poses = pose_at(tc)
+                new = [_project_corners(cam, T, p[None]) for T, p in zip(poses, pts)]
+                if any(n is None for n in new):
+                    break
+                px = np.vstack(new)
+        lo, hi = px.min(axis=0), px.max(axis=0)
+        if hi[0] < -0.5 or hi[1] < -0.5 or lo[0] > cam.width - 0.5 or lo[1] > cam.height - 0.5:
+            continue
+        inside = bool(np.all((px >= 0) & (px <= (cam.width - 1, cam.height - 1))))
+        dist = float(np.linalg.norm(T_ws[:3, 3] - T_mid[:3, 3]))
+        out.append(
+            {
+                "id": int(floor.stickers.ids[row]),
+                "in_map": bool(floor.in_map[row]),
+                "corners": np.round(px[:4], 3).tolist(),
+                "inner": np.round(px[4:], 3).tolist(),
+                "inside": inside,
+                "distance_m": round(dist, 4),
+            }
+        )
+    return out
+
+
+def _resolve_map(smap: StickerMap | str | Path) -> StickerMap:
+    return smap if isinstance(smap, StickerMap) else load_map(smap)
+
+
+def simulate_session(
+    smap: StickerMap | str | Path, out_dir: str | Path, config: SimConfig | None = None, progress: bool = True
+) -> SimSummary:
+    """Simulate a walk over ``smap`` and write it as a session with ground truth to ``out_dir``."""
+    from tqdm import tqdm
+
+    config = config or SimConfig()
+    smap = _resolve_map(smap)
+    rig = config.build_rig()
+    rc = rig.cameras[0]
+    walk = simulate_walk(smap, config)
+    floor = Floor(smap, config.floor_config(), seed=config.seed)
+    exp_cfg = config.exposure_config()
+    renderer = Renderer(floor, rc.camera, config.optics, config.sensor, exp_cfg, seed=config.seed)
+    n = int(math.floor(config.seconds * config.fps + 1e-9))
+    stamps = np.arange(n) / config.fps
+    out = Path(out_dir)
+    unmapped = [int(i) for i in floor.stickers.ids[~floor.in_map]]
+    sim_info = {
+        "simulation": {
+            "config": config.to_json(),
+            "missing_ids": [int(i) for i in floor.missing_ids],
+            "unmapped": [
+                {
+                    "id": int(floor.stickers.ids[k]),
+                    "x_m": round(float(floor.stickers.xy[k, 0]), 4),
+                    "y_m": round(float(floor.stickers.xy[k, 1]), 4),
+                    "yaw_deg": round(math.degrees(float(floor.stickers.yaw[k])), 3),
+                }
+                for k in np.flatnonzero(~floor.in_map)
+            ],
+            "groundtruth_frames": "groundtruth_frames.jsonl",
+        }
+    }
+    info = SessionInfo(
+        source="simulated",
+        fps=config.fps,
+        notes=f"tagloc simulate: {config.seconds:g} s at {config.lux:g} lux, {config.speed_mps:g} m/s, "
+        f"seed {config.seed}",
+        extra=sim_info,
+    )
+    readout = exp_cfg.readout_s if exp_cfg.rolling_shutter else 0.0
+
+    def pose_at(ts: np.ndarray) -> np.ndarray:
+        return walk.T_world_camera(np.asarray(ts, float), rc.T_body_camera)
+
+    t_wall = time.perf_counter()
+    stats = []
+    with SessionWriter(out, smap, rig, info, jpeg_quality=config.jpeg_quality) as writer:
+        write_tum(out / "groundtruth.tum", stamps, walk.T_world_body(stamps))
+        with (out / "groundtruth_frames.jsonl").open("w", encoding="utf-8") as gt:
+            for k in tqdm(range(n), desc="simulate", unit="frame", disable=not progress):
+                t = float(stamps[k])
+                res = renderer.render(
+                    pose_at,
+                    t,
+                    config.lux,
+                    np.random.default_rng([config.seed, 23, k]),
+                    frame_interval_s=1.0 / config.fps,
+                )
+                writer.write(k, t, res.image)
+                rec = {
+                    "index": k,
+                    "t": round(t, 6),
+                    "T_world_body": np.round(walk.T_world_body(t), 6).tolist(),
+                    "T_world_camera": np.round(pose_at(np.array([t]))[0], 6).tolist(),
+                    "exposure_s": round(res.exposure_s, 7),
+                    "gain": round(res.gain, 4),
+                    "blur_px": round(res.blur_px, 3),
+                    "subframes": res.subframes,
+                    "mean_signal_e": round(res.mean_signal_e, 2),
+                    "visible": visible_stickers(floor, renderer, pose_at, t, readout),
+                }
+                gt.write(json.dumps(rec) + "\n")
+                gt.flush()
+                stats.append((res.exposure_s, res.gain, res.blur_px, res.subframes))
+    s = np.array(stats).reshape(-1, 4)
+    return SimSummary(
+        out,
+        n,
+        time.perf_counter() - t_wall,
+        float(s[:, 0].mean()) if n else 0.0,
+        float(s[:, 1].mean()) if n else 0.0,
+        float(s[:, 2].mean()) if n else 0.0,
+        int(s[:, 3].max()) if n else 0,
+        [int(i) for i in floor.missing_ids],
+        unmapped,
+    )
+
+
+def read_groundtruth_frames(session_dir: str | Path) -> list[dict]:
+    """The records of a session's ``groundtruth_frames.jsonl`` (empty list if it has none)."""
+    p = Path(session_dir) / "groundtruth_frames.jsonl"
+    if not p.exists():
+        return []
+    out = []
+    with p.open(encoding="utf-8") as f:
+        for n, line in enumerate(f, 1):
+            if line.strip():
+                try:
+                    out.append(json.loads(line))
+                except json.JSONDecodeError:
+                    raise InputError(f"{p}:{n}: not a JSON object") from None
+    return out
+
+
+# -- single views --------------------------------------------------------------------------------
+
+
+def camera_pose_looking_at(
+    target_xy: tuple[float, float] | np.ndarray,
+    height_m: float = 1.3,
+    pitch_deg: float = 55.0,
+    yaw_deg: float = 0.0,
+    roll_deg: float = 0.0,
+) -> np.ndarray:
+    """``T_world_camera`` of a camera ``height_m`` above the floor, heading ``yaw_deg`` (from world +x),
+    pitched ``pitch_deg`` below horizontal (90: straight down) and rolled ``roll_deg`` about its axis,
+    whose optical axis meets the floor at ``target_xy``."""
+    p, a = math.radians(pitch_deg), math.radians(yaw_deg)
+    back = height_m / math.tan(p) if abs(math.cos(p)) > 1e-9 else 0.0
+    x, y = float(target_xy[0]) - back * math.cos(a), float(target_xy[1]) - back * math.sin(a)
+    r = math.radians(roll_deg)
+    roll = make_T(np.array([[math.cos(r), -math.sin(r), 0], [math.sin(r), math.cos(r), 0], [0, 0, 1]]), np.zeros(3))
+    return planar_T(x, y, 0.0) @ looking_forward(height_m, pitch_deg, yaw_deg) @ roll
+
+
+def render_view(
+    scene: StickerMap | Floor,
+    camera: Camera,
+    T_world_camera: np.ndarray,
+    lux: float = 150.0,
+    *,
+    velocity: np.ndarray | None = None,
+    angular_velocity: np.ndarray | None = None,
+    blur_px: float | None = None,
+    blur_direction_deg: float = 0.0,
+    exposure_s: float | None = None,
+    gain: float | None = None,
+    seed: int = 0,
+    noise: bool = True,
+    jpeg_quality: int | None = None,
+    floor_config: FloorConfig | None = None,
+    optics: OpticsConfig | None = None,
+    sensor: SensorConfig | None = None,
+    exposure: ExposureConfig | None = None,
+) -> RenderResult:
+    """Render one frame of ``camera`` at ``T_world_camera`` (pose at mid-exposure), same physics as sessions.
+
+    Motion during the exposure (straight and uniform): ``velocity`` (3,) world m/s of the camera
+    centre and ``angular_velocity`` (3,) rad/s about world axes through the camera centre, or
+    ``blur_px``: a velocity parallel to the image plane, along image direction
+    ``blur_direction_deg`` (0: image +x, 90: image +y), that blurs the floor at the image centre
+    by that many pixels. ``scene`` is a map (a floor is made with ``floor_config`` and ``seed``;
+    pass a :class:`Floor` to reuse its tile cache across calls). ``noise=False`` gives the
+    noise-free image; ``jpeg_quality`` round-trips it through JPEG.
+    """
+    import cv2
+
+    floor = scene if isinstance(scene, Floor) else Floor(scene, floor_config or FloorConfig(), seed=seed)
+    sensor = replace(sensor or SensorConfig(), noise=noise)
+    exp_cfg = exposure or ExposureConfig()
+    renderer = Renderer(floor, camera, optics, sensor, exp_cfg, seed=seed)
+    T0 = np.asarray(T_world_camera, float)
+    t_exp = exposure_s if exposure_s is not None else exposure_time(lux, exp_cfg)
+    v = np.zeros(3) if velocity is None else np.asarray(velocity, float)
+    w = np.zeros(3) if angular_velocity is None else np.asarray(angular_velocity, float)
+    if blur_px is not None and blur_px > 0:
+        # Depth of the floor point on the optical axis sets the speed that gives blur_px there.
+        axis = T0[:3, 2]
+        if axis[2] >= -1e-6:
+            raise InputError("blur_px needs a camera looking down at the floor")
+        depth = -T0[2, 3] / axis[2]
+        b = math.radians(blur_direction_deg)
+        direction = math.cos(b) * T0[:3, 0] + math.sin(b) * T0[:3, 1]
+        # Moving the camera one way moves the image the other way; blur length is what matters.
+        v = v + direction * blur_px * depth / (camera.fx * t_exp)
+
+    def pose_at(ts: np.ndarray) -> np.ndarray:
+        from scipy.spatial.transform import Rotation
+
+        ts = np.asarray(ts, float)
+        out = np.repeat(T0[None], len(ts), axis=0)
+        out[:, :3, 3] += ts[:, None] * v
+        if np.any(w):
+            R = Rotation.from_rotvec(ts[:, None] * w).as_matrix()
+            out[:, :3, :3] = R @ T0[:3, :3]
+        return out
+
+    res = renderer.render(pose_at, 0.0, lux, np.random.default_rng([seed, 29]), exposure_s=t_exp, gain=gain)
+    if jpeg_quality is not None:
+        ok, buf = cv2.imencode(".jpg", res.image, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
+        res.image = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+    return res
+
+
+def true_corners(
+    scene: Floor | StickerMap, camera: Camera, T_world_camera: np.ndarray, sticker_id: int
+) -> np.ndarray | None:
+    """Outer then inner corners (8, 2) of ``sticker_id`` in distorted pixels (canonical order), or None
+    if it is behind the camera or far outside the view."""
+    stickers = scene.stickers if isinstance(scene, Floor) else scene
+    T_ws = stickers.T_world_sticker(sticker_id)
+    pts = np.vstack([OUTER_CORNERS, INNER_CORNERS]) @ T_ws[:3, :3].T + T_ws[:3, 3]
+    return _project_corners(camera, np.asarray(T_world_camera, float), pts)
+
+
+__all__ = [
+    "SIM_REVISION",
+    "SimConfig",
+    "SimSummary",
+    "simulate_walk",
+    "simulate_session",
+    "visible_stickers",
+    "render_view",
+    "camera_pose_looking_at",
+    "true_corners",
+    "read_groundtruth_frames",
+]

@@ -1,0 +1,309 @@
+"""The operator's walk: a smooth, seeded trajectory along the map's sticker lines, plus vest motion.
+
+Two motions are kept apart on purpose:
+
+* **Body motion** (ground truth): the floor-projected body frame (origin on the floor under the
+  vest, +x forward, +y left, +z up, so z = 0, roll = pitch = 0). Its path follows the stickers'
+  lines (aisles): straight on mostly, sometimes turning at a crossing, turning on the spot where a
+  line ends, with a slowly varying speed and occasional stops. Position is C2 (a cubic spline
+  through a 100 Hz kinematic simulation whose speed and turn rate are acceleration-limited), and
+  the heading is smooth. ``groundtruth.tum`` stores this pose.
+* **Vest motion** (not in the ground truth): what the torso does to the camera on top of the body
+  path, ``T_body_vest``: vertical bobbing at the step frequency, lateral sway and torso yaw at half
+  the step frequency, pitch jitter (gait part plus slow drift) and a little roll (gait part plus
+  slow drift: standing people shift their weight side to side as well as back and forth). The rotation is
+  about the camera's mounting point. A localiser that assumes a rigid rig sees it as real,
+  unmodelled motion: ``T_world_camera = T_world_body @ T_body_vest @ T_body_camera``.
+
+All gait amplitudes are semi-amplitudes (half peak-to-peak), scaled by how fast the operator walks
+(none when standing); the slow drifts of pitch and roll go on when standing.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.interpolate import CubicSpline
+from scipy.signal import lfilter
+from scipy.spatial.transform import Rotation
+
+from tagloc.core.errors import InputError
+from tagloc.core.geometry import wrap_angle
+from tagloc.core.stickermap import StickerMap
+
+_DT = 0.01  # kinematic simulation step (s); the spline makes the result continuous in time
+
+
+@dataclass
+class WalkConfig:
+    """How the operator walks. Lengths in metres, times in seconds, angles in degrees.
+
+    Attributes:
+        seconds: length of the walk (the trajectory is defined a little beyond [0, seconds]).
+        speed_mps: nominal walking speed.
+        seed: random seed (same seed, same walk).
+        speed_variation: relative standard deviation of the slow speed changes (clipped at +-2 sigma).
+        stop_every_s: mean time between stops (0: never stop).
+        stop_s: (min, max) duration of one stop.
+        turn_probability: chance of leaving a line at a crossing instead of going straight on.
+        lateral_offset_m: largest sideways offset of the path from the sticker line (per straight run).
+        accel_mps2: largest forward acceleration/deceleration.
+        turn_rate_dps: largest turn rate when turning on the spot.
+        min_turn_radius_m: tightest curve while walking.
+        step_hz: step frequency at the nominal speed (scales with speed**0.5).
+        bob_m, sway_m: vertical bobbing (at step frequency) and lateral sway (at half of it).
+        torso_yaw_deg, roll_deg: torso yaw and roll oscillation at half the step frequency.
+        pitch_jitter_deg: camera pitch wobble (half at the step frequency, half slow drift).
+        roll_drift_deg: slow roll drift of the vest (RMS, 1.5 s correlation like the pitch drift),
+            walking or standing: people sway side to side less than back and forth (quiet-standing
+            sway is ~0.7 times as large sideways), so 0.7 of the pitch drift's 0.5 deg.
+    """
+
+    seconds: float = 20.0
+    speed_mps: float = 1.3
+    seed: int = 0
+    speed_variation: float = 0.12
+    stop_every_s: float = 12.0
+    stop_s: tuple[float, float] = (1.0, 2.0)
+    turn_probability: float = 0.2
+    lateral_offset_m: float = 0.25
+    accel_mps2: float = 0.8
+    turn_rate_dps: float = 100.0
+    min_turn_radius_m: float = 0.5
+    step_hz: float = 1.9
+    bob_m: float = 0.025
+    sway_m: float = 0.02
+    torso_yaw_deg: float = 2.5
+    roll_deg: float = 0.7
+    pitch_jitter_deg: float = 1.0
+    roll_drift_deg: float = 0.35
+
+    def __post_init__(self) -> None:
+        if not self.seconds > 0 or not self.speed_mps > 0:
+            raise InputError(f"walk needs positive seconds and speed (got {self.seconds}, {self.speed_mps})")
+
+
+# Columns of the walk's state spline.
+_X, _Y, _YAW, _V, _BOB, _SWAY, _TYAW, _PITCH, _ROLL = range(9)
+
+
+@dataclass
+class Walk:
+    """A simulated walk, defined for any time in ``[t_start, t_end]`` (s).
+
+    Attributes:
+        spline: cubic spline of the state columns (x, y, yaw, speed, bob, sway, torso yaw, pitch, roll).
+        stops: (K, 2) start and end times of the stops (standing still), s.
+        waypoints: (M, 2) the points the walker steered at, world metres.
+        config: what produced it.
+    """
+
+    spline: CubicSpline
+    stops: np.ndarray
+    waypoints: np.ndarray
+    config: WalkConfig
+    t_start: float = field(init=False)
+    t_end: float = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.t_start, self.t_end = float(self.spline.x[0]), float(self.spline.x[-1])
+
+    def _state(self, t: float | np.ndarray) -> np.ndarray:
+        t = np.clip(np.asarray(t, float), self.t_start, self.t_end)
+        return self.spline(t)
+
+    def planar(self, t: float | np.ndarray) -> np.ndarray:
+        """Body (x, y, yaw) at ``t``: (3,) or (N, 3); yaw is continuous (not wrapped)."""
+        return self._state(t)[..., :3]
+
+    def speed(self, t: float | np.ndarray) -> np.ndarray:
+        """Forward speed of the body (m/s) at ``t``, from the path's derivative."""
+        d = self.spline(np.clip(np.asarray(t, float), self.t_start, self.t_end), 1)
+        return np.hypot(d[..., _X], d[..., _Y])
+
+    def T_world_body(self, t: float | np.ndarray) -> np.ndarray:
+        """True body pose(s): (4, 4) for a scalar ``t``, (N, 4, 4) for an array."""
+        s = self._state(t)
+        x, y, a = s[..., _X], s[..., _Y], s[..., _YAW]
+        T = np.zeros(s.shape[:-1] + (4, 4))
+        c, sn = np.cos(a), np.sin(a)
+        T[..., 0, 0], T[..., 0, 1], T[..., 1, 0], T[..., 1, 1] = c, -sn, sn, c
+        T[..., 2, 2] = T[..., 3, 3] = 1.0
+        T[..., 0, 3], T[..., 1, 3] = x, y
+        return T
+
+    def T_body_vest(self, t: float | np.ndarray, pivot: np.ndarray) -> np.ndarray:
+        """Vest motion: (4, 4) or (N, 4, 4), rotating about ``pivot`` (3,) in the body frame (m)."""
+        s = self._state(t)
+        euler = np.stack([s[..., _ROLL], s[..., _PITCH], s[..., _TYAW]], axis=-1)
+        R = Rotation.from_euler("xyz", euler.reshape(-1, 3)).as_matrix().reshape(s.shape[:-1] + (3, 3))
+        offset = np.stack([np.zeros_like(s[..., _SWAY]), s[..., _SWAY], s[..., _BOB]], axis=-1)
+        pivot = np.asarray(pivot, float)
+        T = np.zeros(s.shape[:-1] + (4, 4))
+        T[..., :3, :3] = R
+        # Rotate about the pivot, then translate: p' = R (p - pivot) + pivot + offset.
+        T[..., :3, 3] = pivot + offset - np.einsum("...ij,j->...i", R, pivot)
+        T[..., 3, 3] = 1.0
+        return T
+
+    def T_world_camera(self, t: float | np.ndarray, T_body_camera: np.ndarray) -> np.ndarray:
+        """True camera pose(s) with the vest motion: ``T_world_body @ T_body_vest @ T_body_camera``."""
+        T_bc = np.asarray(T_body_camera, float)
+        return self.T_world_body(t) @ self.T_body_vest(t, T_bc[:3, 3]) @ T_bc
+
+
+def _ou(rng: np.random.Generator, n: int, tau_s: float) -> np.ndarray:
+    """Unit-variance first-order low-pass noise (correlation time ``tau_s``), n samples at ``_DT``."""
+    a = math.exp(-_DT / tau_s)
+    x = lfilter([math.sqrt(1 - a * a)], [1, -a], rng.standard_normal(n))
+    # Start in the stationary state instead of at zero.
+    return x + rng.standard_normal() * a ** np.arange(n)
+
+
+class _Router:
+    """Picks the next waypoint along the map's sticker lines (a seeded walk on the sticker graph)."""
+
+    def __init__(self, smap: StickerMap, cfg: WalkConfig, rng: np.random.Generator):
+        self.xy = smap.xy
+        self.cfg = cfg
+        self.rng = rng
+        self.recent: list[int] = []
+        self.offset = 0.0
+
+    def start(self) -> tuple[np.ndarray, float, np.ndarray]:
+        """Start pose (x, y), heading, and the first waypoint: behind a sticker, facing a neighbour."""
+        k = int(self.rng.integers(len(self.xy)))
+        d = np.hypot(*(self.xy - self.xy[k]).T)
+        d[k] = np.inf
+        if np.isfinite(d).any() and d.min() < 4.0:
+            j = int(np.argmin(d))
+            heading = math.atan2(*(self.xy[j] - self.xy[k])[::-1])
+        else:
+            heading = float(self.rng.uniform(-math.pi, math.pi))
+        self.recent = [k]
+        u = np.array([math.cos(heading), math.sin(heading)])
+        self.offset = self._new_offset()
+        start = self.xy[k] - 1.2 * u + self.offset * np.array([-u[1], u[0]])
+        return start, heading, self._place(k, u)
+
+    def _new_offset(self) -> float:
+        return float(self.rng.uniform(-1, 1) * self.cfg.lateral_offset_m)
+
+    def _place(self, k: int, u: np.ndarray) -> np.ndarray:
+        return self.xy[k] + self.offset * np.array([-u[1], u[0]])
+
+    def next(self, pos: np.ndarray, heading: float) -> tuple[np.ndarray, bool]:
+        """The waypoint after ``pos`` for a walker facing ``heading``, and whether the line ends here
+        (the walker then turns on the spot)."""
+        rel = self.xy - self.xy[self.recent[-1]] if self.recent else self.xy - pos
+        dist = np.hypot(*rel.T)
+        ang = np.abs(wrap_angle(np.arctan2(rel[:, 1], rel[:, 0]) - heading))
+        free = (dist > 0.6) & (dist < 3.5)
+        free[self.recent] = False
+        ahead = np.flatnonzero(free & (ang < math.radians(30)))
+        # Leaving a line mid-way only onto a crossing line (a near neighbour to the side).
+        side = np.flatnonzero(free & (dist < 2.3) & (ang > math.radians(55)) & (ang < math.radians(125)))
+        back = np.flatnonzero(free)
+        turn = self.rng.random() < self.cfg.turn_probability
+        line_end = len(ahead) == 0
+        if len(ahead) and not (turn and len(side)):
+            k = int(ahead[np.argmin(dist[ahead] + 2.0 * ang[ahead])])
+        elif len(side):
+            k = int(self.rng.choice(side[np.argsort(dist[side])[:3]]))
+        elif len(back):  # end of a line: turn round
+            k = int(back[np.argmin(dist[back])])
+        else:
+            others = np.flatnonzero(dist > 0.6)
+            if len(others) == 0:  # a lone sticker: circle round it
+                a = heading + self.rng.uniform(0.5, 1.5)
+                return self.xy[0] + 1.2 * np.array([math.cos(a), math.sin(a)]), False
+            k = int(others[np.argmin(dist[others])])
+            self.recent = []
+        base = self.xy[self.recent[-1]] if self.recent else pos
+        u = self.xy[k] - base
+        u = u / max(float(np.hypot(*u)), 1e-9)
+        if abs(wrap_angle(math.atan2(u[1], u[0]) - heading)) > math.radians(30):
+            self.offset = self._new_offset()  # a new line: a new side offset
+        self.recent = (self.recent + [k])[-8:]
+        return self._place(k, u), line_end
+
+
+def plan_walk(smap: StickerMap, cfg: WalkConfig) -> Walk:
+    """Simulate a seeded walk over ``smap``'s sticker lines (see the module docstring)."""
+    if len(smap) == 0:
+        raise InputError(f"{smap.source}: cannot plan a walk over an empty map")
+    rng = np.random.default_rng([cfg.seed, 7])
+    t0, t1 = -1.0, cfg.seconds + 1.0
+    n = int(math.ceil((t1 - t0) / _DT)) + 1
+    t = t0 + _DT * np.arange(n)
+    v_nom = cfg.speed_mps
+    speed_cmd = v_nom * (1 + cfg.speed_variation * np.clip(_ou(rng, n, 3.0), -2, 2))
+    stop_mask = np.zeros(n, bool)
+    stops = []
+    if cfg.stop_every_s > 0:
+        s = t0 + 2.0 + rng.exponential(cfg.stop_every_s)
+        while s < t1:
+            d = rng.uniform(*cfg.stop_s)
+            # Slow down beforehand so that the operator stands still for the whole stop.
+            lead = 1.05 * speed_cmd[min(n - 1, int((s - t0) / _DT))] / cfg.accel_mps2
+            stop_mask[(t >= s - lead) & (t < s + d)] = True
+            stops.append((s, s + d))
+            s += d + rng.exponential(cfg.stop_every_s)
+    # Slow pitch drift of the vest (half of the jitter budget), drawn now to keep the RNG order fixed.
+    drift = _ou(rng, n, 1.5)
+
+    router = _Router(smap, cfg, rng)
+    pos, heading, wp = router.start()
+    waypoints = [wp]
+    v = speed_cmd[0]
+    omega = 0.0
+    spinning = False
+    w_spin = math.radians(cfg.turn_rate_dps)
+    states = np.zeros((n, 4))
+    for i in range(n):
+        states[i] = pos[0], pos[1], heading, v
+        to_wp = wp - pos
+        dist = float(np.hypot(*to_wp))
+        if dist < max(0.35, 0.5 * v):
+            wp, line_end = router.next(pos, heading)
+            waypoints.append(wp)
+            spinning = spinning or line_end
+            to_wp = wp - pos
+            dist = float(np.hypot(*to_wp))
+        err = float(wrap_angle(math.atan2(to_wp[1], to_wp[0]) - heading)) if dist > 1e-6 else 0.0
+        # Turns at line ends and U-turns are made standing: stop, turn on the spot, walk on.
+        if abs(err) > math.radians(100):
+            spinning = True
+        elif abs(err) < math.radians(8):
+            spinning = False
+        if spinning or stop_mask[i]:
+            v_target = 0.0
+        else:
+            v_target = speed_cmd[i] * max(0.35, math.cos(err) ** 2)
+        v += float(np.clip(v_target - v, -cfg.accel_mps2 * _DT, cfg.accel_mps2 * _DT))
+        if spinning and v < 0.1:
+            w_max = w_spin
+        else:
+            w_max = max(v, 0.05) / cfg.min_turn_radius_m
+        w_target = float(np.clip(3.0 * err, -w_max, w_max)) if not stop_mask[i] or spinning else 0.0
+        omega += float(np.clip(w_target - omega, -6.0 * _DT, 6.0 * _DT))
+        heading += omega * _DT
+        pos = pos + v * _DT * np.array([math.cos(heading), math.sin(heading)])
+
+    speed = states[:, 3]
+    # Gait: step phase advances with a speed-dependent cadence; amplitude fades when standing.
+    cadence = cfg.step_hz * np.sqrt(np.clip(speed / v_nom, 0.0, 2.0))
+    phase = 2 * math.pi * np.cumsum(cadence) * _DT + rng.uniform(0, 2 * math.pi)
+    g = np.clip(speed / min(0.6, v_nom), 0.0, 1.0) ** 2 * np.clip(speed / v_nom, 0.0, 1.3)
+    bob = cfg.bob_m * g * np.cos(phase)
+    sway = cfg.sway_m * g * np.sin(phase / 2)
+    tyaw = math.radians(cfg.torso_yaw_deg) * g * np.sin(phase / 2 + 0.4)
+    # Drawn from its own stream, so that adding it left every other draw (and so the paths) as it was.
+    roll_drift = _ou(np.random.default_rng([cfg.seed, 8]), n, 1.5)
+    roll = math.radians(cfg.roll_deg) * g * np.sin(phase / 2 - 0.3) + math.radians(cfg.roll_drift_deg) * roll_drift
+    pj = math.radians(cfg.pitch_jitter_deg)
+    pitch = pj * (0.5 * g * np.sin(phase + 1.0) + 0.5 * drift)
+    cols = np.column_stack([states, bob, sway, tyaw, pitch, roll])
+    return Walk(CubicSpline(t, cols), np.array(stops).reshape(-1, 2), np.array(waypoints), cfg)

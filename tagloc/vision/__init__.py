@@ -1,0 +1,1 @@
+"""Per-frame vision: detect, rectify, decode, identify, pose and floor odometry."""

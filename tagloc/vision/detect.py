@@ -1,0 +1,534 @@
+"""Sticker detection: find each sticker's outer square and inner frame corners, sub-pixel.
+
+Two stages:
+
+1. Candidates, on an image ``downscale`` times smaller: adaptive threshold (dark = below the
+   local mean), outer outlines of the dark blobs (filtered by size, fill and border contact), then
+   each blob's convex hull approximated by a quadrilateral (a 5-6 sided polygon whose short edges
+   cut corners off is extended back to a quad). A sticker's dark part (frame plus modules) covers
+   20-80 % of its quad; a dark distractor square covers ~100 % and is rejected. A second pass with
+   a wider closing (``group_px``) joins frames that heavy blur or a far, foreshortened view broke
+   into pieces.
+2. Refinement at full resolution, twice (the second pass re-aims at the first pass's lines):
+   intensity profiles are sampled across each side (each averaged over a 3 px wide strip), the
+   outer edge is placed where the profile crosses halfway between the floor level next to it and
+   the sticker's ink level, the inner edge halfway between ink and paper. For a symmetric blur
+   of a straight edge that crossing is the mid-exposure edge, unbiased as long as the blur across
+   the edge is under twice the frame width (a 40 px sticker's 3.2 px frame tolerates 6.4 px);
+   a side blurred beyond that is located on the middle of the ramp from the dip to the paper,
+   which lies over the frame's centre line. Edge points are undistorted, a line is fitted per side
+   (Huber, gross outliers dropped), adjacent lines are intersected and the corners are distorted
+   back to image pixels.
+
+Corners are returned in distorted pixels, clockwise on screen, starting at an arbitrary corner
+(decoding resolves the rotation). ``inner`` is None when the inner edges disagree with the outer
+square's geometry (strong blur across a thin frame), so only trustworthy points reach the pose.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from tagloc.core.camera import Camera
+from tagloc.core.errors import InputError
+from tagloc.core.sticker import FRAME_M, INNER_M, MODULE_M, SIZE_M
+from tagloc.core.types import Detection
+from tagloc.vision.image import as_gray, clockwise
+
+_FRAME_RATIO = FRAME_M / SIZE_M  # frame width as a fraction of the outer side
+_INNER_RATIO = INNER_M / SIZE_M
+_QUIET_RATIO = MODULE_M / SIZE_M  # white quiet zone inside the frame
+
+
+@dataclass
+class DetectConfig:
+    """Tuning of :func:`detect_stickers`. Pixel quantities are at full resolution.
+
+    Attributes:
+        downscale: the candidate stage runs on an image this many times smaller (1 or 2 ...).
+        block_px: adaptive-threshold window; about half the largest expected sticker.
+        dark_ratio, offset: a pixel is dark when below ``dark_ratio`` times its local mean and
+            below the local mean minus ``offset`` grey levels.
+        close_px: morphological closing of the dark mask (candidate resolution px; 0 = off).
+        group_px: a second candidate pass closes the mask this much (candidate resolution px), so a
+            frame broken into pieces by blur or foreshortening becomes one component (0 = off).
+        min_side_px, max_side_px: accepted outer side lengths (longest side).
+        border_px: all outer corners must be at least this far inside the image.
+        min_dark_fraction, max_dark_fraction: dark share of the candidate quad (a sticker's frame
+            alone is 0.29; closing can fill the code area). Plain dark squares are rejected later,
+            by the paper level inside the frame.
+        max_aspect: longest over shortest side, perspective included.
+        max_candidates: largest components examined per frame (bounds the time on clutter).
+        profiles_per_side: intensity profiles sampled across each side.
+        blur_allow_px: largest blur (px) the profiles are long enough for.
+        min_contrast: least floor-to-ink and ink-to-paper difference (grey levels, linearised).
+        min_paper_ratio: the paper inside the frame must be brighter than ink by at least this
+            fraction of the floor-to-ink contrast.
+        response_gamma: camera encoding exponent; values are raised to it before edge location,
+            so halfway levels are taken in linear light (2.2: the Pi camera tone curve and the
+            simulator; 1 = linear sensor output).
+        inner_max_dev_px: largest disagreement between the measured inner corners and those
+            implied by the outer square before ``inner`` is dropped.
+        max_rms_px: largest RMS distance of edge points to their fitted line.
+    """
+
+    downscale: int = 2
+    block_px: int = 41
+    dark_ratio: float = 0.8
+    offset: int = 4
+    close_px: int = 3
+    group_px: int = 7
+    min_side_px: float = 24.0
+    max_side_px: float = 420.0
+    border_px: float = 3.0
+    min_dark_fraction: float = 0.2
+    max_dark_fraction: float = 0.97
+    max_aspect: float = 4.5
+    max_candidates: int = 40
+    profiles_per_side: int = 20
+    blur_allow_px: float = 10.0
+    min_contrast: float = 10.0
+    min_paper_ratio: float = 0.5
+    response_gamma: float = 2.2
+    inner_max_dev_px: float = 0.8
+    max_rms_px: float = 1.5
+
+    @classmethod
+    def for_camera(cls, camera: Camera) -> DetectConfig:
+        """Defaults scaled to ``camera``: the sizes above are for a focal length of ~1286 px (the
+        Pi camera v1 at 1296x972); a sticker's image size scales with the focal length, so the
+        window and side limits do too, and below ~0.75 of it the candidate stage runs at full
+        resolution, or a sticker 2 m away would be only ~15 px there."""
+        scale = float(camera.K[0, 0]) / _REFERENCE_FOCAL_PX
+        if 0.9 <= scale <= 1.1:
+            return cls()
+        return cls(
+            downscale=1 if scale < 0.75 else 2,
+            block_px=max(15, int(round(41 * scale))),
+            min_side_px=max(12.0, 24.0 * scale),
+            max_side_px=420.0 * scale,
+        )
+
+
+_REFERENCE_FOCAL_PX = 1285.7  # the focal length DetectConfig's defaults are set for
+
+
+def distort_ideal(camera: Camera, pixels: np.ndarray) -> np.ndarray:
+    """Map ideal (undistorted) pixels (N, 2) to distorted pixels (N, 2): the inverse of undistort_pixels."""
+    pts = np.asarray(pixels, float).reshape(-1, 2)
+    if not np.any(camera.dist):
+        return pts.copy()
+    norm = (pts - camera.K[:2, 2]) / [camera.K[0, 0], camera.K[1, 1]]
+    return camera.project(np.c_[norm, np.ones(len(norm))])
+
+
+def _polygon_area(quad: np.ndarray) -> float:
+    x, y = quad[:, 0], quad[:, 1]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y)))
+
+
+def _fit_sides(contour: np.ndarray, quad: np.ndarray) -> np.ndarray:
+    """Sharpen a polygon-approximated quad (4, 2): fit a line to the outline points (N, 2) along each
+    side and intersect them. approxPolyDP keeps outline vertices, which can sit a few pixels inside
+    a corner that blur or noise has rounded; the sides themselves are well defined."""
+    lines = []
+    for i in range(4):
+        a, b = quad[i], quad[(i + 1) % 4]
+        d = b - a
+        length = float(np.hypot(*d))
+        if length < 4:
+            return quad
+        u = (contour - a) @ d / length**2  # position along the side, 0-1
+        off = np.abs((contour - a) @ np.array([-d[1], d[0]]) / length)
+        near = contour[(u > 0.15) & (u < 0.85) & (off < max(1.5, 0.06 * length))]
+        if len(near) < 4:
+            return quad
+        lines.append(_line_through(near)[0])
+    corners = _intersect(np.roll(np.array(lines), 0, axis=0))
+    if not np.all(np.isfinite(corners)) or np.abs(corners - quad).max() > 0.25 * float(
+        np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1).min()
+    ):
+        return quad
+    return corners
+
+
+def _cut_corners_back(poly: np.ndarray) -> np.ndarray | None:
+    """Reduce a convex polygon (K, 2), K = 4-6, to a quad by extending the neighbours of its
+    shortest edge until they meet, as often as needed: blur and small foreshortened stickers round
+    corners off, and the outline's polygon then has a short edge across each. None if that fails."""
+    p = poly
+    while len(p) > 4:
+        k = len(p)
+        i = int(np.argmin(np.linalg.norm(np.roll(p, -1, axis=0) - p, axis=1)))
+        a0, a1, b0, b1 = p[(i - 1) % k], p[i], p[(i + 1) % k], p[(i + 2) % k]
+        if np.linalg.norm(b0 - a1) > 0.5 * min(np.linalg.norm(a1 - a0), np.linalg.norm(b1 - b0)):
+            return None  # not a small cut across a corner
+        x = np.cross(np.cross([*a0, 1.0], [*a1, 1.0]), np.cross([*b0, 1.0], [*b1, 1.0]))
+        if abs(x[2]) < 1e-9:
+            return None
+        corner = x[:2] / x[2]
+        # The new corner must lie beyond the cut edge, not far out (nearly parallel neighbours).
+        if np.linalg.norm(corner - (a1 + b0) / 2) > np.linalg.norm(b0 - a1) + 0.25 * np.linalg.norm(a1 - a0):
+            return None
+        p = np.array([corner if j == i else p[j] for j in range(k) if j != (i + 1) % k])
+    return p
+
+
+def _outline_quads(
+    mask: np.ndarray,
+    cfg: DetectConfig,
+    ds: int,
+    skip: set[tuple[int, ...]] | None = None,
+    dark_mask: np.ndarray | None = None,
+) -> tuple[list[np.ndarray], set[tuple[int, ...]]]:
+    """Quads (4, 2) in full-resolution pixels of the mask's blobs (outer outlines) that can be stickers.
+
+    Blobs whose bounding box (x, y, w, h) is in ``skip`` are ignored. The dark share of a quad is
+    counted in ``dark_mask`` (default ``mask``) inside the blob's outline: a widely closed mask fills
+    a sticker's inside. Returns the quads, largest blob first, and the bounding boxes of their blobs.
+    """
+    h, w = mask.shape
+    # Outer outlines rather than labelled components: the outline is what the quad is fitted to,
+    # and findContours costs a small fraction of connectedComponentsWithStats on a noisy mask.
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    dark_src = mask if dark_mask is None else dark_mask
+    lo, hi = cfg.min_side_px / ds, cfg.max_side_px / ds
+    found: set[tuple[int, ...]] = set()
+    blobs = []
+    for c in contours:
+        box = cv2.boundingRect(c)
+        x0, y0, ww, hh = box
+        if (
+            not 0.7 * lo <= max(ww, hh) <= 1.2 * hi
+            or x0 <= 0
+            or y0 <= 0
+            or x0 + ww >= w
+            or y0 + hh >= h
+            or (skip and box in skip)
+        ):
+            continue
+        local = c.reshape(-1, 2) - [x0, y0]
+        fill = np.zeros((hh, ww), np.uint8)
+        cv2.drawContours(fill, [local.reshape(-1, 1, 2)], -1, 255, cv2.FILLED)
+        area = cv2.countNonZero(cv2.bitwise_and(fill, dark_src[y0 : y0 + hh, x0 : x0 + ww]))
+        # A quad's box is at most 2x its area (a square at 45 deg); its dark share is >= min_dark_fraction.
+        if 0.5 * cfg.min_dark_fraction * min(ww, hh) ** 2 / cfg.max_aspect <= area <= 0.97 * ww * hh:
+            blobs.append((area, local, box))
+    blobs.sort(key=lambda b: -b[0])
+    quads = []
+    for area, local, (x0, y0, ww, hh) in blobs[: cfg.max_candidates]:
+        hull = cv2.convexHull(local.reshape(-1, 1, 2).astype(np.int32))
+        peri = cv2.arcLength(hull, True)
+        quad = None
+        for eps in (0.03, 0.05, 0.08):
+            approx = cv2.approxPolyDP(hull, eps * peri, True)
+            if 4 <= len(approx) <= 6:
+                quad = _cut_corners_back(approx.reshape(-1, 2).astype(float))
+                if quad is not None:
+                    break
+        if quad is None:
+            continue
+        pts = local.astype(float)
+        fitted = _fit_sides(pts, _fit_sides(pts, quad))  # the second fit gathers what a skewed first missed
+        hull_area = cv2.contourArea(hull)
+        # Only a clearly cut corner is replaced (refinement, not this fit, sets the final accuracy; a
+        # sub-pixel change only reshuffles its profiles), and not when the ring's inner outline
+        # pulled a side in.
+        if np.abs(fitted - quad).max() > 1.0 and _polygon_area(fitted) >= 0.85 * hull_area:
+            quad = fitted
+        qa = _polygon_area(quad)
+        if qa < 0.85 * hull_area or not cv2.isContourConvex(quad.astype(np.float32)):
+            continue
+        dark = float(area) / max(qa, 1.0)
+        if not cfg.min_dark_fraction <= dark <= cfg.max_dark_fraction:
+            continue
+        sides = np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1)
+        if sides.max() > cfg.max_aspect * max(sides.min(), 1e-6):
+            continue
+        # Outline pixel centres sit half a pixel inside the blob's edge; refinement corrects the rest.
+        quads.append(clockwise((quad + [x0 + 0.5, y0 + 0.5]) * ds - 0.5))
+        found.add((x0, y0, ww, hh))
+    return quads, found
+
+
+def _candidates(gray: np.ndarray, cfg: DetectConfig) -> list[np.ndarray]:
+    """Coarse quads (4, 2), full-resolution pixels, clockwise, largest first."""
+    ds = max(1, int(cfg.downscale))
+    small = (
+        gray if ds == 1 else cv2.resize(gray, (gray.shape[1] // ds, gray.shape[0] // ds), interpolation=cv2.INTER_AREA)
+    )
+    block = max(3, int(round(cfg.block_px / ds)) | 1)
+    # Dark means below both a fraction of the local mean (a ratio holds at any exposure; 0.8 still
+    # catches a thin frame smeared by 6-8 px of blur) and the mean minus an offset (keeps sensor
+    # noise in black areas out).
+    mean = cv2.blur(small, (block, block))
+    thr = cv2.min(cv2.convertScaleAbs(mean, alpha=cfg.dark_ratio), cv2.subtract(mean, cfg.offset))
+    mask = cv2.compare(small, thr, cv2.CMP_LT)
+    if cfg.close_px > 1:
+        # Blur across a thin frame leaves it as dashes; closing rejoins them into one ring.
+        mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_RECT, (cfg.close_px,) * 2))
+    quads, boxes = _outline_quads(mask, cfg, ds)
+    if cfg.group_px > max(cfg.close_px, 1):
+        # Heavy blur across a side, or a side seen nearly edge-on at 2-2.5 m, leaves the frame under
+        # a pixel wide here and it breaks into pieces that no single blob spans. A wider closing
+        # groups the pieces; a group that is a first-pass blob already made into a quad is not new.
+        grouped = cv2.morphologyEx(
+            mask, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_RECT, (cfg.group_px,) * 2)
+        )
+        quads += _outline_quads(grouped, cfg, ds, skip=boxes, dark_mask=mask)[0]
+    return quads
+
+
+def _line_through(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """Huber line fit of (N, 2) points: homogeneous line (3,) with unit normal, and RMS residual."""
+    vx, vy, x0, y0 = cv2.fitLine(points.astype(np.float32), cv2.DIST_HUBER, 0, 0.01, 0.01).ravel()
+    line = np.array([-vy, vx, vy * x0 - vx * y0], float)
+    res = points @ line[:2] + line[2]
+    return line, float(np.sqrt(np.mean(res**2)))
+
+
+def _robust_line(points: np.ndarray, min_points: int) -> tuple[np.ndarray, float, np.ndarray] | None:
+    """Line through (N, 2) edge points after dropping gross outliers; None if too few remain.
+
+    A profile whose crossing locked onto a module, a noise spike or a floor mark lands pixels off the
+    edge; one such point must not sink a side whose other points are on a line. Points further than
+    three robust sigmas (at least 1 px) from the first fit are dropped and the line refitted.
+    Returns the line (3,), the inliers' RMS residual (px) and the inlier mask (N,).
+    """
+    line, _ = _line_through(points)
+    res = np.abs(points @ line[:2] + line[2])
+    keep = res <= max(1.0, 3.0 * 1.4826 * float(np.median(res)))
+    if keep.sum() < min_points:
+        return None
+    line, rms = _line_through(points[keep])
+    return line, rms, keep
+
+
+def _intersect(lines: np.ndarray) -> np.ndarray:
+    """Corner i = side i-1 x side i, for (4, 3) lines; returns (4, 2)."""
+    p = np.cross(np.roll(lines, 1, axis=0), lines)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return p[:, :2] / p[:, 2:3]
+
+
+def _implied_inner(outer_ideal: np.ndarray) -> np.ndarray:
+    """Inner corners (4, 2) implied by the outer square through its homography (ideal pixels)."""
+    unit = np.array([[-1, 1], [1, 1], [1, -1], [-1, -1]], float)
+    H = cv2.getPerspectiveTransform(unit.astype(np.float32), outer_ideal.astype(np.float32))
+    return cv2.perspectiveTransform((unit * _INNER_RATIO).reshape(-1, 1, 2), H).reshape(4, 2)
+
+
+def _crossings(prof: np.ndarray, level: np.ndarray, s: np.ndarray, expect: np.ndarray, rising: bool) -> np.ndarray:
+    """Sub-sample position of the crossing of ``level`` nearest ``expect`` in each profile (NaN if none).
+
+    prof (M, S) samples at positions s (S,), level (M,), expect (M,).
+    """
+    d = prof - level[:, None]
+    a, b = d[:, :-1], d[:, 1:]
+    hit = (a < 0) & (b >= 0) if rising else (a >= 0) & (b < 0)
+    frac = a / np.where(a == b, 1.0, a - b)
+    pos = s[:-1] + frac * (s[1] - s[0])
+    dist = np.where(hit, np.abs(pos - expect[:, None]), np.inf)
+    j = np.argmin(dist, axis=1)
+    out = pos[np.arange(len(j)), j]
+    out[~np.isfinite(dist[np.arange(len(j)), j])] = np.nan
+    return out
+
+
+@dataclass
+class _Refined:
+    outer: np.ndarray  # (4, 2) distorted
+    inner: np.ndarray | None
+    outer_ideal: np.ndarray
+    score: float
+
+
+def _refine(
+    gray: np.ndarray, camera: Camera, quad: np.ndarray, cfg: DetectConfig, lut: np.ndarray | None, search_px: float
+) -> _Refined | None:
+    """One pass of edge-profile refinement around the distorted quad (4, 2)."""
+    n = cfg.profiles_per_side
+    side_vec = np.roll(quad, -1, axis=0) - quad  # (4, 2)
+    side_len = np.linalg.norm(side_vec, axis=1)
+    if side_len.min() < 4:
+        return None
+    along = side_vec / side_len[:, None]
+    inward = np.c_[-along[:, 1], along[:, 0]]  # clockwise on screen with y down: left of travel is inside
+    t = np.linspace(0.15, 0.85, n)
+    base = quad[:, None, :] + t[None, :, None] * side_vec[:, None, :]  # (4, n, 2)
+    # Frame width along each profile, from the geometry implied by the current quad.
+    inner_guess = _implied_inner(quad)
+    inner_line = np.cross(np.c_[inner_guess, np.ones(4)], np.c_[np.roll(inner_guess, -1, 0), np.ones(4)])
+    num = -(np.einsum("inj,ij->in", base, inner_line[:, :2]) + inner_line[:, 2:3])
+    den = np.einsum("ij,ij->i", inward, inner_line[:, :2])[:, None]
+    frame_w = np.clip(num / den, 1.0, None)  # (4, n) distance to the inner edge along ``inward``
+    w_max = float(frame_w.max())
+    if w_max > 0.25 * float(side_len.max()):
+        return None  # a degenerate quad (the frame is 8 % of the side, perspective adds little)
+    quiet = w_max * _QUIET_RATIO / _FRAME_RATIO
+    step = 0.5
+    s = np.arange(-(search_px + cfg.blur_allow_px / 2 + 2), w_max + quiet + search_px + step, step)
+    strip = np.array([-1.0, 0.0, 1.0])
+    pts = (
+        base[:, :, None, None, :]
+        + strip[None, None, :, None, None] * along[:, None, None, None, :]
+        + s[None, None, None, :, None] * inward[:, None, None, None, :]
+    )  # (4, n, 3, S, 2)
+    maps = pts.reshape(4 * n * 3, len(s), 2).astype(np.float32)
+    vals = cv2.remap(gray, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
+    if lut is not None:
+        # Linearise after interpolation of 8-bit values: the LUT is applied to floats by interpolation.
+        vals = np.interp(vals, np.arange(256), lut).astype(np.float32)
+    prof = vals.reshape(4, n, 3, len(s)).mean(axis=2)  # (4, n, S)
+    med = np.median(prof, axis=1)  # (4, S): the side's typical profile
+    in_frame = (s >= 0) & (s <= float(np.median(frame_w)))
+    if not np.any(in_frame):
+        return None
+    ink = float(np.min(med[:, in_frame]))
+    floor = np.median(prof[:, :, s < -(search_px + 0.5)], axis=2)  # (4, n)
+    inside = (s > np.median(frame_w)) & (s <= np.median(frame_w) + quiet + 1.0)
+    paper = float(np.max(med[:, inside])) if np.any(inside) else ink
+    if float(np.median(floor)) - ink < cfg.min_contrast:
+        return None
+    # Inside the frame there must be paper, far brighter than ink: a plain dark square has none
+    # (adaptive thresholding marks only its rim, which otherwise looks like a frame).
+    if paper - ink < max(cfg.min_contrast, cfg.min_paper_ratio * (float(np.median(floor)) - ink)):
+        return None
+    flat = prof.reshape(4 * n, len(s))
+    # Halfway between floor and ink is the true edge under any symmetric blur shorter than twice the
+    # frame width w. Longer blur L across a side keeps that side's dip above halfway (a bar under a
+    # box blur darkens to r = w / L of its full depth) and too shallow to locate in noise. Such a
+    # side is located on the steep rise from the dip to the paper instead: for a floor | ink (w) |
+    # paper step under a box blur longer than w, that rise is a straight ramp whose middle,
+    # ((F + P)(1 - r) + 2 I r) / 2, lies over the frame's centre line, whatever L is.
+    near = (s >= -cfg.blur_allow_px / 2) & (s <= float(np.median(frame_w)))
+    floor_side = np.median(floor, axis=1)  # (4,)
+    ratio = np.clip((floor_side - med[:, near].min(axis=1)) / np.maximum(floor_side - ink, 1e-6), 0.0, 1.0)
+    outer_s = _crossings(flat, ((floor + ink) / 2).ravel(), s, np.zeros(4 * n), rising=False).reshape(4, n)
+    outer_s[(floor - ink) < cfg.min_contrast / 2] = np.nan
+    # Only sides that the halfway level fails on (too few crossings) take the ramp.
+    shallow = (ratio < 0.45) | ((np.isfinite(outer_s).sum(axis=1) < max(4, n // 3)) & (ratio < 0.75))
+    if np.any(shallow):
+        r = ratio[shallow, None]
+        fl = floor[shallow]
+        rise = 0.5 * ((fl + paper) * (1.0 - r) + 2.0 * ink * r)
+        half_w = 0.5 * frame_w[shallow]
+        mid = _crossings(prof[shallow].reshape(-1, len(s)), rise.ravel(), s, half_w.ravel(), rising=True)
+        outer_s[shallow] = mid.reshape(half_w.shape) - half_w
+    ok = np.isfinite(outer_s)
+    if ok.sum(axis=1).min() < max(4, n // 3):
+        return None
+    # Lines are straight only without distortion: undistort every edge point (one call), then fit.
+    edge = camera.undistort_pixels((base + np.nan_to_num(outer_s)[..., None] * inward[:, None, :]).reshape(-1, 2))
+    edge = edge.reshape(4, n, 2)
+    min_points = max(4, n // 3)
+    fits = [_robust_line(edge[i, ok[i]], min_points) for i in range(4)]
+    if any(f is None for f in fits):
+        return None
+    lines, rms = [f[0] for f in fits], [f[1] for f in fits]
+    if max(rms) > cfg.max_rms_px:
+        return None
+    outer_ideal = _intersect(np.array(lines))
+    if not np.all(np.isfinite(outer_ideal)):
+        return None
+    outer = distort_ideal(camera, outer_ideal)
+    valid = sum(int(f[2].sum()) for f in fits) / (4.0 * n)
+    score = valid * min(1.0, (float(np.median(floor)) - ink) / 60.0) * float(np.exp(-max(rms)))
+
+    inner = None
+    inner_s = _crossings(
+        flat, np.full(4 * n, (paper + ink) / 2), s, (frame_w + np.nan_to_num(outer_s)).ravel(), rising=True
+    ).reshape(4, n)
+    inner_s[~(inner_s > np.nan_to_num(outer_s, nan=-1e9) + 0.5)] = np.nan
+    ok = np.isfinite(inner_s)
+    if ok.sum(axis=1).min() >= max(4, n // 3):
+        edge = camera.undistort_pixels((base + np.nan_to_num(inner_s)[..., None] * inward[:, None, :]).reshape(-1, 2))
+        edge = edge.reshape(4, n, 2)
+        inner_ideal = _intersect(np.array([_line_through(edge[i, ok[i]])[0] for i in range(4)]))
+        dev = np.linalg.norm(inner_ideal - _implied_inner(outer_ideal), axis=1)
+        if np.all(np.isfinite(dev)) and dev.max() <= cfg.inner_max_dev_px:
+            inner = distort_ideal(camera, inner_ideal)
+    return _Refined(outer, inner, outer_ideal, score)
+
+
+def _gamma_lut(gamma: float) -> np.ndarray | None:
+    if gamma == 1.0:
+        return None
+    return 255.0 * (np.arange(256) / 255.0) ** gamma
+
+
+def _inside(point: np.ndarray, quad: np.ndarray) -> bool:
+    return (
+        cv2.pointPolygonTest(quad.astype(np.float32).reshape(-1, 1, 2), (float(point[0]), float(point[1])), False) >= 0
+    )
+
+
+def detect_stickers(gray: np.ndarray, camera: Camera, config: DetectConfig | None = None) -> list[Detection]:
+    """Find stickers in one frame.
+
+    Args:
+        gray: (H, W) image matching ``camera``'s size; colour or non-uint8 input is converted
+            (see :func:`as_gray`).
+        camera: intrinsics of the frame, used to fit edges as straight lines in undistorted space.
+        config: tuning; by default :meth:`DetectConfig.for_camera` (sizes scaled to the focal length;
+            unchanged for 1296x972 frames with stickers 40-110 px wide).
+
+    Returns:
+        One Detection per sticker, largest first: outer (4, 2) and inner (4, 2) or None, distorted
+        pixels, clockwise on screen, inner[i] matching outer[i]; score 0-1.
+    """
+    cfg = config or DetectConfig.for_camera(camera)
+    img = as_gray(gray)
+    if img.shape != (camera.height, camera.width):
+        raise InputError(
+            f"image is {img.shape[1]}x{img.shape[0]} px but the camera calibration is {camera.width}x{camera.height}"
+        )
+    if min(img.shape) < cfg.min_side_px + 2 * cfg.border_px:
+        return []
+    lut = _gamma_lut(cfg.response_gamma)
+    h, w = img.shape
+    out: list[Detection] = []
+    for quad in _candidates(img, cfg):
+        area = _polygon_area(quad)
+        if any(_inside(quad.mean(axis=0), d.outer) and area < 0.5 * _polygon_area(d.outer) for d in out):
+            continue  # a symbol inside an accepted sticker
+        first = _refine(img, camera, quad, cfg, lut, search_px=2.0 * cfg.downscale + 1.0)
+        if first is None:
+            continue
+        ref = _refine(img, camera, first.outer, cfg, lut, search_px=1.5)
+        if ref is None or np.max(np.abs(ref.outer - first.outer)) > 3.0:
+            continue
+        o = ref.outer
+        if (
+            np.any(o < cfg.border_px)
+            or np.any(o[:, 0] > w - 1 - cfg.border_px)
+            or np.any(o[:, 1] > h - 1 - cfg.border_px)
+        ):
+            continue
+        sides = np.linalg.norm(o - np.roll(o, -1, axis=0), axis=1)
+        if sides.max() < cfg.min_side_px or sides.max() > cfg.max_side_px or sides.max() > cfg.max_aspect * sides.min():
+            continue
+        if not cv2.isContourConvex(o.astype(np.float32)):
+            continue
+        det = Detection(outer=o, inner=ref.inner, score=float(np.clip(ref.score, 0.0, 1.0)))
+        # A candidate that covers only part of a blurred sticker can refine to a wrong quad over it;
+        # of two overlapping detections the better scored one stays.
+        rivals = [k for k, d in enumerate(out) if _inside(o.mean(axis=0), d.outer) or _inside(d.outer.mean(axis=0), o)]
+        if any(out[k].score >= det.score for k in rivals):
+            continue
+        out = [d for k, d in enumerate(out) if k not in rivals] + [det]
+    return sorted(out, key=lambda d: -_polygon_area(d.outer))
+
+
+def detect(gray: np.ndarray, camera: Camera, method: str = "contour", config: object | None = None) -> list[Detection]:
+    """Detect stickers with the named method: "contour" (ours) or "paper" (ORB + k-means, for comparison)."""
+    if method == "contour":
+        return detect_stickers(gray, camera, config)  # type: ignore[arg-type]
+    if method == "paper":
+        from tagloc.vision.paper_detector import detect_stickers_paper
+
+        return detect_stickers_paper(gray, camera, config)  # type: ignore[arg-type]
+    raise InputError(f"unknown detection method {method!r} (want 'contour' or 'paper')")

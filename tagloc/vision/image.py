@@ -1,0 +1,49 @@
+"""Images as the per-frame stages take them, and quad corner order: the one place either is decided.
+
+Every stage takes a (H, W) uint8 greyscale image; :func:`as_gray` is the only conversion.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from tagloc.core.errors import InputError
+
+
+def as_gray(image: np.ndarray) -> np.ndarray:
+    """Return ``image`` as a (H, W) uint8 greyscale array.
+
+    Accepts (H, W), (H, W, 1), BGR (H, W, 3) or BGRA (H, W, 4); uint8, uint16 (scaled down), bool,
+    or float (0-1 if its maximum is at most 1, else 0-255). Raises InputError for anything else.
+    """
+    if not isinstance(image, np.ndarray):
+        raise InputError(f"image must be a numpy array, got {type(image).__name__}")
+    img = image
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[:, :, 0]
+    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (3, 4)):
+        raise InputError(f"image shape {image.shape} is not (H, W), (H, W, 3) or (H, W, 4)")
+    if img.dtype == np.bool_:
+        img = img.astype(np.uint8) * 255
+    elif img.dtype == np.uint16:
+        img = (img >> 8).astype(np.uint8)
+    elif np.issubdtype(img.dtype, np.floating):
+        f = np.nan_to_num(img.astype(np.float32), nan=0.0, posinf=255.0, neginf=0.0)
+        scale = 255.0 if f.size and float(f.max()) <= 1.0 else 1.0
+        img = np.clip(f * scale + 0.5, 0, 255).astype(np.uint8)
+    elif img.dtype != np.uint8:
+        if not np.issubdtype(img.dtype, np.integer):
+            raise InputError(f"image dtype {image.dtype} is not an image type")
+        img = np.clip(img, 0, 255).astype(np.uint8)
+    if img.ndim == 3:
+        img = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    return np.ascontiguousarray(img)
+
+
+def clockwise(quad: np.ndarray) -> np.ndarray:
+    """Quad (4, 2) in clockwise on-screen order (positive shoelace area with y down), top-left-most first."""
+    x, y = quad[:, 0], quad[:, 1]
+    if np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y) < 0:
+        quad = quad[::-1]
+    return np.roll(quad, -int(np.argmin(quad.sum(axis=1))), axis=0)

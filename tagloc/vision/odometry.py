@@ -1,0 +1,456 @@
+"""Floor visual odometry: the body's planar motion between consecutive frames, from the floor texture.
+
+The camera looks at a flat floor, so a fixed homography (from the rig's nominal pose and the
+calibration, undistortion included) turns a floor patch in front of the operator into a metric
+bird's-eye image: :func:`cv2.remap` with maps built once. Consecutive bird's-eye images of a static
+floor differ by a 2-D rigid motion (the body's planar motion, seen from the patch):
+
+1. translation by :func:`cv2.phaseCorrelate` on high-passed, Hann-windowed images (robust to large
+   shifts, to lighting gradients and to heavy noise; its peak ``response`` is the quality).
+   Phase correlation sees translation only, so the earlier image is first pre-rotated by the turn
+   under way (the last measured turn rate), and if that fails by a grid of turn guesses, keeping
+   the one that correlates best: a corner taken at 90-180 deg/s turns the body 3-6 degrees
+   between frames, beyond what a translation-only match or ECC from no turn can follow;
+2. rotation and a sub-pixel refinement by :func:`cv2.findTransformECC` (``MOTION_EUCLIDEAN``),
+   started from that translation (its correlation is a second quality).
+
+The image motion is converted into the body frame at the earlier frame (``T_body0_body1``), which
+accounts for the patch lying ~1 m ahead of the body origin: a turn about the body origin also
+shifts the patch sideways.
+
+What it measures is the camera's motion carried through the nominal rig: the vest's. The vest
+moving on the body (sway, torso yaw, tilt) is not the body's motion; the tracker's vest-offset
+state takes that part (see :mod:`tracker.config`), so the step covariance (see
+:class:`OdometryConfig`) states the errors against the vest's motion.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from tagloc.core.errors import CalibrationError, InputError
+from tagloc.core.rig import RigCamera
+
+__all__ = ["OdometryConfig", "OdometryStep", "FloorOdometry", "floor_patch"]
+
+
+@dataclass
+class OdometryConfig:
+    """Choices of the floor odometry. Lengths in metres, angles in radians, times in seconds.
+
+    Bird's-eye patch:
+
+    - ``patch_px``: side of the bird's-eye image, the resolution the frames are matched at (80 px
+      over a 1 m square: 12.5 mm pixels; rotation and sub-pixel shift converge there, and finer
+      patches cost more without better steps). ``max_side_m`` caps the floor square it covers; the
+      square is the largest one, centred in front of the camera, whose corners stay
+      ``image_margin`` (fraction of the image size) inside the image and whose rays dip at least
+      ``min_depression`` below the horizon. ``supersample`` (a power of 2): the patch is remapped
+      at this factor and reduced with :func:`cv2.pyrDown` (anti-aliasing: the camera resolves
+      1-4 mm of floor; at 2 instead of 4, aliased texture made 47 % of the steps on six simulated
+      walks fail to match, at 0.17 ms less per frame).
+    - ``highpass_sigma_px``: the local mean (Gaussian of this sigma) is subtracted, so lighting
+      gradients and vignetting do not correlate.
+
+    Acceptance (otherwise :meth:`FloorOdometry.measure` returns None):
+
+    - ``max_dt``: a longer gap between frames (skipped frames) is not measured.
+    - ``min_response``: phase-correlation peak. Independent sensor noise on a blank floor gives
+      0.04 (median; up to 0.1 in 40 trials); consecutive frames of simulated concrete 0.3-0.6
+      (median per session, lux 50-300), down to ~0.05 only under the heaviest blur.
+    - ``min_ecc``: ECC correlation after alignment: < 0.1 on noise, >= 0.3 on matching frames.
+    - ``max_shift_frac``: shifts beyond this fraction of the patch leave too little overlap.
+    - ``rotation_step``, ``max_rotation``: the grid of turn guesses tried when the match from the
+      turn under way fails (a person turns at up to ~4 rad/s, 7.6 degrees between frames at
+      30 Hz); 0 turns the search off.
+    - ``ecc_iterations``, ``ecc_eps``: ECC stops after this many iterations or once its update is
+      below ``ecc_eps`` pixels of the matched patch (0.01 px: under 0.1 mm on the floor, far below
+      the per-frame noise; 1e-4 gave the same step errors on the six eval walks, to 0.02 mm RMS,
+      at 0.15-0.2 ms more per frame).
+
+    Noise per frame, as standard deviations that add in quadrature, of the motion of the patch
+    centre (forward, lateral, in the body frame at the earlier frame) and of the turn, against the
+    camera's true motion carried to the body origin through the nominal rig (the vest's motion; the
+    vest's wobble on the body is the tracker's to model, see :mod:`tracker.config`):
+
+    - ``sigma_forward``, ``sigma_lateral``, ``sigma_yaw``: standing still (image-matching noise,
+      slow pitch drift of the vest);
+    - ``sigma_forward_per_m``, ``sigma_lateral_per_m`` (metres per metre) and ``sigma_yaw_per_m``
+      (radians per metre), per metre the patch centre moved in the step (on a turn on the spot the
+      patch moves and the body origin does not; blur and perspective follow the image's motion):
+      walking jolts the camera in roll and pitch, which the nominal homography turns into apparent
+      floor motion, and the vest's height and pitch off nominal scale the measured displacement.
+
+    The patch lies ``c`` ~0.6-1.1 m ahead of the body origin: what the images fix is where the patch
+    centre went, and the turn about the body origin is the less certain part. An error ``e`` in the
+    turn therefore comes with a sideways error ``-c e`` of the body origin (measured correlation of
+    the two: -0.6 to -0.9 on six simulated walks), which the step's covariance carries (see
+    :meth:`FloorOdometry.covariance`): over a gap, the heading error then swings the estimated path
+    about the patch ahead, and its sideways drift stays small until the walker passes that patch.
+
+    Calibration (tagloc's simulator, six 20 s walks at 56-265 lux, 0.9-1.5 m/s, pitch 46-66 deg),
+    on windows of 15-60 frames (the 0.5-2 s gaps between sticker passes that odometry bridges), so
+    that the variance of the summed step errors matches the sum of the stated variances: the
+    standing values on windows slower than 0.3 m/s on average, the per-metre values on windows
+    faster than 0.9 m/s. Checked on the pose integrated over 15-60 frames (the simulator's roll
+    drift included), by speed class: stated and actual sigma agree within about 20 %. Over 4-8
+    frames of walking the forward errors are correlated (the gait's pitch nod; 1.8 cm against
+    1.0 cm stated over 8 frames), which a per-frame variance cannot state at every horizon.
+    """
+
+    patch_px: int = 80
+    max_side_m: float = 1.0
+    image_margin: float = 0.03
+    min_depression: float = math.radians(20.0)
+    supersample: int = 4
+    highpass_sigma_px: float = 2.5
+    max_dt: float = 0.12
+    min_response: float = 0.1
+    min_ecc: float = 0.3
+    max_shift_frac: float = 0.3
+    rotation_step: float = math.radians(3.0)
+    max_rotation: float = math.radians(9.0)
+    ecc_iterations: int = 5
+    ecc_eps: float = 1e-2
+    sigma_forward: float = 0.0014
+    sigma_lateral: float = 0.00065
+    sigma_yaw: float = math.radians(0.08)
+    sigma_forward_per_m: float = 0.07
+    sigma_lateral_per_m: float = 0.014
+    sigma_yaw_per_m: float = math.radians(1.75)
+
+
+@dataclass
+class OdometryStep:
+    """Body motion between two frames.
+
+    Attributes:
+        t0, t1: timestamps of the earlier and later frame, s.
+        delta: (3,) ``(dx, dy, dyaw)``: the body pose at ``t1`` in the body frame at ``t0`` (m, m, rad).
+        cov: (3, 3) covariance of ``delta``.
+        quality: phase-correlation response (0-1, higher is better).
+    """
+
+    t0: float
+    t1: float
+    delta: np.ndarray
+    cov: np.ndarray
+    quality: float
+
+
+@dataclass
+class FloorPatch:
+    """The floor square seen as the bird's-eye image (body frame, metres).
+
+    Bird's-eye pixel (col, row) is the floor point ``origin + A @ (col, row)``, with ``A`` (2, 2) =
+    ``res * [[0, -1], [-1, 0]]``: rows run backwards (image up = forward), columns to the right.
+    """
+
+    x_near: float
+    x_far: float
+    y_left: float
+    side: float
+    res: float
+    origin: np.ndarray
+    A: np.ndarray
+
+    @property
+    def centre(self) -> np.ndarray:
+        """(2,) centre of the square, body frame (m)."""
+        return np.array([0.5 * (self.x_near + self.x_far), self.y_left - 0.5 * self.side])
+
+
+def _rot2(a: float) -> np.ndarray:
+    """(2, 2) rotation by ``a`` rad."""
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s], [s, c]])
+
+
+def _floor_from_pixels(rig_camera: RigCamera, px: np.ndarray, min_depression: float) -> np.ndarray:
+    """Body-frame floor points (N, 2) under distorted pixels (N, 2); NaN where the ray misses the floor."""
+    cam = rig_camera.camera
+    n = cv2.undistortPoints(px.reshape(-1, 1, 2).astype(np.float64), cam.K, cam.dist).reshape(-1, 2)
+    rays = np.column_stack([n, np.ones(len(n))]) @ rig_camera.T_body_camera[:3, :3].T
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    c = rig_camera.T_body_camera[:3, 3]
+    out = np.full((len(n), 2), np.nan)
+    down = rays[:, 2] < -math.sin(min_depression)
+    s = -c[2] / rays[down, 2]
+    out[down] = c[:2] + s[:, None] * rays[down, :2]
+    return out
+
+
+def floor_patch(rig_camera: RigCamera, config: OdometryConfig | None = None) -> FloorPatch:
+    """The largest floor square (side <= ``max_side_m``) in front of the camera that the image covers.
+
+    The square is axis-aligned in the body frame and centred on the camera's lateral position; its
+    near edge is searched over the footprint. Raises CalibrationError if the camera does not see
+    enough floor (looking up, or a rig far above the floor).
+    """
+    cfg = config or OdometryConfig()
+    cam = rig_camera.camera
+    if rig_camera.T_body_camera[2, 3] <= 0.05:
+        raise CalibrationError(f"camera {rig_camera.name!r}: floor odometry needs the camera above the floor")
+    m = cfg.image_margin
+    # The image border (inset by the margin), densely, as the footprint polygon on the floor.
+    k = np.linspace(0.0, 1.0, 41)
+    u0, u1 = m * (cam.width - 1), (1 - m) * (cam.width - 1)
+    v0, v1 = m * (cam.height - 1), (1 - m) * (cam.height - 1)
+    border = np.vstack(
+        [
+            np.column_stack([u0 + (u1 - u0) * k, np.full_like(k, v0)]),
+            np.column_stack([np.full_like(k, u1), v0 + (v1 - v0) * k]),
+            np.column_stack([u1 - (u1 - u0) * k, np.full_like(k, v1)]),
+            np.column_stack([np.full_like(k, u0), v1 - (v1 - v0) * k]),
+        ]
+    )
+    floor = _floor_from_pixels(rig_camera, border, cfg.min_depression)
+    ok = np.all(np.isfinite(floor), axis=1)
+    if ok.sum() < 8:
+        raise CalibrationError(f"camera {rig_camera.name!r}: sees too little floor for odometry")
+    # Rays above the depression limit are dropped: what is left is the footprint's near part.
+    poly = cv2.convexHull(floor[ok].astype(np.float32))
+    yc = float(rig_camera.T_body_camera[1, 3])
+
+    def fits(x0: float, s: float) -> bool:
+        t = np.linspace(0.0, 1.0, 5)
+        edge = np.vstack(
+            [
+                np.column_stack([x0 + s * t, np.full(5, yc - s / 2)]),
+                np.column_stack([x0 + s * t, np.full(5, yc + s / 2)]),
+                np.column_stack([np.full(5, x0), yc - s / 2 + s * t]),
+                np.column_stack([np.full(5, x0 + s), yc - s / 2 + s * t]),
+            ]
+        )
+        return all(cv2.pointPolygonTest(poly, (float(a), float(b)), False) >= 0 for a, b in edge)
+
+    xs = floor[ok, 0]
+    best = (0.0, 0.0)
+    for x0 in np.linspace(xs.min(), xs.max(), 60):
+        lo, hi = 0.0, cfg.max_side_m
+        if best[1] >= hi and fits(x0, hi):
+            continue  # a nearer square of full size was already found
+        for _ in range(20):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if fits(x0, mid) else (lo, mid)
+        if lo > best[1] + 1e-4:
+            best = (float(x0), lo)
+    x0, side = best
+    if side < 0.2:
+        raise CalibrationError(
+            f"camera {rig_camera.name!r}: the floor square in view is {side:.2f} m, too small for odometry"
+        )
+    res = side / cfg.patch_px
+    origin = np.array([x0 + side - 0.5 * res, yc + side / 2 - 0.5 * res])  # centre of pixel (0, 0)
+    A = res * np.array([[0.0, -1.0], [-1.0, 0.0]])
+    return FloorPatch(x0, x0 + side, yc + side / 2, side, res, origin, A)
+
+
+class FloorOdometry:
+    """Planar body motion between consecutive frames of one rig camera, from the floor texture."""
+
+    def __init__(self, rig_camera: RigCamera, config: OdometryConfig | None = None):
+        self.config = cfg = config or OdometryConfig()
+        self.rig_camera = rig_camera
+        self.patch = p = floor_patch(rig_camera, cfg)
+        n = cfg.patch_px
+        ss = int(cfg.supersample)
+        if ss < 1 or ss & (ss - 1):
+            raise InputError(f"odometry supersample must be a power of 2 (1, 2, 4, ...), got {cfg.supersample}")
+        m = n * ss
+        # pyrDown's output pixel j is centred on its input pixel 2j: supersampled pixel i is patch
+        # coordinate i / ss.
+        g = np.arange(m) / ss
+        cols, rows = np.meshgrid(g, g)
+        pts = p.origin + np.stack([cols.ravel(), rows.ravel()], axis=1) @ p.A.T
+        T_cb = np.linalg.inv(rig_camera.T_body_camera)
+        pc = np.column_stack([pts, np.zeros(len(pts))]) @ T_cb[:3, :3].T + T_cb[:3, 3]
+        px = rig_camera.camera.project(pc).astype(np.float32)
+        # Float maps: OpenCV's fixed-point (CV_16SC2) remap ran 1.6 times slower on this patch.
+        self._map_x = np.ascontiguousarray(px[:, 0].reshape(m, m))
+        self._map_y = np.ascontiguousarray(px[:, 1].reshape(m, m))
+        self._levels = ss.bit_length() - 1
+        self._window = cv2.createHanningWindow((n, n), cv2.CV_32F)
+        self._A_inv = np.linalg.inv(p.A)
+        self._centre = p.centre
+        cx, cy = self._centre
+        self._lever = np.array([[1.0, 0.0, cy], [0.0, 1.0, -cx], [0.0, 0.0, 1.0]])
+        self._prev: tuple[float, np.ndarray] | None = None
+        self._last_turn: tuple[float, float] | None = None  # (time, yaw rate rad/s) of the last step
+        self._criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, cfg.ecc_iterations, cfg.ecc_eps)
+
+    def birdseye(self, gray: np.ndarray) -> np.ndarray:
+        """The bird's-eye patch (patch_px, patch_px) of a (H, W) uint8 frame, float32, high-passed."""
+        cam = self.rig_camera.camera
+        if gray.ndim != 2 or gray.shape != (cam.height, cam.width):
+            raise InputError(f"odometry wants a {cam.width}x{cam.height} greyscale frame, got shape {gray.shape}")
+        img = cv2.remap(gray, self._map_x, self._map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        if self._levels:
+            img = cv2.pyrDown(img)
+        f = img.astype(np.float32)  # float before further reduction: keeps the averaged precision
+        for _ in range(self._levels - 1):
+            f = cv2.pyrDown(f)
+        s = self.config.highpass_sigma_px
+        return f - cv2.GaussianBlur(f, (0, 0), s) if s > 0 else f - float(f.mean())
+
+    def reset(self) -> None:
+        """Forget the previous frame (the next :meth:`measure` returns None)."""
+        self._prev = None
+        self._last_turn = None
+
+    def measure(self, gray: np.ndarray, t: float) -> OdometryStep | None:
+        """Body motion from the previous frame to this one (``gray`` (H, W) uint8, time ``t`` s), or None.
+
+        None for the first frame, after a gap longer than ``max_dt``, out-of-order time, or when the
+        match is poor (texture-less floor, heavy blur, too large a shift).
+        """
+        cfg = self.config
+        small = self.birdseye(gray)
+        prev, self._prev = self._prev, (float(t), small)
+        if prev is None:
+            return None
+        t0, psmall = prev
+        dt = float(t) - t0
+        if not (0.0 < dt <= cfg.max_dt):
+            return None
+        n = cfg.patch_px
+        # First from the turn under way (the last measured rate; people's yaw acceleration is
+        # limited, so it is usually within a degree of this frame's turn); if phase correlation or
+        # ECC fails from there, or ECC ends far from it, also from the best of a grid of guesses.
+        if self._last_turn is not None and 0.0 <= t0 - self._last_turn[0] <= 2 * cfg.max_dt:
+            g0 = float(np.clip(self._last_turn[1] * dt, -cfg.max_rotation, cfg.max_rotation))
+            rounds = ([g0], self._turn_grid(g0))
+        else:
+            # No turn under way is known (first step, or after a gap): nothing says the turn is
+            # near zero, and ECC from a wrong turn can settle on a plausible wrong optimum, so the
+            # whole grid competes at once.
+            g0 = 0.0
+            rounds = ([g0] + self._turn_grid(g0),)
+        best: tuple[float, np.ndarray, float] | None = None  # (rho, W, response)
+        for guesses in rounds:
+            start = self._initial_alignment(psmall, small, guesses)
+            if start is None:
+                continue
+            try:
+                rho, W = cv2.findTransformECC(small, psmall, start[0], cv2.MOTION_EUCLIDEAN, self._criteria, None, 1)
+            except cv2.error:
+                continue
+            if not (math.isfinite(rho) and rho >= cfg.min_ecc):
+                continue
+            if best is None or rho > best[0]:
+                best = (float(rho), W, start[1])
+            # ECC that had to turn far from the guess may have stopped at a wrong optimum (the
+            # turn changed fast): then compare with the grid's start before trusting it.
+            if abs(self._turn(W[:, :2].astype(np.float64)) - g0) <= 0.5 * cfg.rotation_step:
+                break
+        if best is None:
+            return None
+        _, W, response = best
+        W = W.astype(np.float64)
+        if np.hypot(*W[:, 2]) > cfg.max_shift_frac * n * 1.5:
+            return None
+        delta = self._body_motion(W[:, :2], W[:, 2])
+        self._last_turn = (float(t), float(delta[2]) / dt)
+        return OdometryStep(t0, float(t), delta, self.covariance(delta), float(response))
+
+    def _turn_grid(self, skip: float) -> list[float]:
+        """Turn guesses (rad) every ``rotation_step`` up to ``max_rotation`` either way, less ``skip``."""
+        cfg = self.config
+        if not (cfg.max_rotation > 0 and cfg.rotation_step > 0):
+            return []
+        k = int(round(cfg.max_rotation / cfg.rotation_step))
+        return [j * cfg.rotation_step for j in range(-k, k + 1) if abs(j * cfg.rotation_step - skip) > 1e-9]
+
+    def _initial_alignment(
+        self, psmall: np.ndarray, small: np.ndarray, guesses: list[float]
+    ) -> tuple[np.ndarray, float] | None:
+        """Start for ECC: the best of the turn ``guesses`` (rad), each completed by phase correlation.
+
+        Phase correlation sees translation only and its peak fades beyond ~3 degrees of turn, and
+        ECC started from no turn can settle on a wrong local optimum when the true turn is larger
+        (a corner at 150-180 deg/s turns the body 5-6 degrees between frames). So the earlier
+        patch is pre-rotated by each guess, phase correlation adds the shift, and
+        with several guesses the alignment that correlates best (zero-mean normalised, over the
+        patch centre) wins.
+
+        Returns ECC's start ``W`` (2, 3) (current -> earlier patch pixels) and the
+        winner's phase-correlation peak, or None when no guess has a peak of ``min_response``.
+        """
+        cfg = self.config
+        m = small.shape[0]
+        A = self.patch.A
+        c = np.full(2, (m - 1) / 2.0)
+        lo, hi = m // 6, m - m // 6
+        best: tuple[float, float, np.ndarray] | None = None
+        for g in guesses:
+            # Body turn g in patch pixels (the scale of A cancels), about the patch centre: the
+            # rest of the turn's lever arm is a shift, which phase correlation finds.
+            R = _rot2(g)
+            Wl = self._A_inv @ R @ A
+            Wg = np.hstack([Wl, (c - Wl @ c)[:, None]])
+            warped = (
+                psmall
+                if g == 0.0
+                else cv2.warpAffine(
+                    psmall, Wg.astype(np.float32), (m, m), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+                )
+            )
+            # phaseCorrelate applies the window in place: hand it copies.
+            (sx, sy), r = cv2.phaseCorrelate(warped.copy(), small.copy(), self._window)
+            if not (math.isfinite(r) and r >= cfg.min_response) or max(abs(sx), abs(sy)) > cfg.max_shift_frac * m:
+                continue
+            # cur(q) ~ warped(q - s) = prev(Wg (q - s)).
+            W = np.hstack([Wl, (Wg[:, 2] - Wl @ np.array([sx, sy]))[:, None]])
+            zncc = 0.0
+            if len(guesses) > 1:
+                aligned = cv2.warpAffine(
+                    psmall, W.astype(np.float32), (m, m), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+                )
+                zncc = float(cv2.matchTemplate(aligned[lo:hi, lo:hi], small[lo:hi, lo:hi], cv2.TM_CCOEFF_NORMED)[0, 0])
+            if best is None or zncc > best[0]:
+                best = (zncc, float(r), W)
+        if best is None:
+            return None
+        return best[2].astype(np.float32), best[1]
+
+    def _turn(self, Wl: np.ndarray) -> float:
+        """Body turn (rad) of the patch-pixel linear map ``Wl`` (2, 2): the angle of A Wl A^-1."""
+        M = self.patch.A @ Wl @ self._A_inv
+        return math.atan2(M[1, 0] - M[0, 1], M[0, 0] + M[1, 1])
+
+    def _body_motion(self, Wl: np.ndarray, wt: np.ndarray) -> np.ndarray:
+        """(dx, dy, dyaw) of body1 in body0 from the patch-pixel map q0 = Wl q1 + wt."""
+        A, b = self.patch.A, self.patch.origin
+        # Floor points p = A q + b; p0 = R p1 + t (T_body0_body1). Hence R = A Wl A^-1 and
+        # t = A wt + b - R b: the rotation is about the body origin, not the patch centre.
+        yaw = self._turn(Wl)
+        R = _rot2(yaw)
+        t = A @ wt + b - R @ b
+        return np.array([t[0], t[1], yaw])
+
+    def covariance(self, delta: np.ndarray) -> np.ndarray:
+        """(3, 3) covariance of a step ``delta`` (3,) ``(dx, dy, dyaw)`` (see :class:`OdometryConfig`).
+
+        Independent errors of the patch centre's motion (forward, lateral) and of the turn, carried
+        to the body origin: a turn error ``e`` about the origin moves the origin by ``-e J c`` for
+        the patch centre ``c`` (J: 90-degree rotation), so ``G = [[1, 0, c_y], [0, 1, -c_x], [0, 0, 1]]``
+        and the covariance is ``G diag(...) G^T``.
+        """
+        cfg = self.config
+        # The image motion drives the errors (blur, perspective), so they grow with how far the
+        # patch centre moved, which on a turn on the spot is far more than the body origin.
+        co, si = math.cos(delta[2]), math.sin(delta[2])
+        cx, cy = self._centre
+        d2 = float((delta[0] + (co - 1.0) * cx - si * cy) ** 2 + (delta[1] + si * cx + (co - 1.0) * cy) ** 2)
+        D = np.diag(
+            [
+                cfg.sigma_forward**2 + cfg.sigma_forward_per_m**2 * d2,
+                cfg.sigma_lateral**2 + cfg.sigma_lateral_per_m**2 * d2,
+                cfg.sigma_yaw**2 + cfg.sigma_yaw_per_m**2 * d2,
+            ]
+        )
+        return self._lever @ D @ self._lever.T
