@@ -8,9 +8,10 @@
      "visible": [{"id": 4242, "in_map": true, "corners": [[u, v] x 4], "inner": [[u, v] x 4],
                   "inside": true, "distance_m": 1.52}, ...]}
 
-``T_world_body`` is the ground-truth body pose (also in ``groundtruth.tum``): the floor-projected
-body frame, z = 0, without the vest motion. ``T_world_camera`` is the true camera pose at the frame's
-time, vest motion included. ``corners``/``inner`` are the sticker's outer and inner frame corners in
+``T_world_body`` is the ground-truth body pose (also in ``groundtruth.tum``): the rig's vest point
+projected vertically onto the floor (z = 0) with the horizontal heading of the torso's +x axis, so it
+moves with the torso's sway, twist and lean (see :mod:`tagloc.sim.walk`). ``T_world_camera`` is the
+true camera pose at the frame's time, torso motion included. ``corners``/``inner`` are the sticker's outer and inner frame corners in
 distorted pixels, canonical order (top-left first, clockwise on the sticker); ``inside`` says all
 eight are in the image. Stickers in the map but left off the floor never appear; stickers on the
 floor but not in the map appear with ``in_map: false``. Frame ``k`` is exposed around ``t = k / fps``
@@ -42,8 +43,9 @@ from tagloc.sim.render import ExposureConfig, OpticsConfig, Renderer, RenderResu
 from tagloc.sim.walk import Walk, WalkConfig, plan_walk
 
 # Bumped whenever the simulated physics change, so that sessions cached by ``tagloc eval`` are made
-# again (2: slow roll drift of the vest).
-SIM_REVISION = 2
+# again (2: slow roll drift of the vest; 3: lean into turns and with acceleration, torso rotations
+# about the centre of mass, ground truth at the vest point's vertical projection).
+SIM_REVISION = 3
 
 
 @dataclass
@@ -126,7 +128,7 @@ class SimConfig:
             rig = self.rig if isinstance(self.rig, Rig) else load_rig(self.rig, cam)
         rc = rig.cameras[0]
         camera = rc.camera.scaled(self.scale) if self.scale != 1 else rc.camera
-        return Rig([RigCamera(rc.name, camera, rc.T_body_camera.copy(), rc.calibration_file)])
+        return Rig([RigCamera(rc.name, camera, rc.T_body_camera.copy(), rc.calibration_file, rc.vest_height_m)])
 
     def to_json(self) -> dict:
         """Plain-data description for ``session.json`` (files by name; objects summarised)."""
@@ -278,7 +280,7 @@ def simulate_session(
     t_wall = time.perf_counter()
     stats = []
     with SessionWriter(out, smap, rig, info, jpeg_quality=config.jpeg_quality) as writer:
-        write_tum(out / "groundtruth.tum", stamps, walk.T_world_body(stamps))
+        write_tum(out / "groundtruth.tum", stamps, walk.T_world_body(stamps, rc.vest_point))
         with (out / "groundtruth_frames.jsonl").open("w", encoding="utf-8") as gt:
             for k in tqdm(range(n), desc="simulate", unit="frame", disable=not progress):
                 t = float(stamps[k])
@@ -293,7 +295,7 @@ def simulate_session(
                 rec = {
                     "index": k,
                     "t": round(t, 6),
-                    "T_world_body": np.round(walk.T_world_body(t), 6).tolist(),
+                    "T_world_body": np.round(walk.T_world_body(t, rc.vest_point), 6).tolist(),
                     "T_world_camera": np.round(pose_at(np.array([t]))[0], 6).tolist(),
                     "exposure_s": round(res.exposure_s, 7),
                     "gain": round(res.gain, 4),
