@@ -669,3 +669,28 @@ def test_same_frame_fixes_after_hours_lost_stay_precise(rng):
     assert np.trace(one[:2, :2]) == pytest.approx(floor[0, 0] + floor[1, 1] + 2e-6, rel=0.01)
     np.testing.assert_allclose(np.diag(two), np.diag(one), rtol=0.05)
     np.testing.assert_allclose(tr.output().pose, here, atol=1e-3)  # yaw prior capped at pi^2/3, not flat
+
+
+def test_candidates_see_the_camera_rolled_by_the_turns_lean():
+    """Walking 1.3 m/s on a 1.3 m arc to the left: the camera is rolled atan(v omega / g) = 7.5 deg,
+    top to the left, about the vest point (which stays where it was); straight on, it is not rolled."""
+    from tagloc.core.camera import default_camera
+    from tagloc.core.rig import RigCamera, looking_forward
+
+    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0, x_m=0.1))
+    tr = Tracker()
+    tr.predict(0.0)
+    assert tr.update([make_fix([0.0, 0.0, 0.0])], 1, IdSource.DECODED, 0.0).accepted
+    x = tr._ekf.mean
+    x[motion.V], x[motion.W] = 1.3, 1.0
+    tr._ekf.set(x, tr._ekf.cov)
+    leaned = tr.leaned_camera(rc)
+    R = leaned.T_body_camera[:3, :3] @ rc.T_body_camera[:3, :3].T  # the lean, in the body frame
+    up = R[:, 2]
+    assert math.degrees(math.atan2(up[1], up[2])) == pytest.approx(math.degrees(math.atan(1.3 / 9.81)), abs=1e-6)
+    assert abs(up[0]) < 1e-9  # a roll, about the body's forward axis
+    p = rc.vest_point
+    assert np.allclose(R @ p + (leaned.T_body_camera[:3, 3] - R @ rc.T_body_camera[:3, 3]), p)
+    x[motion.W] = 0.0
+    tr._ekf.set(x, tr._ekf.cov)
+    assert tr.leaned_camera(rc) is rc

@@ -43,8 +43,10 @@ class CandidateConfig:
     Attributes:
         pixel_sigma: detection-centre noise, px: the mean of the four detected corners is not the
             projected centre under perspective (~1 px for a 10 cm sticker) and blur moves corners.
-        tilt_sigma: camera tilt about its own axes relative to the nominal rig, rad (the vest
-            pitches/rolls ~1 deg; at fx ~1290 px that alone is ~22 px).
+        tilt_sigma: camera tilt about its own axes relative to the rig as the tracker predicts it,
+            rad: the gait's ~1 deg nod and roll, and the lean with speed changes, atan(a / g), which
+            is not predicted (~0.4 m/s^2 RMS over a walk with stops: 2.3 deg); together 2.5 deg
+            (at fx ~1290 px, ~56 px). The lean into turns is predicted (the camera is rolled by it).
         bob_sigma: camera height bob, m (2-3 cm while walking).
         max_range: farthest floor distance from the camera considered, m (the footprint of rays
             above the horizon is clipped there; a 10 cm sticker is ~30 px wide at 4 m).
@@ -54,7 +56,7 @@ class CandidateConfig:
     """
 
     pixel_sigma: float = 3.0
-    tilt_sigma: float = math.radians(1.0)
+    tilt_sigma: float = math.radians(2.5)
     bob_sigma: float = 0.025
     max_range: float = 4.0
     min_depth: float = 0.1

@@ -95,7 +95,8 @@ class TrackerConfig:
     ``min(1, |v| / floor_walk_speed)`` (a lean needs speed). A second Gauss-Markov state (x, y):
     fixes do not see it (the vest point does not move when the torso tilts about it), odometry steps
     measure the motion of vest + tilt offset, so the lean's apparent motion is bounded instead of
-    integrated into the pose.
+    integrated into the pose. ``gravity`` (m/s^2) gives the lean into a turn that candidate
+    selection expects, atan(v omega / g) (:meth:`tracker.tracker.Tracker.leaned_camera`).
 
     Gates (squared Mahalanobis distance of the innovation over x, y, yaw, 3 DoF):
 
@@ -164,6 +165,7 @@ class TrackerConfig:
     tilt_sigma_forward: float = 0.077
     tilt_sigma_lateral: float = 0.060
     tilt_corr_s: float = 1.0
+    gravity: float = 9.81
     gate_prob: float = 0.999
     gate_prob_identified: float = 0.99
     lost_sigma_m: float = 0.5

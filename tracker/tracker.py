@@ -34,6 +34,7 @@ Rules, in one place:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -44,6 +45,7 @@ from tagloc.core.geometry import wrap_angle
 from tagloc.core.rig import RigCamera
 from tagloc.core.stickermap import StickerMap
 from tagloc.core.types import IdSource, PoseFix, TrackerOutput, TrackState
+from tracker import motion
 from tracker.candidates import select_candidates
 from tracker.config import TrackerConfig
 from tracker.ekf import (
@@ -176,9 +178,30 @@ class Tracker:
         return vest_pose(self._ekf.x[:, 0]), vest_cov(self._ekf.P)
 
     def candidates(self, smap: StickerMap, rig_camera: RigCamera, observed_px: np.ndarray, k: int = 5) -> list[int]:
-        """Sticker IDs that may be the one seen at ``observed_px``, most likely first ([] unless TRACKING)."""
+        """Sticker IDs that may be the one seen at ``observed_px``, most likely first ([] unless TRACKING).
+
+        The stickers are projected through the camera as the torso's lean into the turn under way
+        tilts it (:meth:`leaned_camera`)."""
         prior = self.prior()
-        return [] if prior is None else select_candidates(prior[0], prior[1], smap, rig_camera, observed_px, k=k)
+        if prior is None:
+            return []
+        return select_candidates(prior[0], prior[1], smap, self.leaned_camera(rig_camera), observed_px, k=k)
+
+    def leaned_camera(self, rig_camera: RigCamera) -> RigCamera:
+        """``rig_camera`` rolled by the lean the walk's state predicts, atan(v omega / g) into the turn,
+        about the vest point (the pose is the vest point's, which the lean does not move). The lean
+        with speed changes is not predicted (the state has no acceleration):
+        :class:`tracker.candidates.CandidateConfig`'s ``tilt_sigma`` covers it."""
+        x = self._ekf.x[:, 0]
+        roll = -math.atan(float(x[motion.V] * x[motion.W]) / self.config.gravity)
+        if abs(roll) < 1e-4:
+            return rig_camera
+        c, s = math.cos(roll), math.sin(roll)
+        T = np.eye(4)
+        T[1:3, 1:3] = [[c, -s], [s, c]]
+        p = rig_camera.vest_point
+        T[:3, 3] = p - T[:3, :3] @ p
+        return dataclasses.replace(rig_camera, T_body_camera=T @ rig_camera.T_body_camera)
 
     # -- time ---------------------------------------------------------------------------------------
     def predict(self, t: float) -> None:

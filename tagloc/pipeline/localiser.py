@@ -227,7 +227,12 @@ class Localiser:
                 []
                 if prior is None
                 else select_candidates(
-                    prior[0], prior[1], self.map, rig_cam, obs.detection.outer.mean(axis=0), k=self.config.candidates
+                    prior[0],
+                    prior[1],
+                    self.map,
+                    self.tracker.leaned_camera(rig_cam),  # rolled by the turn's predicted lean
+                    obs.detection.outer.mean(axis=0),
+                    k=self.config.candidates,
                 )
             )
             obs.times_ms["candidates"] = (time.perf_counter() - ts) * 1e3
