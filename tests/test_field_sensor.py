@@ -1,0 +1,161 @@
+"""Field physics of the camera and the map (issue 14, part B): rolling-shutter timing, the driver's
+jittered and dropped frames, survey error in the map, the dimmer OV5647 sensor model, and what the
+localiser does with each."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from tagloc.cli.simulate import SENSOR_CHOICES
+from tagloc.core.errors import InputError
+from tagloc.core.stickermap import StickerMap, load_map, save_map
+from tagloc.io.session import SessionReader
+from tagloc.sim.render import (
+    SENSOR_PRESETS,
+    ExposureConfig,
+    OpticsConfig,
+    SensorConfig,
+    electrons_per_lux_s,
+    exposure_for_sensor,
+    row_delay_s,
+    sensor_preset,
+)
+from tagloc.sim.simulate import SimConfig, read_groundtruth_frames, simulate_session
+from tagloc.sim.survey import FIELD_SURVEY, SurveyConfig, surveyed_map
+from tagloc.sim.timing import FIELD_TIMING, TimingConfig, frame_schedule
+
+
+def line_map(n: int = 9, spacing_m: float = 1.5) -> StickerMap:
+    """Stickers along world +y, one every ``spacing_m``, IDs 200, 201, ..."""
+    xy = np.column_stack([np.zeros(n), np.arange(n) * spacing_m])
+    return StickerMap(np.arange(200, 200 + n), xy, np.radians(np.arange(n) * 41.0 % 360))
+
+
+# -- rolling-shutter timing --------------------------------------------------------------------------
+
+
+def test_row_delay_is_readout_over_rows():
+    H, readout = 972, 0.030
+    d = row_delay_s(np.arange(H), H, readout)
+    assert np.diff(d) == pytest.approx(np.full(H - 1, readout / H))
+    assert d[0] == pytest.approx(-d[-1])  # the frame's time is the middle row's
+    assert d[-1] - d[0] == pytest.approx(readout * (H - 1) / H)
+
+
+# -- camera timing -----------------------------------------------------------------------------------
+
+
+def test_frame_schedule_drops_bursts_and_jitter():
+    fps = 30.0
+    n = 60 * 60 * 30  # an hour: enough frames for the rates to show
+    s = frame_schedule(n, fps, FIELD_TIMING, seed=5)
+    lost = np.setdiff1d(np.arange(n), s.index)
+    assert s.dropped == len(lost)
+    # Isolated drops at 4 % plus 3 bursts a minute of 5.5 frames on average: 4.9 % in all.
+    expect = 1 - (1 - 0.04) * (1 - 3 / 60 / fps * 5.5)
+    assert len(lost) / n == pytest.approx(expect, rel=0.05)
+    assert s.bursts == pytest.approx(3 * 60, rel=0.15)
+    runs = np.diff(np.flatnonzero(np.diff(np.r_[0, np.isin(np.arange(n), lost).astype(int), 0])))[::2]
+    assert runs.max() <= 2 * 8  # two bursts may meet, never longer
+    assert np.sum(runs >= 3) == pytest.approx(s.bursts, rel=0.1)
+    err = s.stamp - s.index / fps
+    assert np.abs(err).max() <= 0.002 + 1e-12 and np.abs(err).max() > 0.0019
+    assert np.all(np.diff(s.stamp) > 0)
+    again = frame_schedule(n, fps, FIELD_TIMING, seed=5)
+    assert np.array_equal(again.index, s.index) and np.array_equal(again.stamp, s.stamp)
+    assert not np.array_equal(frame_schedule(n, fps, FIELD_TIMING, seed=6).index, s.index)
+    none = frame_schedule(100, fps, TimingConfig(), seed=5)
+    assert np.array_equal(none.index, np.arange(100)) and np.array_equal(none.stamp, np.arange(100) / fps)
+
+
+def test_timing_config_refuses_nonsense():
+    with pytest.raises(InputError):
+        TimingConfig(drop_fraction=1.5)
+    with pytest.raises(InputError):
+        TimingConfig(burst_frames=(5, 2))
+    with pytest.raises(InputError, match="reorders"):
+        frame_schedule(10, 30.0, TimingConfig(jitter_s=0.03), seed=1)
+
+
+# -- survey error --------------------------------------------------------------------------------------
+
+
+def test_surveyed_map_errors_have_the_stated_size(tmp_path):
+    n = 4000
+    truth = StickerMap(np.arange(n), np.column_stack([np.arange(n) * 1.5, np.zeros(n)]), np.zeros(n))
+    m = surveyed_map(truth, FIELD_SURVEY, seed=3)
+    assert np.array_equal(m.ids, truth.ids)
+    d = m.xy - truth.xy
+    assert d.std(axis=0) == pytest.approx([0.01, 0.01], rel=0.05)
+    dyaw = (m.yaw - truth.yaw + np.pi) % (2 * np.pi) - np.pi
+    assert np.degrees(dyaw.std()) == pytest.approx(1.5, rel=0.05)
+    assert np.all(np.isnan(m.sigma_xy))  # not stated: the localiser's default applies
+    assert surveyed_map(truth, SurveyConfig(), seed=3) is truth
+    stated = surveyed_map(truth, SurveyConfig(0.02, 2.0, stated=True), seed=3)
+    save_map(stated, tmp_path / "m.csv")
+    back = load_map(tmp_path / "m.csv")
+    assert back.sigma_xy == pytest.approx(np.full(n, 0.02)) and back.sigma_yaw == pytest.approx(
+        np.full(n, math.radians(2.0)), abs=1e-6
+    )
+
+
+# -- sensor --------------------------------------------------------------------------------------------
+
+
+def test_ov5647_preset_is_about_half_as_sensitive():
+    assert set(SENSOR_CHOICES) == set(SENSOR_PRESETS)
+    std, dim = sensor_preset("standard"), sensor_preset("ov5647")
+    ratio = electrons_per_lux_s(OpticsConfig(), std) / electrons_per_lux_s(OpticsConfig(), dim)
+    assert 1.9 < ratio < 3.0
+    exp = exposure_for_sensor(ExposureConfig(), dim)
+    assert exp.e0_lux_s == pytest.approx(ExposureConfig().e0_lux_s * ratio)
+    assert exp.max_exposure_s == pytest.approx(ExposureConfig().max_exposure_s * ratio)
+    assert exposure_for_sensor(ExposureConfig(), SensorConfig()) == ExposureConfig()
+    # The datasheet figures: 4 x 4.3 ke- full well; 68 dB of dynamic range -> 1.7 e- per pixel, 2x binned.
+    assert dim.full_well_e == pytest.approx(4 * 4300)
+    assert dim.read_noise_e == pytest.approx(2 * 4300 / 10 ** (68 / 20), rel=0.02)
+    with pytest.raises(InputError):
+        sensor_preset("nope")
+
+
+# -- sessions ------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def field_session(tmp_path_factory):
+    """A short seeded walk with all of part B's field conditions at small scale."""
+    out = tmp_path_factory.mktemp("field") / "s"
+    cfg = SimConfig(
+        seconds=2.0,
+        fps=30.0,
+        lux=150.0,
+        seed=4,
+        scale=0.5,
+        rolling_shutter=True,
+        sensor_preset="ov5647",
+        timing=TimingConfig(jitter_s=0.002, drop_fraction=0.05, bursts_per_min=40.0),
+        survey=SurveyConfig(0.015, 1.5),
+    )
+    simulate_session(line_map(), out, cfg, progress=False)
+    return out, cfg
+
+
+def test_session_has_dropped_frames_jittered_stamps_and_surveyed_map(field_session):
+    out, cfg = field_session
+    reader = SessionReader(out)
+    recs = read_groundtruth_frames(out)
+    assert len(reader) == len(recs) < 60  # some of the 60 frames were lost
+    assert list(reader.index) == [r["index"] for r in recs]
+    assert np.all(np.diff(reader.index) >= 1) and np.any(np.diff(reader.index) > 1)
+    t_true = np.array([r["t"] for r in recs])
+    assert t_true == pytest.approx(reader.index / cfg.fps, abs=1e-6)
+    assert np.abs(reader.timestamps - t_true).max() <= 0.002 + 1e-6
+    assert np.abs(reader.timestamps - t_true).max() > 0.0
+    truth, given = load_map(out / "map_true.csv"), load_map(out / "map.csv")
+    assert np.array_equal(truth.ids, given.ids)
+    assert np.allclose(truth.xy, line_map().xy, atol=1e-4)
+    assert 0.002 < np.abs(given.xy - truth.xy).max() < 0.1
+    assert max(r["exposure_s"] for r in recs) > 0.0035  # 0.3 lux s / 150 lux = 2 ms on the standard sensor
