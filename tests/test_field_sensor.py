@@ -159,3 +159,88 @@ def test_session_has_dropped_frames_jittered_stamps_and_surveyed_map(field_sessi
     assert np.allclose(truth.xy, line_map().xy, atol=1e-4)
     assert 0.002 < np.abs(given.xy - truth.xy).max() < 0.1
     assert max(r["exposure_s"] for r in recs) > 0.0035  # 0.3 lux s / 150 lux = 2 ms on the standard sensor
+
+
+# -- the map's survey error in the fix covariance ----------------------------------------------------
+
+
+def _pose_fixture():
+    from tagloc.core.camera import default_camera
+    from tagloc.core.geometry import invert, planar_T, transform_points
+    from tagloc.core.rig import RigCamera, looking_forward
+    from tagloc.core.sticker import INNER_CORNERS, OUTER_CORNERS
+    from tagloc.core.types import Detection
+
+    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0))
+    body = planar_T(2.0, -1.0, 0.7)
+    # The sticker ~1.6 m ahead of the body origin and a little to the left, at some yaw.
+    c, s = math.cos(0.7), math.sin(0.7)
+    T_ws = planar_T(2.0 + 1.6 * c - 0.2 * s, -1.0 + 1.6 * s + 0.2 * c, 2.1)
+    T_cs = invert(body @ rc.T_body_camera) @ T_ws
+    det = Detection(
+        rc.camera.project(transform_points(T_cs, OUTER_CORNERS)),
+        rc.camera.project(transform_points(T_cs, INNER_CORNERS)),
+    )
+    return rc, body, T_ws, det
+
+
+def test_map_covariance_is_the_lever_of_the_sticker_pose():
+    """A sticker's yaw error moves the body by distance x angle: the map part of the fix covariance
+    matches the spread of fixes solved against perturbed map poses (Monte Carlo, 400 draws)."""
+    from tagloc.core.geometry import planar_T
+    from tagloc.vision.pose import map_covariance, solve_pose
+
+    rc, body, T_ws, det = _pose_fixture()
+    sig_m, sig_yaw = 0.015, math.radians(1.5)
+    exact = solve_pose(det, 0, T_ws, rc, corner_sigma_px=0.3).poses[0]
+    with_map = solve_pose(det, 0, T_ws, rc, corner_sigma_px=0.3, map_sigma=(sig_m, sig_yaw)).poses[0]
+    C = map_covariance(exact.body, T_ws[:2, 3], sig_m, sig_yaw)
+    assert with_map.cov - exact.cov == pytest.approx(C, abs=1e-12)
+    dist = float(np.hypot(*(exact.body[:2] - T_ws[:2, 3])))
+    assert dist == pytest.approx(1.6, abs=0.1)
+    # Sideways of the sticker-to-body line the yaw error adds (distance x sigma_yaw)^2.
+    u = (exact.body[:2] - T_ws[:2, 3]) / dist
+    n = np.array([-u[1], u[0]])
+    assert n @ C[:2, :2] @ n == pytest.approx(sig_m**2 + (dist * sig_yaw) ** 2, rel=1e-9)
+    assert u @ C[:2, :2] @ u == pytest.approx(sig_m**2, rel=1e-9)
+
+    rng = np.random.default_rng(9)
+    x0, y0, a0 = T_ws[0, 3], T_ws[1, 3], math.atan2(T_ws[1, 0], T_ws[0, 0])
+    bodies = []
+    for _ in range(400):
+        dx, dy = rng.normal(0, sig_m, 2)
+        wrong = planar_T(x0 + dx, y0 + dy, a0 + rng.normal(0, sig_yaw))
+        bodies.append(solve_pose(det, 0, wrong, rc, corner_sigma_px=0.3).poses[0].body)
+    d = np.array(bodies) - exact.body
+    emp = d.T @ d / len(d)
+    for i in range(3):
+        assert emp[i, i] == pytest.approx(C[i, i], rel=0.2)
+    assert emp[0, 2] / math.sqrt(emp[0, 0] * emp[2, 2]) == pytest.approx(
+        C[0, 2] / math.sqrt(C[0, 0] * C[2, 2]), abs=0.1
+    )
+
+
+def test_map_sigma_defaults_apply_where_the_map_states_none():
+    from tagloc.vision.pose import PoseConfig, map_covariance, solve_pose
+
+    rc, body, T_ws, det = _pose_fixture()
+    cfg = PoseConfig()
+    exact = solve_pose(det, 0, T_ws, rc, corner_sigma_px=0.3).poses[0]
+    default = solve_pose(det, 0, T_ws, rc, corner_sigma_px=0.3, map_sigma=(math.nan, math.nan)).poses[0]
+    C = map_covariance(exact.body, T_ws[:2, 3], cfg.map_sigma_m, cfg.map_sigma_yaw)
+    assert default.cov - exact.cov == pytest.approx(C, abs=1e-12)
+    stated_zero = solve_pose(det, 0, T_ws, rc, corner_sigma_px=0.3, map_sigma=(0.0, 0.0)).poses[0]
+    assert stated_zero.cov == pytest.approx(exact.cov, abs=1e-15)
+    scaled = solve_pose(det, 0, T_ws, rc, corner_sigma_px=0.3, map_sigma=(0.01, 0.02), map_scale=4.0).poses[0]
+    assert scaled.cov - exact.cov == pytest.approx(4.0 * map_covariance(exact.body, T_ws[:2, 3], 0.01, 0.02))
+
+
+def test_survey_passes_bound_what_one_sticker_is_worth():
+    from tagloc.vision.pose import SurveyPasses
+
+    p = SurveyPasses(gap_s=1.0)
+    scales = [p.scale(7, k / 30) for k in range(30)]
+    assert scales[:3] == [1.0, 4.0, 9.0]
+    assert sum(1 / np.array(scales)) < math.pi**2 / 6
+    assert p.scale(8, 1.0) == 1.0  # another sticker: its own pass
+    assert p.scale(7, 2.0) == 1.0  # over 1 s without a fix of it: a new pass

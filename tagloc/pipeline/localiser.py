@@ -21,7 +21,7 @@ from tagloc.core.types import Frame, FrameResult, IdSource, Observation, Tracker
 from tagloc.vision.decode import decode
 from tagloc.vision.detect import detect
 from tagloc.vision.odometry import FloorOdometry, OdometryConfig
-from tagloc.vision.pose import solve_pose
+from tagloc.vision.pose import PoseConfig, SurveyPasses, solve_pose
 from tracker.candidates import select_candidates
 from tracker.tracker import Tracker, TrackerConfig
 
@@ -43,6 +43,7 @@ class LocaliserConfig:
         tracker: the EKF's configuration.
         odometry: measure the body's motion between frames from the floor texture and feed it to
             the tracker ("full" mode only); ``odometry_config`` tunes it.
+        pose: the pose solver's options (corner noise, the map's default survey sigmas).
     """
 
     mode: str = "full"
@@ -53,6 +54,7 @@ class LocaliserConfig:
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     odometry: bool = True
     odometry_config: OdometryConfig = field(default_factory=OdometryConfig)
+    pose: PoseConfig = field(default_factory=PoseConfig)
 
 
 def load_setup(
@@ -101,6 +103,7 @@ class Localiser:
         if self.config.mode not in MODES:
             raise InputError(f"unknown localiser mode {self.config.mode!r} (want one of {', '.join(MODES)})")
         self.tracker = Tracker(self.config.tracker)
+        self._passes = SurveyPasses()  # repeated fixes of a sticker share its survey error
         self._held: TrackerOutput | None = None  # the baselines' last fix
         self._refs = refs
         self._map_path = map_path
@@ -245,7 +248,17 @@ class Localiser:
 
     def _fix(self, obs: Observation, rig_cam, t: float) -> None:
         ts = time.perf_counter()
-        sol = solve_pose(obs.detection, obs.rotation, self.map.T_world_sticker(obs.sticker_id), rig_cam)
+        row = self.map.row(obs.sticker_id)
+        survey = (float(self.map.sigma_xy[row]), float(self.map.sigma_yaw[row]))  # NaN: the default
+        sol = solve_pose(
+            obs.detection,
+            obs.rotation,
+            self.map.T_world_sticker(obs.sticker_id),
+            rig_cam,
+            config=self.config.pose,
+            map_sigma=survey,
+            map_scale=self._passes.scale(obs.sticker_id, t) if self.config.mode == "full" else 1.0,
+        )
         obs.times_ms["pose"] = (time.perf_counter() - ts) * 1e3
         obs.poses, obs.ambiguous = sol.poses, sol.ambiguous
         if not sol.poses or self.config.mode != "full":
