@@ -54,6 +54,7 @@ import numpy as np
 
 from tagloc.core.camera import Camera
 from tagloc.core.errors import InputError
+from tagloc.core.rig import row_delay_s
 from tagloc.core.sticker import sticker_pixel_to_metres
 from tagloc.sim.floor import Floor, sticker_size_px
 
@@ -138,15 +139,6 @@ def exposure_for_sensor(exposure: ExposureConfig, sensor: SensorConfig) -> Expos
     if abs(k - 1.0) < 1e-12:
         return exposure
     return replace(exposure, e0_lux_s=exposure.e0_lux_s * k, max_exposure_s=exposure.max_exposure_s * k)
-
-
-def row_delay_s(rows: np.ndarray | float, height: int, readout_s: float) -> np.ndarray | float:
-    """Rolling shutter: when row ``rows`` (0 = top, may be fractional) is exposed, relative to the frame time (s).
-
-    The sensor reads one row every ``readout_s / height`` seconds, top row first; the frame's time
-    is the middle row's (``(height - 1) / 2``), so rows above it are exposed earlier (negative).
-    """
-    return (np.asarray(rows, float) - 0.5 * (height - 1)) * (readout_s / height)
 
 
 @dataclass

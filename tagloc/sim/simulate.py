@@ -158,7 +158,9 @@ class SimConfig:
             rig = self.rig if isinstance(self.rig, Rig) else load_rig(self.rig, cam)
         rc = rig.cameras[0]
         camera = rc.camera.scaled(self.scale) if self.scale != 1 else rc.camera
-        return Rig([RigCamera(rc.name, camera, rc.T_body_camera.copy(), rc.calibration_file)])
+        # A rolling-shutter camera says so in the session's rig.json (its read-out), as a real one would.
+        readout = self.exposure.readout_s if self.rolling_shutter else 0.0
+        return Rig([RigCamera(rc.name, camera, rc.T_body_camera.copy(), rc.calibration_file, readout)])
 
     def to_json(self) -> dict:
         """Plain-data description for ``session.json`` (files by name; objects summarised)."""

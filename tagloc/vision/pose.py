@@ -18,6 +18,14 @@ when stated and :class:`PoseConfig`'s defaults when not. A sticker's survey erro
 every frame that sees it, so the fixes of one pass past it share it and must not average it away:
 :class:`SurveyPasses` scales the k-th fix's map part by k^2, which caps the information a pass
 draws from that one map pose at pi^2/6 times one fix's, however many frames see the sticker.
+
+A rolling-shutter camera (``RigCamera.readout_s`` > 0) exposes each row at its own time, so a
+moving camera sees each corner from a slightly different pose: the sticker is skewed and, lower
+in the image, seen later than the frame's time (the middle row's). Given the body's motion
+(``body_twist``: from the floor odometry's last step or the tracker's prediction), the solver
+first solves as usual, then moves each corner to where it would have been seen at the frame's
+time (:func:`rolling_shutter_shift`: the corner's point in the camera, moved back by the camera's
+velocity over its row's delay, projected) and solves again on the corrected corners.
 """
 
 from __future__ import annotations
@@ -31,7 +39,7 @@ import numpy as np
 
 from tagloc.core.errors import InputError
 from tagloc.core.geometry import T_from_rvec_tvec, invert, planar_from_T, wrap_angle
-from tagloc.core.rig import RigCamera
+from tagloc.core.rig import RigCamera, row_delay_s
 from tagloc.core.sticker import ALL_CORNERS, OUTER_CORNERS, rotate_corners
 from tagloc.core.types import Detection, PoseFix
 
@@ -139,45 +147,35 @@ class SurveyPasses:
         return float(k * k)
 
 
-def solve_pose(
-    detection: Detection,
-    rotation: int,
-    T_world_sticker: np.ndarray,
-    rig_camera: RigCamera,
-    corner_sigma_px: float | None = None,
-    config: PoseConfig | None = None,
-    map_sigma: tuple[float, float] | None = None,
-    map_scale: float = 1.0,
-) -> PoseSolution:
-    """Pose of the camera and the body from one sticker.
+def camera_twist(rig_camera: RigCamera, body_twist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(v (3,), w (3,)): the camera's linear (m/s) and angular (rad/s) velocity in its own frame for
+    the body moving at ``body_twist`` = (vx, vy, yaw rate) in the body frame (m/s, m/s, rad/s)."""
+    vx, vy, w = (float(a) for a in np.asarray(body_twist, float).ravel()[:3])
+    R_bc, r = rig_camera.T_body_camera[:3, :3], rig_camera.T_body_camera[:3, 3]
+    v_body = np.array([vx - w * r[1], vy + w * r[0], 0.0])  # the camera's point of the body
+    return R_bc.T @ v_body, R_bc.T @ np.array([0.0, 0.0, w])
 
-    Args:
-        detection: corners in distorted pixels (outer, optional inner), clockwise on screen.
-        rotation: r (0-3), the canonical top-left corner is ``detection.outer[r]``.
-        T_world_sticker: (4, 4) the sticker's pose in the world (from the map).
-        rig_camera: the camera that saw it (intrinsics and ``T_body_camera``).
-        corner_sigma_px: corner noise (px) if known (else the detection's own, if it states one);
-            else estimated from the 8-point residual
-            (floored at ``config.min_sigma_px``) or ``config.sigma_4pt_px`` with 4 points.
-        map_sigma: the sticker's survey (sigma per axis m, sigma yaw rad) from the map, NaN where
-            the map states none (then ``config.map_sigma_m`` / ``config.map_sigma_yaw``); None:
-            ``T_world_sticker`` is exact (no map part). ``map_scale`` multiplies
-            that part of the covariance (see :class:`SurveyPasses`).
-    Returns:
-        :class:`PoseSolution` with PoseFix(T_world_camera, body (x, y, yaw), cov (3, 3), RMS px);
-        ``cov`` has the corner noise and the map's survey error (:func:`map_covariance`).
+
+def rolling_shutter_shift(
+    points_camera: np.ndarray, observed_px: np.ndarray, rig_camera: RigCamera, body_twist: np.ndarray
+) -> np.ndarray:
+    """(N, 2) pixel shifts that move corners seen at their own rows' times to the frame's time.
+
+    ``points_camera`` (N, 3): the corners' points in the camera frame at the frame's time (from a
+    first solve); ``observed_px`` (N, 2): where they were seen (their rows give their delays).
+    A static point moves in the camera frame as dX/dt = -(v + w x X); over a row's delay ``d``
+    (a few ms) that is first order: X(d) = X - d (v + w x X).
     """
-    config = config or PoseConfig()
-    t0 = time.perf_counter()
-    if rotation not in (0, 1, 2, 3):
-        raise InputError(f"solve_pose: rotation {rotation!r} is not 0-3")
     cam = rig_camera.camera
-    K, dist = cam.K, cam.dist
-    outer = rotate_corners(np.asarray(detection.outer, float), rotation)
-    use8 = config.use_inner and detection.inner is not None
-    img = rotate_corners(np.asarray(detection.points, float), rotation) if use8 else outer
-    obj = ALL_CORNERS if use8 else OUTER_CORNERS
+    X = np.asarray(points_camera, float)
+    d = row_delay_s(np.asarray(observed_px, float)[:, 1], cam.height, rig_camera.readout_s)
+    v, w = camera_twist(rig_camera, body_twist)
+    X_seen = X - d[:, None] * (v + np.cross(w, X))
+    return cam.project(X) - cam.project(X_seen)
 
+
+def _ippe_solutions(outer: np.ndarray, img: np.ndarray, obj: np.ndarray, use8: bool, K: np.ndarray, dist: np.ndarray):
+    """Distinct IPPE solutions refined on all points, best first: (SSR px^2, rvec, tvec, J (2N, 6))."""
     n_sol, rvecs, tvecs, _ = cv2.solvePnPGeneric(
         OUTER_CORNERS, outer.reshape(-1, 1, 2), K, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE
     )
@@ -197,6 +195,59 @@ def solve_pose(
     for c in cands:
         if all(np.linalg.norm(c[1] - u[1]) > 1e-4 or np.linalg.norm(c[2] - u[2]) > 1e-6 for u in uniq):
             uniq.append(c)
+    return uniq
+
+
+def solve_pose(
+    detection: Detection,
+    rotation: int,
+    T_world_sticker: np.ndarray,
+    rig_camera: RigCamera,
+    corner_sigma_px: float | None = None,
+    config: PoseConfig | None = None,
+    map_sigma: tuple[float, float] | None = None,
+    map_scale: float = 1.0,
+    body_twist: np.ndarray | None = None,
+) -> PoseSolution:
+    """Pose of the camera and the body from one sticker.
+
+    Args:
+        detection: corners in distorted pixels (outer, optional inner), clockwise on screen.
+        rotation: r (0-3), the canonical top-left corner is ``detection.outer[r]``.
+        T_world_sticker: (4, 4) the sticker's pose in the world (from the map).
+        rig_camera: the camera that saw it (intrinsics and ``T_body_camera``).
+        corner_sigma_px: corner noise (px) if known (else the detection's own, if it states one);
+            else estimated from the 8-point residual
+            (floored at ``config.min_sigma_px``) or ``config.sigma_4pt_px`` with 4 points.
+        map_sigma: the sticker's survey (sigma per axis m, sigma yaw rad) from the map, NaN where
+            the map states none (then ``config.map_sigma_m`` / ``config.map_sigma_yaw``); None:
+            ``T_world_sticker`` is exact (no map part). ``map_scale`` multiplies
+            that part of the covariance (see :class:`SurveyPasses`).
+        body_twist: the body's motion (vx, vy, yaw rate) in the body frame (m/s, m/s, rad/s), for
+            a rolling-shutter camera (``rig_camera.readout_s`` > 0): the corners are moved to the
+            frame's time before the final solve (see the module docstring). None: no correction.
+    Returns:
+        :class:`PoseSolution` with PoseFix(T_world_camera, body (x, y, yaw), cov (3, 3), RMS px);
+        ``cov`` has the corner noise and the map's survey error (:func:`map_covariance`).
+    """
+    config = config or PoseConfig()
+    t0 = time.perf_counter()
+    if rotation not in (0, 1, 2, 3):
+        raise InputError(f"solve_pose: rotation {rotation!r} is not 0-3")
+    cam = rig_camera.camera
+    K, dist = cam.K, cam.dist
+    outer = rotate_corners(np.asarray(detection.outer, float), rotation)
+    use8 = config.use_inner and detection.inner is not None
+    img = rotate_corners(np.asarray(detection.points, float), rotation) if use8 else outer
+    obj = ALL_CORNERS if use8 else OUTER_CORNERS
+
+    uniq = _ippe_solutions(outer, img, obj, use8, K, dist)
+    if uniq and body_twist is not None and rig_camera.readout_s > 0:
+        R = cv2.Rodrigues(uniq[0][1])[0]
+        shift = rolling_shutter_shift(obj @ R.T + uniq[0][2].ravel(), img, rig_camera, body_twist)
+        img = img + shift
+        outer = img[:4]
+        uniq = _ippe_solutions(outer, img, obj, use8, K, dist)
     if not uniq:
         return PoseSolution([], False, (time.perf_counter() - t0) * 1e3)
 
