@@ -48,7 +48,12 @@ def variants() -> dict[str, LocaliserConfig]:
             base, pose=PoseConfig(map_sigma_m=cm / 100, map_sigma_yaw=math.radians(deg))
         )
     if "rolling_shutter" in {f.name for f in base.__dataclass_fields__.values()}:
-        out["no-rs-correction"] = replace(base, rolling_shutter=False)
+        out["no-rs-correction"] = replace(
+            base, rolling_shutter=False, odometry_config=replace(base.odometry_config, rolling_shutter=False)
+        )
+        out["rs-fixes-only"] = replace(base, odometry_config=replace(base.odometry_config, rolling_shutter=False))
+        out["rs-odometry-only"] = replace(base, rolling_shutter=False)
+    out["no-gap-noise"] = replace(base, tracker=replace(base.tracker, gap_yaw_accel_psd=0.0))
     return out
 
 

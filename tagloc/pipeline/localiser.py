@@ -216,7 +216,8 @@ class Localiser:
 
     def _odometry_step(self, gray: np.ndarray, camera: int, t: float) -> None:
         odo = self.floor_odometry(camera)
-        step = odo.measure(gray, t) if odo is not None else None
+        twist = self.tracker.velocity() if self.config.rolling_shutter and self.rig[camera].readout_s > 0 else None
+        step = odo.measure(gray, t, twist) if odo is not None else None
         self._step = step
         if step is not None:
             self.counts["odometry_steps"] += 1
