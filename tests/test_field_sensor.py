@@ -428,3 +428,49 @@ def test_gap_noise_lets_odometry_follow_a_spin_that_started_in_a_burst():
     assert stats["frame_gaps"] == narrow["frame_gaps"] == 1
     assert z < 2.0 < 2.5 < z_narrow, (z, z_narrow)  # the heading sigma covers what the gap hid
     assert stats["odometry_rejected"] == 0 < narrow["odometry_rejected"]
+
+
+def test_odometry_patch_follows_a_rolling_shutter():
+    """Two rendered 30 ms rolling-shutter frames, walking 1.4 m/s while the turn rate swings from
+    +1.5 to -1.5 rad/s (the vest's twist): the frames are skewed differently, which the plain patch
+    match takes for 2 cm of sideways motion and 1.4 degrees of turn; with each frame's body motion
+    the step is right within 1 mm and 0.05 degree (measured: 0.1 mm, 0.013 deg)."""
+    from tagloc.core.camera import default_camera
+    from tagloc.core.geometry import invert, planar_from_T, planar_T
+    from tagloc.core.rig import RigCamera, looking_forward
+    from tagloc.sim.floor import Floor, FloorConfig
+    from tagloc.sim.simulate import render_view
+    from tagloc.vision.odometry import FloorOdometry, OdometryConfig
+
+    cam = default_camera()
+    rc = RigCamera("front", cam, looking_forward(1.3, 55.0), readout_s=0.030)
+    floor = Floor(StickerMap(np.array([1]), np.array([[50.0, 50.0]]), np.array([0.0])), FloorConfig(), seed=3)
+    v, dt, wA, wB = 1.4, 1 / 30, 1.5, -1.5
+    bodyA = planar_T(0.0, 0.0, 0.3)
+    bodyB = planar_T(v * dt * math.cos(0.3), v * dt * math.sin(0.3), 0.3 + 0.5 * (wA + wB) * dt)
+    imgs = []
+    for body, w in ((bodyA, wA), (bodyB, wB)):
+        yaw = math.atan2(body[1, 0], body[0, 0])
+        imgs.append(
+            render_view(
+                floor,
+                cam,
+                body @ rc.T_body_camera,
+                300.0,
+                velocity=np.array([v * math.cos(yaw), v * math.sin(yaw), 0.0]),
+                angular_velocity=np.array([0.0, 0.0, w]),
+                exposure=ExposureConfig(rolling_shutter=True, readout_s=0.030),
+                seed=1,
+                noise=False,
+            ).image
+        )
+    truth = np.array(planar_from_T(invert(bodyA) @ bodyB))
+    errs = {}
+    for corrected in (False, True):
+        odo = FloorOdometry(rc, OdometryConfig(rolling_shutter=corrected))
+        odo.measure(imgs[0], 0.0, np.array([v, 0.0, wA]))
+        step = odo.measure(imgs[1], dt, np.array([v, 0.0, wB]))
+        e = step.delta - truth
+        errs[corrected] = (1000 * float(np.hypot(e[0], e[1])), abs(math.degrees(e[2])))
+    assert errs[True][0] < 1.0 and errs[True][1] < 0.05, errs
+    assert errs[False][0] > 10.0 and errs[False][1] > 1.0, errs
