@@ -474,3 +474,25 @@ def test_odometry_patch_follows_a_rolling_shutter():
         errs[corrected] = (1000 * float(np.hypot(e[0], e[1])), abs(math.degrees(e[2])))
     assert errs[True][0] < 1.0 and errs[True][1] < 0.05, errs
     assert errs[False][0] > 10.0 and errs[False][1] > 1.0, errs
+
+
+def test_cli_simulate_field_flags(tmp_path, capsys):
+    from tagloc.cli import main
+
+    save_map(line_map(), tmp_path / "m.csv")
+    base = ["simulate", "--map", str(tmp_path / "m.csv"), "--seconds", "0.5", "--fps", "10", "--scale", "0.25"]
+    rc = main(
+        base
+        + ["--quiet", "--rolling-shutter", "--readout-ms", "25", "--jitter-ms", "2", "--drop-fraction", "0.3"]
+        + ["--survey-sigma-cm", "1", "--survey-sigma-deg", "1.5", "--survey-stated", "--sensor", "ov5647"]
+        + ["-o", str(tmp_path / "f")]
+    )
+    assert rc == 0, capsys.readouterr().err
+    reader = SessionReader(tmp_path / "f")
+    assert reader.rig[0].readout_s == pytest.approx(0.025)
+    assert np.isfinite(reader.map.sigma_xy).all() and (tmp_path / "f" / "map_true.csv").exists()
+    assert 0 < len(reader) <= 5
+    for bad, word in ((["--drop-fraction", "1.5"], "drop fraction"), (["--jitter-ms", "80"], "jitter")):
+        rc = main(base + ["--quiet", *bad, "-o", str(tmp_path / "x")])
+        err = capsys.readouterr().err
+        assert rc == 2 and word in err and err.count("\n") == 1, err
