@@ -1,0 +1,61 @@
+"""tagloc eval presets: the field walks' definition and the plumbing of --preset (tiny sessions)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+
+import tagloc.eval.evaluate as ev
+from tagloc.cli import main
+from tagloc.core.errors import InputError
+from tagloc.eval.evaluate import FIELD_WALKS, EvalConfig, Scenario, run_presets, scenarios
+
+
+def test_field_walks_cover_every_field_condition():
+    walks = scenarios(EvalConfig(preset="field"))
+    assert walks == list(FIELD_WALKS) and len({w.name for w in walks}) == len(walks)
+    for w in walks:  # every field condition on in every walk
+        assert w.rolling_shutter and w.jitter_ms == 2.0
+        assert 0.03 <= w.drop_fraction <= 0.05 and w.bursts_per_min > 0
+        assert 1.0 <= w.survey_cm <= 2.0 and 1.0 <= w.survey_deg <= 2.0
+    long = [w for w in walks if w.seconds >= 90]
+    assert long and long[0].stop_every_s > 0 and long[0].turn_probability < 0.1
+    assert any(w.sensor == "ov5647" for w in walks)
+    assert any(w.missing_fraction > 0 and w.unmapped > 0 for w in walks)
+    # Fixed: not drawn from the standard preset's seed or counts.
+    assert scenarios(EvalConfig(preset="field", seed=9, sessions=2)) == walks
+    with pytest.raises(InputError):
+        scenarios(EvalConfig(preset="nope"))
+    cond = long[0].conditions()
+    for word in ("90 s", "rolling shutter", "jitter 2 ms", "drops 4%", "survey 1.5 cm", "missing"):
+        assert word in cond, cond
+
+
+def test_preset_all_runs_both_and_prints_both_summaries(tmp_path, monkeypatch, capsys):
+    """Both presets on tiny walks: one row per walk naming its conditions, coverage counted."""
+    tiny = (
+        replace(FIELD_WALKS[0], name="f00", seconds=2.0),
+        replace(FIELD_WALKS[-1], name="f01-dim", seconds=2.0),
+    )
+    monkeypatch.setattr(ev, "FIELD_WALKS", tiny)
+    text = run_presets(EvalConfig(sessions=1, seconds=2.0, out=tmp_path, modes=("full",), progress=False), "all")
+    assert "## standard" in text and "## field" in text and "## Summary" in text
+    assert "### standard" in text and "### field" in text
+    assert "rolling shutter" in text and "sensor ov5647" in text
+    import json
+
+    field = json.loads((tmp_path / "field" / "results.json").read_text())
+    assert [r["session"] for r in field["rows"]] == ["f00", "f01-dim"]
+    for r in field["rows"]:
+        # Coverage counted: the share of all frames within 10 cm is at most the covered share.
+        assert 0.0 <= r["within_10cm_all"] <= r["coverage"] + 1e-12
+        assert r["frames_all"] >= r["frames"]
+        assert Scenario(**ev._scenario_fields(r)).sensor == r["sensor"]
+    s = field["summary"]["full"]
+    assert 0.0 <= s["within_10cm_all"] <= 1.0 and s["worst_rmse_m"] >= s["rmse_m"] - 1e-12
+    assert (tmp_path / "standard" / "results.json").exists()
+    # The CLI takes --preset and prints the same (sessions cached, so this is quick).
+    assert main(["eval", "--preset", "field", "--modes", "full", "--quiet", "-o", str(tmp_path / "field")]) == 0
+    out = capsys.readouterr().out
+    assert "f01-dim" in out and "<10 cm of all frames" in out
