@@ -255,7 +255,7 @@ def test_rolling_shutter_frame_gives_the_right_pose(turn):
     ``turn`` rad/s: with the body's motion the fix is the frame-time pose within 3 mm and 0.2 deg;
     without, the sticker low in the image (seen ~8 ms late, skewed) is about 2 cm off."""
     from tagloc.core.camera import default_camera
-    from tagloc.core.geometry import invert, planar_from_T, transform_points, wrap_angle
+    from tagloc.core.geometry import invert, transform_points, wrap_angle
     from tagloc.core.rig import RigCamera, looking_forward
     from tagloc.core.sticker import OUTER_CORNERS
     from tagloc.sim.simulate import camera_pose_looking_at, render_view
