@@ -244,6 +244,16 @@ class SessionWriter:
         self._csv.flush()
         self.count += 1
 
+    def write_encoded(self, index: int, timestamp: float, data: bytes, ext: str = ".jpg") -> None:
+        """Write one frame already encoded (e.g. a camera's JPEG, kept byte for byte), crash-safe like :meth:`write`."""
+        final = self.path / "frames" / f"{index:06d}{ext}"
+        tmp = final.with_name(final.stem + ".tmp" + ext)
+        tmp.write_bytes(data)
+        os.replace(tmp, final)
+        self._csv.write(f"{index},{timestamp:.6f}\n")
+        self._csv.flush()
+        self.count += 1
+
     def close(self) -> None:
         if not self._csv.closed:
             self._csv.flush()
