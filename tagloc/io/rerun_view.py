@@ -93,6 +93,74 @@ def blueprint(rig: Rig, groundtruth: bool = False):
     )
 
 
+FLOOR_GRID_M = 1.0  # floor-plan grid spacing: one square per metre gives the scale at a glance
+TOP_DOWN_HEIGHT_FACTOR = 1.1  # top-down eye height as a multiple of the map's larger side (whole map in view)
+
+
+def map_corners(smap: StickerMap) -> np.ndarray:
+    """(N, 4, 3) outer corners of every sticker in the world (m), in map order."""
+    if not len(smap):
+        return np.zeros((0, 4, 3))
+    return np.stack([(smap.T_world_sticker(int(i)) @ np.c_[OUTER_CORNERS, np.ones(4)].T).T[:, :3] for i in smap.ids])
+
+
+def map_extent(smap: StickerMap, margin_m: float = 1.0) -> tuple[float, float, float, float]:
+    """(x_min, y_min, x_max, y_max) of the stickers' centres grown by ``margin_m`` (the floor shown)."""
+    if not len(smap):
+        return (-5.0, -5.0, 5.0, 5.0)
+    xy = np.array([smap.T_world_sticker(int(i))[:2, 3] for i in smap.ids])
+    lo, hi = xy.min(axis=0) - margin_m, xy.max(axis=0) + margin_m
+    return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+
+
+def top_down_view(smap: StickerMap, origin: str, name: str):
+    """A 3-D view looking straight down on the map (x right, y up), with a 1 m floor grid.
+
+    A 3-D view with its eye overhead keeps world coordinates as they are (a 2-D view would draw +y
+    downwards, mirroring the warehouse).
+    """
+    import rerun as rr
+    import rerun.blueprint as rrb
+
+    x0, y0, x1, y1 = map_extent(smap)
+    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+    height = TOP_DOWN_HEIGHT_FACTOR * max(x1 - x0, y1 - y0)
+    return rrb.Spatial3DView(
+        origin=origin,
+        name=name,
+        line_grid=rrb.LineGrid3D(visible=True, spacing=FLOOR_GRID_M, plane=rr.components.Plane3D.XY),
+        eye_controls=rrb.EyeControls3D(position=[cx, cy, height], look_target=[cx, cy, 0.0], eye_up=[0.0, 1.0, 0.0]),
+    )
+
+
+def log_floor_plan(rec, smap: StickerMap, entity: str) -> None:
+    """Log (static) the map's stickers with their IDs and the floor's outline under ``entity``."""
+    rr = _rr()
+    rec.log(entity, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    corners = map_corners(smap)
+    if len(corners):
+        strips = np.concatenate([corners, corners[:, :1]], axis=1)  # close each square
+        rec.log(
+            f"{entity}/map/stickers",
+            rr.LineStrips3D(strips, labels=[str(int(i)) for i in smap.ids], colors=(90, 90, 90), radii=0.01),
+            static=True,
+        )
+    x0, y0, x1, y1 = map_extent(smap)
+    rec.log(
+        f"{entity}/map/extent",
+        rr.LineStrips3D([[[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0], [x0, y0, 0]]], colors=(60, 60, 60)),
+        static=True,
+    )
+
+
+def circle(center: tuple[float, float], a: float, b: float, angle: float, n: int = 48) -> np.ndarray:
+    """(n + 1, 3) closed polyline on the floor: an ellipse with half-axes a (along ``angle``) and b."""
+    th = np.linspace(0.0, 2 * np.pi, n + 1)
+    c, s = math.cos(angle), math.sin(angle)
+    ex, ey = a * np.cos(th), b * np.sin(th)
+    return np.c_[center[0] + c * ex - s * ey, center[1] + s * ex + c * ey, np.zeros(n + 1)]
+
+
 class RerunView:
     """Log a localisation run to Rerun: a file (``save``), a spawned viewer (``spawn``) or a viewer's gRPC URL.
 
