@@ -197,3 +197,17 @@ def test_initialising_writes_no_pose(tmp_path):
     w.close()
     msgs = _read_all(tmp_path / "b")
     assert "/tagloc/v/pose" not in msgs and len(msgs["/tagloc/v/pose_json"]) == 1 and w.dropped == 1
+
+
+def test_cli_session_from_bag(written, capsys):
+    from tagloc.cli import main
+
+    out = written["tmp"] / "cli_session"
+    args = ["session", "from-bag", str(written["bag"]), "--topic", IMAGE_TOPIC, "--map", str(WALK / "map.csv")]
+    assert main([*args, "--rig", str(WALK / "rig.json"), "-o", str(out), "--quiet"]) == 0
+    assert "60 frames written, 0 skipped" in capsys.readouterr().out
+    assert len(SessionReader(out)) == 60
+    assert main(["session", "from-bag", str(written["bag"]), "--topic", "/nope", "--map", str(WALK / "map.csv"),
+                 "-o", str(written["tmp"] / "x")]) != 0  # fmt: skip
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no topic '/nope'" in err[0]

@@ -70,22 +70,49 @@ def image_entity(rig: Rig, camera: int) -> str:
     return f"world/body/{rig[camera].name}/image"
 
 
-def blueprint(rig: Rig, groundtruth: bool = False):
-    """3D view and camera image(s) on the left, time series on the right."""
+def blueprint(rig: Rig, groundtruth: bool = False, smap: StickerMap | None = None):
+    """Floor plan (top-down) and camera image(s) on the left, time series grouped by unit on the right.
+
+    Each plot holds one unit: position error beside its 2-sigma bound (m), heading error beside its
+    sigma (deg), time since the last fix (s), stage timings (ms). Each image view is bounded to its
+    image, so the whole frame shows at its aspect ratio.
+    """
     import rerun.blueprint as rrb
 
-    images = [
-        rrb.Spatial2DView(origin=image_entity(rig, k), name=f"camera {rc.name}") for k, rc in enumerate(rig.cameras)
-    ]
+    images = []
+    for k, rc in enumerate(rig.cameras):
+        w, h = rc.camera.width, rc.camera.height
+        images.append(
+            rrb.Spatial2DView(
+                origin=image_entity(rig, k),
+                name=f"camera {rc.name}",
+                visual_bounds=rrb.VisualBounds2D(x_range=[0, w], y_range=[0, h]),
+            )
+        )
+    err = ["plots/error/position_m"] if groundtruth else []
+    yerr = ["plots/error/yaw_deg"] if groundtruth else []
     series = [
-        rrb.TimeSeriesView(origin="plots/uncertainty", name="uncertainty"),
-        rrb.TimeSeriesView(origin="plots/timing", name="timing (ms)"),
+        rrb.TimeSeriesView(
+            origin="plots",
+            contents=[*err, "plots/uncertainty/position_2sigma_m"],
+            name="position: error and 2-sigma (m)" if groundtruth else "position 2-sigma (m)",
+        ),
+        rrb.TimeSeriesView(
+            origin="plots",
+            contents=[*yerr, "plots/uncertainty/yaw_sigma_deg"],
+            name="heading: error and sigma (deg)" if groundtruth else "heading sigma (deg)",
+        ),
+        rrb.TimeSeriesView(origin="plots", contents=["plots/uncertainty/since_fix_s"], name="since last fix (s)"),
+        rrb.TimeSeriesView(origin="plots/timing", name="stage timing (ms)"),
     ]
-    if groundtruth:
-        series.insert(0, rrb.TimeSeriesView(origin="plots/error", name="error"))
+    plan = (
+        top_down_view(smap, "world", "floor plan (top-down)")
+        if smap is not None
+        else rrb.Spatial3DView(origin="world", name="map")
+    )
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Vertical(rrb.Spatial3DView(origin="world", name="map"), rrb.Horizontal(*images), row_shares=[3, 2]),
+            rrb.Vertical(plan, rrb.Horizontal(*images), row_shares=[3, 2]),
             rrb.Vertical(*series, rrb.TextDocumentView(origin="status", name="status")),
             column_shares=[3, 2],
         ),
@@ -142,7 +169,9 @@ def log_floor_plan(rec, smap: StickerMap, entity: str) -> None:
         strips = np.concatenate([corners, corners[:, :1]], axis=1)  # close each square
         rec.log(
             f"{entity}/map/stickers",
-            rr.LineStrips3D(strips, labels=[str(int(i)) for i in smap.ids], colors=(90, 90, 90), radii=0.01),
+            rr.LineStrips3D(
+                strips, labels=[str(int(i)) for i in smap.ids], colors=(90, 90, 90), radii=rr.Radius.ui_points(1.0)
+            ),
             static=True,
         )
     x0, y0, x1, y1 = map_extent(smap)
@@ -203,7 +232,7 @@ class RerunView:
         self.clock = clock
         self.gt = groundtruth if groundtruth is not None and len(groundtruth[0]) else None
         self.rec = rr.RecordingStream(app_id, recording_id=recording_id)
-        bp = blueprint(rig, groundtruth=self.gt is not None)
+        bp = blueprint(rig, groundtruth=self.gt is not None, smap=smap)
         sinks = []
         if save:
             Path(save).parent.mkdir(parents=True, exist_ok=True)
@@ -236,7 +265,9 @@ class RerunView:
             strips = np.concatenate([corners, corners[:, :1]], axis=1)  # close each square
             rec.log(
                 "world/map/stickers",
-                rr.LineStrips3D(strips, labels=[str(int(i)) for i in smap.ids], colors=(90, 90, 90), radii=0.004),
+                rr.LineStrips3D(
+                    strips, labels=[str(int(i)) for i in smap.ids], colors=(90, 90, 90), radii=rr.Radius.ui_points(1.0)
+                ),
                 static=True,
             )
         for k, rc in enumerate(self.rig.cameras):
