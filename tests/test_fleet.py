@@ -163,21 +163,24 @@ def parse_to_output(t: float, x: float) -> TrackerOutput:
     return TrackerOutput(t, np.array([x, 0.0, 0.0]), np.eye(3) * 1e-3, TrackState.TRACKING, 0.1, 3, IdSource.DECODED)
 
 
-def test_monitor_from_bag_draws_the_fleet(tmp_path, demo_map_path):
+def test_monitor_from_bags_draws_the_fleet(tmp_path, demo_map_path):
     from tagloc.apps.monitor import MonitorConfig, run_monitor
     from tagloc.io.rerun_view import read_rrd
     from tagloc.io.rosbag import BagWriter
     from tagloc.io.session import SessionReader
 
     rig = SessionReader(Path(__file__).resolve().parent.parent / "logs" / "walk2s").rig
-    bag = tmp_path / "fleet"
-    w = BagWriter(bag, "v1", rig)
-    for i in range(30):
-        w.publish(PoseMessage("v1", i, parse_to_output(EPOCH + i / 30, x=1.0 + i * 0.04)))
-    w.close()
-    rrd = tmp_path / "fleet.rrd"
-    summary = run_monitor(MonitorConfig(map=demo_map_path, from_bag=bag, save=rrd, refresh_hz=10))
-    assert summary.counts["vests"] == 1 and summary.counts["received"] == 30 and summary.warnings == []
+    bags = []
+    for vest, n in (("v1", 30), ("v2", 90)):  # v1 stops after 1 s, v2 goes on for 3 s
+        bags.append(tmp_path / vest)
+        w = BagWriter(bags[-1], vest, rig)
+        for i in range(n):
+            w.publish(PoseMessage(vest, i, parse_to_output(EPOCH + i / 30, x=1.0 + i * 0.04)))
+        w.close()
+    rrd, png = tmp_path / "fleet.rrd", tmp_path / "fleet.png"
+    summary = run_monitor(MonitorConfig(map=demo_map_path, from_bag=bags, save=rrd, png=png, refresh_hz=10))
+    assert summary.counts["vests"] == 2 and summary.counts["received"] == 120
+    assert [(w.vest, w.kind) for w in summary.warnings] == [("v1", "stale")]
     ents = read_rrd(rrd)
     assert ents["fleet/map/stickers"].static
     assert {
@@ -187,3 +190,4 @@ def test_monitor_from_bag_draws_the_fleet(tmp_path, demo_map_path):
         "fleet/vests/trails",
         "warnings",
     } <= set(ents)
+    assert png.stat().st_size > 10_000

@@ -25,24 +25,27 @@ class MonitorConfig:
 
     Attributes:
         url: ``mqtt://HOST[:PORT][/TOPIC]`` to subscribe to (topic filter default ``tagloc/+/pose``).
-        from_bag: a rosbag2/ROS 1 bag with tagloc pose topics, instead of ``url``.
+        from_bag: rosbag2/ROS 1 bags with tagloc pose topics (e.g. one per vest), instead of ``url``;
+            their messages are merged in bag-time order.
         map: sticker map CSV drawn under the vests.
         save: .rrd file to record; spawn: start a viewer; connect: viewer URL. None of them: no viewer
             (the warnings still go to ``report``).
         fleet: staleness, uncertainty and drawing bounds.
         refresh_hz: redraws per second (monitor clock).
         max_seconds: stop after this long (live only).
+        png: write the fleet as it is at the end as a PNG (matplotlib; the same content as the view).
     """
 
     map: Path
     url: str | None = None
-    from_bag: Path | None = None
+    from_bag: list[Path] = field(default_factory=list)
     save: Path | None = None
     spawn: bool = False
     connect: str | None = None
     fleet: FleetConfig = field(default_factory=FleetConfig)
     refresh_hz: float = 10.0
     max_seconds: float | None = None
+    png: Path | None = None
 
 
 @dataclass
@@ -65,7 +68,7 @@ class MonitorSummary:
 
 def run_monitor(cfg: MonitorConfig, stop: threading.Event | None = None) -> MonitorSummary:
     """Run the monitor until ``max_seconds``, SIGINT/SIGTERM or ``stop`` (live), or the bag's end."""
-    if (cfg.url is None) == (cfg.from_bag is None):
+    if (cfg.url is None) == (not cfg.from_bag):
         raise InputError("give either an mqtt:// URL or --from-bag BAG")
     if not cfg.refresh_hz > 0:
         raise InputError(f"--refresh must be positive, not {cfg.refresh_hz}")
@@ -75,24 +78,29 @@ def run_monitor(cfg: MonitorConfig, stop: threading.Event | None = None) -> Moni
         from tagloc.io.fleet_view import FleetView
 
         view = FleetView(smap, save=cfg.save, spawn=cfg.spawn, connect=cfg.connect)
+    t0 = time.monotonic()
     try:
-        if cfg.from_bag is not None:
-            return _from_bag(cfg, view)
-        return _live(cfg, view, stop or threading.Event())
+        state, now = _from_bag(cfg, view) if cfg.from_bag else _live(cfg, view, stop or threading.Event())
     finally:
         if view is not None:
             view.close()
+    if cfg.png is not None:
+        from tagloc.io.fleet_plot import plot_fleet
+
+        plot_fleet(state, smap, now, cfg.png)
+    return MonitorSummary(state.counts(), state.warnings(now), time.monotonic() - t0)
 
 
-def _from_bag(cfg: MonitorConfig, view) -> MonitorSummary:
+def _from_bag(cfg: MonitorConfig, view) -> tuple[FleetState, float]:
+    import heapq
+
     from tagloc.io.rosbag import read_pose_messages
 
     state = FleetState(cfg.fleet)
     period = 1.0 / cfg.refresh_hz
     next_draw = None
     now = 0.0
-    t0 = time.monotonic()
-    for msg in read_pose_messages(cfg.from_bag):
+    for msg in heapq.merge(*(read_pose_messages(b) for b in cfg.from_bag), key=lambda m: m.t_bag):
         now = msg.t_bag
         state.handle(msg.doc, now)
         if next_draw is None:
@@ -102,10 +110,10 @@ def _from_bag(cfg: MonitorConfig, view) -> MonitorSummary:
             next_draw = now + period
     if view is not None and state.vests:
         view.update(state, now, timestamp=now > EPOCH_MIN_S)
-    return MonitorSummary(state.counts(), state.warnings(now), time.monotonic() - t0)
+    return state, now
 
 
-def _live(cfg: MonitorConfig, view, stop: threading.Event) -> MonitorSummary:
+def _live(cfg: MonitorConfig, view, stop: threading.Event) -> tuple[FleetState, float]:
     host, port, topic = parse_mqtt_url(cfg.url)
     state = FleetState(cfg.fleet)
     sub = FleetSubscriber(host, port, topic, state, client_id="tagloc-monitor")
@@ -125,8 +133,7 @@ def _live(cfg: MonitorConfig, view, stop: threading.Event) -> MonitorSummary:
     finally:
         restore()
         sub.close()
-    with sub.lock:
-        return MonitorSummary(state.counts(), state.warnings(time.time()), time.monotonic() - t0)
+    return state, time.time()
 
 
 def _stop_on_signals(stop: threading.Event):

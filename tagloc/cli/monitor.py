@@ -16,7 +16,7 @@ uncertain (2-sigma above --max-2sigma m). Without --spawn/--connect/--save it on
 examples:
   tagloc monitor mqtt://broker:1883/tagloc/+/pose --map map.csv --spawn
   tagloc monitor mqtt://127.0.0.1 --map maps/demo.csv --save fleet.rrd --max-seconds 60
-  tagloc monitor --from-bag out/bag --map maps/demo.csv --save fleet.rrd"""
+  tagloc monitor --from-bag out/v1.bag2 --from-bag out/v2.bag2 --map maps/demo.csv --save fleet.rrd"""
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -24,7 +24,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     d = FleetConfig()
     p.add_argument("url", nargs="?", help="mqtt://HOST[:PORT][/TOPIC] (topic filter default tagloc/+/pose)")
-    p.add_argument("--from-bag", type=Path, metavar="BAG", help="replay the pose topics of a bag instead")
+    p.add_argument(
+        "--from-bag",
+        type=Path,
+        action="append",
+        default=[],
+        metavar="BAG",
+        help="replay the pose topics of a bag instead (repeatable: one bag per vest, merged in time)",
+    )
     p.add_argument("--map", type=Path, required=True, help="sticker map CSV")
     p.add_argument("--save", type=Path, metavar="FILE.rrd", help="record to a Rerun file")
     p.add_argument("--spawn", action="store_true", help="start a Rerun viewer")
@@ -36,6 +43,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trail", type=float, default=d.trail_s, help=f"s of trail per vest ({d.trail_s})")
     p.add_argument("--refresh", type=float, default=10.0, help="redraws per second (default 10)")
     p.add_argument("--max-seconds", type=float, help="stop after this many seconds (live)")
+    p.add_argument("--png", type=Path, metavar="FILE.png", help="write the fleet at the end as a PNG (matplotlib)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -59,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
             ),
             refresh_hz=args.refresh,
             max_seconds=args.max_seconds,
+            png=args.png,
         )
     )
     print(summary.format())
