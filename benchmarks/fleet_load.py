@@ -13,7 +13,9 @@ latency = receipt - t on the one machine clock. Prints, per count:
   sink (not connected, or more than ``max_pending`` unsent: the sink drops rather than queue);
 - delivered: received by the subscriber; lost: sent - delivered;
 - expired: delivered later than FleetConfig.max_age_s (0.5 s) after the frame;
-- latency p50 / p99 / max (ms).
+- latency p50 / p99 / max (ms);
+- broker CPU: mosquitto's CPU time over the publishing time (%); load: the machine's 1-minute load
+  average at the end (other work on the machine shows here).
 
 Nothing listens except mosquitto on 127.0.0.1. Runs are bounded by --seconds; use ``nice``.
 """
@@ -23,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
+import os
 import random
 import sys
 import tempfile
@@ -104,6 +107,12 @@ def _publisher(port: int, vests: list[str], stream: list[dict], rate: float, sec
     out.put({v: (s.sent, s.dropped) for v, s in sinks.items()})
 
 
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process so far (Linux /proc), s."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def run_count(n: int, rate: float, seconds: float, stream: list[dict], workdir: Path) -> dict:
     """One load run with ``n`` vests; returns its figures."""
     from mosquitto import Broker
@@ -138,6 +147,7 @@ def run_count(n: int, rate: float, seconds: float, stream: list[dict], workdir: 
         for p in procs:
             p.join(timeout=30)
         time.sleep(DRAIN_S)
+        broker_cpu = _cpu_seconds(broker.proc.pid)
     finally:
         sub.close()
         broker.stop()
@@ -157,6 +167,8 @@ def run_count(n: int, rate: float, seconds: float, stream: list[dict], workdir: 
         "lost": sent - delivered,
         "expired": c["expired"],
         "invalid": c["invalid"],
+        "broker_cpu_s": broker_cpu,
+        "load_average": os.getloadavg()[0],
         "latency_ms": {
             "p50": float(np.percentile(lat, 50)) if len(lat) else None,
             "p99": float(np.percentile(lat, 99)) if len(lat) else None,
@@ -178,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     print(
         f"{'vests':>5} {'offered':>8} {'sent':>8} {'drop@vest':>9} {'delivered':>9} {'lost':>6} {'expired':>7} "
-        f"{'p50 ms':>7} {'p99 ms':>7} {'max ms':>7}"
+        f"{'p50 ms':>7} {'p99 ms':>7} {'max ms':>7} {'broker CPU':>10} {'load':>5}"
     )
     for n in counts:
         with tempfile.TemporaryDirectory() as tmp:
@@ -187,7 +199,8 @@ def main(argv: list[str] | None = None) -> int:
         lat = r["latency_ms"]
         print(
             f"{n:>5} {r['offered']:>8} {r['sent']:>8} {r['dropped_at_vest']:>9} {r['delivered']:>9} {r['lost']:>6} "
-            f"{r['expired']:>7} {lat['p50']:>7.2f} {lat['p99']:>7.2f} {lat['max']:>7.1f}",
+            f"{r['expired']:>7} {lat['p50']:>7.2f} {lat['p99']:>7.2f} {lat['max']:>7.1f} "
+            f"{100 * r['broker_cpu_s'] / args.seconds:>9.1f}% {r['load_average']:>5.1f}",
             flush=True,
         )
     if args.json:

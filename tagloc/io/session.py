@@ -99,7 +99,8 @@ class SessionReader:
         if not self.path.is_dir():
             raise SessionError(f"{self.path}: not a session directory")
         self.info = self._read_info()
-        self.map: StickerMap = load_map(self._need("map.csv"))
+        self.map_path = self._need("map.csv")  # beside it the map's reference cache (tagloc.vision.refs)
+        self.map: StickerMap = load_map(self.map_path)
         self.rig: Rig = (
             load_rig(self._need("rig.json"), calibration)
             if (self.path / "rig.json").exists()

@@ -84,7 +84,7 @@ def run_session(
 
     ``realtime`` paces frames at their timestamps; otherwise they go as fast as they can.
     """
-    loc = Localiser(session.map, session.rig, config or LocaliserConfig(), refs=refs, map_path=session.path / "map.csv")
+    loc = Localiser(session.map, session.rig, config or LocaliserConfig(), refs=refs, map_path=session.map_path)
     stamps, poses, covs, valid, frame_ms, tracker_ms, odometry_ms = [], [], [], [], [], [], []
     fixes, rejected = [], []
     for res in iterate_results(session, loc, progress=progress, realtime=realtime):
