@@ -211,3 +211,33 @@ def test_cli_session_from_bag(written, capsys):
                  "-o", str(written["tmp"] / "x")]) != 0  # fmt: skip
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no topic '/nope'" in err[0]
+
+
+def test_cli_replay_to_a_bag_and_back(tmp_path, capsys):
+    from tagloc.cli import main
+
+    bag = tmp_path / "walk.bag2"
+    assert (
+        main(["replay", str(WALK), "--quiet", "--out", str(tmp_path / "a.tum"), "--bag", str(bag), "--bag-images"]) == 0
+    )
+    topics = {k: len(v) for k, v in _read_all(bag).items()}
+    assert topics["/tagloc/replay/pose_json"] == topics[IMAGE_TOPIC.replace("vest_1", "replay")] == 60
+    img_topic = "/tagloc/replay/front/image/compressed"
+    args = ["replay", str(bag), "--quiet", "--topic", img_topic, "--map", str(WALK / "map.csv")]
+    assert main([*args, "--rig", str(WALK / "rig.json"), "--out", str(tmp_path / "b.tum")]) == 0
+    assert (tmp_path / "a.tum").read_bytes() == (tmp_path / "b.tum").read_bytes()
+    capsys.readouterr()
+    assert main(["replay", str(bag), "--quiet"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "needs --topic" in err[0]
+
+
+def test_cli_live_records_a_bag(tmp_path):
+    from tagloc.cli import main
+
+    bag = tmp_path / "live.bag2"
+    args = ["live", "--camera", str(WALK), "--config", str(WALK), "--no-pace", "--max-frames", "10"]
+    assert main([*args, "--vest", "v07", "--record-bag", str(bag)]) == 0
+    msgs = _read_all(bag)
+    assert len(msgs["/tagloc/v07/pose_json"]) == 10 and len(msgs["/tagloc/v07/front/detections"]) == 10
+    assert not any("image" in t for t in msgs)  # images only on request

@@ -42,6 +42,7 @@ class LiveConfig:
         pace: play files and sessions at their own rate (False: every frame, as fast as possible).
         buffer: frames the capture thread keeps (the oldest is dropped when full).
         mode: localiser mode (see :class:`tagloc.pipeline.localiser.LocaliserConfig`).
+        record_bag: rosbag2 directory to write (poses, /tf, detections; images too with ``bag_images``).
     """
 
     source: str
@@ -61,6 +62,8 @@ class LiveConfig:
     pace: bool = True
     buffer: int = 1
     mode: str = "full"
+    record_bag: Path | None = None
+    bag_images: bool = False
 
 
 @dataclass
@@ -136,6 +139,12 @@ def run_live(cfg: LiveConfig, localiser=None, stop: threading.Event | None = Non
     t_start = time.monotonic()
     try:
         sinks = [open_sink(p, cfg.vest) for p in cfg.publish]
+        frame_sinks = []  # sinks that also take each frame's detections (and image)
+        if cfg.record_bag is not None:
+            from tagloc.io.rosbag import BagWriter
+
+            frame_sinks.append(BagWriter(cfg.record_bag, cfg.vest, localiser.rig, images=cfg.bag_images))
+            sinks.append(frame_sinks[-1])
         if cfg.record is not None:
             writer = SessionWriter(
                 cfg.record,
@@ -179,6 +188,8 @@ def run_live(cfg: LiveConfig, localiser=None, stop: threading.Event | None = Non
             msg = PoseMessage(cfg.vest, frame.index, result.output, (time.monotonic() - item.grabbed) * 1e3)
             for s in sinks:
                 s.publish(msg)
+            for s in frame_sinks:
+                s.write_frame(frame, result)
             latencies.append((time.monotonic() - item.grabbed) * 1e3)
             frames += 1
             fixes += sum(o.accepted is True for o in result.observations)

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import cv2
 
+from tagloc.core.errors import InputError
 from tagloc.core.types import Frame, FrameResult
 from tagloc.eval.metrics import trajectory_metrics
 from tagloc.io.session import SessionReader
@@ -34,6 +35,10 @@ class ReplayConfig:
         publish: pose sinks (see :func:`tagloc.io.sinks.open_sink`), ``vest`` the ID in messages.
         mode: localiser mode; detector, decoder: per-frame methods (see LocaliserConfig).
         progress: show a progress bar.
+        bag: rosbag2 directory to write (poses, /tf, detections; images too with ``bag_images``).
+        topic, map, rig, calibration, info_topic: when ``session`` is a bag (rosbag2 directory or ROS 1
+            .bag), its image topic, the sticker map, the rig and calibration (see
+            :class:`tagloc.io.rosbag.BagSession`).
     """
 
     session: Path
@@ -49,6 +54,24 @@ class ReplayConfig:
     detector: str = "contour"
     decoder: str = "zxing"
     progress: bool = True
+    bag: Path | None = None
+    bag_images: bool = False
+    topic: str | None = None
+    map: Path | None = None
+    rig: Path | None = None
+    calibration: Path | None = None
+    info_topic: str | None = None
+
+
+def open_replay_source(cfg: ReplayConfig):
+    """The session to replay: a session directory, or a bag's camera topic."""
+    from tagloc.io.rosbag import BagSession, is_bag
+
+    if not is_bag(cfg.session) and cfg.topic is None:
+        return SessionReader(cfg.session)
+    if cfg.topic is None or cfg.map is None:
+        raise InputError(f"{cfg.session}: replaying a bag needs --topic IMAGE_TOPIC and --map MAP.csv")
+    return BagSession(cfg.session, cfg.topic, cfg.map, cfg.rig, cfg.calibration, cfg.info_topic)
 
 
 @dataclass
@@ -96,15 +119,20 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
     from tagloc.pipeline.localiser import LocaliserConfig
     from tagloc.pipeline.run import run_session
 
-    session = SessionReader(cfg.session)
+    session = open_replay_source(cfg)
     gt = session.groundtruth()
     tum = TumSink(cfg.out) if cfg.out is not None else None
     log = FrameLog(cfg.log, include_times=cfg.log_times) if cfg.log is not None else None
     sinks: list[Sink] = []
-    view = None
+    view = bag = None
     fixes: dict[str, int] = {}
     try:
         sinks = [open_sink(p, cfg.vest) for p in cfg.publish]
+        if cfg.bag is not None:
+            from tagloc.io.rosbag import BagWriter
+
+            bag = BagWriter(cfg.bag, cfg.vest, session.rig, images=cfg.bag_images)
+            sinks.append(bag)
         if cfg.rerun_save or cfg.spawn:
             from tagloc.io.rerun_view import RerunView
 
@@ -118,6 +146,9 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
                 s.publish(msg)
             if log is not None:
                 log.write(res)
+            if bag is not None:
+                p = session.frame_path(res.index) if cfg.bag_images else None
+                bag.write_frame(Frame(res.index, res.timestamp, None), res, p.read_bytes() if p is not None else None)
             for o in res.observations:
                 if o.accepted:
                     fixes[o.source.value] = fixes.get(o.source.value, 0) + 1
