@@ -11,7 +11,8 @@ latency = receipt - t on the one machine clock. Prints, per count:
 
 - sent: messages the vests' sinks handed to the broker connection; dropped at vest: refused by the
   sink (not connected, or more than ``max_pending`` unsent: the sink drops rather than queue);
-- delivered: received by the subscriber; lost: sent - delivered;
+- delivered: received by the subscriber; lost: sent - delivered (not arrived once the subscriber has
+  been idle for DRAIN_S after the last send, or DRAIN_MAX_S at most);
 - expired: delivered later than FleetConfig.max_age_s (0.5 s) after the frame;
 - latency p50 / p99 / max (ms);
 - broker CPU: mosquitto's CPU time over the publishing time (%); load: the machine's 1-minute load
@@ -40,7 +41,8 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tests"))  # the loopback broker the MQTT tests use
 
-DRAIN_S = 3.0  # after the last send, wait this long for messages in flight
+DRAIN_S = 3.0  # after the last send, wait until no message has arrived for this long ...
+DRAIN_MAX_S = 120.0  # ... but no longer than this; what has not arrived by then is lost
 PUBLISHER_PROCESSES = 4  # vests are spread over this many processes (a process per vest would swamp 2 cores)
 
 
@@ -70,14 +72,17 @@ class _Encoded:
         return self.data
 
 
-def _publisher(port: int, vests: list[str], stream: list[dict], rate: float, seconds: float, start: float, out) -> None:
-    """One process: several vests, each replaying ``stream`` at ``rate`` Hz from ``start`` for ``seconds``."""
+def _publisher(port: int, vests: list[str], stream: list[dict], rate: float, seconds: float, go, out) -> None:
+    """One process: several vests, each replaying ``stream`` at ``rate`` Hz for ``seconds`` once ``go`` is set."""
     from tagloc.io.sinks import MqttSink
 
     sinks = {v: MqttSink("127.0.0.1", port, f"tagloc/{v}/pose", client_id=v) for v in vests}
     deadline = time.monotonic() + 10
     while not all(s.connected for s in sinks.values()) and time.monotonic() < deadline:
         time.sleep(0.01)
+    out.put(("ready", len(vests)))
+    go.wait()  # every process connected: start together, so a slow start is not a burst
+    start = time.time()
     rng = random.Random(zlib.crc32(",".join(vests).encode()))
     period = 1.0 / rate
     # Vests are not synchronised: each starts at a random phase within one period.
@@ -104,7 +109,7 @@ def _publisher(port: int, vests: list[str], stream: list[dict], rate: float, sec
     time.sleep(0.5)  # let the sinks' network threads write what is queued
     for s in sinks.values():
         s.close()
-    out.put({v: (s.sent, s.dropped) for v, s in sinks.items()})
+    out.put(("done", {v: (s.sent, s.dropped) for v, s in sinks.items()}))
 
 
 def _cpu_seconds(pid: int) -> float:
@@ -136,17 +141,26 @@ def run_count(n: int, rate: float, seconds: float, stream: list[dict], workdir: 
         vests = [f"v{k:03d}" for k in range(n)]
         groups = [vests[k::PUBLISHER_PROCESSES] for k in range(min(PUBLISHER_PROCESSES, n))]
         ctx = mp.get_context("spawn")
-        q = ctx.Queue()
-        start = time.time() + 3.0  # time for every process to start and connect
-        procs = [ctx.Process(target=_publisher, args=(broker.port, g, stream, rate, seconds, start, q)) for g in groups]
+        q, go = ctx.Queue(), ctx.Event()
+        procs = [ctx.Process(target=_publisher, args=(broker.port, g, stream, rate, seconds, go, q)) for g in groups]
         for p in procs:
             p.start()
+        for _ in procs:
+            q.get(timeout=120)  # "ready"
+        go.set()
         counts: dict[str, tuple[int, int]] = {}
         for _ in procs:
-            counts.update(q.get(timeout=seconds + 60))
+            counts.update(q.get(timeout=seconds + 120)[1])
         for p in procs:
             p.join(timeout=30)
-        time.sleep(DRAIN_S)
+        # Drain: wait until nothing has arrived for DRAIN_S (messages still queued are not lost yet).
+        last, quiet_since, give_up = -1, time.monotonic(), time.monotonic() + DRAIN_MAX_S
+        while time.monotonic() < give_up and time.monotonic() - quiet_since < DRAIN_S:
+            with sub.lock:
+                got = state.received
+            if got != last:
+                last, quiet_since = got, time.monotonic()
+            time.sleep(0.1)
         broker_cpu = _cpu_seconds(broker.proc.pid)
     finally:
         sub.close()
