@@ -3,6 +3,7 @@
 Entity tree (``CAM`` is the rig camera's name, e.g. ``front``)::
 
     world/map/stickers              static: sticker outlines on the floor, labelled with their IDs
+    world/map/extent                static: the floor's outline (the stickers' extent plus 1 m)
     world/body                      estimated body pose (Transform3D), per frame once tracking
     world/body/CAM                  static: T_body_camera
     world/body/CAM/image            static Pinhole (scaled to the logged image) + JPEG image per frame
@@ -70,7 +71,12 @@ def image_entity(rig: Rig, camera: int) -> str:
     return f"world/body/{rig[camera].name}/image"
 
 
-def blueprint(rig: Rig, groundtruth: bool = False, smap: StickerMap | None = None):
+def blueprint(
+    rig: Rig,
+    groundtruth: bool = False,
+    smap: StickerMap | None = None,
+    box: tuple[float, float, float, float] | None = None,
+):
     """Floor plan (top-down) and camera image(s) on the left, time series grouped by unit on the right.
 
     Each plot holds one unit: position error beside its 2-sigma bound (m), heading error beside its
@@ -121,6 +127,7 @@ def blueprint(rig: Rig, groundtruth: bool = False, smap: StickerMap | None = Non
 
 
 FLOOR_GRID_M = 1.0  # floor-plan grid spacing: one square per metre gives the scale at a glance
+WALK_MARGIN_M = 3.0  # floor shown around a known walk in the replay's floor plan
 TOP_DOWN_HEIGHT_FACTOR = 1.1  # top-down eye height as a multiple of the map's larger side (whole map in view)
 
 
@@ -140,8 +147,10 @@ def map_extent(smap: StickerMap, margin_m: float = 1.0) -> tuple[float, float, f
     return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
 
 
-def top_down_view(smap: StickerMap, origin: str, name: str):
+def top_down_view(smap: StickerMap, origin: str, name: str, box: tuple[float, float, float, float] | None = None):
     """A 3-D view looking straight down on the map (x right, y up), with a 1 m floor grid.
+
+    ``box`` (x_min, y_min, x_max, y_max, m) is the floor to frame; the whole map by default.
 
     A 3-D view with its eye overhead keeps world coordinates as they are (a 2-D view would draw +y
     downwards, mirroring the warehouse).
@@ -149,7 +158,7 @@ def top_down_view(smap: StickerMap, origin: str, name: str):
     import rerun as rr
     import rerun.blueprint as rrb
 
-    x0, y0, x1, y1 = map_extent(smap)
+    x0, y0, x1, y1 = box or map_extent(smap)
     cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
     height = TOP_DOWN_HEIGHT_FACTOR * max(x1 - x0, y1 - y0)
     return rrb.Spatial3DView(
@@ -232,7 +241,12 @@ class RerunView:
         self.clock = clock
         self.gt = groundtruth if groundtruth is not None and len(groundtruth[0]) else None
         self.rec = rr.RecordingStream(app_id, recording_id=recording_id)
-        bp = blueprint(rig, groundtruth=self.gt is not None, smap=smap)
+        box = None
+        if self.gt is not None:
+            # Frame the walk (with room around it) rather than the whole warehouse.
+            lo, hi = self.gt[1][:, :2, 3].min(axis=0) - WALK_MARGIN_M, self.gt[1][:, :2, 3].max(axis=0) + WALK_MARGIN_M
+            box = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+        bp = blueprint(rig, groundtruth=self.gt is not None, smap=smap, box=box)
         sinks = []
         if save:
             Path(save).parent.mkdir(parents=True, exist_ok=True)
@@ -257,19 +271,7 @@ class RerunView:
     def _log_static(self, smap: StickerMap) -> None:
         rr = _rr()
         rec = self.rec
-        rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        if len(smap):
-            corners = np.stack(
-                [(smap.T_world_sticker(int(i)) @ np.c_[OUTER_CORNERS, np.ones(4)].T).T[:, :3] for i in smap.ids]
-            )
-            strips = np.concatenate([corners, corners[:, :1]], axis=1)  # close each square
-            rec.log(
-                "world/map/stickers",
-                rr.LineStrips3D(
-                    strips, labels=[str(int(i)) for i in smap.ids], colors=(90, 90, 90), radii=rr.Radius.ui_points(1.0)
-                ),
-                static=True,
-            )
+        log_floor_plan(rec, smap, "world")
         for k, rc in enumerate(self.rig.cameras):
             T = rc.T_body_camera
             rec.log(f"world/body/{rc.name}", rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]), static=True)
@@ -287,7 +289,11 @@ class RerunView:
         if self.gt is not None:
             xyz = self.gt[1][:, :3, 3].copy()
             xyz[:, 2] = 0.0
-            rec.log("world/groundtruth/path", rr.LineStrips3D([xyz], colors=TRUTH_COLOUR, radii=0.01), static=True)
+            rec.log(
+                "world/groundtruth/path",
+                rr.LineStrips3D([xyz], colors=TRUTH_COLOUR, radii=rr.Radius.ui_points(1.5)),
+                static=True,
+            )
 
     def _set_time(self, result: FrameResult) -> None:
         self.rec.set_time("frame", sequence=int(result.index))
@@ -319,7 +325,7 @@ class RerunView:
             start = max(0, piece * PATH_PIECE - 1)
             rec.log(
                 f"world/estimate/path/{piece:04d}",
-                rr.LineStrips3D([self._path[start:]], colors=ESTIMATE_COLOUR, radii=0.012),
+                rr.LineStrips3D([self._path[start:]], colors=ESTIMATE_COLOUR, radii=rr.Radius.ui_points(2.0)),
             )
             evals, evecs = np.linalg.eigh(out.cov[:2, :2])
             half = 2.0 * np.sqrt(np.clip(evals, 0.0, None))
