@@ -63,13 +63,17 @@ def record_stream(path: Path) -> list[dict]:
 
 
 class _Encoded:
-    """What MqttSink.publish needs of a message: its bytes."""
+    """What MqttSink.publish needs of a message: its bytes and its age."""
 
     def __init__(self, data: bytes):
         self.data = data
 
     def encode(self) -> bytes:
         return self.data
+
+    def age_s(self, now: float | None = None) -> float:
+        """Made the moment it is published: no age (the sink's staleness bound never applies)."""
+        return 0.0
 
 
 def _publisher(port: int, vests: list[str], stream: list[dict], rate: float, seconds: float, go, out) -> None:

@@ -81,6 +81,11 @@ def test_expired_on_arrival_needs_epoch_clocks():
     assert kinds == {("late", "expired")}
     assert fs.vests["late"].expired == 1 and fs.vests["late"].last_age_s == pytest.approx(0.8)
     assert fs.vests["replay"].last_age_s is None
+    # A live vest's message states its wall clock at publication and its latency since the grab.
+    doc = json.loads(msg("live", t=12.0))
+    doc.update(wall_t=EPOCH + 10.0, latency_ms=300.0)
+    fs.handle(doc, EPOCH + 10.3)
+    assert fs.vests["live"].last_age_s == pytest.approx(0.6) and fs.vests["live"].expired == 1
 
 
 def test_uncertain_and_lost_vests_are_flagged():

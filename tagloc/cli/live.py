@@ -45,6 +45,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-frames", type=int, help="stop after this many processed frames")
     p.add_argument("--no-pace", action="store_true", help="files/sessions: process every frame, as fast as possible")
     p.add_argument("--buffer", type=int, default=1, help="frames the capture thread keeps (default 1)")
+    p.add_argument(
+        "--max-age",
+        type=float,
+        default=0.5,
+        metavar="S",
+        help="never send a pose older than S seconds over UDP/MQTT (default 0.5; see the README's Reliability)",
+    )
     p.add_argument("--mode", default="full", choices=("full", "decoded-only", "orb-all"), help="localiser mode")
     p.add_argument("--record-bag", type=Path, metavar="DIR", help="write a rosbag2 (MCAP): pose, /tf, detections")
     p.add_argument("--bag-images", action="store_true", help="also put the camera images and CameraInfo in the bag")
@@ -74,6 +81,7 @@ def run(args: argparse.Namespace) -> int:
             mode=args.mode,
             record_bag=args.record_bag,
             bag_images=args.bag_images,
+            max_age_s=args.max_age,
         )
     )
     print(summary.format(), file=sys.stderr)

@@ -7,8 +7,9 @@ tested directly; :mod:`tagloc.apps.monitor` feeds it and draws it (:mod:`tagloc.
 
 Clocks: ``received`` is the monitor's clock (any monotonic seconds, e.g. ``time.time()``). A
 message's ``t`` is the vest's frame clock: epoch seconds for a live camera, a session's own clock in
-replay. The message's age on arrival (``received - t``) is only judged when ``t`` is on the epoch
-(``EPOCH_MIN_S``) and the monitor's clock is too (``clock_is_epoch``).
+replay. The message's age on arrival is judged from the vest's wall clock at publication and its
+latency (``wall_t``, ``latency_ms``, sent by live vests), else from ``t`` when it is on the epoch
+(``EPOCH_MIN_S``), and only when the monitor's clock is the epoch too (``clock_is_epoch``).
 """
 
 from __future__ import annotations
@@ -71,6 +72,7 @@ class PoseDoc:
     since_fix: float | None = None
     last_id: int | None = None
     latency_ms: float | None = None
+    wall_t: float | None = None
 
 
 class MessageError(ValueError):
@@ -125,6 +127,7 @@ def parse_message(payload: bytes | str | dict) -> PoseDoc:
         since_fix=_number(doc, "since_fix", required=False),
         last_id=last_id if isinstance(last_id, int) and not isinstance(last_id, bool) else None,
         latency_ms=_number(doc, "latency_ms", required=False),
+        wall_t=_number(doc, "wall_t", required=False),
     )
 
 
@@ -213,8 +216,17 @@ class FleetState:
         return track
 
     def age_on_arrival(self, doc: PoseDoc, received: float) -> float | None:
-        """Seconds between the frame and the message's arrival, when both clocks are the epoch; else None."""
-        if not self.clock_is_epoch or doc.t < EPOCH_MIN_S:
+        """Seconds between the frame's grab and the message's arrival, or None when unknown.
+
+        A live vest states its wall clock at publication (``wall_t``) and the grab-to-publication
+        latency: age = received - wall_t + latency. Without them, a frame clock on the epoch gives
+        received - t. Either needs the monitor's clock on the epoch too (and clocks in sync: NTP).
+        """
+        if not self.clock_is_epoch:
+            return None
+        if doc.wall_t is not None and doc.latency_ms is not None:
+            return received - doc.wall_t + doc.latency_ms / 1e3
+        if doc.t < EPOCH_MIN_S:
             return None
         return received - doc.t
 

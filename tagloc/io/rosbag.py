@@ -438,6 +438,7 @@ class BagSession:
             raise SessionError(f"{self.path}: no CameraInfo for {topic}; give --calibration or --rig")
         self.index = np.arange(self.count)
         self.skipped: list[tuple[int, str]] = []
+        self.warnings: list[str] = []  # as SessionReader's: odd but usable (none known for bags yet)
         self.info = SessionInfo(source=f"rosbag {self.path.name} {topic}", fps=0.0)
 
     def _bag_calibration(self, reader, info_topic: str, explicit: bool) -> Camera | None:
