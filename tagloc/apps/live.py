@@ -179,7 +179,8 @@ def _check_limits(cfg: LiveConfig) -> None:
 
 
 def _make_localiser(cfg: LiveConfig):
-    from tagloc.pipeline.localiser import Localiser, LocaliserConfig, load_setup
+    from tagloc.eval.baselines import make_localiser
+    from tagloc.pipeline.localiser import load_setup
 
     smap, rig = load_setup(map_path=cfg.map, calibration=cfg.calibration, rig_path=cfg.rig, config_dir=cfg.config_dir)
     map_path = cfg.map or (Path(cfg.config_dir) / MAP_FILE if cfg.config_dir else None)
@@ -191,7 +192,7 @@ def _make_localiser(cfg: LiveConfig):
 
         print("tagloc live: preparing the sticker reference bank (cached beside the map)", file=sys.stderr)
         refs = load_or_build_refs(map_path, progress=True) if map_path else build_refs(smap, progress=True)
-    return Localiser(smap, rig, LocaliserConfig(mode=cfg.mode), refs=refs, map_path=map_path)
+    return make_localiser(cfg.mode, smap, rig, refs=refs, map_path=map_path)
 
 
 def _output_config(cfg: LiveConfig, live_clock: bool, real_time: bool) -> OutputConfig:

@@ -13,10 +13,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
-
 from tagloc.core.errors import InputError
-from tagloc.core.types import Frame, FrameResult
+from tagloc.core.types import FrameResult
 from tagloc.eval.metrics import trajectory_metrics
 from tagloc.io.session import SessionReader
 from tagloc.pipeline.output import OutputConfig, Outputs, OutputSummary
@@ -121,6 +119,7 @@ class ReplayResult:
 
 def replay(cfg: ReplayConfig) -> ReplayResult:
     """Replay a session through the localiser and write what ``cfg`` asks for."""
+    from tagloc.eval.baselines import make_localiser
     from tagloc.pipeline.localiser import LocaliserConfig
     from tagloc.pipeline.run import run_session
 
@@ -153,15 +152,22 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
             for o in res.observations:
                 if o.accepted:
                     fixes[o.source.value] = fixes.get(o.source.value, 0) + 1
-            outputs.emit(res, _reload(session, res) if outputs.view is not None else None)
+            outputs.emit(res, res.frame)
             if bag is not None:
+                # A session's JPEG goes into the bag byte for byte; a bag source's frame is re-encoded.
                 p = session.frame_path(res.index) if cfg.bag_images else None
-                bag.write_frame(Frame(res.index, res.timestamp, None), res, p.read_bytes() if p is not None else None)
+                bag.write_frame(res.frame, res, p.read_bytes() if p is not None else None)
 
         t0 = time.monotonic()
         run = run_session(
             session,
-            LocaliserConfig(mode=cfg.mode, detector=cfg.detector, decoder=cfg.decoder),
+            localiser=make_localiser(
+                cfg.mode,
+                session.map,
+                session.rig,
+                LocaliserConfig(detector=cfg.detector, decoder=cfg.decoder),
+                map_path=session.map_path,
+            ),
             progress=cfg.progress,
             on_result=on_result,
             realtime=cfg.realtime,
@@ -175,10 +181,3 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
     return ReplayResult(
         len(run.stamps), len(session.skipped), int(run.valid.sum()), fixes, seconds, metrics, summary, session.warnings
     )
-
-
-def _reload(session: SessionReader, res: FrameResult) -> Frame:
-    """The frame's image again, for Rerun (run_session hands over results, not images)."""
-    p = session.frame_path(res.index)
-    img = None if p is None or res.skipped else cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
-    return Frame(res.index, res.timestamp, img)
