@@ -241,3 +241,28 @@ def test_cli_live_records_a_bag(tmp_path):
     msgs = _read_all(bag)
     assert len(msgs["/tagloc/v07/pose_json"]) == 10 and len(msgs["/tagloc/v07/front/detections"]) == 10
     assert not any("image" in t for t in msgs)  # images only on request
+
+
+def test_corrupt_image_messages_are_skipped_and_counted(tmp_path):
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    T = store.types
+    session = SessionReader(WALK)
+    frames = list(session.frames())[:3]
+    path = tmp_path / "cam"
+    with Writer(path, version=9, storage_plugin=StoragePlugin.SQLITE3) as w:  # SQLite storage read too
+        conn = w.add_connection("/cam/image/compressed", "sensor_msgs/msg/CompressedImage", typestore=store)
+        for f in frames:
+            ns = round((f.timestamp + 100.0) * 1e9)
+            header = T["std_msgs/msg/Header"](T["builtin_interfaces/msg/Time"](*divmod(ns, 10**9)), "cam")
+            data = cv2.imencode(".jpg", f.image)[1].ravel() if f.index != 1 else np.frombuffer(b"not a jpeg", np.uint8)
+            msg = T["sensor_msgs/msg/CompressedImage"](header, "jpeg", data)
+            w.write(conn, ns, store.serialize_cdr(msg, "sensor_msgs/msg/CompressedImage"))
+    bag = BagSession(path, "/cam/image/compressed", WALK / "map.csv", WALK / "rig.json")  # no CameraInfo: the rig's
+    got = list(bag.frames())
+    assert [f.image is None for f in got] == [False, True, False]
+    assert len(bag.skipped) == 1 and "frame 1" in bag.skipped[0][1] and "corrupt" in got[1].error
+    n, skipped = bag_to_session(path, "/cam/image/compressed", tmp_path / "s", WALK / "map.csv", WALK / "rig.json")
+    assert (n, skipped) == (2, 1)
