@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from mosquitto import MOSQUITTO, Broker
+from mosquitto import MOSQUITTO, Broker, Subscriber
 
 from tagloc.core.errors import InputError
 from tagloc.core.types import IdSource, TrackerOutput, TrackState
@@ -196,3 +196,42 @@ def test_monitor_from_bags_draws_the_fleet(tmp_path, demo_map_path):
         "warnings",
     } <= set(ents)
     assert png.stat().st_size > 10_000
+
+
+@pytest.mark.skipif(MOSQUITTO is None, reason="mosquitto not installed")
+def test_live_monitor_through_a_real_broker(tmp_path, demo_map_path):
+    import threading
+
+    from tagloc.apps.monitor import MonitorConfig, run_monitor
+    from tagloc.io.rerun_view import read_rrd
+
+    broker = Broker(tmp_path).start()
+    stop, subscribed = threading.Event(), threading.Event()
+    result = {}
+    cfg = MonitorConfig(map=demo_map_path, url=f"mqtt://127.0.0.1:{broker.port}", save=tmp_path / "m.rrd")
+    thread = threading.Thread(target=lambda: result.update(summary=run_monitor(cfg, stop, subscribed)))
+    sink = None
+    try:
+        thread.start()
+        sink = MqttSink("127.0.0.1", broker.port, "tagloc/v9/pose", client_id="v9")
+        deadline = time.monotonic() + 10
+        while not sink.connected and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert subscribed.wait(20)
+        witness = Subscriber(broker.port, "tagloc/+/pose")  # a second subscriber: when it has all, so has the monitor
+        assert witness.subscribed.wait(10)
+        for i in range(20):
+            sink.publish(PoseMessage("v9", i, parse_to_output(time.time(), x=3.0)))
+            time.sleep(0.02)
+        assert witness.wait_for(lambda idx: len(idx) == 20)
+        witness.close()
+        time.sleep(0.2)
+    finally:
+        stop.set()
+        thread.join(20)
+        if sink is not None:
+            sink.close()
+        broker.stop()
+    s = result["summary"]
+    assert s.counts["vests"] == 1 and s.counts["received"] == 20 and s.counts["invalid"] == 0
+    assert "fleet/vests/markers" in read_rrd(tmp_path / "m.rrd")

@@ -66,8 +66,13 @@ class MonitorSummary:
         return "\n".join(lines)
 
 
-def run_monitor(cfg: MonitorConfig, stop: threading.Event | None = None) -> MonitorSummary:
-    """Run the monitor until ``max_seconds``, SIGINT/SIGTERM or ``stop`` (live), or the bag's end."""
+def run_monitor(
+    cfg: MonitorConfig, stop: threading.Event | None = None, subscribed: threading.Event | None = None
+) -> MonitorSummary:
+    """Run the monitor until ``max_seconds``, SIGINT/SIGTERM or ``stop`` (live), or the bag's end.
+
+    ``subscribed`` is set once the broker has acknowledged the subscription (live).
+    """
     if (cfg.url is None) == (not cfg.from_bag):
         raise InputError("give either an mqtt:// URL or --from-bag BAG")
     if not cfg.refresh_hz > 0:
@@ -80,7 +85,7 @@ def run_monitor(cfg: MonitorConfig, stop: threading.Event | None = None) -> Moni
         view = FleetView(smap, save=cfg.save, spawn=cfg.spawn, connect=cfg.connect)
     t0 = time.monotonic()
     try:
-        state, now = _from_bag(cfg, view) if cfg.from_bag else _live(cfg, view, stop or threading.Event())
+        state, now = _from_bag(cfg, view) if cfg.from_bag else _live(cfg, view, stop or threading.Event(), subscribed)
     finally:
         if view is not None:
             view.close()
@@ -113,10 +118,12 @@ def _from_bag(cfg: MonitorConfig, view) -> tuple[FleetState, float]:
     return state, now
 
 
-def _live(cfg: MonitorConfig, view, stop: threading.Event) -> tuple[FleetState, float]:
+def _live(
+    cfg: MonitorConfig, view, stop: threading.Event, subscribed: threading.Event | None
+) -> tuple[FleetState, float]:
     host, port, topic = parse_mqtt_url(cfg.url)
     state = FleetState(cfg.fleet)
-    sub = FleetSubscriber(host, port, topic, state, client_id="tagloc-monitor")
+    sub = FleetSubscriber(host, port, topic, state, client_id="tagloc-monitor", subscribed=subscribed)
     restore = _stop_on_signals(stop)
     t0 = time.monotonic()
     period = 1.0 / cfg.refresh_hz

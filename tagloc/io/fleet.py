@@ -304,6 +304,7 @@ class FleetSubscriber:
         on_message=None,
         client_id: str = "",
         keepalive: int = 10,
+        subscribed=None,
     ):
         import threading
         import time
@@ -313,7 +314,7 @@ class FleetSubscriber:
         self.state = state
         self.topic = topic
         self.lock = threading.Lock()
-        self.subscribed = threading.Event()
+        self.subscribed = subscribed if subscribed is not None else threading.Event()  # set on the broker's SUBACK
         self._time = time.time
         self._hook = on_message
         self.client = mqtt.Client(callback_api_version=mqtt.CallbackAPIVersion.VERSION2, client_id=client_id)
