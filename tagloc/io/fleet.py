@@ -16,11 +16,15 @@ from __future__ import annotations
 
 import json
 import math
+import threading
+import time
 from collections import deque
 from dataclasses import dataclass, field
+from urllib.parse import urlsplit
 
 import numpy as np
 
+from tagloc.core.errors import InputError
 from tagloc.io.sinks import SCHEMA
 
 STATES = ("initialising", "tracking", "lost", "unknown")
@@ -269,10 +273,6 @@ class FleetState:
 
 def parse_mqtt_url(url: str, default_topic: str = "tagloc/+/pose") -> tuple[str, int, str]:
     """(host, port, topic filter) of ``mqtt://HOST[:PORT][/TOPIC]`` (port 1883, topic ``tagloc/+/pose`` by default)."""
-    from urllib.parse import urlsplit
-
-    from tagloc.core.errors import InputError
-
     u = urlsplit(url)
     if u.scheme != "mqtt":
         raise InputError(f"{url}: want mqtt://HOST[:PORT][/TOPIC]")
@@ -306,9 +306,6 @@ class FleetSubscriber:
         keepalive: int = 10,
         subscribed=None,
     ):
-        import threading
-        import time
-
         import paho.mqtt.client as mqtt
 
         self.state = state

@@ -208,9 +208,11 @@ class BagWriter(Sink):
         self._writer.write(connection, _ns(t), self._store.serialize_cdr(msg, connection.msgtype))
 
     def body_frame(self) -> str:
+        """TF name of the vest's body frame."""
         return f"{self.vest}/body"
 
     def camera_frame(self, camera: int) -> str:
+        """TF name of rig camera ``camera``."""
         return f"{self.vest}/{ros_name(self.rig[camera].name)}"
 
     # --- sink interface ---------------------------------------------------------------------
@@ -324,7 +326,7 @@ def _quaternion(R: np.ndarray) -> tuple[float, float, float, float]:
 
 def _open_reader(path: Path):
     try:
-        from rosbags.highlevel import AnyReader, AnyReaderError
+        from rosbags.highlevel import AnyReader
     except ImportError as exc:  # pragma: no cover - rosbags is a dependency
         raise BackendUnavailable("rosbags is not installed; pip install rosbags") from exc
     if not path.exists():
@@ -336,10 +338,9 @@ def _open_reader(path: Path):
     try:
         reader = AnyReader([path], default_typestore=_typestore())
         reader.open()
-    except (AnyReaderError, Exception) as exc:  # noqa: BLE001 - rosbags raises many types for a bad bag
-        raise SessionError(
-            f"{path}: cannot read bag ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})"
-        ) from exc
+    except Exception as exc:  # noqa: BLE001 - rosbags raises many error types for a damaged bag
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise SessionError(f"{path}: cannot read bag ({reason})") from exc
     return reader
 
 
