@@ -217,9 +217,10 @@ def test_cli_replay_to_a_bag_and_back(tmp_path, capsys):
     from tagloc.cli import main
 
     bag = tmp_path / "walk.bag2"
-    assert (
-        main(["replay", str(WALK), "--quiet", "--out", str(tmp_path / "a.tum"), "--bag", str(bag), "--bag-images"]) == 0
-    )
+    png = tmp_path / "walk.png"
+    args = ["replay", str(WALK), "--quiet", "--out", str(tmp_path / "a.tum"), "--png", str(png)]
+    assert main([*args, "--bag", str(bag), "--bag-images"]) == 0
+    assert png.stat().st_size > 10_000  # the floor plan (matplotlib)
     topics = {k: len(v) for k, v in _read_all(bag).items()}
     assert topics["/tagloc/replay/pose_json"] == topics[IMAGE_TOPIC.replace("vest_1", "replay")] == 60
     img_topic = "/tagloc/replay/front/image/compressed"

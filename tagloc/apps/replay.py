@@ -37,6 +37,7 @@ class ReplayConfig:
         topic, map, rig, calibration, info_topic: when ``session`` is a bag (rosbag2 directory or ROS 1
             .bag), its image topic, the sticker map, the rig and calibration (see
             :class:`tagloc.io.rosbag.BagSession`).
+        png: write the walk's floor plan (trajectory, 2-sigma ellipses, ground truth) as a PNG.
     """
 
     session: Path
@@ -59,6 +60,7 @@ class ReplayConfig:
     rig: Path | None = None
     calibration: Path | None = None
     info_topic: str | None = None
+    png: Path | None = None
 
 
 def open_replay_source(cfg: ReplayConfig):
@@ -178,6 +180,11 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
     metrics = None
     if gt is not None:
         metrics = trajectory_metrics(run.stamps[run.valid], run.poses[run.valid], run.covs[run.valid], *gt)
+    if cfg.png is not None:
+        from tagloc.io.fleet_plot import plot_walk
+
+        v = run.valid
+        plot_walk(session.map, run.stamps[v], run.poses[v], run.covs[v], cfg.png, gt, title=f"{cfg.session.name}")
     return ReplayResult(
         len(run.stamps), len(session.skipped), int(run.valid.sum()), fixes, seconds, metrics, summary, session.warnings
     )

@@ -28,6 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     view.add_argument("--rerun", type=Path, metavar="FILE.rrd", help="save a Rerun recording")
     view.add_argument("--spawn", action="store_true", help="stream to a new Rerun viewer")
     p.add_argument("--realtime", action="store_true", help="pace frames at their timestamps")
+    p.add_argument("--png", type=Path, metavar="FILE.png", help="write the walk's floor plan as a PNG (matplotlib)")
     p.add_argument(
         "--publish",
         action="append",
@@ -85,6 +86,7 @@ def run(args: argparse.Namespace) -> int:
             rig=args.rig,
             calibration=args.calibration,
             info_topic=args.info_topic,
+            png=args.png,
         )
     )
     print(res.format())

@@ -96,3 +96,52 @@ def plot_fleet(state: FleetState, smap: StickerMap, now: float, path: str | Path
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
     plt.close(fig)
+
+
+def plot_walk(
+    smap: StickerMap,
+    stamps: np.ndarray,
+    poses: np.ndarray,
+    covs: np.ndarray,
+    path: str | Path,
+    groundtruth: tuple[np.ndarray, np.ndarray] | None = None,
+    ellipse_every_s: float = 1.0,
+    title: str = "",
+) -> None:
+    """Write one walk's floor plan as a PNG: the Rerun replay view's floor plan, drawn with matplotlib.
+
+    Args:
+        stamps: (N,) s; poses: (N, 3) body (x, y, yaw); covs: (N, 3, 3); only frames with a pose.
+        groundtruth: (stamps (M,), T_world_body (M, 4, 4)) when known.
+        ellipse_every_s: draw the 2-sigma position ellipse this often along the walk (s).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 8), dpi=110)
+    pts = [poses[:, :2]] + ([groundtruth[1][:, :2, 3]] if groundtruth is not None else [])
+    allp = np.vstack(pts) if len(poses) else np.zeros((1, 2))
+    lo, hi = allp.min(axis=0) - 3.0, allp.max(axis=0) + 3.0
+    side = max(hi - lo)  # a square box around the walk (the view's framing: the walk plus 3 m)
+    c = (lo + hi) / 2
+    plot_floor(ax, smap, box=(c[0] - side / 2, c[1] - side / 2, c[0] + side / 2, c[1] + side / 2))
+    if groundtruth is not None:
+        g = groundtruth[1][:, :2, 3]
+        ax.plot(g[:, 0], g[:, 1], color=_rgb((160, 160, 160)), lw=2.5, label="ground truth")
+    if len(poses):
+        ax.plot(poses[:, 0], poses[:, 1], color=_rgb((255, 200, 0)), lw=1.5, label="estimate")
+        next_t = -np.inf
+        for t, p, cov in zip(stamps, poses, covs):
+            if t >= next_t:
+                a, b, ang = ellipse_2sigma(cov)
+                e = circle((p[0], p[1]), a, b, ang)
+                ax.plot(e[:, 0], e[:, 1], color=_rgb((230, 120, 0)), lw=1.0)
+                next_t = t + ellipse_every_s
+        ax.plot([], [], color=_rgb((230, 120, 0)), lw=1.0, label=f"2-sigma ellipse every {ellipse_every_s:g} s")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_title(title or "walk (top-down)")
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, bbox_inches="tight")
+    plt.close(fig)
