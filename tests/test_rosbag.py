@@ -225,8 +225,12 @@ def test_cli_replay_to_a_bag_and_back(tmp_path, capsys):
     assert topics["/tagloc/replay/pose_json"] == topics[IMAGE_TOPIC.replace("vest_1", "replay")] == 60
     img_topic = "/tagloc/replay/front/image/compressed"
     args = ["replay", str(bag), "--quiet", "--topic", img_topic, "--map", str(WALK / "map.csv")]
-    assert main([*args, "--rig", str(WALK / "rig.json"), "--out", str(tmp_path / "b.tum")]) == 0
+    rrd = tmp_path / "bag.rrd"
+    assert main([*args, "--rig", str(WALK / "rig.json"), "--out", str(tmp_path / "b.tum"), "--rerun", str(rrd)]) == 0
     assert (tmp_path / "a.tum").read_bytes() == (tmp_path / "b.tum").read_bytes()
+    from tagloc.io.rerun_view import read_rrd
+
+    assert len(read_rrd(rrd)["world/body/front/image"].frames) == 60  # the bag's images reach the viewer
     capsys.readouterr()
     assert main(["replay", str(bag), "--quiet"]) != 0
     err = capsys.readouterr().err.strip().splitlines()
