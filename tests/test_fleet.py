@@ -124,6 +124,21 @@ def test_trail_is_bounded_in_time_and_points():
     assert len(fs2.vests["w"].trail) == 0
 
 
+def test_status_text_lists_warnings():
+    from tagloc.apps.monitor import status_text
+
+    fs = FleetState()
+    fs.handle(msg("a", state="lost"), EPOCH)
+    fs.handle(msg("b"), EPOCH)
+    text = status_text(fs, EPOCH + 2.0).splitlines()
+    assert "2 vests, 3 warnings; 2 messages (0 invalid, 0 expired)" in text[0]
+    assert text[1:] == [
+        "  a: stale: no message for 2.00 s (bound 1 s)",
+        "  b: stale: no message for 2.00 s (bound 1 s)",
+        "  a: lost: tracker lost: pose from odometry only",
+    ]
+
+
 def test_parse_mqtt_url():
     assert parse_mqtt_url("mqtt://broker") == ("broker", 1883, "tagloc/+/pose")
     assert parse_mqtt_url("mqtt://10.0.0.2:1884/site/+/pose") == ("10.0.0.2", 1884, "site/+/pose")
@@ -199,7 +214,7 @@ def test_monitor_from_bags_draws_the_fleet(tmp_path, demo_map_path):
 
 
 @pytest.mark.skipif(MOSQUITTO is None, reason="mosquitto not installed")
-def test_live_monitor_through_a_real_broker(tmp_path, demo_map_path):
+def test_live_monitor_through_a_real_broker(tmp_path, demo_map_path, capsys):
     import threading
 
     from tagloc.apps.monitor import MonitorConfig, run_monitor
@@ -208,7 +223,8 @@ def test_live_monitor_through_a_real_broker(tmp_path, demo_map_path):
     broker = Broker(tmp_path).start()
     stop, subscribed = threading.Event(), threading.Event()
     result = {}
-    cfg = MonitorConfig(map=demo_map_path, url=f"mqtt://127.0.0.1:{broker.port}", save=tmp_path / "m.rrd")
+    url = f"mqtt://127.0.0.1:{broker.port}"
+    cfg = MonitorConfig(map=demo_map_path, url=url, save=tmp_path / "m.rrd", print_every_s=0.2)
     thread = threading.Thread(target=lambda: result.update(summary=run_monitor(cfg, stop, subscribed)))
     sink = None
     try:
@@ -235,3 +251,4 @@ def test_live_monitor_through_a_real_broker(tmp_path, demo_map_path):
     s = result["summary"]
     assert s.counts["vests"] == 1 and s.counts["received"] == 20 and s.counts["invalid"] == 0
     assert "fleet/vests/markers" in read_rrd(tmp_path / "m.rrd")
+    assert " 1 vests, " in capsys.readouterr().out  # the headless status lines

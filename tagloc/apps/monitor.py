@@ -33,6 +33,7 @@ class MonitorConfig:
         fleet: staleness, uncertainty and drawing bounds.
         refresh_hz: redraws per second (monitor clock).
         max_seconds: stop after this long (live only).
+        print_every_s: print the fleet's counts and warnings to stdout this often (live; None: never).
         png: write the fleet as it is at the end as a PNG (matplotlib; the same content as the view).
     """
 
@@ -46,6 +47,18 @@ class MonitorConfig:
     refresh_hz: float = 10.0
     max_seconds: float | None = None
     png: Path | None = None
+    print_every_s: float | None = None
+
+
+def status_text(state: FleetState, now: float) -> str:
+    """One block of text: the time, the fleet's counts and one line per warning (for a terminal)."""
+    c = state.counts()
+    warnings = state.warnings(now)
+    head = (
+        f"{time.strftime('%H:%M:%S', time.localtime(now))} {c['vests']} vests, {len(warnings)} warnings; "
+        f"{c['received']} messages ({c['invalid']} invalid, {c['expired']} expired)"
+    )
+    return "\n".join([head] + [f"  {w.vest}: {w.kind}: {w.text}" for w in warnings])
 
 
 @dataclass
@@ -75,6 +88,8 @@ def run_monitor(
     """
     if (cfg.url is None) == (not cfg.from_bag):
         raise InputError("give either an mqtt:// URL or --from-bag BAG")
+    if cfg.print_every_s is not None and not cfg.print_every_s > 0:
+        raise InputError(f"--print-every must be positive, not {cfg.print_every_s}")
     if not cfg.refresh_hz > 0:
         raise InputError(f"--refresh must be positive, not {cfg.refresh_hz}")
     smap = load_map(cfg.map)
@@ -127,13 +142,18 @@ def _live(
     restore = _stop_on_signals(stop)
     t0 = time.monotonic()
     period = 1.0 / cfg.refresh_hz
+    next_print = time.time() + (cfg.print_every_s or 0.0)
     try:
         while not stop.is_set():
             if cfg.max_seconds is not None and time.monotonic() - t0 >= cfg.max_seconds:
                 break
-            if view is not None:
-                with sub.lock:
-                    view.update(state, time.time())
+            now = time.time()
+            with sub.lock:
+                if view is not None:
+                    view.update(state, now)
+                if cfg.print_every_s and now >= next_print:
+                    print(status_text(state, now), flush=True)
+                    next_print = now + cfg.print_every_s
             stop.wait(period)
     except KeyboardInterrupt:
         pass

@@ -11,11 +11,13 @@ DESCRIPTION = """Subscribe to the vests' pose topics on an MQTT broker (connects
 fleet in Rerun: the map from above with sticker IDs, each vest labelled with its state colour, its
 2-sigma ellipse, a safety circle and its trail, and a warning panel for vests that are stale (no
 message for --stale s), expired (pose older than --max-age s on arrival, epoch clocks), lost, or too
-uncertain (2-sigma above --max-2sigma m). Without --spawn/--connect/--save it only prints the summary.
+uncertain (2-sigma above --max-2sigma m). --print-every S also prints the warnings to the terminal
+(with no viewer, the way to watch); a summary is printed at the end.
 
 examples:
   tagloc monitor mqtt://broker:1883/tagloc/+/pose --map map.csv --spawn
   tagloc monitor mqtt://127.0.0.1 --map maps/demo.csv --save fleet.rrd --max-seconds 60
+  tagloc monitor mqtt://broker/tagloc/+/pose --map map.csv --print-every 5      # headless
   tagloc monitor --from-bag out/v1.bag2 --from-bag out/v2.bag2 --map maps/demo.csv --save fleet.rrd"""
 
 
@@ -43,6 +45,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trail", type=float, default=d.trail_s, help=f"s of trail per vest ({d.trail_s})")
     p.add_argument("--refresh", type=float, default=10.0, help="redraws per second (default 10)")
     p.add_argument("--max-seconds", type=float, help="stop after this many seconds (live)")
+    p.add_argument("--print-every", type=float, metavar="S", help="print counts and warnings every S seconds (live)")
     p.add_argument("--png", type=Path, metavar="FILE.png", help="write the fleet at the end as a PNG (matplotlib)")
 
 
@@ -68,6 +71,7 @@ def run(args: argparse.Namespace) -> int:
             refresh_hz=args.refresh,
             max_seconds=args.max_seconds,
             png=args.png,
+            print_every_s=args.print_every,
         )
     )
     print(summary.format())
