@@ -116,7 +116,7 @@ def _stamp_s(stamp: object) -> float:
     """Seconds of a ROS time (ROS 2 ``sec``/``nanosec``; ROS 1 ``secs``/``nsecs`` after rosbags' mapping)."""
     sec = getattr(stamp, "sec", getattr(stamp, "secs", 0))
     nsec = getattr(stamp, "nanosec", getattr(stamp, "nsecs", 0))
-    # One correctly rounded division: a stamp made from t by _ns gives t back exactly.
+    # One correctly rounded division: a stamp made by _ns from a time with at most 9 decimals gives it back exactly.
     return (int(sec) * 1_000_000_000 + int(nsec)) / 1e9
 
 
