@@ -42,7 +42,7 @@ from tagloc.core.geometry import make_T, planar_T
 from tagloc.core.rig import Rig, RigCamera, default_rig, load_rig, looking_forward
 from tagloc.core.sticker import INNER_CORNERS, OUTER_CORNERS
 from tagloc.core.stickermap import StickerMap, load_map, save_map
-from tagloc.io.session import SessionInfo, SessionWriter, write_tum
+from tagloc.io.session import GROUNDTRUTH_FILE, SessionInfo, SessionWriter, write_tum
 from tagloc.sim.floor import Floor, FloorConfig
 from tagloc.sim.render import (
     ExposureConfig,
@@ -333,7 +333,7 @@ def simulate_session(
     with SessionWriter(out, given_map, rig, info, jpeg_quality=config.jpeg_quality) as writer:
         if given_map is not smap:
             save_map(smap, out / "map_true.csv")
-        write_tum(out / "groundtruth.tum", stamps, walk.T_world_body(stamps, rc.vest_point))
+        write_tum(out / GROUNDTRUTH_FILE, stamps, walk.T_world_body(stamps, rc.vest_point))
         with (out / "groundtruth_frames.jsonl").open("w", encoding="utf-8") as gt:
             for j in tqdm(range(n), desc="simulate", unit="frame", disable=not progress):
                 k = int(schedule.index[j])
