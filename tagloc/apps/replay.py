@@ -97,7 +97,9 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
     from tagloc.pipeline.run import run_session
 
     session = SessionReader(cfg.session)
-    gt = session.groundtruth()
+    # Ground truth only serves the metrics after the run, and the Rerun view: read it when needed
+    # (its quaternions pull in scipy.spatial, which a replay's start-up need not wait for).
+    gt = session.groundtruth() if cfg.rerun_save or cfg.spawn else None
     tum = TumSink(cfg.out) if cfg.out is not None else None
     log = FrameLog(cfg.log, include_times=cfg.log_times) if cfg.log is not None else None
     sinks: list[Sink] = []
@@ -138,6 +140,8 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
             if c is not None:
                 c.close()
     metrics = None
+    if gt is None and not (cfg.rerun_save or cfg.spawn):
+        gt = session.groundtruth()
     if gt is not None:
         metrics = trajectory_metrics(run.stamps[run.valid], run.poses[run.valid], run.covs[run.valid], *gt)
     return ReplayResult(len(run.stamps), len(session.skipped), int(run.valid.sum()), fixes, seconds, metrics)

@@ -11,7 +11,6 @@ import math
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 
 def wrap_angle(a: float | np.ndarray) -> float | np.ndarray:
@@ -71,19 +70,23 @@ def rvec_tvec_from_T(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def T_to_tum(T: np.ndarray) -> tuple[float, float, float, float, float, float, float]:
     """(x, y, z, qx, qy, qz, qw) of a 4x4 transform, as a TUM line stores it."""
+    from scipy.spatial.transform import Rotation  # here, not at the top: 0.2-0.6 s of start-up
+
     q = Rotation.from_matrix(T[:3, :3]).as_quat()  # scipy order: x, y, z, w
     return (*map(float, T[:3, 3]), *map(float, q))
 
 
 def T_from_tum(values: np.ndarray) -> np.ndarray:
     """4x4 transform from (x, y, z, qx, qy, qz, qw)."""
+    from scipy.spatial.transform import Rotation
+
     values = np.asarray(values, float)
     return make_T(Rotation.from_quat(values[3:7]).as_matrix(), values[:3])
 
 
 def interpolate_T(T0: np.ndarray, T1: np.ndarray, alpha: float) -> np.ndarray:
     """Pose between ``T0`` (alpha=0) and ``T1`` (alpha=1): linear translation, slerped rotation."""
-    from scipy.spatial.transform import Slerp
+    from scipy.spatial.transform import Rotation, Slerp
 
     rots = Rotation.from_matrix(np.stack([T0[:3, :3], T1[:3, :3]]))
     R = Slerp([0.0, 1.0], rots)([alpha]).as_matrix()[0]
@@ -110,6 +113,8 @@ def interpolate_groundtruth(
         R = np.repeat(gt_T[:1, :3, :3], len(t), axis=0)
         xy = np.repeat(gt_T[:1, :2, 3], len(t), axis=0)
     else:
+        from scipy.spatial.transform import Rotation, Slerp
+
         R = Slerp(gt_stamps, Rotation.from_matrix(gt_T[:, :3, :3]))(t).as_matrix().reshape(-1, 3, 3)
         xy = np.column_stack([np.interp(t, gt_stamps, gt_T[:, 0, 3]), np.interp(t, gt_stamps, gt_T[:, 1, 3])])
     yaw = np.arctan2(R[:, 1, 0], R[:, 0, 0])
