@@ -117,13 +117,14 @@ def run_live(cfg: LiveConfig, localiser=None, stop: threading.Event | None = Non
     if cfg.max_seconds is not None and not cfg.max_seconds > 0:
         raise InputError(f"--max-seconds must be positive, not {cfg.max_seconds}")
     if localiser is None:
-        from tagloc.pipeline.localiser import Localiser, LocaliserConfig, load_setup
+        from tagloc.eval.baselines import make_localiser
+        from tagloc.pipeline.localiser import load_setup
 
         smap, rig = load_setup(
             map_path=cfg.map, calibration=cfg.calibration, rig_path=cfg.rig, config_dir=cfg.config_dir
         )
         map_path = cfg.map or (Path(cfg.config_dir) / "map.csv" if cfg.config_dir else None)
-        localiser = Localiser(smap, rig, LocaliserConfig(mode=cfg.mode), map_path=map_path)
+        localiser = make_localiser(cfg.mode, smap, rig, map_path=map_path)
     stop = stop or threading.Event()
     source = open_source(cfg.source)
     sinks: list[Sink] = []

@@ -13,9 +13,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
-
-from tagloc.core.types import Frame, FrameResult
+from tagloc.core.types import FrameResult
 from tagloc.eval.metrics import trajectory_metrics
 from tagloc.io.session import SessionReader
 from tagloc.io.sinks import FrameLog, PoseMessage, Sink, TumSink, open_sink
@@ -93,6 +91,7 @@ class ReplayResult:
 
 def replay(cfg: ReplayConfig) -> ReplayResult:
     """Replay a session through the localiser and write what ``cfg`` asks for."""
+    from tagloc.eval.baselines import make_localiser
     from tagloc.pipeline.localiser import LocaliserConfig
     from tagloc.pipeline.run import run_session
 
@@ -124,12 +123,18 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
                 if o.accepted:
                     fixes[o.source.value] = fixes.get(o.source.value, 0) + 1
             if view is not None:
-                view.log(_reload(session, res), res)
+                view.log(res.frame, res)
 
         t0 = time.monotonic()
         run = run_session(
             session,
-            LocaliserConfig(mode=cfg.mode, detector=cfg.detector, decoder=cfg.decoder),
+            localiser=make_localiser(
+                cfg.mode,
+                session.map,
+                session.rig,
+                LocaliserConfig(detector=cfg.detector, decoder=cfg.decoder),
+                map_path=session.path / "map.csv",
+            ),
             progress=cfg.progress,
             on_result=on_result,
             realtime=cfg.realtime,
@@ -145,10 +150,3 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
     if gt is not None:
         metrics = trajectory_metrics(run.stamps[run.valid], run.poses[run.valid], run.covs[run.valid], *gt)
     return ReplayResult(len(run.stamps), len(session.skipped), int(run.valid.sum()), fixes, seconds, metrics)
-
-
-def _reload(session: SessionReader, res: FrameResult) -> Frame:
-    """The frame's image again, for Rerun (run_session hands over results, not images)."""
-    p = session.frame_path(res.index)
-    img = None if p is None or res.skipped else cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
-    return Frame(res.index, res.timestamp, img)
