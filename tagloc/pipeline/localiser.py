@@ -6,6 +6,7 @@ pose -> tracker. Sources and sinks live elsewhere (:mod:`tagloc.io.capture`, :mo
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,6 +45,10 @@ class LocaliserConfig:
         tracker: the EKF's configuration.
         odometry: measure the body's motion between frames from the floor texture and feed it to
             the tracker ("full" mode only); ``odometry_config`` tunes it.
+        clock_reset_frames: a frame whose timestamp is not after the previous frame's is refused
+            (skipped, counted); this many refused in a row mean the source's clock was reset, and
+            the track restarts on the new clock. 5 frames (1/6 s at 30 fps): one stray stamp is
+            refused without losing the track, a reset clock costs a fraction of a second.
     """
 
     mode: str = "full"
@@ -54,6 +59,7 @@ class LocaliserConfig:
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     odometry: bool = True
     odometry_config: OdometryConfig = field(default_factory=OdometryConfig)
+    clock_reset_frames: int = 5
 
 
 def load_setup(
@@ -116,7 +122,12 @@ class Localiser:
             "unmapped_reads": 0,
             "odometry_steps": 0,
             "odometry_unavailable": 0,
+            "refused_timestamps": 0,
+            "clock_resets": 0,
+            "wrong_size_frames": 0,
         }
+        self._last_t: float | None = None  # timestamp of the last frame accepted
+        self._refused_run = 0
 
     @property
     def refs(self):
@@ -136,6 +147,11 @@ class Localiser:
         t = frame.timestamp
         self.counts["frames"] += 1
         times: dict[str, float] = {}
+        refused = self._check_size(frame) or self._check_time(frame)
+        if refused:
+            # The filter stays where it was: the output is its latest estimate, stamped with its own time.
+            self.counts["skipped"] += 1
+            return FrameResult(frame.index, t, [], self.output_at(self._last_t or 0.0), {}, refused)
         self.tracker.predict(t)
         times["tracker"] = (time.perf_counter() - t0) * 1e3
         if frame.image is None:
@@ -195,6 +211,43 @@ class Localiser:
         times["tracker"] = times.get("tracker", 0.0) + (time.perf_counter() - ts) * 1e3
         times["total"] = (time.perf_counter() - t0) * 1e3
         return FrameResult(frame.index, t, observations, out, times)
+
+    def _check_time(self, frame: Frame) -> str | None:
+        """Why the frame's timestamp is refused, or None (then it becomes the last accepted time)."""
+        t = frame.timestamp
+        if not math.isfinite(t):
+            self.counts["refused_timestamps"] += 1
+            return f"frame {frame.index}: timestamp {t} is not a finite number"
+        last = self._last_t
+        if last is not None and t <= last:
+            self._refused_run += 1
+            if self._refused_run < self.config.clock_reset_frames:
+                self.counts["refused_timestamps"] += 1
+                return f"frame {frame.index}: timestamp {t:.6f} s is not after the previous frame's {last:.6f} s"
+            self._restart()
+        self._refused_run = 0
+        self._last_t = t
+        return None
+
+    def _restart(self) -> None:
+        """Start the track afresh on a source clock that was reset (nothing of the old track holds)."""
+        self.counts["clock_resets"] += 1
+        self.tracker = Tracker(self.config.tracker)
+        self._held = None
+        self._odometry.clear()
+
+    def _check_size(self, frame: Frame) -> str | None:
+        """Why the frame's image cannot be this camera's, or None."""
+        if frame.image is None:
+            return None
+        if not 0 <= frame.camera < len(self.rig.cameras):
+            return f"frame {frame.index}: camera {frame.camera} is not in the rig ({len(self.rig.cameras)} cameras)"
+        cam = self.rig[frame.camera].camera
+        h, w = frame.image.shape[:2]
+        if (w, h) != (cam.width, cam.height):
+            self.counts["wrong_size_frames"] += 1
+            return f"frame {frame.index}: image is {w}x{h}, the calibration is for {cam.width}x{cam.height}"
+        return None
 
     def floor_odometry(self, camera: int) -> FloorOdometry | None:
         """The floor odometry of rig camera ``camera`` (made on first use), or None if that camera

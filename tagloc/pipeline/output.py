@@ -80,7 +80,8 @@ class OutputSummary:
 
     Attributes:
         published: results handed to the sinks; refused: results not published because their
-            stamp was not after the last published one.
+            stamp was not after the last published one; skipped: results of frames the localiser
+            skipped (unreadable, wrong size, refused timestamp).
         sinks: per sink name: its counters (``sent``, ``dropped``, and for MQTT ``confirmed``,
             ``unconfirmed``, ``stale``).
         warnings: warning lines emitted.
@@ -88,6 +89,7 @@ class OutputSummary:
 
     published: int = 0
     refused: int = 0
+    skipped: int = 0
     sinks: dict[str, dict[str, int]] = field(default_factory=dict)
     warnings: int = 0
 
@@ -102,6 +104,8 @@ class OutputSummary:
                     f"{c['unconfirmed']} (QoS 0: lost or delivered, unknown)"
                 )
             lines.append(line)
+        if self.skipped:
+            lines.append(f"skipped by the localiser: {self.skipped} frames (unreadable, wrong size or bad timestamp)")
         if self.refused:
             lines.append(f"not published: {self.refused} frames whose timestamp was not after the last pose's")
         return lines
@@ -161,6 +165,9 @@ class Outputs:
         (``time.monotonic()``, live only). Returns the grab-to-publication latency, ms (None offline).
         """
         out = result.output
+        if result.skipped:
+            self.summary.skipped += 1
+            self._rate_limited("#skipped frames", f"skipped {result.skipped}")
         latency = None
         if out.state is TrackState.INITIALISING or out.t > self._last_t:
             if out.state is not TrackState.INITIALISING:
@@ -200,6 +207,13 @@ class Outputs:
             if last is None or now - last >= self.config.warn_every_s:
                 self._warned[s.name] = now
                 self._emit_warning(f"{s.name}: {problem} ({_counts_text(s.counts())})")
+
+    def _rate_limited(self, key: str, text: str) -> None:
+        now = time.monotonic()
+        last = self._warned.get(key)
+        if last is None or now - last >= self.config.warn_every_s:
+            self._warned[key] = now
+            self._emit_warning(text)
 
     def _emit_warning(self, text: str) -> None:
         self.summary.warnings += 1
