@@ -142,9 +142,11 @@ def _node_size(fs: cv2.FileStorage, path: Path, name: str) -> int:
 def _load_opencv(path: Path) -> Camera:
     try:
         return _read_opencv(path)
-    except cv2.error as exc:
-        # FileStorage's parser reports a cut or inconsistent file as cv2.error; keep its reason only.
-        reason = (exc.err or str(exc)).strip().splitlines()[-1][:200]
+    except (cv2.error, SystemError) as exc:
+        # FileStorage's parser reports a cut or inconsistent file as cv2.error (raised from its
+        # constructor it arrives wrapped in a SystemError); keep the parser's reason only.
+        err = exc if isinstance(exc, cv2.error) else (exc.__cause__ or exc.__context__ or exc)
+        reason = (getattr(err, "err", None) or str(err) or type(err).__name__).strip().splitlines()[-1][:200]
         raise CalibrationError(f"{path}: not a valid OpenCV FileStorage calibration ({reason})") from None
 
 
@@ -180,18 +182,20 @@ def _load_ros(path: Path, doc: dict) -> Camera:
         K = _ros_matrix(doc["camera_matrix"], path, "camera_matrix")
         dist = _ros_matrix(doc.get("distortion_coefficients", [0, 0, 0, 0, 0]), path, "distortion_coefficients")
         w, h = doc.get("image_width"), doc.get("image_height")
+        names = ("image_width", "image_height")
     elif "K" in doc or "k" in doc:  # a dumped sensor_msgs/CameraInfo
         K = _ros_matrix(doc.get("K", doc.get("k")), path, "K")
         d = doc.get("D", doc.get("d"))
         dist = _ros_matrix([0, 0, 0, 0, 0] if d is None or (isinstance(d, list) and not d) else d, path, "D")
         w, h = doc.get("width"), doc.get("height")
+        names = ("width", "height")
     else:
         raise CalibrationError(f"{path}: neither OpenCV nor ROS camera_info calibration (no camera_matrix or K)")
     if K.size != 9:
         raise CalibrationError(f"{path}: camera matrix has {K.size} values, want 9")
     if w is None or h is None:
         raise CalibrationError(f"{path}: missing image width/height")
-    return Camera(K.reshape(3, 3), dist, _size(w, path, "width"), _size(h, path, "height"))
+    return Camera(K.reshape(3, 3), dist, _size(w, path, names[0]), _size(h, path, names[1]))
 
 
 def load_calibration(path: str | Path) -> Camera:

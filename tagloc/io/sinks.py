@@ -22,12 +22,14 @@ away and the client reconnects in the background.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import socket
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, TYPE_CHECKING
@@ -213,6 +215,32 @@ class UdpSink(Sink):
         self._sock.close()
 
 
+@contextlib.contextmanager
+def _unix_socketpair(mqtt_module: object) -> Iterator[None]:
+    """Make paho's wake-up socket pair a Unix one while it starts its thread.
+
+    paho builds the pair from a TCP socket that briefly listens on 127.0.0.1; tagloc opens no
+    listening socket, so for the duration of ``loop_start`` paho gets ``socket.socketpair()``
+    (AF_UNIX on Linux: nothing is bound to any address).
+    """
+
+    def pair() -> tuple[socket.socket, socket.socket]:
+        a, b = socket.socketpair()
+        a.setblocking(False)
+        b.setblocking(False)
+        return a, b
+
+    original = getattr(mqtt_module, "_socketpair_compat", None)
+    if original is None or not hasattr(socket, "AF_UNIX"):
+        yield
+        return
+    mqtt_module._socketpair_compat = pair
+    try:
+        yield
+    finally:
+        mqtt_module._socketpair_compat = original
+
+
 class MqttSink(Sink):
     """Publish poses at QoS 0 to an MQTT 5 broker, reconnecting in the background; never deliver stale ones.
 
@@ -277,7 +305,8 @@ class MqttSink(Sink):
         self._client.on_disconnect = self._on_disconnect
         self._client.on_publish = self._on_publish
         self._client.connect_async(host, port, keepalive=keepalive, clean_start=True)
-        self._client.loop_start()
+        with _unix_socketpair(mqtt):
+            self._client.loop_start()
 
     def _on_connect(
         self, client: mqtt.Client, userdata: object, flags: object, reason: object, properties: object
