@@ -533,7 +533,7 @@ def test_10_readme_setup_is_two_commands_without_sudo_that_ci_also_runs():
     block = setup.split("```", 2)[1]
     commands = [ln for ln in block.splitlines()[1:] if ln.strip() and not ln.lstrip().startswith("#")]
     assert len(commands) == 2 and not any(c.lstrip().startswith("sudo") for c in commands), commands
-    assert commands[0].strip() == "scripts/setup"
+    assert commands[1].strip().startswith("scripts/setup &&")
     script = (REPO / "scripts" / "setup").read_text()
     assert "id -u" in script and os.access(REPO / "scripts" / "setup", os.X_OK)
     assert "scripts/setup" in (REPO / ".ci" / "run").read_text()
