@@ -148,6 +148,9 @@ def _load_opencv(path: Path) -> Camera:
         err = exc if isinstance(exc, cv2.error) else (exc.__cause__ or exc.__context__ or exc)
         reason = (getattr(err, "err", None) or str(err) or type(err).__name__).strip().splitlines()[-1][:200]
         raise CalibrationError(f"{path}: not a valid OpenCV FileStorage calibration ({reason})") from None
+    except (UnicodeError, ValueError, TypeError, OverflowError):
+        # What the OpenCV binding makes of bytes that are not UTF-8 or of values of the wrong kind.
+        raise CalibrationError(f"{path}: not a valid OpenCV FileStorage calibration (malformed values)") from None
 
 
 def _read_opencv(path: Path) -> Camera:

@@ -110,6 +110,10 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
             raise SessionError(f"{path}:{n}: not a TUM line (timestamp x y z qx qy qz qw)") from None
         if len(values) != 8 or not np.all(np.isfinite(values)):
             raise SessionError(f"{path}:{n}: want 8 finite numbers, got {len(values)}")
+        if abs(float(np.linalg.norm(values[4:])) - 1.0) > 0.01:
+            raise SessionError(f"{path}:{n}: quaternion qx qy qz qw is not of unit length")
+        if max(abs(v) for v in values[1:4]) > 1e6:
+            raise SessionError(f"{path}:{n}: position beyond 1000 km")
         stamps.append(values[0])
         poses.append(T_from_tum(values[1:]))
     return np.array(stamps), np.array(poses).reshape(-1, 4, 4)
