@@ -288,7 +288,8 @@ class MqttSink(Sink):
         self.probe_s = float(probe_s)
         self.connects = 0
         self.stale = 0  # dropped: older than max_age_s, or the link stalled
-        self.confirmed = 0  # written before a probe the broker acknowledged
+        self.confirmed = 0  # written before a probe the broker acknowledged, on the same connection
+        self._settled = 0  # poses written so far whose fate is decided (confirmed, or lost with a connection)
         self._lock = threading.Lock()
         self._pending = 0
         self._probe: tuple[int, float, int] | None = None  # (mid, monotonic send time, poses written before it)
@@ -322,14 +323,18 @@ class MqttSink(Sink):
         self, client: mqtt.Client, userdata: object, flags: object, reason: object, props: object
     ) -> None:
         with self._lock:
-            # A probe of a dead connection will never be answered; poses it would have confirmed
-            # stay unconfirmed.
+            # A probe of a dead connection will never be answered, and no later probe speaks for
+            # what was written on this one: those poses stay unconfirmed for good.
             self._probe = None
+            self._settled = self.sent
 
     def _on_publish(self, client: mqtt.Client, userdata: object, mid: int, reason: object, properties: object) -> None:
         with self._lock:
             if self._probe is not None and mid == self._probe[0]:
-                self.confirmed = max(self.confirmed, self._probe[2])
+                written = self._probe[2]
+                if written > self._settled:
+                    self.confirmed += written - self._settled
+                    self._settled = written
                 self._probe = None
             else:
                 self._pending = max(0, self._pending - 1)
@@ -411,10 +416,10 @@ class MqttSink(Sink):
 
     def close(self, flush_s: float = 1.0) -> None:
         """Confirm what was written if the broker answers within ``flush_s``, then disconnect."""
-        if self._client.is_connected() and self.sent > self.confirmed:
+        if self._client.is_connected() and self.sent > self._settled:
             deadline = time.monotonic() + flush_s
             self._last_probe = -math.inf
-            while time.monotonic() < deadline and self.sent > self.confirmed and self._client.is_connected():
+            while time.monotonic() < deadline and self.sent > self._settled and self._client.is_connected():
                 self._send_probe(time.monotonic())
                 time.sleep(0.01)
         self._client.disconnect()
