@@ -22,6 +22,7 @@ away and the client reconnects in the background.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import json
 import math
@@ -294,6 +295,8 @@ class MqttSink(Sink):
         self._pending = 0
         self._probe: tuple[int, float, int] | None = None  # (mid, monotonic send time, poses written before it)
         self._last_probe = -math.inf
+        self._probe_mids: set[int] = set()  # probes sent and not yet acknowledged
+        self._recent_mids: collections.deque[int] = collections.deque(maxlen=64)  # recent unknown acks
         self._props = Properties(PacketTypes.PUBLISH)
         self._props.MessageExpiryInterval = max(1, math.ceil(self.max_age_s))
         self._client: mqtt.Client = mqtt.Client(
@@ -330,14 +333,22 @@ class MqttSink(Sink):
 
     def _on_publish(self, client: mqtt.Client, userdata: object, mid: int, reason: object, properties: object) -> None:
         with self._lock:
-            if self._probe is not None and mid == self._probe[0]:
-                written = self._probe[2]
-                if written > self._settled:
-                    self.confirmed += written - self._settled
-                    self._settled = written
-                self._probe = None
-            else:
-                self._pending = max(0, self._pending - 1)
+            if mid in self._probe_mids:
+                # A probe's PUBACK (perhaps of one paho resent after a reconnect: it vouches for nothing).
+                self._probe_mids.discard(mid)
+                if self._probe is not None and mid == self._probe[0]:
+                    self._settle(self._probe[2])
+                return
+            # A pose written, or a probe acknowledged before _send_probe could note its mid.
+            self._recent_mids.append(mid)
+            self._pending = max(0, self._pending - 1)
+
+    def _settle(self, written: int) -> None:
+        """The broker acknowledged a probe sent after ``written`` poses (call with the lock held)."""
+        if written > self._settled:
+            self.confirmed += written - self._settled
+            self._settled = written
+        self._probe = None
 
     @property
     def connected(self) -> bool:
@@ -375,6 +386,14 @@ class MqttSink(Sink):
         info = self._client.publish(self.topic + "/probe", payload, qos=1)
         if info.rc == self._success:
             with self._lock:
+                if info.mid in self._recent_mids:
+                    # Acknowledged already (loopback is fast): it was counted as a pose; undo that.
+                    self._pending += 1
+                    self._settle(written)
+                    return
+                if len(self._probe_mids) > 64:  # acknowledgements lost with dead connections
+                    self._probe_mids.clear()
+                self._probe_mids.add(info.mid)
                 if self._probe is None:
                     self._probe = (info.mid, now, written)
 
