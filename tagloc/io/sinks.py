@@ -6,18 +6,21 @@ Every published pose is one JSON object of schema ``tagloc.vision.pose/1``::
      "x": 12.3456, "y": 3.21, "yaw": 1.570796, "yaw_deg": 90.0,
      "cov": [[sxx, sxy, sxyaw], [syx, syy, syyaw], [syawx, syawy, syawyaw]],
      "state": "tracking", "since_fix": 0.2667, "last_id": 42, "last_source": "decoded",
-     "latency_ms": 23.4}
+     "latency_ms": 23.4, "wall_t": 1795000000.123}
 
 ``t`` is the frame's timestamp (s, the source clock), ``frame`` names the frame the pose is in and
 ``index`` the camera frame it follows. ``x``, ``y`` (m) and ``yaw`` (rad, CCW from world +x) place
 the body frame (on the floor under the vest, +x forward) in the world; ``cov`` is their 3x3
 covariance (m^2, m*rad, rad^2). ``state`` is "initialising" (no pose yet: x, y, yaw are zeros and
 meaningless), "tracking" or "lost". ``since_fix`` is seconds since the last accepted sticker fix
-(null before the first). ``latency_ms`` is from frame capture to publication (null offline).
+(null before the first). ``latency_ms`` is from frame capture to publication and ``wall_t`` the
+sender's wall clock at publication, epoch s (both null offline): a receiver with a synchronised clock
+knows a pose's age as ``now - wall_t + latency_ms / 1000`` and drops it past its own bound.
 
 Sinks never listen: UDP only sends, MQTT only connects out. A network sink never blocks or stops
 localisation: UDP errors are counted, MQTT messages are dropped (and counted) while the broker is
-away and the client reconnects in the background.
+away, hung or behind, and the client reconnects in the background. Neither sends a pose older than
+its ``max_age_s``.
 """
 
 from __future__ import annotations
