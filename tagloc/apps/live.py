@@ -44,6 +44,7 @@ class LiveConfig:
         buffer: frames the capture thread keeps (the oldest is dropped when full).
         mode: localiser mode (see :class:`tagloc.pipeline.localiser.LocaliserConfig`).
         max_age_s: network sinks never send a pose older than this, s (see OutputConfig).
+        record_bag: rosbag2 directory to write (poses, /tf, detections; images too with ``bag_images``).
     """
 
     source: str
@@ -64,6 +65,8 @@ class LiveConfig:
     buffer: int = 1
     mode: str = "full"
     max_age_s: float = 0.5
+    record_bag: Path | None = None
+    bag_images: bool = False
 
 
 @dataclass
@@ -131,6 +134,12 @@ def run_live(
     outputs = writer = None
     try:
         outputs = Outputs(localiser.map, localiser.rig, _output_config(cfg, source.live, cap.drop_oldest))
+        if cfg.record_bag is not None:
+            from tagloc.io.rosbag import BagWriter
+
+            # A sink for the poses; the loop also hands it each frame's detections (and image).
+            run.bag = BagWriter(cfg.record_bag, cfg.vest, localiser.rig, images=cfg.bag_images)
+            outputs.add_sink(run.bag)
         if cfg.record is not None:
             writer = SessionWriter(
                 cfg.record,
@@ -173,7 +182,8 @@ def _check_limits(cfg: LiveConfig) -> None:
 
 
 def _make_localiser(cfg: LiveConfig):
-    from tagloc.pipeline.localiser import Localiser, LocaliserConfig, load_setup
+    from tagloc.eval.baselines import make_localiser
+    from tagloc.pipeline.localiser import load_setup
 
     smap, rig = load_setup(map_path=cfg.map, calibration=cfg.calibration, rig_path=cfg.rig, config_dir=cfg.config_dir)
     map_path = cfg.map or (Path(cfg.config_dir) / MAP_FILE if cfg.config_dir else None)
@@ -185,7 +195,7 @@ def _make_localiser(cfg: LiveConfig):
 
         print("tagloc live: preparing the sticker reference bank (cached beside the map)", file=sys.stderr)
         refs = load_or_build_refs(map_path, progress=True) if map_path else build_refs(smap, progress=True)
-    return Localiser(smap, rig, LocaliserConfig(mode=cfg.mode), refs=refs, map_path=map_path)
+    return make_localiser(cfg.mode, smap, rig, refs=refs, map_path=map_path)
 
 
 def _output_config(cfg: LiveConfig, live_clock: bool, real_time: bool) -> OutputConfig:
@@ -212,6 +222,7 @@ class _LiveRun:
         self.state = "initialising"
         self.t_start = time.monotonic()
         self.seconds = 0.0
+        self.bag = None  # a tagloc.io.rosbag.BagWriter when recording a bag
 
     def _wait(self) -> float | None:
         """How long to wait for the next frame (s), or None when a limit is reached."""
@@ -245,6 +256,8 @@ class _LiveRun:
             self.frames += 1
             self.fixes += sum(o.accepted is True for o in result.observations)
             self.state = result.output.state.value
+            if self.bag is not None:
+                self.bag.write_frame(frame, result)
 
 
 def _stop_on_signals(stop: threading.Event):

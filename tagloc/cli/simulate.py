@@ -62,7 +62,6 @@ def run(args: argparse.Namespace) -> int:
     checks.number(args.pitch, "--pitch", 0, 90, lo_open=True)
     checks.number(args.height, "--height", 0, 5, lo_open=True)
     checks.number(args.distractors, "--distractors", 0, 100)
-    checks.number(args.missing_fraction, "--missing-fraction", 0, 1)
     checks.number(args.unmapped, "--unmapped", 0, 10_000)
     checks.number(args.jpeg_quality, "--jpeg-quality", 1, 100)
     checks.number(args.scale, "--scale", 0, 4, lo_open=True)
