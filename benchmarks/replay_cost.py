@@ -14,7 +14,7 @@ OpenCV on one thread:
    and runs ``cv2.aruco.ArucoDetector.detectMarkers`` on each, alternated ``--repeat`` times;
    their CPU times and ratio.
 4. With ``--live``: ``tagloc live``'s loop on the frames decoded ahead into memory, played at the
-   session's rate and published over UDP to localhost: grab-to-publication latency.
+   session's rate, each result written to the JSON-lines frame log: grab-to-publication latency.
 
 Example::
 
@@ -143,8 +143,11 @@ def live_latency(session: Path) -> dict:
         def read(self):
             return next(self._it, None)
 
-    live.open_source = lambda spec: MemorySource()  # the benchmark's process only
-    summary = live.run_live(live.LiveConfig(source="memory", config_dir=session, publish=["udp://127.0.0.1:9"]))
+    with tempfile.TemporaryDirectory() as tmp:
+        # Published as JSON lines to a file: a network sink would need a receiver here (tagloc
+        # itself never listens), and UDP to a closed port now counts every message as refused.
+        cfg = live.LiveConfig(source="memory", config_dir=session, log=Path(tmp) / "frames.jsonl")
+        summary = live.run_live(cfg, source=MemorySource())
     return {
         "frames": summary.frames,
         "dropped": summary.capture.dropped,
