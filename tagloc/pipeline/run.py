@@ -82,7 +82,7 @@ def run_session(
     ``refs``. ``realtime`` paces frames at their timestamps; otherwise they go as fast as they can.
     """
     loc = localiser or Localiser(
-        session.map, session.rig, config or LocaliserConfig(), refs=refs, map_path=session.path / "map.csv"
+        session.map, session.rig, config or LocaliserConfig(), refs=refs, map_path=session.map_path
     )
     stamps, poses, covs, valid, frame_ms, tracker_ms, odometry_ms = [], [], [], [], [], [], []
     fixes, rejected = [], []
