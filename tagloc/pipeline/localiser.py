@@ -35,7 +35,7 @@ from tagloc.vision.decode import decode
 from tagloc.vision.detect import detect
 from tagloc.vision.image import as_gray
 from tagloc.vision.odometry import FloorOdometry, OdometryConfig
-from tagloc.vision.pose import solve_pose
+from tagloc.vision.pose import PoseConfig, SurveyPasses, solve_pose
 from tracker.tracker import Tracker, TrackerConfig
 
 #: The stages whose time is the tracker's: its prediction, candidate choice, updates and output.
@@ -85,6 +85,11 @@ class LocaliserConfig:
             (skipped, counted); this many refused in a row mean the source's clock was reset, and
             the track restarts on the new clock. 5 frames (1/6 s at 30 fps): one stray stamp is
             refused without losing the track, a reset clock costs a fraction of a second.
+        pose: the pose solver's options (corner noise, the map's default survey sigmas).
+        rolling_shutter: for a rig camera with a rolling shutter (``readout_s`` in rig.json),
+            move each sticker's corners to the frame's time with the body's motion (this frame's
+            odometry step, else the tracker's prediction) before solving its pose; the odometry's
+            own correction is ``odometry_config.rolling_shutter``.
     """
 
     detector: str = "contour"
@@ -97,6 +102,8 @@ class LocaliserConfig:
     clock_reset_frames: int = 5
     sticker_tracking: bool = True
     tracking: TrackingConfig = field(default_factory=lambda: TrackingConfig())
+    pose: PoseConfig = field(default_factory=PoseConfig)
+    rolling_shutter: bool = True
 
 
 @dataclass
@@ -313,6 +320,8 @@ class Localiser:
         self.counts.update(refused_timestamps=0, clock_resets=0, wrong_size_frames=0)
         self._last_t: float | None = None  # timestamp of the last frame accepted
         self._refused_run = 0
+        self._passes = SurveyPasses()  # repeated fixes of a sticker share its survey error
+        self._step = None  # this frame's odometry step, for the rolling-shutter correction
 
     @property
     def refs(self):
@@ -452,10 +461,22 @@ class Localiser:
 
     def _odometry_step(self, gray: np.ndarray, camera: int, t: float) -> None:
         odo = self.floor_odometry(camera)
-        step = odo.measure(gray, t) if odo is not None else None
+        twist = self.tracker.velocity() if self.rig[camera].readout_s > 0 else None
+        step = odo.measure(gray, t, twist) if odo is not None else None
+        self._step = step
         if step is not None:
             self.counts["odometry_steps"] += 1
             self.tracker.update_odometry(step)
+
+    def _body_twist(self, rig_cam: RigCamera, t: float) -> np.ndarray | None:
+        """The body's motion (vx, vy, yaw rate; body frame) for the rolling-shutter correction, or None."""
+        if not (self.config.rolling_shutter and rig_cam.readout_s > 0):
+            return None
+        s = self._step
+        if s is not None and s.t1 == t and s.t1 > s.t0:
+            # The vest's own motion over the last frame interval, wobble included.
+            return np.asarray(s.delta, float) / (s.t1 - s.t0)
+        return self.tracker.velocity()
 
     def _candidates(self, det: Detection, rig_cam: RigCamera, timer: StageTimer) -> list[int]:
         with timer("candidates"):
@@ -484,7 +505,18 @@ class Localiser:
 
     def _fix(self, det: Detection, identity: Identity, rig_cam: RigCamera, t: float, timer: StageTimer) -> Fix:
         with timer("pose"):
-            sol = solve_pose(det, identity.rotation, self.map.T_world_sticker(identity.sticker_id), rig_cam)
+            row = self.map.row(identity.sticker_id)
+            survey = (float(self.map.sigma_xy[row]), float(self.map.sigma_yaw[row]))  # NaN: the default
+            sol = solve_pose(
+                det,
+                identity.rotation,
+                self.map.T_world_sticker(identity.sticker_id),
+                rig_cam,
+                config=self.config.pose,
+                map_sigma=survey,
+                map_scale=self._passes.scale(identity.sticker_id, t),
+                body_twist=self._body_twist(rig_cam, t),
+            )
         if not sol.poses:
             return Fix([], sol.ambiguous)
         with timer("update"):
