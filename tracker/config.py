@@ -11,13 +11,17 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from scipy.stats import chi2
 
 
 @lru_cache(maxsize=64)
 def chi2_bound(prob: float, dof: int) -> float:
-    """The chi-square quantile ``prob`` for ``dof`` degrees of freedom (cached: scipy takes ~0.2 ms)."""
-    return float(chi2.ppf(prob, dof))
+    """The chi-square quantile ``prob`` for ``dof`` degrees of freedom (cached: scipy takes ~0.2 ms).
+
+    scipy.special's inverse of the complemented chi-square CDF gives what scipy.stats.chi2.ppf does,
+    without importing scipy.stats (0.8 s of start-up)."""
+    from scipy.special import chdtri
+
+    return float(chdtri(dof, 1.0 - prob))
 
 
 @dataclass

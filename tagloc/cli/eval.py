@@ -39,7 +39,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tagloc.cli import checks
     from tagloc.eval.evaluate import EvalConfig, run_presets
+
+    checks.number(args.sessions, "--sessions", 1, 1000)
+    checks.number(args.seconds, "--seconds", 0, 3600, lo_open=True)
+    checks.output_dir(args.out, "-o")
 
     cfg = EvalConfig(
         sessions=args.sessions,

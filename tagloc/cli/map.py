@@ -5,6 +5,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from tagloc.core.errors import InputError
+from tagloc.core.sticker import MAX_ID
+
+MAX_FLOOR_M = 10_000.0  # a floor side beyond 10 km is a typo
+MAX_STICKERS = MAX_ID + 1
+
 NAME = "map"
 HELP = "generate a warehouse sticker map (grid) or summarise a map file (info)"
 DESCRIPTION = """grid: stickers along parallel aisles (running along y, spaced in x) and cross aisles, consecutive
@@ -43,11 +49,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tagloc.cli import checks
     from tagloc.sim.mapgen import GridMapConfig, map_info, write_grid_map
 
     if args.action == "info":
         print(map_info(args.map))
         return 0
+    for option, value in (("--width", args.width), ("--depth", args.depth)):
+        checks.number(value, option, 0, MAX_FLOOR_M, lo_open=True)
+    checks.number(args.aisle_spacing, "--aisle-spacing", 0, MAX_FLOOR_M, lo_open=True)
+    checks.number(args.spacing_min, "--spacing-min", 0, MAX_FLOOR_M, lo_open=True)
+    checks.number(args.spacing_max, "--spacing-max", 0, MAX_FLOOR_M, lo_open=True)
+    checks.number(args.cross_aisles, "--cross-aisles", 0, 1000)
+    # Each aisle carries up to depth / spacing-min stickers, each cross aisle width / spacing-min.
+    lines = args.width / args.aisle_spacing + 1
+    estimate = lines * args.depth / args.spacing_min + args.cross_aisles * args.width / args.spacing_min
+    if estimate > MAX_STICKERS:
+        raise InputError(
+            f"a {args.width:g} x {args.depth:g} m floor needs ~{estimate:.0f} stickers, more than "
+            f"the {MAX_STICKERS} IDs there are"
+        )
+    checks.output_file(args.out, "-o")
     config = GridMapConfig(
         width_m=args.width,
         depth_m=args.depth,
