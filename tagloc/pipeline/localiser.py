@@ -169,7 +169,7 @@ class Localiser:
             if res.sticker_id not in self.map:
                 # A real sticker that is not in our map: never a fix, and not worth identifying.
                 obs.rejected_read = f"decoded {res.sticker_id}, not in the map"
-                obs.sticker_id = res.sticker_id
+                obs.sticker_id, obs.rotation = res.sticker_id, res.rotation  # rotation: for map audits
                 self.counts["unmapped_reads"] += 1
                 continue
             obs.sticker_id, obs.rotation, obs.source = res.sticker_id, res.rotation, IdSource.DECODED
