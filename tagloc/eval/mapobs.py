@@ -16,7 +16,7 @@ import numpy as np
 from tagloc.core.geometry import invert
 from tagloc.core.rig import Rig
 from tagloc.core.sticker import rotate_corners
-from tagloc.core.stickermap import StickerMap
+from tagloc.core.stickermap import StickerMap, load_map
 from tagloc.core.types import FrameResult, IdSource, Observation
 from tagloc.io.session import SessionReader
 from tagloc.pipeline.localiser import Localiser, LocaliserConfig
@@ -94,7 +94,10 @@ class WalkLog:
 
 def _sighting(obs: Observation, smap: StickerMap, rig: Rig) -> Sighting:
     det = obs.detection
-    s = Sighting(obs.camera, det.outer.mean(axis=0), obs.sticker_id, obs.source.value)
+    source = obs.source.value
+    if obs.sticker_id is not None and obs.source == IdSource.NONE:
+        source = IdSource.DECODED.value  # the localiser names a sticker without a source only for unmapped reads
+    s = Sighting(obs.camera, det.outer.mean(axis=0), obs.sticker_id, source)
     s.accepted, s.gate_reason = obs.accepted, obs.gate_reason
     if obs.sticker_id is None or obs.rotation is None:
         return s
@@ -144,3 +147,16 @@ def collect_walk(
     counts = dict(loc.counts)
     counts["skipped_frames"] = len(session.skipped)
     return WalkLog(session.path, session.rig, frames, counts)
+
+
+def collect_walks(
+    sessions: list[str | Path],
+    map_path: str | Path | None = None,
+    localiser: LocaliserConfig | None = None,
+    progress: bool = False,
+) -> tuple[StickerMap, Path, list[WalkLog]]:
+    """Load the map (default: the first session's ``map.csv``) and localise every session with it."""
+    map_path = Path(map_path) if map_path is not None else Path(sessions[0]) / "map.csv"
+    smap = load_map(map_path)
+    walks = [collect_walk(s, smap, localiser, map_path=map_path, progress=progress) for s in sessions]
+    return smap, map_path, walks
