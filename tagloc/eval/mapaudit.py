@@ -430,7 +430,10 @@ def plot_audit(result: AuditResult, path: str | Path) -> None:
     import matplotlib.pyplot as plt
 
     smap = result.map
-    fig, ax = plt.subplots(figsize=(10, 7), dpi=120)
+    xs = np.concatenate([smap.xy[:, 0]] + [t[:, 0] for t in result.trajectories])
+    ys = np.concatenate([smap.xy[:, 1]] + [t[:, 1] for t in result.trajectories])
+    aspect = (np.ptp(ys) + 1.0) / (np.ptp(xs) + 1.0)  # a long aisle gets a short, wide figure
+    fig, ax = plt.subplots(figsize=(11, float(np.clip(8 * aspect + 1.5, 3.0, 9.0))), dpi=120)
     ax.scatter(smap.xy[:, 0], smap.xy[:, 1], s=12, marker="s", c="0.6", label=f"mapped ({len(smap)})", zorder=2)
     for k, traj in enumerate(result.trajectories):
         ax.plot(traj[:, 0], traj[:, 1], lw=0.7, c="tab:cyan", alpha=0.7, label="walks" if k == 0 else None, zorder=1)
