@@ -58,6 +58,29 @@ def pose_residual(z: np.ndarray, hx: np.ndarray) -> np.ndarray:
     return y
 
 
+def odometry_model(x: np.ndarray, clone: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Measurement model of a floor-odometry step, beside the fix model (:meth:`WalkingEKF.innovation`).
+
+    The step is the vest pose now seen from the vest pose ``clone`` (3,) at the earlier frame (the
+    camera moves with the vest): ``h = (R(yaw0)^T (v1 - c)[:2], v1.yaw - yaw0)`` with ``v1`` the
+    vest pose of the state mean ``x`` (8,). Returns h (3,) and its Jacobian H (3, 11) over the joint
+    state [x (8), clone (3)] (stochastic cloning).
+    """
+    v1 = vest_pose(x)
+    yaw0 = clone[2]
+    co, si = math.cos(yaw0), math.sin(yaw0)
+    Rt = np.array([[co, si], [-si, co]])  # world -> body at t0
+    d = v1[:2] - clone[:2]
+    hx = np.append(Rt @ d, wrap_angle(float(v1[2] - yaw0)))
+    H = np.zeros((3, DIM + 3))
+    H[:2, :DIM] = Rt @ M_VEST[:2]
+    H[:2, DIM : DIM + 2] = -Rt
+    H[:2, DIM + 2] = np.array([[-si, co], [-co, -si]]) @ d
+    H[2, :DIM] = M_VEST[2]
+    H[2, DIM + 2] = -1.0
+    return hx, H
+
+
 def largest_eig_2x2(P: np.ndarray) -> float:
     """Largest eigenvalue of the symmetric (x, y) block ``P[:2, :2]`` (closed form, no LAPACK call)."""
     a, b, c = float(P[0, 0]), 0.5 * float(P[0, 1] + P[1, 0]), float(P[1, 1])

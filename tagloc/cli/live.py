@@ -16,7 +16,8 @@ frame, as fast as possible). A summary (frames, fixes, drops, latency) goes to s
 examples:
   tagloc live --camera 0 --config site/ --publish udp://10.0.0.5:9000 --vest v07
   tagloc live --camera walk.avi --map map.csv --calibration cam.yaml --rig rig.json \\
-      --publish stdout --publish mqtt://broker:1883/tagloc/v07/pose --record rec/ --rerun-save live.rrd"""
+      --publish stdout --publish mqtt://broker:1883/tagloc/v07/pose --record rec/ --rerun-save live.rrd
+  tagloc live --camera 0 --config site/ --record-bag out/v07.bag2 --vest v07"""
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -44,7 +45,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-frames", type=int, help="stop after this many processed frames")
     p.add_argument("--no-pace", action="store_true", help="files/sessions: process every frame, as fast as possible")
     p.add_argument("--buffer", type=int, default=1, help="frames the capture thread keeps (default 1)")
+    p.add_argument(
+        "--max-age",
+        type=float,
+        default=0.5,
+        metavar="S",
+        help="never send a pose older than S seconds over UDP/MQTT (default 0.5; see the README's Reliability)",
+    )
     p.add_argument("--mode", default="full", choices=("full", "decoded-only", "orb-all"), help="localiser mode")
+    p.add_argument("--record-bag", type=Path, metavar="DIR", help="write a rosbag2 (MCAP): pose, /tf, detections")
+    p.add_argument("--bag-images", action="store_true", help="also put the camera images and CameraInfo in the bag")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -69,6 +79,9 @@ def run(args: argparse.Namespace) -> int:
             pace=not args.no_pace,
             buffer=args.buffer,
             mode=args.mode,
+            record_bag=args.record_bag,
+            bag_images=args.bag_images,
+            max_age_s=args.max_age,
         )
     )
     print(summary.format(), file=sys.stderr)

@@ -18,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
+from tagloc.eval.baselines import MODES, make_localiser
 from tagloc.eval.consistency import nees_blocks, nees_test
 from tagloc.eval.metrics import TrajectoryErrors, error_metrics, trajectory_errors
-from tagloc.io.session import SessionReader
-from tagloc.pipeline.localiser import MODES, LocaliserConfig
+from tagloc.io.session import FRAMES_CSV, SessionReader
 from tagloc.pipeline.run import RunLog, run_session
 
 
@@ -95,7 +95,7 @@ def make_session(sc: Scenario, root: Path, progress: bool) -> Path:
     path = root / "sessions" / sc.name
     stamp = path / "scenario.json"
     made = {**asdict(sc), "simulator": SIM_REVISION}
-    if stamp.exists() and json.loads(stamp.read_text()) == made and (path / "frames.csv").exists():
+    if stamp.exists() and json.loads(stamp.read_text()) == made and (path / FRAMES_CSV).exists():
         return path
     if path.exists():
         import shutil
@@ -189,7 +189,12 @@ def evaluate(cfg: EvalConfig) -> dict:
         for mode in cfg.modes:
             session = SessionReader(path)
             log = _timed_on_one_core(
-                functools.partial(run_session, session, LocaliserConfig(mode=mode), progress=cfg.progress)
+                functools.partial(
+                    run_session,
+                    session,
+                    localiser=make_localiser(mode, session.map, session.rig, map_path=session.path / "map.csv"),
+                    progress=cfg.progress,
+                )
             )
             gt = session.groundtruth()
             v = log.valid

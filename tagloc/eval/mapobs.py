@@ -99,17 +99,18 @@ def _sighting(obs: Observation, smap: StickerMap, rig: Rig) -> Sighting:
         source = IdSource.DECODED.value  # the localiser names a sticker without a source only for unmapped reads
     s = Sighting(obs.camera, det.outer.mean(axis=0), obs.sticker_id, source)
     s.accepted, s.gate_reason = obs.accepted, obs.gate_reason
-    if obs.sticker_id is None or obs.rotation is None:
+    rotation = obs.identity.rotation if obs.identity is not None else obs.unmapped_rotation
+    if obs.sticker_id is None or rotation is None:
         return s
-    s.in_map = obs.sticker_id in smap
-    s.corners = rotate_corners(np.asarray(det.points, float), obs.rotation)
+    s.in_map = obs.identity is not None and obs.sticker_id in smap
+    s.corners = rotate_corners(np.asarray(det.points, float), rotation)
     if s.in_map and obs.poses:
         fix = obs.poses[0]
         s.T_camera_sticker = invert(fix.T_world_camera) @ smap.T_world_sticker(obs.sticker_id)
         s.reprojection_px = fix.reprojection_px
     elif not s.in_map:
         # Solved against the sticker's own frame: the "world" pose returned is T_sticker_camera.
-        sol = solve_pose(det, obs.rotation, np.eye(4), rig[obs.camera])
+        sol = solve_pose(det, rotation, np.eye(4), rig[obs.camera])
         if sol.poses:
             s.T_camera_sticker = invert(sol.poses[0].T_world_camera)
             s.reprojection_px = sol.poses[0].reprojection_px
