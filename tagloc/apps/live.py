@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from tagloc.core.errors import InputError
-from tagloc.io.capture import CaptureStats, CaptureThread, open_source
+from tagloc.io.capture import CaptureStats, CaptureThread, FrameSource, open_source
 from tagloc.io.session import MAP_FILE, SessionInfo, SessionWriter
 from tagloc.pipeline.output import OutputConfig, Outputs, OutputSummary
 
@@ -114,17 +114,20 @@ class LiveSummary:
         return "\n".join(lines)
 
 
-def run_live(cfg: LiveConfig, localiser=None, stop: threading.Event | None = None) -> LiveSummary:
+def run_live(
+    cfg: LiveConfig, localiser=None, stop: threading.Event | None = None, source: FrameSource | None = None
+) -> LiveSummary:
     """Run the live loop until the source ends, a limit is reached, SIGINT/SIGTERM, or ``stop`` is set.
 
     ``localiser`` (anything with ``process(frame) -> FrameResult``, ``map`` and ``rig``) defaults to
-    :class:`tagloc.pipeline.localiser.Localiser` on the configured map and rig.
+    :class:`tagloc.pipeline.localiser.Localiser` on the configured map and rig; ``source`` to
+    ``open_source(cfg.source)``.
     """
     _check_limits(cfg)
     if localiser is None:
         localiser = _make_localiser(cfg)
     stop = stop or threading.Event()
-    source = open_source(cfg.source)
+    source = source or open_source(cfg.source)
     cap = CaptureThread(source, buffer=cfg.buffer, pace=cfg.pace)
     run = _LiveRun(cfg, localiser, cap, stop)
     restore = _stop_on_signals(stop)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import pkgutil
 import sys
 
@@ -53,6 +54,21 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"tagloc {args.command}: interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:
+        # Trouble writing or reading that no check could foresee (a full disk, a vanished mount).
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"tagloc {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 1
+    except Exception as exc:  # noqa: BLE001 - a bug: one line for the user, the traceback on request
+        if os.environ.get("TAGLOC_DEBUG"):
+            raise
+        msg = str(exc).splitlines()[0][:300] if str(exc) else ""
+        print(
+            f"tagloc {args.command}: internal error: {type(exc).__name__}: {msg} "
+            "(please report it; TAGLOC_DEBUG=1 shows the traceback)",
+            file=sys.stderr,
+        )
+        return 70
 
 
 if __name__ == "__main__":

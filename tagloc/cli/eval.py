@@ -30,7 +30,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tagloc.cli import checks
     from tagloc.eval.evaluate import EvalConfig, evaluate, format_notes, format_table
+
+    checks.number(args.sessions, "--sessions", 1, 1000)
+    checks.number(args.seconds, "--seconds", 0, 3600, lo_open=True)
+    checks.output_dir(args.out, "-o")
 
     res = evaluate(
         EvalConfig(

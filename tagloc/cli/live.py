@@ -59,6 +59,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from tagloc.apps.live import LiveConfig, run_live
+    from tagloc.cli import checks
+
+    for option, path in (("--log", args.log), ("--rerun-save", args.rerun_save)):
+        checks.output_file(path, option)
+    checks.output_dir(args.record, "--record")
 
     summary = run_live(
         LiveConfig(

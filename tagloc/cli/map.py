@@ -5,6 +5,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from tagloc.core.errors import InputError
+from tagloc.core.sticker import MAX_ID
+
+MAX_FLOOR_M = 10_000.0  # a floor side beyond 10 km is a typo
+MAX_STICKERS = MAX_ID + 1
+
 NAME = "map"
 HELP = "generate a warehouse sticker map (grid), summarise one (info), audit or refine one from walks (audit, refine)"
 DESCRIPTION = """grid: stickers along parallel aisles (running along y, spaced in x) and cross aisles, consecutive
@@ -78,6 +84,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tagloc.cli import checks
     from tagloc.sim.mapgen import GridMapConfig, map_info, write_grid_map
 
     if args.action == "info":
@@ -86,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
     if args.action == "audit":
         from tagloc.eval.mapaudit import audit_sessions
 
+        checks.output_dir(args.out, "-o")
         res = audit_sessions(args.sessions, args.out, args.map, progress=not args.quiet)
         counts = ", ".join(f"{len(res.of(k))} {k}" for k in ("missing", "unmapped", "misplaced", "hard"))
         print(f"{args.out / 'report.md'}: {counts} (of {len(res.map)} mapped stickers, {res.frames} frames)")
@@ -93,6 +101,10 @@ def run(args: argparse.Namespace) -> int:
     if args.action == "refine":
         from tagloc.eval.maprefine import RefineConfig, refine_sessions
 
+        checks.number(args.sigma_m, "--sigma-m", 0, 100.0, lo_open=True)
+        checks.number(args.sigma_deg, "--sigma-deg", 0, 180.0, lo_open=True)
+        checks.output_file(args.out, "-o")
+        checks.output_file(args.report, "--report")
         cfg = RefineConfig(default_sigma_m=args.sigma_m, default_sigma_deg=args.sigma_deg)
         res = refine_sessions(args.sessions, args.map, args.out, args.report, cfg, progress=not args.quiet)
         moved = [c.sticker_id for c in res.changes if c.moved]
@@ -101,6 +113,21 @@ def run(args: argparse.Namespace) -> int:
             f" ({len(moved)} moved: {' '.join(map(str, moved)) or 'none'}); {res.note or 'report beside it'}"
         )
         return 0
+    for option, value in (("--width", args.width), ("--depth", args.depth)):
+        checks.number(value, option, 0, MAX_FLOOR_M, lo_open=True)
+    checks.number(args.aisle_spacing, "--aisle-spacing", 0, MAX_FLOOR_M, lo_open=True)
+    checks.number(args.spacing_min, "--spacing-min", 0, MAX_FLOOR_M, lo_open=True)
+    checks.number(args.spacing_max, "--spacing-max", 0, MAX_FLOOR_M, lo_open=True)
+    checks.number(args.cross_aisles, "--cross-aisles", 0, 1000)
+    # Each aisle carries up to depth / spacing-min stickers, each cross aisle width / spacing-min.
+    lines = args.width / args.aisle_spacing + 1
+    estimate = lines * args.depth / args.spacing_min + args.cross_aisles * args.width / args.spacing_min
+    if estimate > MAX_STICKERS:
+        raise InputError(
+            f"a {args.width:g} x {args.depth:g} m floor needs ~{estimate:.0f} stickers, more than "
+            f"the {MAX_STICKERS} IDs there are"
+        )
+    checks.output_file(args.out, "-o")
     config = GridMapConfig(
         width_m=args.width,
         depth_m=args.depth,

@@ -30,7 +30,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tagloc.cli import checks
     from tagloc.vision.refs import default_cache_path, load_or_build_refs
+
+    checks.output_file(args.out or default_cache_path(args.map), "-o")
 
     bank = load_or_build_refs(args.map, progress=not args.quiet, cache_path=args.out, rebuild=args.force)
     out = args.out or default_cache_path(args.map)

@@ -63,6 +63,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from tagloc.apps.replay import ReplayConfig, replay
+    from tagloc.cli import checks
+
+    for option, path in (("--out", args.out), ("--log", args.log), ("--rerun", args.rerun)):
+        checks.output_file(path, option)
 
     res = replay(
         ReplayConfig(

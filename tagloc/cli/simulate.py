@@ -52,7 +52,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tagloc.cli import checks
     from tagloc.sim.simulate import SimConfig, simulate_session
+
+    checks.number(args.seconds, "--seconds", 0, 3600, lo_open=True)
+    checks.number(args.fps, "--fps", 0, 240, lo_open=True)
+    checks.number(args.lux, "--lux", 0, 200_000, lo_open=True)
+    checks.number(args.speed, "--speed", 0, 5, lo_open=True)
+    checks.number(args.pitch, "--pitch", 0, 90, lo_open=True)
+    checks.number(args.height, "--height", 0, 5, lo_open=True)
+    checks.number(args.distractors, "--distractors", 0, 100)
+    checks.number(args.unmapped, "--unmapped", 0, 10_000)
+    checks.number(args.jpeg_quality, "--jpeg-quality", 1, 100)
+    checks.number(args.scale, "--scale", 0, 4, lo_open=True)
+    checks.output_dir(args.out, "-o")
 
     summary = simulate_session(
         args.map,

@@ -23,7 +23,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tagloc.cli import checks
     from tagloc.io.printing import SheetConfig, parse_ids, write_sheets
+
+    checks.number(args.dpi, "--dpi", 72, 2400)
+    checks.output_file(args.out, "-o")
 
     files = write_sheets(parse_ids(args.ids), args.out, SheetConfig(paper=args.paper, dpi=args.dpi))
     for f in files:

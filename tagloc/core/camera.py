@@ -17,6 +17,8 @@ import yaml
 
 from tagloc.core.errors import CalibrationError
 
+MAX_SIZE_PX = 100_000  # an image side beyond this is a typo, not a sensor
+
 
 @dataclass
 class Camera:
@@ -106,14 +108,52 @@ def _check(camera: Camera, path: Path) -> Camera:
         raise CalibrationError(f"{path}: calibration contains NaN or inf")
     if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1 or np.any(K[2, :2] != 0) or K[1, 0] != 0:
         raise CalibrationError(f"{path}: camera_matrix is not a valid intrinsic matrix: {K.tolist()}")
-    if camera.width <= 0 or camera.height <= 0:
-        raise CalibrationError(f"{path}: image size {camera.width}x{camera.height} is not positive")
+    if not (0 < camera.width <= MAX_SIZE_PX and 0 < camera.height <= MAX_SIZE_PX):
+        raise CalibrationError(
+            f"{path}: image size {camera.width}x{camera.height} is not positive and at most {MAX_SIZE_PX} px a side"
+        )
+    cx, cy = K[0, 2], K[1, 2]
+    if not (-0.5 <= cx <= camera.width - 0.5 and -0.5 <= cy <= camera.height - 0.5):
+        raise CalibrationError(
+            f"{path}: principal point ({cx:.1f}, {cy:.1f}) px is outside the {camera.width}x{camera.height} image"
+        )
     if camera.dist.size not in (4, 5, 8, 12, 14):
         raise CalibrationError(f"{path}: {camera.dist.size} distortion coefficients (want 4, 5, 8, 12 or 14)")
     return camera
 
 
+def _size(value: object, path: Path, name: str) -> int:
+    """An image side in pixels; the message echoes what the file says, not a conversion of it."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or value != value:
+        raise CalibrationError(f"{path}: {name} must be a whole number of pixels, got {str(value)[:40]!r}")
+    if not (abs(value) <= MAX_SIZE_PX and value == int(value)):
+        raise CalibrationError(f"{path}: {name} must be a whole number of pixels 1 to {MAX_SIZE_PX}, got {value!r}")
+    return int(value)
+
+
+def _node_size(fs: cv2.FileStorage, path: Path, name: str) -> int:
+    node = fs.getNode(name)
+    if not (node.isInt() or node.isReal()):
+        text = node.string() if node.isString() else f"a {('sequence' if node.isSeq() else 'mapping')}"
+        raise CalibrationError(f"{path}: {name} must be a whole number of pixels, got {text[:40]!r}")
+    return _size(node.real(), path, name)
+
+
 def _load_opencv(path: Path) -> Camera:
+    try:
+        return _read_opencv(path)
+    except (cv2.error, SystemError) as exc:
+        # FileStorage's parser reports a cut or inconsistent file as cv2.error (raised from its
+        # constructor it arrives wrapped in a SystemError); keep the parser's reason only.
+        err = exc if isinstance(exc, cv2.error) else (exc.__cause__ or exc.__context__ or exc)
+        reason = (getattr(err, "err", None) or str(err) or type(err).__name__).strip().splitlines()[-1][:200]
+        raise CalibrationError(f"{path}: not a valid OpenCV FileStorage calibration ({reason})") from None
+    except (UnicodeError, ValueError, TypeError, OverflowError):
+        # What the OpenCV binding makes of bytes that are not UTF-8 or of values of the wrong kind.
+        raise CalibrationError(f"{path}: not a valid OpenCV FileStorage calibration (malformed values)") from None
+
+
+def _read_opencv(path: Path) -> Camera:
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     if not fs.isOpened():
         raise CalibrationError(f"{path}: not a readable OpenCV FileStorage file")
@@ -126,7 +166,8 @@ def _load_opencv(path: Path) -> Camera:
         dist = fs.getNode("distortion_coefficients").mat()
         if K is None or dist is None or K.shape != (3, 3):
             raise CalibrationError(f"{path}: camera_matrix must be a 3x3 matrix")
-        return Camera(K, dist.ravel(), int(fs.getNode("image_width").real()), int(fs.getNode("image_height").real()))
+        w, h = _node_size(fs, path, "image_width"), _node_size(fs, path, "image_height")
+        return Camera(K.astype(float), dist.astype(float).ravel(), w, h)
     finally:
         fs.release()
 
@@ -134,9 +175,9 @@ def _load_opencv(path: Path) -> Camera:
 def _ros_matrix(node: object, path: Path, name: str) -> np.ndarray:
     data = node.get("data") if isinstance(node, dict) else node
     try:
-        return np.asarray(data, float)
-    except (TypeError, ValueError) as exc:
-        raise CalibrationError(f"{path}: {name} is not a list of numbers") from exc
+        return np.asarray(data, float).ravel()
+    except (TypeError, ValueError, OverflowError):
+        raise CalibrationError(f"{path}: {name} is not a list of numbers") from None
 
 
 def _load_ros(path: Path, doc: dict) -> Camera:
@@ -144,17 +185,20 @@ def _load_ros(path: Path, doc: dict) -> Camera:
         K = _ros_matrix(doc["camera_matrix"], path, "camera_matrix")
         dist = _ros_matrix(doc.get("distortion_coefficients", [0, 0, 0, 0, 0]), path, "distortion_coefficients")
         w, h = doc.get("image_width"), doc.get("image_height")
+        names = ("image_width", "image_height")
     elif "K" in doc or "k" in doc:  # a dumped sensor_msgs/CameraInfo
         K = _ros_matrix(doc.get("K", doc.get("k")), path, "K")
-        dist = _ros_matrix(doc.get("D", doc.get("d")) or [0, 0, 0, 0, 0], path, "D")
+        d = doc.get("D", doc.get("d"))
+        dist = _ros_matrix([0, 0, 0, 0, 0] if d is None or (isinstance(d, list) and not d) else d, path, "D")
         w, h = doc.get("width"), doc.get("height")
+        names = ("width", "height")
     else:
         raise CalibrationError(f"{path}: neither OpenCV nor ROS camera_info calibration (no camera_matrix or K)")
     if K.size != 9:
         raise CalibrationError(f"{path}: camera matrix has {K.size} values, want 9")
     if w is None or h is None:
         raise CalibrationError(f"{path}: missing image width/height")
-    return Camera(K.reshape(3, 3), dist, int(w), int(h))
+    return Camera(K.reshape(3, 3), dist, _size(w, path, names[0]), _size(h, path, names[1]))
 
 
 def load_calibration(path: str | Path) -> Camera:
@@ -163,15 +207,23 @@ def load_calibration(path: str | Path) -> Camera:
     try:
         text = path.read_text(encoding="utf-8", errors="replace")
     except OSError as exc:
-        raise CalibrationError(f"{path}: cannot read calibration ({exc.strerror})") from exc
+        raise CalibrationError(f"{path}: cannot read calibration ({exc.strerror})") from None
+    except ValueError:  # e.g. a NUL byte in the name
+        raise CalibrationError(f"{path!r}: not a usable file name") from None
     if text.lstrip().startswith("%YAML") or "!!opencv-matrix" in text:
         return _check(_load_opencv(path), path)
     try:
-        doc = yaml.safe_load(text)
+        # A dumped message may end with "---" (the next document's separator): empty documents are fine.
+        docs = [d for d in yaml.safe_load_all(text) if d is not None]
     except yaml.YAMLError as exc:
         line = getattr(getattr(exc, "problem_mark", None), "line", None)
-        where = f" line {line + 1}" if line is not None else ""
-        raise CalibrationError(f"{path}:{where} not valid YAML") from exc
+        where = f" line {line + 1}:" if line is not None else ""
+        raise CalibrationError(f"{path}:{where} not valid YAML") from None
+    except (RecursionError, ValueError, OverflowError):
+        raise CalibrationError(f"{path}: not a calibration YAML file") from None
+    if len(docs) > 1:
+        raise CalibrationError(f"{path}: {len(docs)} YAML documents, want one calibration")
+    doc = docs[0] if docs else None
     if not isinstance(doc, dict):
         raise CalibrationError(f"{path}: not a calibration mapping")
     return _check(_load_ros(path, doc), path)

@@ -65,8 +65,8 @@ def default_rig(height_m: float = 1.3, pitch_deg: float = 55.0, camera: Camera |
 def _check_T(value: object, where: str) -> np.ndarray:
     try:
         T = np.asarray(value, float)
-    except (TypeError, ValueError) as exc:
-        raise CalibrationError(f"{where}: T_body_camera is not a 4x4 matrix of numbers") from exc
+    except (TypeError, ValueError, OverflowError):
+        raise CalibrationError(f"{where}: T_body_camera is not a 4x4 matrix of numbers") from None
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise CalibrationError(f"{where}: T_body_camera must be a finite 4x4 matrix")
     R = T[:3, :3]
@@ -82,11 +82,15 @@ def load_rig(path: str | Path, calibration: Camera | None = None) -> Rig:
     """
     path = Path(path)
     try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
+        doc = json.loads(path.read_bytes().decode("utf-8"))
     except OSError as exc:
-        raise CalibrationError(f"{path}: cannot read rig ({exc.strerror})") from exc
+        raise CalibrationError(f"{path}: cannot read rig ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:
+        raise CalibrationError(f"{path}: not a text file (byte {exc.start} is not UTF-8)") from None
     except json.JSONDecodeError as exc:
-        raise CalibrationError(f"{path}: line {exc.lineno}: not valid JSON ({exc.msg})") from exc
+        raise CalibrationError(f"{path}: line {exc.lineno}: not valid JSON ({exc.msg})") from None
+    except RecursionError:
+        raise CalibrationError(f"{path}: JSON nested too deeply") from None
     cams = doc.get("cameras") if isinstance(doc, dict) else None
     if not isinstance(cams, list) or not cams:
         raise CalibrationError(f'{path}: needs a non-empty "cameras" list')
@@ -96,7 +100,9 @@ def load_rig(path: str | Path, calibration: Camera | None = None) -> Rig:
         if not isinstance(entry, dict) or "T_body_camera" not in entry:
             raise CalibrationError(f"{where}: needs T_body_camera")
         name = str(entry.get("name", f"cam{i}"))
-        calib_file = str(entry.get("calibration", "camera.yaml"))
+        calib_file = entry.get("calibration", "camera.yaml")
+        if not isinstance(calib_file, str) or not calib_file or "\0" in calib_file:
+            raise CalibrationError(f"{where}: calibration must be a file name")
         cam = calibration if calibration is not None else load_calibration(path.parent / calib_file)
         out.append(RigCamera(name, cam, _check_T(entry["T_body_camera"], where), calib_file))
     return Rig(out)

@@ -21,6 +21,9 @@ from tagloc.core.sticker import MAX_ID, SIZE_M
 
 HEADER = ["id", "x_m", "y_m", "yaw_deg"]
 SIGMA_COLUMNS = ["sigma_m", "sigma_deg"]  # optional, after HEADER, in either order
+# Largest |coordinate| accepted, m. A site spans kilometres at most; 100 km keeps float32 (which
+# OpenCV uses inside) at better than a centimetre and keeps the KD-tree's arithmetic finite.
+MAX_COORD_M = 1e5
 
 
 @dataclass
@@ -110,6 +113,13 @@ def _number(text: str, where: str, column: str) -> float:
     return value
 
 
+def _coord(text: str, where: str, column: str) -> float:
+    value = _number(text, where, column)
+    if abs(value) > MAX_COORD_M:
+        raise MapError(f"{where}: {column} {text.strip()!r} is beyond +-{MAX_COORD_M:g} m")
+    return value
+
+
 def _sigma(text: str, where: str, column: str) -> float:
     if not text.strip():
         return math.nan
@@ -122,7 +132,8 @@ def _sigma(text: str, where: str, column: str) -> float:
 def load_map(path: str | Path, min_spacing_m: float = SIZE_M) -> StickerMap:
     """Load and validate a map CSV. Raises :class:`MapError` naming file and line on bad input.
 
-    Refused: a wrong header, missing or extra columns, non-numbers, NaN or inf, IDs that are not
+    Refused: a wrong header, missing or extra columns, non-numbers, NaN or inf, coordinates beyond
+    ``MAX_COORD_M``, IDs that are not
     integers in 0-99999, duplicate IDs, two stickers closer than ``min_spacing_m`` (default: one
     sticker width, so they would overlap), and an empty map.
     """
@@ -162,7 +173,7 @@ def load_map(path: str | Path, min_spacing_m: float = SIZE_M) -> StickerMap:
                     raise MapError(f"{where}: duplicate id {sid} (first on line {seen[sid]})")
                 seen[sid] = line
                 ids.append(sid)
-                xy.append((_number(row[1], where, "x_m"), _number(row[2], where, "y_m")))
+                xy.append((_coord(row[1], where, "x_m"), _coord(row[2], where, "y_m")))
                 yaw.append(math.radians(_number(row[3], where, "yaw_deg")))
                 sigmas = {c: _sigma(row[len(HEADER) + k], where, c) for k, c in enumerate(extra)}
                 sig_m.append(sigmas.get("sigma_m", math.nan))

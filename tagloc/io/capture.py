@@ -30,7 +30,7 @@ import numpy as np
 
 from tagloc.core.errors import InputError
 from tagloc.core.types import Frame
-from tagloc.io.session import SessionReader
+from tagloc.io.session import CLOCK_JUMP_S, SessionReader
 
 
 @dataclass
@@ -184,6 +184,7 @@ class CaptureThread:
 
     def _run(self) -> None:
         start_wall = start_t = None
+        last_t = 0.0
         try:
             while not self._stop.is_set():
                 frame = self.source.read()
@@ -197,8 +198,10 @@ class CaptureThread:
                     continue
                 if self.pace:
                     now = time.monotonic()
-                    if start_wall is None:
+                    if start_wall is None or frame.timestamp - last_t > CLOCK_JUMP_S:
+                        # A gap in the recording is not waited out: pacing starts afresh after it.
                         start_wall, start_t = now, frame.timestamp
+                    last_t = frame.timestamp
                     delay = (frame.timestamp - start_t) - (now - start_wall)
                     if delay > 0 and self._stop.wait(delay):
                         break

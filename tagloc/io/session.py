@@ -110,9 +110,32 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
             raise SessionError(f"{path}:{n}: not a TUM line (timestamp x y z qx qy qz qw)") from None
         if len(values) != 8 or not np.all(np.isfinite(values)):
             raise SessionError(f"{path}:{n}: want 8 finite numbers, got {len(values)}")
+        if abs(float(np.linalg.norm(values[4:])) - 1.0) > 0.01:
+            raise SessionError(f"{path}:{n}: quaternion qx qy qz qw is not of unit length")
+        if max(abs(v) for v in values[1:4]) > 1e6:
+            raise SessionError(f"{path}:{n}: position beyond 1000 km")
         stamps.append(values[0])
         poses.append(T_from_tum(values[1:]))
     return np.array(stamps), np.array(poses).reshape(-1, 4, 4)
+
+
+def read_image(path: Path) -> tuple[np.ndarray | None, str | None]:
+    """A greyscale image file, or (None, why not). A JPEG cut short is refused, not half-decoded.
+
+    libjpeg decodes a truncated JPEG with only a warning (the missing rows come out grey), so the
+    end-of-image marker is checked first: inside a JPEG's entropy-coded data a 0xFF byte is always
+    stuffed or a restart marker, so FF D9 near the end appears only when the file is complete.
+    """
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        return None, f"{path.name}: cannot read ({exc.strerror})"
+    if path.suffix.lower() in (".jpg", ".jpeg") and b"\xff\xd9" not in data[-64:]:
+        return None, f"{path.name} is corrupt: JPEG cut short (no end-of-image marker)"
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE) if data else None
+    if img is None:
+        return None, f"{path.name} is corrupt or unreadable"
+    return img, None
 
 
 class SessionReader:
@@ -256,8 +279,8 @@ class SessionReader:
                 err = f"frame {i}: image file missing"
                 img = None
             else:
-                img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
-                err = None if img is not None else f"frame {i}: {p.name} is corrupt or unreadable"
+                img, err = read_image(p)
+                err = None if err is None else f"frame {i}: {err}"
             if err:
                 self.skipped.append((int(i), err))
             yield Frame(int(i), float(t), img, 0, err)

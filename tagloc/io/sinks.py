@@ -6,28 +6,34 @@ Every published pose is one JSON object of schema ``tagloc.vision.pose/1``::
      "x": 12.3456, "y": 3.21, "yaw": 1.570796, "yaw_deg": 90.0,
      "cov": [[sxx, sxy, sxyaw], [syx, syy, syyaw], [syawx, syawy, syawyaw]],
      "state": "tracking", "since_fix": 0.2667, "last_id": 42, "last_source": "decoded",
-     "latency_ms": 23.4}
+     "latency_ms": 23.4, "wall_t": 1795000000.123}
 
 ``t`` is the frame's timestamp (s, the source clock), ``frame`` names the frame the pose is in and
 ``index`` the camera frame it follows. ``x``, ``y`` (m) and ``yaw`` (rad, CCW from world +x) place
 the body frame (on the floor under the vest, +x forward) in the world; ``cov`` is their 3x3
 covariance (m^2, m*rad, rad^2). ``state`` is "initialising" (no pose yet: x, y, yaw are zeros and
 meaningless), "tracking" or "lost". ``since_fix`` is seconds since the last accepted sticker fix
-(null before the first). ``latency_ms`` is from frame capture to publication (null offline).
+(null before the first). ``latency_ms`` is from frame capture to publication and ``wall_t`` the
+sender's wall clock at publication, epoch s (both null offline): a receiver with a synchronised clock
+knows a pose's age as ``now - wall_t + latency_ms / 1000`` and drops it past its own bound.
 
 Sinks never listen: UDP only sends, MQTT only connects out. A network sink never blocks or stops
 localisation: UDP errors are counted, MQTT messages are dropped (and counted) while the broker is
-away and the client reconnects in the background.
+away, hung or behind, and the client reconnects in the background. Neither sends a pose older than
+its ``max_age_s``.
 """
 
 from __future__ import annotations
 
+import collections
+import contextlib
 import json
 import math
 import socket
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, TYPE_CHECKING
@@ -213,6 +219,32 @@ class UdpSink(Sink):
         self._sock.close()
 
 
+@contextlib.contextmanager
+def _unix_socketpair(mqtt_module: object) -> Iterator[None]:
+    """Make paho's wake-up socket pair a Unix one while it starts its thread.
+
+    paho builds the pair from a TCP socket that briefly listens on 127.0.0.1; tagloc opens no
+    listening socket, so for the duration of ``loop_start`` paho gets ``socket.socketpair()``
+    (AF_UNIX on Linux: nothing is bound to any address).
+    """
+
+    def pair() -> tuple[socket.socket, socket.socket]:
+        a, b = socket.socketpair()
+        a.setblocking(False)
+        b.setblocking(False)
+        return a, b
+
+    original = getattr(mqtt_module, "_socketpair_compat", None)
+    if original is None or not hasattr(socket, "AF_UNIX"):
+        yield
+        return
+    mqtt_module._socketpair_compat = pair
+    try:
+        yield
+    finally:
+        mqtt_module._socketpair_compat = original
+
+
 class MqttSink(Sink):
     """Publish poses at QoS 0 to an MQTT 5 broker, reconnecting in the background; never deliver stale ones.
 
@@ -260,11 +292,14 @@ class MqttSink(Sink):
         self.probe_s = float(probe_s)
         self.connects = 0
         self.stale = 0  # dropped: older than max_age_s, or the link stalled
-        self.confirmed = 0  # written before a probe the broker acknowledged
+        self.confirmed = 0  # written before a probe the broker acknowledged, on the same connection
+        self._settled = 0  # poses written so far whose fate is decided (confirmed, or lost with a connection)
         self._lock = threading.Lock()
         self._pending = 0
         self._probe: tuple[int, float, int] | None = None  # (mid, monotonic send time, poses written before it)
         self._last_probe = -math.inf
+        self._probe_mids: set[int] = set()  # probes sent and not yet acknowledged
+        self._recent_mids: collections.deque[int] = collections.deque(maxlen=64)  # recent unknown acks
         self._props = Properties(PacketTypes.PUBLISH)
         self._props.MessageExpiryInterval = max(1, math.ceil(self.max_age_s))
         self._client: mqtt.Client = mqtt.Client(
@@ -277,7 +312,8 @@ class MqttSink(Sink):
         self._client.on_disconnect = self._on_disconnect
         self._client.on_publish = self._on_publish
         self._client.connect_async(host, port, keepalive=keepalive, clean_start=True)
-        self._client.loop_start()
+        with _unix_socketpair(mqtt):
+            self._client.loop_start()
 
     def _on_connect(
         self, client: mqtt.Client, userdata: object, flags: object, reason: object, properties: object
@@ -293,17 +329,29 @@ class MqttSink(Sink):
         self, client: mqtt.Client, userdata: object, flags: object, reason: object, props: object
     ) -> None:
         with self._lock:
-            # A probe of a dead connection will never be answered; poses it would have confirmed
-            # stay unconfirmed.
+            # A probe of a dead connection will never be answered, and no later probe speaks for
+            # what was written on this one: those poses stay unconfirmed for good.
             self._probe = None
+            self._settled = self.sent
 
     def _on_publish(self, client: mqtt.Client, userdata: object, mid: int, reason: object, properties: object) -> None:
         with self._lock:
-            if self._probe is not None and mid == self._probe[0]:
-                self.confirmed = max(self.confirmed, self._probe[2])
-                self._probe = None
-            else:
-                self._pending = max(0, self._pending - 1)
+            if mid in self._probe_mids:
+                # A probe's PUBACK (perhaps of one paho resent after a reconnect: it vouches for nothing).
+                self._probe_mids.discard(mid)
+                if self._probe is not None and mid == self._probe[0]:
+                    self._settle(self._probe[2])
+                return
+            # A pose written, or a probe acknowledged before _send_probe could note its mid.
+            self._recent_mids.append(mid)
+            self._pending = max(0, self._pending - 1)
+
+    def _settle(self, written: int) -> None:
+        """The broker acknowledged a probe sent after ``written`` poses (call with the lock held)."""
+        if written > self._settled:
+            self.confirmed += written - self._settled
+            self._settled = written
+        self._probe = None
 
     @property
     def connected(self) -> bool:
@@ -341,6 +389,14 @@ class MqttSink(Sink):
         info = self._client.publish(self.topic + "/probe", payload, qos=1)
         if info.rc == self._success:
             with self._lock:
+                if info.mid in self._recent_mids:
+                    # Acknowledged already (loopback is fast): it was counted as a pose; undo that.
+                    self._pending += 1
+                    self._settle(written)
+                    return
+                if len(self._probe_mids) > 64:  # acknowledgements lost with dead connections
+                    self._probe_mids.clear()
+                self._probe_mids.add(info.mid)
                 if self._probe is None:
                     self._probe = (info.mid, now, written)
 
@@ -382,10 +438,10 @@ class MqttSink(Sink):
 
     def close(self, flush_s: float = 1.0) -> None:
         """Confirm what was written if the broker answers within ``flush_s``, then disconnect."""
-        if self._client.is_connected() and self.sent > self.confirmed:
+        if self._client.is_connected() and self.sent > self._settled:
             deadline = time.monotonic() + flush_s
             self._last_probe = -math.inf
-            while time.monotonic() < deadline and self.sent > self.confirmed and self._client.is_connected():
+            while time.monotonic() < deadline and self.sent > self._settled and self._client.is_connected():
                 self._send_probe(time.monotonic())
                 time.sleep(0.01)
         self._client.disconnect()

@@ -7,6 +7,7 @@ the paper's baselines, which share the stages but not the tracker, in :mod:`tagl
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -78,6 +79,10 @@ class LocaliserConfig:
         tracker: the EKF's configuration.
         odometry: measure the body's motion between frames from the floor texture and feed it to
             the tracker; ``odometry_config`` tunes it.
+        clock_reset_frames: a frame whose timestamp is not after the previous frame's is refused
+            (skipped, counted); this many refused in a row mean the source's clock was reset, and
+            the track restarts on the new clock. 5 frames (1/6 s at 30 fps): one stray stamp is
+            refused without losing the track, a reset clock costs a fraction of a second.
     """
 
     detector: str = "contour"
@@ -87,6 +92,7 @@ class LocaliserConfig:
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     odometry: bool = True
     odometry_config: OdometryConfig = field(default_factory=OdometryConfig)
+    clock_reset_frames: int = 5
 
 
 @dataclass(frozen=True)
@@ -215,6 +221,9 @@ class Localiser:
         self._map_path = map_path
         self._odometry: dict[int, FloorOdometry | None] = {}  # per rig camera; None: camera sees too little floor
         self.counts = new_counts()
+        self.counts.update(refused_timestamps=0, clock_resets=0, wrong_size_frames=0)
+        self._last_t: float | None = None  # timestamp of the last frame accepted
+        self._refused_run = 0
 
     @property
     def refs(self):
@@ -232,6 +241,13 @@ class Localiser:
         timer = StageTimer()
         t = frame.timestamp
         self.counts["frames"] += 1
+        refused = self._check_size(frame) or self._check_time(frame)
+        if refused:
+            # The filter stays where it was: the output is its latest estimate, stamped with its own time.
+            self.counts["skipped"] += 1
+            with timer("output"):
+                out = self.tracker.output()
+            return FrameResult(frame.index, t, [], out, timer.finish(), refused, frame)
         with timer("predict"):
             self.tracker.predict(t)
         if frame.image is None:
@@ -269,6 +285,42 @@ class Localiser:
         with timer("output"):
             out = self.tracker.output(t)
         return FrameResult(frame.index, t, observations, out, timer.finish(), None, frame)
+
+    def _check_time(self, frame: Frame) -> str | None:
+        """Why the frame's timestamp is refused, or None (then it becomes the last accepted time)."""
+        t = frame.timestamp
+        if not math.isfinite(t):
+            self.counts["refused_timestamps"] += 1
+            return f"frame {frame.index}: timestamp {t} is not a finite number"
+        last = self._last_t
+        if last is not None and t <= last:
+            self._refused_run += 1
+            if self._refused_run < self.config.clock_reset_frames:
+                self.counts["refused_timestamps"] += 1
+                return f"frame {frame.index}: timestamp {t:.6f} s is not after the previous frame's {last:.6f} s"
+            self._restart()
+        self._refused_run = 0
+        self._last_t = t
+        return None
+
+    def _restart(self) -> None:
+        """Start the track afresh on a source clock that was reset (nothing of the old track holds)."""
+        self.counts["clock_resets"] += 1
+        self.tracker = Tracker(self.config.tracker)
+        self._odometry.clear()
+
+    def _check_size(self, frame: Frame) -> str | None:
+        """Why the frame's image cannot be this camera's, or None."""
+        if frame.image is None:
+            return None
+        if not 0 <= frame.camera < len(self.rig.cameras):
+            return f"frame {frame.index}: camera {frame.camera} is not in the rig ({len(self.rig.cameras)} cameras)"
+        cam = self.rig[frame.camera].camera
+        h, w = frame.image.shape[:2]
+        if (w, h) != (cam.width, cam.height):
+            self.counts["wrong_size_frames"] += 1
+            return f"frame {frame.index}: image is {w}x{h}, the calibration is for {cam.width}x{cam.height}"
+        return None
 
     def floor_odometry(self, camera: int) -> FloorOdometry | None:
         """The floor odometry of rig camera ``camera`` (made on first use), or None if that camera

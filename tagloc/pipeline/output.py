@@ -6,8 +6,10 @@ JSON lines log and the Rerun view; :meth:`Outputs.close` closes them all once an
 
 Guarantees kept here, whatever the sink:
 
-- Published pose stamps strictly increase: a result whose output is not later than the last one
-  published (a frame the localiser refused for its timestamp) is logged but never published.
+- No pose is published twice or stale: the result of a skipped frame (refused timestamp, wrong
+  size, unreadable) whose output is not later than the last one published is logged, never
+  published. (After a reset source clock the localiser restarts the track, and stamps follow
+  the new clock.)
 - A pose older than ``max_age_s`` (from the frame's grab, live only) is never sent by a network sink
   (see :class:`tagloc.io.sinks.MqttSink`); offline replays have no age.
 - A sink that cannot publish is reported on the warning stream as soon as it is noticed (after a
@@ -28,7 +30,7 @@ from pathlib import Path
 from tagloc.core.errors import InputError
 from tagloc.core.rig import Rig
 from tagloc.core.stickermap import StickerMap
-from tagloc.core.types import Frame, FrameResult, TrackState
+from tagloc.core.types import Frame, FrameResult
 from tagloc.io.sinks import FrameLog, PoseMessage, Sink, TumSink, open_sink
 
 
@@ -79,8 +81,9 @@ class OutputSummary:
     """Counts of one run's outputs.
 
     Attributes:
-        published: results handed to the sinks; refused: results not published because their
-            stamp was not after the last published one.
+        published: results handed to the sinks; refused: results of skipped frames not published
+            because their stamp was not after the last published one; skipped: results of frames the localiser
+            skipped (unreadable, wrong size, refused timestamp).
         sinks: per sink name: its counters (``sent``, ``dropped``, and for MQTT ``confirmed``,
             ``unconfirmed``, ``stale``).
         warnings: warning lines emitted.
@@ -88,6 +91,7 @@ class OutputSummary:
 
     published: int = 0
     refused: int = 0
+    skipped: int = 0
     sinks: dict[str, dict[str, int]] = field(default_factory=dict)
     warnings: int = 0
 
@@ -102,6 +106,8 @@ class OutputSummary:
                     f"{c['unconfirmed']} (QoS 0: lost or delivered, unknown)"
                 )
             lines.append(line)
+        if self.skipped:
+            lines.append(f"skipped by the localiser: {self.skipped} frames (unreadable, wrong size or bad timestamp)")
         if self.refused:
             lines.append(f"not published: {self.refused} frames whose timestamp was not after the last pose's")
         return lines
@@ -161,10 +167,12 @@ class Outputs:
         (``time.monotonic()``, live only). Returns the grab-to-publication latency, ms (None offline).
         """
         out = result.output
+        if result.skipped:
+            self.summary.skipped += 1
+            self._rate_limited("#skipped frames", f"skipped {result.skipped}")
         latency = None
-        if out.state is TrackState.INITIALISING or out.t > self._last_t:
-            if out.state is not TrackState.INITIALISING:
-                self._last_t = out.t
+        if not (result.skipped and out.t <= self._last_t):
+            self._last_t = out.t
             age_ms = None if grabbed is None else (time.monotonic() - grabbed) * 1e3
             msg = PoseMessage(
                 self.config.vest, result.index, out, age_ms, grabbed=grabbed if self.config.drop_stale else None
@@ -200,6 +208,13 @@ class Outputs:
             if last is None or now - last >= self.config.warn_every_s:
                 self._warned[s.name] = now
                 self._emit_warning(f"{s.name}: {problem} ({_counts_text(s.counts())})")
+
+    def _rate_limited(self, key: str, text: str) -> None:
+        now = time.monotonic()
+        last = self._warned.get(key)
+        if last is None or now - last >= self.config.warn_every_s:
+            self._warned[key] = now
+            self._emit_warning(text)
 
     def _emit_warning(self, text: str) -> None:
         self.summary.warnings += 1

@@ -73,11 +73,16 @@ class MapInfo:
 
     def __str__(self) -> str:
         x0, y0, x1, y1 = self.bounds
+        nn = (
+            f"  nearest neighbour: min {self.nn_min:.3f}  median {self.nn_median:.3f}  "
+            f"mean {self.nn_mean:.3f}  max {self.nn_max:.3f} m"
+            if self.count > 1
+            else "  nearest neighbour: none (a single sticker)"
+        )
         return (
             f"{self.source}: {self.count} stickers, IDs {self.id_min}-{self.id_max}\n"
             f"  bounds x {x0:.3f} .. {x1:.3f} m, y {y0:.3f} .. {y1:.3f} m ({x1 - x0:.2f} x {y1 - y0:.2f} m)\n"
-            f"  nearest neighbour: min {self.nn_min:.3f}  median {self.nn_median:.3f}  "
-            f"mean {self.nn_mean:.3f}  max {self.nn_max:.3f} m"
+            f"{nn}"
         )
 
 
