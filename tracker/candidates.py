@@ -25,15 +25,15 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.stats import chi2
 
 from tagloc.core.geometry import invert, planar_T
 from tagloc.core.rig import RigCamera
 from tagloc.core.stickermap import StickerMap
 from tracker.ekf import largest_eig_2x2
 
-#: Default gate: 99.9% of a 2-D Gaussian (sqrt of the chi-square bound, about 3.72 sigma).
-GATE_SIGMA = math.sqrt(float(chi2.ppf(0.999, 2)))
+#: Default gate: 99.9% of a 2-D Gaussian, sqrt of the chi-square bound, about 3.72 sigma (for 2 degrees
+#: of freedom the bound is closed-form: -2 ln(1 - p)).
+GATE_SIGMA = math.sqrt(-2.0 * math.log(1.0 - 0.999))
 
 
 @dataclass

@@ -45,6 +45,7 @@ from tagloc.core.geometry import wrap_angle
 from tagloc.core.rig import RigCamera
 from tagloc.core.stickermap import StickerMap
 from tagloc.core.types import IdSource, PoseFix, TrackerOutput, TrackState
+from tracker import motion
 from tracker.candidates import select_candidates
 from tracker.config import TrackerConfig
 from tracker.ekf import (
@@ -137,6 +138,7 @@ class Tracker:
         self._forgot = False  # speed and yaw rate dropped after a long time without fixes
         self._hyp: _Hypothesis | None = None
         self._clone: _Clone | None = None  # pose before the last advance, for odometry
+        self._last_odo_t = -math.inf  # end of the last odometry step fused
         self._odo_scale = np.sqrt(np.asarray(cfg.odometry_inflation, float))
         self._stats: dict[str, int] = {f"{v}_{s.value}": 0 for s in _SOURCES for v in ("accepted", "rejected")}
         self._stats.update(
@@ -159,6 +161,7 @@ class Tracker:
                     "odometry_rejected",
                     "odometry_unmatched",
                     "odometry_ignored",
+                    "frame_gaps",
                 ),
                 0,
             )
@@ -187,6 +190,14 @@ class Tracker:
             return None
         return vest_pose(self._ekf.x[:, 0]), vest_cov(self._ekf.P)
 
+    def velocity(self) -> np.ndarray | None:
+        """(3,) the body's predicted motion (forward m/s, sideways m/s (0: the model has no sideways
+        speed), yaw rate rad/s) in the body frame; None unless TRACKING."""
+        if self._state is not TrackState.TRACKING:
+            return None
+        x = self._ekf.x[:, 0]
+        return np.array([float(x[3]), 0.0, float(x[4])])
+
     def candidates(self, smap: StickerMap, rig_camera: RigCamera, observed_px: np.ndarray, k: int = 5) -> list[int]:
         """Sticker IDs that may be the one seen at ``observed_px``, most likely first ([] unless TRACKING)."""
         prior = self.prior()
@@ -211,8 +222,24 @@ class Tracker:
                 if self._guarded(lambda: jac.append(self._ekf.advance(t - t0))):
                     JP = jac[0] @ P0
                     self._clone = _Clone(t0, vest_pose(x0), vest_cov(P0), JP[:, POSE] + JP[:, OFF])
+                if t - t0 > self.config.gap_s and t0 - self._last_odo_t <= self.config.gap_s:
+                    self._gap_noise(t - t0)
         self._t = t
         self._check_lost()
+
+    def _gap_noise(self, dt: float) -> None:
+        """Widen yaw and yaw rate after ``dt`` s no odometry could follow (see ``gap_yaw_accel_psd``).
+
+        The noise is independent of the state before the gap, so a clone's cross-covariance stands."""
+        q = self.config.gap_yaw_accel_psd
+        P = self._ekf.P.copy()
+        yaw, w = motion.YAW, motion.W
+        P[yaw, yaw] += q * dt**3 / 3.0
+        P[yaw, w] += q * dt**2 / 2.0
+        P[w, yaw] += q * dt**2 / 2.0
+        P[w, w] += q * dt
+        self._guarded(lambda: self._ekf.set(self._ekf.x[:, 0], P))
+        self._stats["frame_gaps"] += 1
 
     def _check_lost(self) -> None:
         if self._state is TrackState.TRACKING and self._is_lost(self._ekf.cov, self._t):
@@ -455,6 +482,7 @@ class Tracker:
         if not self._guarded(fuse):
             return UpdateResult(False, "numerical failure fusing odometry", nis)
         self._stats["odometry_accepted"] += 1
+        self._last_odo_t = t1
         return UpdateResult(True, "fused", nis)
 
     # -- output -------------------------------------------------------------------------------------

@@ -126,7 +126,9 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
     from tagloc.pipeline.run import run_session
 
     session = open_replay_source(cfg)
-    gt = session.groundtruth()
+    # Ground truth only serves the metrics after the run, and the Rerun view: read it when needed
+    # (its quaternions pull in scipy.spatial, which a replay's start-up need not wait for).
+    gt = session.groundtruth() if cfg.rerun_save or cfg.spawn else None
     fixes: dict[str, int] = {}
     outputs = Outputs(
         session.map,
@@ -178,6 +180,8 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
     finally:
         summary = outputs.close()
     metrics = None
+    if gt is None and not (cfg.rerun_save or cfg.spawn):
+        gt = session.groundtruth()
     if gt is not None:
         metrics = trajectory_metrics(run.stamps[run.valid], run.poses[run.valid], run.covs[run.valid], *gt)
     if cfg.png is not None:

@@ -16,7 +16,8 @@ Prints aligned tables with PASS/MISS against the targets; --json stores everythi
 examples:
   tagloc bench                          # 40 views per cell, ~2 minutes on one core
   tagloc bench --frames 10 --json bench.json
-  tagloc bench --quick                  # tiny smoke run"""
+  tagloc bench --quick                  # tiny smoke run
+  tagloc bench --profile out/walk300    # cProfile summary of a replay of that session instead"""
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -34,9 +35,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-libdmtx", action="store_true", help="skip the (slow) libdmtx and 'both' decoders")
     p.add_argument("--no-paper", action="store_true", help="skip the paper's detector")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--profile",
+        type=Path,
+        default=None,
+        metavar="SESSION",
+        help="instead of the benchmark: replay SESSION under cProfile and print where the time goes",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.profile is not None:
+        from tagloc.eval.profile import profile_replay
+
+        print(profile_replay(args.profile).format())
+        return 0
     from tagloc.eval.bench import bench_command
 
     return bench_command(

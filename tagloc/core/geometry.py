@@ -11,7 +11,6 @@ import math
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 
 def wrap_angle(a: float | np.ndarray) -> float | np.ndarray:
@@ -65,12 +64,16 @@ def T_from_rvec_tvec(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
 
 def T_to_tum(T: np.ndarray) -> tuple[float, float, float, float, float, float, float]:
     """(x, y, z, qx, qy, qz, qw) of a 4x4 transform, as a TUM line stores it."""
+    from scipy.spatial.transform import Rotation  # here, not at the top: 0.2-0.6 s of start-up
+
     q = Rotation.from_matrix(T[:3, :3]).as_quat()  # scipy order: x, y, z, w
     return (*map(float, T[:3, 3]), *map(float, q))
 
 
 def T_from_tum(values: np.ndarray) -> np.ndarray:
     """4x4 transform from (x, y, z, qx, qy, qz, qw)."""
+    from scipy.spatial.transform import Rotation
+
     values = np.asarray(values, float)
     return make_T(Rotation.from_quat(values[3:7]).as_matrix(), values[:3])
 
@@ -95,6 +98,8 @@ def interpolate_groundtruth(
         R = np.repeat(gt_T[:1, :3, :3], len(t), axis=0)
         xy = np.repeat(gt_T[:1, :2, 3], len(t), axis=0)
     else:
+        from scipy.spatial.transform import Rotation, Slerp
+
         R = Slerp(gt_stamps, Rotation.from_matrix(gt_T[:, :3, :3]))(t).as_matrix().reshape(-1, 3, 3)
         xy = np.column_stack([np.interp(t, gt_stamps, gt_T[:, 0, 3]), np.interp(t, gt_stamps, gt_T[:, 1, 3])])
     yaw = np.arctan2(R[:, 1, 0], R[:, 0, 0])

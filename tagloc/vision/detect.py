@@ -27,6 +27,9 @@ square's geometry (strong blur across a thin frame), so only trustworthy points 
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -41,6 +44,13 @@ from tagloc.vision.image import as_gray, clockwise
 _FRAME_RATIO = FRAME_M / SIZE_M  # frame width as a fraction of the outer side
 _INNER_RATIO = INNER_M / SIZE_M
 _QUIET_RATIO = MODULE_M / SIZE_M  # white quiet zone inside the frame
+_MAD_TO_SIGMA = 1.4826  # a normal distribution's sigma over its median absolute deviation
+_NEXT = np.array([1, 2, 3, 0])  # side i runs from corner i to corner _NEXT[i]
+_PREV = np.array([3, 0, 1, 2])
+_UNIT_SQUARE = np.array([[-1, 1], [1, 1], [1, -1], [-1, -1]], np.float32)
+_HUBER_C = 1.345  # px: cv2.fitLine's Huber constant (95 % efficiency under Gaussian noise of 1 px)
+_HUBER_ITERATIONS = 10  # reweighting passes; edge points converge in 3-5
+_UNIT_INNER = (_UNIT_SQUARE.astype(float) * _INNER_RATIO).reshape(-1, 1, 2)
 
 
 @dataclass
@@ -63,6 +73,8 @@ class DetectConfig:
         max_aspect: longest over shortest side, perspective included.
         max_candidates: largest components examined per frame (bounds the time on clutter).
         profiles_per_side: intensity profiles sampled across each side.
+        coarse_profiles_per_side: the same for the first refinement pass, which only re-aims the
+            second at the edges (its corners are not returned): half as many halve its cost.
         blur_allow_px: largest blur (px) the profiles are long enough for.
         min_contrast: least floor-to-ink and ink-to-paper difference (grey levels, linearised).
         min_paper_ratio: the paper inside the frame must be brighter than ink by at least this
@@ -73,6 +85,31 @@ class DetectConfig:
         inner_max_dev_px: largest disagreement between the measured inner corners and those
             implied by the outer square before ``inner`` is dropped.
         max_rms_px: largest RMS distance of edge points to their fitted line.
+        profile_span: the profiles cover this central share of each side; the ends are left out
+            because within a blur width of a corner the neighbouring side's edge mixes in.
+        sample_step_px: spacing of the samples along a profile; half a pixel keeps the linear
+            interpolation between samples well inside the bilinear image interpolation's own error.
+        strip_half_px: each profile averages three parallel strips this far apart along the side
+            (3 px wide), cutting pixel noise by sqrt(3) without bending the edge (a side's curvature
+            over 2 px is nil).
+        coarse_search_px: how far either side of a candidate quad's edge the first pass looks, in
+            candidate-stage pixels (``downscale`` full-resolution px each), plus one full-resolution
+            px: the candidate outline is within about a pixel of its resolution, twice that covers
+            a corner cut or pulled by blur.
+        refine_search_px: the same for the second pass, aimed at the first pass's lines (sub-pixel).
+        max_refine_shift_px: the second pass may move a corner at most this far from the first;
+            more means the first locked onto something else and the candidate is dropped.
+        max_frame_fraction: a quad whose implied frame is wider than this share of its longest side
+            is degenerate (the frame is 8 % of the side; perspective over 20-70 deg adds < 17 %).
+        shallow_ratio: a side whose dip reaches less than this share of the floor-to-ink depth is
+            blurred beyond twice the frame width and is located on the rise to the paper instead.
+        shallow_ratio_sparse: the same, for a side whose halfway crossings are too few.
+        min_points_fraction: a side's line needs edge points on at least this share of its
+            profiles (and at least 4).
+        outlier_sigmas, outlier_floor_px: edge points further from the first line fit than this
+            many robust sigmas, and at least this far, are dropped before the refit.
+        full_score_contrast: floor-to-ink contrast (linear grey levels) at which a detection's
+            score stops growing; a 300 lux floor under the Pi camera's exposure gives ~60-120.
     """
 
     downscale: int = 2
@@ -89,12 +126,26 @@ class DetectConfig:
     max_aspect: float = 4.5
     max_candidates: int = 40
     profiles_per_side: int = 20
+    coarse_profiles_per_side: int = 10
     blur_allow_px: float = 10.0
     min_contrast: float = 10.0
     min_paper_ratio: float = 0.5
     response_gamma: float = 2.2
     inner_max_dev_px: float = 0.8
     max_rms_px: float = 1.5
+    profile_span: float = 0.7
+    sample_step_px: float = 0.5
+    strip_half_px: float = 1.0
+    coarse_search_px: float = 2.0
+    refine_search_px: float = 1.5
+    max_refine_shift_px: float = 3.0
+    max_frame_fraction: float = 0.25
+    shallow_ratio: float = 0.45
+    shallow_ratio_sparse: float = 0.75
+    min_points_fraction: float = 1 / 3
+    outlier_sigmas: float = 3.0
+    outlier_floor_px: float = 1.0
+    full_score_contrast: float = 60.0
 
     @classmethod
     def for_camera(cls, camera: Camera) -> DetectConfig:
@@ -125,32 +176,53 @@ def distort_ideal(camera: Camera, pixels: np.ndarray) -> np.ndarray:
     return camera.project(np.c_[norm, np.ones(len(norm))])
 
 
+def _median_last(a: np.ndarray) -> np.ndarray:
+    """Median over the last axis of a NaN-free array: np.median's result at a fraction of its
+    per-call overhead, which dominates on the few dozen values a side has."""
+    n = a.shape[-1]
+    srt = np.sort(a, axis=-1)
+    return 0.5 * (srt[..., (n - 1) // 2] + srt[..., n // 2])
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of (N, 3) arrays (np.cross's axis handling costs more than the product)."""
+    return np.stack(
+        [
+            a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
+            a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0],
+        ],
+        axis=1,
+    )
+
+
+def _side_lengths(quad: np.ndarray) -> np.ndarray:
+    """Lengths (4,) of the sides of a quad (4, 2), side i from corner i to corner i + 1."""
+    d = quad[_NEXT] - quad
+    return np.sqrt(np.einsum("ij,ij->i", d, d))
+
+
 def _polygon_area(quad: np.ndarray) -> float:
     x, y = quad[:, 0], quad[:, 1]
-    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y)))
+    return 0.5 * abs(float(np.dot(x, y[_NEXT]) - np.dot(x[_NEXT], y)))
 
 
 def _fit_sides(contour: np.ndarray, quad: np.ndarray) -> np.ndarray:
     """Sharpen a polygon-approximated quad (4, 2): fit a line to the outline points (N, 2) along each
     side and intersect them. approxPolyDP keeps outline vertices, which can sit a few pixels inside
     a corner that blur or noise has rounded; the sides themselves are well defined."""
-    lines = []
-    for i in range(4):
-        a, b = quad[i], quad[(i + 1) % 4]
-        d = b - a
-        length = float(np.hypot(*d))
-        if length < 4:
-            return quad
-        u = (contour - a) @ d / length**2  # position along the side, 0-1
-        off = np.abs((contour - a) @ np.array([-d[1], d[0]]) / length)
-        near = contour[(u > 0.15) & (u < 0.85) & (off < max(1.5, 0.06 * length))]
-        if len(near) < 4:
-            return quad
-        lines.append(_line_through(near)[0])
-    corners = _intersect(np.roll(np.array(lines), 0, axis=0))
-    if not np.all(np.isfinite(corners)) or np.abs(corners - quad).max() > 0.25 * float(
-        np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1).min()
-    ):
+    d = quad[_NEXT] - quad  # (4, 2)
+    length = np.sqrt(np.einsum("ij,ij->i", d, d))
+    if length.min() < 4:
+        return quad
+    rel = contour[None, :, :] - quad[:, None, :]  # (4, N, 2)
+    u = np.einsum("inj,ij->in", rel, d / length[:, None] ** 2)  # position along each side, 0-1
+    off = np.abs(np.einsum("inj,ij->in", rel, np.c_[-d[:, 1], d[:, 0]] / length[:, None]))
+    near = (u > 0.15) & (u < 0.85) & (off < np.maximum(1.5, 0.06 * length)[:, None])
+    if near.sum(axis=1).min() < 4:
+        return quad
+    corners = _intersect(_huber_lines(np.broadcast_to(contour, (4, *contour.shape)), near))
+    if not np.all(np.isfinite(corners)) or np.abs(corners - quad).max() > 0.25 * float(length.min()):
         return quad
     return corners
 
@@ -245,7 +317,7 @@ def _outline_quads(
         dark = float(area) / max(qa, 1.0)
         if not cfg.min_dark_fraction <= dark <= cfg.max_dark_fraction:
             continue
-        sides = np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1)
+        sides = _side_lengths(quad)
         if sides.max() > cfg.max_aspect * max(sides.min(), 1e-6):
             continue
         # Outline pixel centres sit half a pixel inside the blob's edge; refinement corrects the rest.
@@ -282,43 +354,88 @@ def _candidates(gray: np.ndarray, cfg: DetectConfig) -> list[np.ndarray]:
     return quads
 
 
-def _line_through(points: np.ndarray) -> tuple[np.ndarray, float]:
-    """Huber line fit of (N, 2) points: homogeneous line (3,) with unit normal, and RMS residual."""
-    vx, vy, x0, y0 = cv2.fitLine(points.astype(np.float32), cv2.DIST_HUBER, 0, 0.01, 0.01).ravel()
-    line = np.array([-vy, vx, vy * x0 - vx * y0], float)
-    res = points @ line[:2] + line[2]
-    return line, float(np.sqrt(np.mean(res**2)))
+def _huber_lines(points: np.ndarray, mask: np.ndarray, iterations: int = _HUBER_ITERATIONS) -> np.ndarray:
+    """Huber line fits of L point sets at once: points (L, N, 2), mask (L, N) of the points that count.
+
+    Iteratively reweighted total least squares (what cv2.fitLine's DIST_HUBER does, one set per
+    call): each pass fits the weighted principal axis in closed form for every set, then gives a
+    point at distance r > C the weight C / r (C = 1.345 px, OpenCV's default). Returns homogeneous
+    lines (L, 3) with unit normals; NaN rows for sets of fewer than two points.
+    """
+    w = mask.astype(float)
+    line = np.full((len(points), 3), np.nan)
+    x, y = points[..., 0], points[..., 1]
+    for _ in range(iterations):
+        sw = w.sum(axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mx, my = (w * x).sum(axis=1) / sw, (w * y).sum(axis=1) / sw
+        dx, dy = x - mx[:, None], y - my[:, None]
+        sxx, syy, sxy = (w * dx * dx).sum(axis=1), (w * dy * dy).sum(axis=1), (w * dx * dy).sum(axis=1)
+        theta = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # direction of the principal axis
+        nx, ny = -np.sin(theta), np.cos(theta)
+        line = np.stack([nx, ny, -(nx * mx + ny * my)], axis=1)
+        r = np.abs(x * nx[:, None] + y * ny[:, None] + line[:, 2:3])
+        w_new = np.where(mask, np.where(r > _HUBER_C, _HUBER_C / np.maximum(r, 1e-12), 1.0), 0.0)
+        if float(np.abs(w_new - w).max()) < 1e-3:
+            break
+        w = w_new
+    return line
 
 
-def _robust_line(points: np.ndarray, min_points: int) -> tuple[np.ndarray, float, np.ndarray] | None:
+def _line_residuals(points: np.ndarray, lines: np.ndarray) -> np.ndarray:
+    """Absolute distances (L, N) of points (L, N, 2) to their set's line (L, 3)."""
+    return np.abs(points[..., 0] * lines[:, 0:1] + points[..., 1] * lines[:, 1:2] + lines[:, 2:3])
+
+
+def _robust_lines(
+    points: np.ndarray, mask: np.ndarray, min_points: int, sigmas: float, floor_px: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """:func:`_robust_line` for L point sets at once (points (L, N, 2), mask (L, N)): lines (L, 3),
+    inlier RMS (L,) and inlier mask (L, N); None if any set keeps fewer than ``min_points``."""
+    lines = _huber_lines(points, mask)
+    res = _line_residuals(points, lines)
+    counts = mask.sum(axis=1)
+    # Median of each set's residuals: the masked-out ones sort last.
+    srt = np.sort(np.where(mask, res, np.inf), axis=1)
+    rows = np.arange(len(points))
+    med = 0.5 * (srt[rows, (counts - 1) // 2] + srt[rows, counts // 2])
+    keep = mask & (res <= np.maximum(floor_px, sigmas * _MAD_TO_SIGMA * med)[:, None])
+    if keep.sum(axis=1).min() < min_points:
+        return None
+    lines = _huber_lines(points, keep)
+    res = _line_residuals(points, lines)
+    rms = np.sqrt((np.where(keep, res, 0.0) ** 2).sum(axis=1) / keep.sum(axis=1))
+    return lines, rms, keep
+
+
+def _robust_line(
+    points: np.ndarray, min_points: int, sigmas: float = 3.0, floor_px: float = 1.0
+) -> tuple[np.ndarray, float, np.ndarray] | None:
     """Line through (N, 2) edge points after dropping gross outliers; None if too few remain.
 
     A profile whose crossing locked onto a module, a noise spike or a floor mark lands pixels off the
     edge; one such point must not sink a side whose other points are on a line. Points further than
-    three robust sigmas (at least 1 px) from the first fit are dropped and the line refitted.
-    Returns the line (3,), the inliers' RMS residual (px) and the inlier mask (N,).
+    ``sigmas`` robust sigmas (at least ``floor_px``) from the first Huber fit are dropped and the line
+    refitted. Returns the line (3,), the inliers' RMS residual (px) and the inlier mask (N,).
+    (One set of :func:`_robust_lines`, which refinement runs on all four sides at once.)
     """
-    line, _ = _line_through(points)
-    res = np.abs(points @ line[:2] + line[2])
-    keep = res <= max(1.0, 3.0 * 1.4826 * float(np.median(res)))
-    if keep.sum() < min_points:
+    fit = _robust_lines(points[None], np.ones((1, len(points)), bool), min_points, sigmas, floor_px)
+    if fit is None:
         return None
-    line, rms = _line_through(points[keep])
-    return line, rms, keep
+    return fit[0][0], float(fit[1][0]), fit[2][0]
 
 
 def _intersect(lines: np.ndarray) -> np.ndarray:
     """Corner i = side i-1 x side i, for (4, 3) lines; returns (4, 2)."""
-    p = np.cross(np.roll(lines, 1, axis=0), lines)
+    p = _cross(lines[_PREV], lines)
     with np.errstate(divide="ignore", invalid="ignore"):
         return p[:, :2] / p[:, 2:3]
 
 
 def _implied_inner(outer_ideal: np.ndarray) -> np.ndarray:
     """Inner corners (4, 2) implied by the outer square through its homography (ideal pixels)."""
-    unit = np.array([[-1, 1], [1, 1], [1, -1], [-1, -1]], float)
-    H = cv2.getPerspectiveTransform(unit.astype(np.float32), outer_ideal.astype(np.float32))
-    return cv2.perspectiveTransform((unit * _INNER_RATIO).reshape(-1, 1, 2), H).reshape(4, 2)
+    H = cv2.getPerspectiveTransform(_UNIT_SQUARE, outer_ideal.astype(np.float32))
+    return cv2.perspectiveTransform(_UNIT_INNER, H).reshape(4, 2)
 
 
 def _crossings(prof: np.ndarray, level: np.ndarray, s: np.ndarray, expect: np.ndarray, rising: bool) -> np.ndarray:
@@ -333,8 +450,9 @@ def _crossings(prof: np.ndarray, level: np.ndarray, s: np.ndarray, expect: np.nd
     pos = s[:-1] + frac * (s[1] - s[0])
     dist = np.where(hit, np.abs(pos - expect[:, None]), np.inf)
     j = np.argmin(dist, axis=1)
-    out = pos[np.arange(len(j)), j]
-    out[~np.isfinite(dist[np.arange(len(j)), j])] = np.nan
+    rows = np.arange(len(j))
+    out = pos[rows, j]
+    out[np.isinf(dist[rows, j])] = np.nan
     return out
 
 
@@ -346,118 +464,192 @@ class _Refined:
     score: float
 
 
-def _refine(
-    gray: np.ndarray, camera: Camera, quad: np.ndarray, cfg: DetectConfig, lut: np.ndarray | None, search_px: float
-) -> _Refined | None:
-    """One pass of edge-profile refinement around the distorted quad (4, 2)."""
+@dataclass
+class _Profiles:
+    """Intensity profiles across the four sides of a quad, in linear light.
+
+    base (4, n, 2): profile origins on the sides (distorted px); inward (4, 2): unit normals into
+    the quad; s (S,): sample positions along ``inward`` (px); prof (4, n, S): profiles (each the
+    mean of a strip across the side); frame_w (4, n): distance to the inner edge implied by the
+    quad, px; fw: its median; quiet: width of the quiet zone inside the frame, px.
+    """
+
+    base: np.ndarray
+    inward: np.ndarray
+    s: np.ndarray
+    prof: np.ndarray
+    frame_w: np.ndarray
+    fw: float
+    quiet: float
+
+
+class _Linearise:
+    """The camera tone curve undone on interpolated 8-bit values: piecewise linear through
+    ``255 (v / 255) ** gamma`` at the 256 codes (what np.interp over the table gives, without its
+    per-call set-up)."""
+
+    def __init__(self, gamma: float):
+        lut = 255.0 * (np.arange(256) / 255.0) ** gamma
+        self.lut = lut.astype(np.float32)
+        self.slope = np.append(np.diff(lut), 0.0).astype(np.float32)
+
+    def __call__(self, vals: np.ndarray) -> np.ndarray:
+        i = vals.astype(np.int32)  # floor: the values are >= 0
+        np.minimum(i, 254, out=i)
+        return self.lut[i] + (vals - i) * self.slope[i]
+
+
+@functools.lru_cache(maxsize=8)
+def _lineariser(gamma: float) -> _Linearise | None:
+    return None if gamma == 1.0 else _Linearise(gamma)
+
+
+def _sample_profiles(
+    gray: np.ndarray, quad: np.ndarray, cfg: DetectConfig, search_px: float, lin: _Linearise | None
+) -> _Profiles | None:
+    """Sample every profile of the quad's four sides with one cv2.remap; None for a degenerate quad."""
     n = cfg.profiles_per_side
-    side_vec = np.roll(quad, -1, axis=0) - quad  # (4, 2)
-    side_len = np.linalg.norm(side_vec, axis=1)
+    side_vec = quad[_NEXT] - quad  # (4, 2)
+    side_len = np.sqrt(np.einsum("ij,ij->i", side_vec, side_vec))
     if side_len.min() < 4:
         return None
     along = side_vec / side_len[:, None]
     inward = np.c_[-along[:, 1], along[:, 0]]  # clockwise on screen with y down: left of travel is inside
-    t = np.linspace(0.15, 0.85, n)
+    margin = (1.0 - cfg.profile_span) / 2
+    t = np.linspace(margin, 1.0 - margin, n)
     base = quad[:, None, :] + t[None, :, None] * side_vec[:, None, :]  # (4, n, 2)
     # Frame width along each profile, from the geometry implied by the current quad.
     inner_guess = _implied_inner(quad)
-    inner_line = np.cross(np.c_[inner_guess, np.ones(4)], np.c_[np.roll(inner_guess, -1, 0), np.ones(4)])
+    ones = np.ones((4, 1))
+    inner_line = _cross(np.c_[inner_guess, ones], np.c_[inner_guess[_NEXT], ones])
     num = -(np.einsum("inj,ij->in", base, inner_line[:, :2]) + inner_line[:, 2:3])
     den = np.einsum("ij,ij->i", inward, inner_line[:, :2])[:, None]
     frame_w = np.clip(num / den, 1.0, None)  # (4, n) distance to the inner edge along ``inward``
     w_max = float(frame_w.max())
-    if w_max > 0.25 * float(side_len.max()):
-        return None  # a degenerate quad (the frame is 8 % of the side, perspective adds little)
+    if w_max > cfg.max_frame_fraction * float(side_len.max()):
+        return None  # a degenerate quad
     quiet = w_max * _QUIET_RATIO / _FRAME_RATIO
-    step = 0.5
+    step = cfg.sample_step_px
     s = np.arange(-(search_px + cfg.blur_allow_px / 2 + 2), w_max + quiet + search_px + step, step)
-    strip = np.array([-1.0, 0.0, 1.0])
-    pts = (
-        base[:, :, None, None, :]
-        + strip[None, None, :, None, None] * along[:, None, None, None, :]
-        + s[None, None, None, :, None] * inward[:, None, None, None, :]
-    )  # (4, n, 3, S, 2)
-    maps = pts.reshape(4 * n * 3, len(s), 2).astype(np.float32)
+    strip = np.linspace(-cfg.strip_half_px, cfg.strip_half_px, 3)
+    # Sample points base + strip * along + s * inward, (4, n, 3, S, 2), summed in float32 (remap's
+    # own sub-pixel resolution is 1/32 px) from the small per-side offset grid (4, 3, S, 2).
+    offs = (
+        strip[None, :, None, None] * along[:, None, None, :] + s[None, None, :, None] * inward[:, None, None, :]
+    ).astype(np.float32)
+    maps = np.add(base.astype(np.float32)[:, :, None, None, :], offs[:, None]).reshape(4 * n * 3, len(s), 2)
     vals = cv2.remap(gray, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
-    if lut is not None:
-        # Linearise after interpolation of 8-bit values: the LUT is applied to floats by interpolation.
-        vals = np.interp(vals, np.arange(256), lut).astype(np.float32)
+    if lin is not None:
+        # Linearise after interpolation of 8-bit values (the interpolation is of the recorded codes).
+        vals = lin(vals)
     prof = vals.reshape(4, n, 3, len(s)).mean(axis=2)  # (4, n, S)
-    med = np.median(prof, axis=1)  # (4, S): the side's typical profile
-    in_frame = (s >= 0) & (s <= float(np.median(frame_w)))
+    return _Profiles(base, inward, s, prof, frame_w, float(_median_last(frame_w.ravel())), quiet)
+
+
+def _outer_offsets(p: _Profiles, cfg: DetectConfig, search_px: float) -> tuple[np.ndarray, float, float, float] | None:
+    """Outer edge offsets (4, n) along ``inward`` (NaN where not found), with the ink, paper and
+    median floor levels; None if the contrast says this is no sticker."""
+    s, prof, n = p.s, p.prof, cfg.profiles_per_side
+    med = _median_last(prof.transpose(0, 2, 1))  # (4, S): the side's typical profile
+    in_frame = (s >= 0) & (s <= p.fw)
     if not np.any(in_frame):
         return None
     ink = float(np.min(med[:, in_frame]))
-    floor = np.median(prof[:, :, s < -(search_px + 0.5)], axis=2)  # (4, n)
-    inside = (s > np.median(frame_w)) & (s <= np.median(frame_w) + quiet + 1.0)
+    floor = _median_last(prof[:, :, s < -(search_px + 0.5)])  # (4, n)
+    floor_med = float(_median_last(floor.ravel()))
+    inside = (s > p.fw) & (s <= p.fw + p.quiet + 1.0)
     paper = float(np.max(med[:, inside])) if np.any(inside) else ink
-    if float(np.median(floor)) - ink < cfg.min_contrast:
+    if floor_med - ink < cfg.min_contrast:
         return None
     # Inside the frame there must be paper, far brighter than ink: a plain dark square has none
     # (adaptive thresholding marks only its rim, which otherwise looks like a frame).
-    if paper - ink < max(cfg.min_contrast, cfg.min_paper_ratio * (float(np.median(floor)) - ink)):
+    if paper - ink < max(cfg.min_contrast, cfg.min_paper_ratio * (floor_med - ink)):
         return None
-    flat = prof.reshape(4 * n, len(s))
     # Halfway between floor and ink is the true edge under any symmetric blur shorter than twice the
     # frame width w. Longer blur L across a side keeps that side's dip above halfway (a bar under a
     # box blur darkens to r = w / L of its full depth) and too shallow to locate in noise. Such a
     # side is located on the steep rise from the dip to the paper instead: for a floor | ink (w) |
     # paper step under a box blur longer than w, that rise is a straight ramp whose middle,
     # ((F + P)(1 - r) + 2 I r) / 2, lies over the frame's centre line, whatever L is.
-    near = (s >= -cfg.blur_allow_px / 2) & (s <= float(np.median(frame_w)))
-    floor_side = np.median(floor, axis=1)  # (4,)
+    near = (s >= -cfg.blur_allow_px / 2) & (s <= p.fw)
+    floor_side = _median_last(floor)  # (4,)
     ratio = np.clip((floor_side - med[:, near].min(axis=1)) / np.maximum(floor_side - ink, 1e-6), 0.0, 1.0)
+    flat = prof.reshape(4 * n, len(s))
     outer_s = _crossings(flat, ((floor + ink) / 2).ravel(), s, np.zeros(4 * n), rising=False).reshape(4, n)
     outer_s[(floor - ink) < cfg.min_contrast / 2] = np.nan
     # Only sides that the halfway level fails on (too few crossings) take the ramp.
-    shallow = (ratio < 0.45) | ((np.isfinite(outer_s).sum(axis=1) < max(4, n // 3)) & (ratio < 0.75))
+    min_points = _min_points(cfg)
+    sparse = np.isfinite(outer_s).sum(axis=1) < min_points
+    shallow = (ratio < cfg.shallow_ratio) | (sparse & (ratio < cfg.shallow_ratio_sparse))
     if np.any(shallow):
         r = ratio[shallow, None]
-        fl = floor[shallow]
-        rise = 0.5 * ((fl + paper) * (1.0 - r) + 2.0 * ink * r)
-        half_w = 0.5 * frame_w[shallow]
+        rise = 0.5 * ((floor[shallow] + paper) * (1.0 - r) + 2.0 * ink * r)
+        half_w = 0.5 * p.frame_w[shallow]
         mid = _crossings(prof[shallow].reshape(-1, len(s)), rise.ravel(), s, half_w.ravel(), rising=True)
         outer_s[shallow] = mid.reshape(half_w.shape) - half_w
-    ok = np.isfinite(outer_s)
-    if ok.sum(axis=1).min() < max(4, n // 3):
+    if np.isfinite(outer_s).sum(axis=1).min() < min_points:
         return None
-    # Lines are straight only without distortion: undistort every edge point (one call), then fit.
-    edge = camera.undistort_pixels((base + np.nan_to_num(outer_s)[..., None] * inward[:, None, :]).reshape(-1, 2))
-    edge = edge.reshape(4, n, 2)
-    min_points = max(4, n // 3)
-    fits = [_robust_line(edge[i, ok[i]], min_points) for i in range(4)]
-    if any(f is None for f in fits):
-        return None
-    lines, rms = [f[0] for f in fits], [f[1] for f in fits]
-    if max(rms) > cfg.max_rms_px:
-        return None
-    outer_ideal = _intersect(np.array(lines))
-    if not np.all(np.isfinite(outer_ideal)):
-        return None
-    outer = distort_ideal(camera, outer_ideal)
-    valid = sum(int(f[2].sum()) for f in fits) / (4.0 * n)
-    score = valid * min(1.0, (float(np.median(floor)) - ink) / 60.0) * float(np.exp(-max(rms)))
+    return outer_s, ink, paper, floor_med
 
-    inner = None
+
+def _min_points(cfg: DetectConfig) -> int:
+    """Fewest edge points a side's line may rest on."""
+    return max(4, int(cfg.min_points_fraction * cfg.profiles_per_side))
+
+
+def _inner_offsets(p: _Profiles, outer_s: np.ndarray, ink: float, paper: float) -> np.ndarray:
+    """Inner edge offsets (4, n) along ``inward``: the rise from ink to paper, beyond the outer edge."""
+    n = p.frame_w.shape[1]
+    outer0 = np.nan_to_num(outer_s)
     inner_s = _crossings(
-        flat, np.full(4 * n, (paper + ink) / 2), s, (frame_w + np.nan_to_num(outer_s)).ravel(), rising=True
+        p.prof.reshape(4 * n, len(p.s)), np.full(4 * n, (paper + ink) / 2), p.s, (p.frame_w + outer0).ravel(), True
     ).reshape(4, n)
     inner_s[~(inner_s > np.nan_to_num(outer_s, nan=-1e9) + 0.5)] = np.nan
-    ok = np.isfinite(inner_s)
-    if ok.sum(axis=1).min() >= max(4, n // 3):
-        edge = camera.undistort_pixels((base + np.nan_to_num(inner_s)[..., None] * inward[:, None, :]).reshape(-1, 2))
-        edge = edge.reshape(4, n, 2)
-        inner_ideal = _intersect(np.array([_line_through(edge[i, ok[i]])[0] for i in range(4)]))
-        dev = np.linalg.norm(inner_ideal - _implied_inner(outer_ideal), axis=1)
-        if np.all(np.isfinite(dev)) and dev.max() <= cfg.inner_max_dev_px:
-            inner = distort_ideal(camera, inner_ideal)
-    return _Refined(outer, inner, outer_ideal, score)
+    return inner_s
 
 
-def _gamma_lut(gamma: float) -> np.ndarray | None:
-    if gamma == 1.0:
+def _refine(
+    gray: np.ndarray, camera: Camera, quad: np.ndarray, cfg: DetectConfig, lin: _Linearise | None, search_px: float
+) -> _Refined | None:
+    """One pass of edge-profile refinement around the distorted quad (4, 2)."""
+    p = _sample_profiles(gray, quad, cfg, search_px, lin)
+    if p is None:
         return None
-    return 255.0 * (np.arange(256) / 255.0) ** gamma
+    edges = _outer_offsets(p, cfg, search_px)
+    if edges is None:
+        return None
+    outer_s, ink, paper, floor_med = edges
+    inner_s = _inner_offsets(p, outer_s, ink, paper)
+    n = cfg.profiles_per_side
+    # Lines are straight only without distortion: undistort every edge point (one call), then fit.
+    offsets = np.nan_to_num(np.stack([outer_s, inner_s]))  # (2, 4, n)
+    pts = p.base[None] + offsets[..., None] * p.inward[None, :, None, :]
+    edge = camera.undistort_pixels(pts.reshape(-1, 2)).reshape(2, 4, n, 2)
+    min_points = _min_points(cfg)
+    fit = _robust_lines(edge[0], np.isfinite(outer_s), min_points, cfg.outlier_sigmas, cfg.outlier_floor_px)
+    if fit is None:
+        return None
+    lines, rms_sides, keep = fit
+    rms = float(rms_sides.max())
+    if rms > cfg.max_rms_px:
+        return None
+    outer_ideal = _intersect(lines)
+    if not np.all(np.isfinite(outer_ideal)):
+        return None
+    valid = float(keep.sum()) / (4.0 * n)
+    score = valid * min(1.0, (floor_med - ink) / cfg.full_score_contrast) * math.exp(-rms)
+
+    inner_ideal = None
+    ok = np.isfinite(inner_s)
+    if ok.sum(axis=1).min() >= min_points:
+        inner_ideal = _intersect(_huber_lines(edge[1], ok))
+        dev = np.linalg.norm(inner_ideal - _implied_inner(outer_ideal), axis=1)
+        if not (np.all(np.isfinite(dev)) and dev.max() <= cfg.inner_max_dev_px):
+            inner_ideal = None
+    if inner_ideal is None:
+        return _Refined(distort_ideal(camera, outer_ideal), None, outer_ideal, score)
+    both = distort_ideal(camera, np.r_[outer_ideal, inner_ideal])  # one projection for both squares
+    return _Refined(both[:4], both[4:], outer_ideal, score)
 
 
 def _inside(point: np.ndarray, quad: np.ndarray) -> bool:
@@ -488,18 +680,19 @@ def detect_stickers(gray: np.ndarray, camera: Camera, config: DetectConfig | Non
         )
     if min(img.shape) < cfg.min_side_px + 2 * cfg.border_px:
         return []
-    lut = _gamma_lut(cfg.response_gamma)
+    lin = _lineariser(float(cfg.response_gamma))
+    coarse_cfg = dataclasses.replace(cfg, profiles_per_side=cfg.coarse_profiles_per_side)
     h, w = img.shape
     out: list[Detection] = []
     for quad in _candidates(img, cfg):
         area = _polygon_area(quad)
         if any(_inside(quad.mean(axis=0), d.outer) and area < 0.5 * _polygon_area(d.outer) for d in out):
             continue  # a symbol inside an accepted sticker
-        first = _refine(img, camera, quad, cfg, lut, search_px=2.0 * cfg.downscale + 1.0)
+        first = _refine(img, camera, quad, coarse_cfg, lin, search_px=cfg.coarse_search_px * cfg.downscale + 1.0)
         if first is None:
             continue
-        ref = _refine(img, camera, first.outer, cfg, lut, search_px=1.5)
-        if ref is None or np.max(np.abs(ref.outer - first.outer)) > 3.0:
+        ref = _refine(img, camera, first.outer, cfg, lin, search_px=cfg.refine_search_px)
+        if ref is None or np.max(np.abs(ref.outer - first.outer)) > cfg.max_refine_shift_px:
             continue
         o = ref.outer
         if (
@@ -508,7 +701,7 @@ def detect_stickers(gray: np.ndarray, camera: Camera, config: DetectConfig | Non
             or np.any(o[:, 1] > h - 1 - cfg.border_px)
         ):
             continue
-        sides = np.linalg.norm(o - np.roll(o, -1, axis=0), axis=1)
+        sides = _side_lengths(o)
         if sides.max() < cfg.min_side_px or sides.max() > cfg.max_side_px or sides.max() > cfg.max_aspect * sides.min():
             continue
         if not cv2.isContourConvex(o.astype(np.float32)):

@@ -1,4 +1,5 @@
-"""The linear motion-blur kernel, shared by decoding's PSF and identification's blurred templates."""
+"""The linear motion-blur kernel of identification's blurred templates and of the synthetic views it is
+measured on (decode's PSF keeps its own coarser line, see :func:`tagloc.vision.decode.lsq._line_kernel`)."""
 
 from __future__ import annotations
 

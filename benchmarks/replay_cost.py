@@ -1,0 +1,249 @@
+"""What a replay costs, frame by frame and as a whole process, beside OpenCV's ArUco detector.
+
+Four measurements on one session (make one with ``tagloc simulate``), all on one pinned core with
+OpenCV on one thread:
+
+1. The pipeline: every frame, read into memory first (JPEG reading is a replay cost only: a live
+   camera delivers raw frames), through ``Localiser.process``. Per stage and in total, the mean and
+   p99 CPU time per frame (the localiser's stage clock is switched to this thread's CPU clock, so a
+   busy machine's other processes do not count), and the total by number of stickers in view.
+   "tracker" sums its prediction, candidate choice, updates and output.
+2. Start-up: the whole ``tagloc replay`` process on a one-frame copy of the session (imports,
+   set-up, one frame, outputs), CPU and wall time.
+3. The whole ``tagloc replay`` process on the session beside a process that reads the same frames
+   and runs ``cv2.aruco.ArucoDetector.detectMarkers`` on each, alternated ``--repeat`` times;
+   their CPU times and ratio.
+4. With ``--live``: ``tagloc live``'s loop on the frames decoded ahead into memory, played at the
+   session's rate, each result written to the JSON-lines frame log: grab-to-publication latency.
+
+Example::
+
+    tagloc simulate --map maps/demo.csv --seconds 20 --lux 300 --seed 1 -o out/walk300 --quiet
+    taskset -c 0 python benchmarks/replay_cost.py out/walk300 --repeat 3 --live --json out/replay_cost.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+import types
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+_SETUP = "import sys, cv2; cv2.setNumThreads(1); "
+_REPLAY = _SETUP + "from tagloc.cli import main; sys.exit(main(['replay', sys.argv[1], '--quiet']))"
+_ARUCO = (
+    _SETUP
+    + "import pathlib\n"
+    + "s = pathlib.Path(sys.argv[1])\n"
+    + "det = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50), "
+    + "cv2.aruco.DetectorParameters())\n"
+    + "for f in sorted((s / 'frames').iterdir()):\n"
+    + "    det.detectMarkers(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE))\n"
+)
+_STAGES = ("odometry", "detect", "decode", "identify", "pose", "tracker", "total")
+
+
+def _child(code: str, arg: str, core: int | None) -> tuple[float, float]:
+    """Run ``python -c code arg`` pinned to ``core``; its (CPU, wall) seconds."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(_ROOT), os.environ.get("PYTHONPATH")])))
+    pin = (lambda: os.sched_setaffinity(0, {core})) if core is not None else None
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.monotonic()
+    subprocess.run([sys.executable, "-c", code, arg], check=True, env=env, preexec_fn=pin, stdout=subprocess.DEVNULL)
+    wall = time.monotonic() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime), wall
+
+
+_ROOT = Path(__file__).resolve().parent.parent
+
+
+def _one_frame_copy(session: Path, dest: Path) -> Path:
+    """A copy of ``session`` holding only its first frame."""
+    dest.mkdir()
+    for name in ("camera.yaml", "map.csv", "rig.json", "session.json", "groundtruth.tum"):
+        if (session / name).exists():
+            shutil.copy(session / name, dest / name)
+    lines = (session / "frames.csv").read_text().splitlines()
+    (dest / "frames.csv").write_text("\n".join(lines[:2]) + "\n")
+    (dest / "frames").mkdir()
+    first = int(lines[1].split(",")[0])
+    src = next((session / "frames").glob(f"{first:06d}.*"))
+    shutil.copy(src, dest / "frames" / src.name)
+    return dest
+
+
+def pipeline_cost(session: Path, repeat: int) -> dict:
+    """Mean and p99 CPU per frame of each stage of ``Localiser.process``, over the frames in memory."""
+    from tqdm import tqdm
+
+    import tagloc.pipeline.localiser as localiser_mod
+    from tagloc.io.session import SessionReader
+    from tagloc.pipeline.localiser import Localiser
+
+    try:
+        from tagloc.pipeline.localiser import TRACKER_STAGES
+    except ImportError:  # an older localiser (for before/after comparisons) timed the tracker as one stage
+        TRACKER_STAGES = ("tracker",)
+
+    reader = SessionReader(session)
+    frames = list(reader.frames())
+    # The localiser's stage clock becomes this thread's CPU clock (the benchmark's process only).
+    localiser_mod.time = types.SimpleNamespace(perf_counter=time.thread_time)
+    runs = []
+    for r in range(repeat):
+        loc = Localiser(reader.map, reader.rig, map_path=session / "map.csv")
+        # Set-up, not per-frame work: the identification references and the odometry's remap tables
+        # (a replay pays them once, in its start-up, measured below).
+        _ = loc.refs
+        loc.floor_odometry(0)
+        per: dict[str, list[float]] = {k: [] for k in _STAGES}
+        n_dets = []
+        for f in tqdm(frames, desc=f"pipeline {r + 1}/{repeat}", unit="frame", leave=False):
+            c0 = time.thread_time()
+            res = loc.process(f)
+            cpu = (time.thread_time() - c0) * 1e3
+            for k in _STAGES[:-2]:
+                per[k].append(res.times_ms.get(k, 0.0))
+            per["tracker"].append(sum(res.times_ms.get(k, 0.0) for k in TRACKER_STAGES))
+            per["total"].append(cpu)
+            n_dets.append(len(res.observations))
+        runs.append({k: np.array(v) for k, v in per.items()} | {"n": np.array(n_dets)})
+    return {"runs": runs, "frames": len(frames)}
+
+
+def live_latency(session: Path) -> dict:
+    """``tagloc live`` on the session's frames decoded ahead into memory, at the session's rate."""
+    import tagloc.apps.live as live
+    from tagloc.io.capture import FrameSource
+    from tagloc.io.session import SessionReader
+
+    reader = SessionReader(session)
+    frames = list(reader.frames())
+
+    class MemorySource(FrameSource):
+        """Raw frames from memory, as a camera delivers them (no decoding on the capture path)."""
+
+        fps = reader.info.fps or 30.0
+        end_reason = "end of frames"
+
+        def __init__(self) -> None:
+            self._it = iter(frames)
+
+        def read(self):
+            return next(self._it, None)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        # Published as JSON lines to a file: a network sink would need a receiver here (tagloc
+        # itself never listens), and UDP to a closed port now counts every message as refused.
+        cfg = live.LiveConfig(source="memory", config_dir=session, log=Path(tmp) / "frames.jsonl")
+        summary = live.run_live(cfg, source=MemorySource())
+    return {
+        "frames": summary.frames,
+        "dropped": summary.capture.dropped,
+        "median_ms": summary.latency(50),
+        "p99_ms": summary.latency(99),
+        "max_ms": float(np.max(summary.latency_ms)) if len(summary.latency_ms) else float("nan"),
+    }
+
+
+def _spread(values: list[float]) -> str:
+    v = np.array(values)
+    return f"{np.median(v):7.2f} ({v.min():.2f}-{v.max():.2f})" if len(v) > 1 else f"{v[0]:7.2f}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("session", type=Path, help="session directory (tagloc simulate ... -o DIR)")
+    p.add_argument("--repeat", type=int, default=3, help="runs of each measurement (default 3)")
+    p.add_argument("--core", type=int, default=0, help="CPU core to pin to (default 0; -1: no pinning)")
+    p.add_argument("--skip-aruco", action="store_true", help="no whole-process replay/ArUco comparison")
+    p.add_argument("--live", action="store_true", help="also measure the live loop's latency")
+    p.add_argument("--pipeline-only", action="store_true", help="only the per-frame pipeline cost")
+    p.add_argument("--json", type=Path, help="write the figures as JSON")
+    args = p.parse_args(argv)
+    core = None if args.core < 0 else args.core
+    if core is not None:
+        os.sched_setaffinity(0, {core})
+    cv2.setNumThreads(1)
+    out: dict = {"session": str(args.session), "core": core}
+
+    pc = pipeline_cost(args.session, args.repeat)
+    runs = pc["runs"]
+    print(
+        f"\nPipeline CPU per frame, ms ({pc['frames']} frames in memory, {args.repeat} runs: median (min-max) of runs)"
+    )
+    print(f"{'stage':<10} {'mean':>22} {'p99':>22}")
+    out["stages"] = {}
+    for k in _STAGES:
+        means = [float(r[k].mean()) for r in runs]
+        p99s = [float(np.percentile(r[k], 99)) for r in runs]
+        out["stages"][k] = {"mean_ms": means, "p99_ms": p99s}
+        print(f"{k:<10} {_spread(means):>22} {_spread(p99s):>22}")
+    print("\nTotal by stickers detected in the frame")
+    out["by_stickers"] = {}
+    for n in sorted(set(int(x) for x in runs[0]["n"])):
+        sel = [r["total"][r["n"] == n] for r in runs]
+        means = [float(s.mean()) for s in sel]
+        p99s = [float(np.percentile(s, 99)) for s in sel]
+        out["by_stickers"][n] = {"frames": int(len(sel[0])), "mean_ms": means, "p99_ms": p99s}
+        print(f"{n} stickers ({len(sel[0]):3d} frames): mean {_spread(means)}  p99 {_spread(p99s)}")
+
+    if args.pipeline_only:
+        _write(args.json, out)
+        return 0
+    with tempfile.TemporaryDirectory() as tmp:
+        one = _one_frame_copy(args.session, Path(tmp) / "one")
+        starts = [_child(_REPLAY, str(one), core) for _ in range(args.repeat)]
+    out["startup"] = {"cpu_s": [c for c, _ in starts], "wall_s": [w for _, w in starts]}
+    print(
+        f"\nStart-up (whole `tagloc replay` of a one-frame copy): CPU {_spread([c for c, _ in starts])} s, "
+        f"wall {_spread([w for _, w in starts])} s"
+    )
+
+    if not args.skip_aruco:
+        rep, aru = [], []
+        for _ in range(args.repeat):  # alternated, so both see the same machine load
+            rep.append(_child(_REPLAY, str(args.session), core))
+            aru.append(_child(_ARUCO, str(args.session), core))
+        ratio = [r[0] / a[0] for r, a in zip(rep, aru)]
+        out["whole_process"] = {
+            "replay_cpu_s": [c for c, _ in rep],
+            "aruco_cpu_s": [c for c, _ in aru],
+            "ratio": ratio,
+        }
+        print(f"\nWhole process on {pc['frames']} frames, CPU s: median (min-max) of {args.repeat}")
+        print(f"{'tagloc replay':<28} {_spread([c for c, _ in rep])}")
+        print(f"{'ArUco detectMarkers':<28} {_spread([c for c, _ in aru])}")
+        print(f"{'ratio replay / ArUco':<28} {_spread(ratio)}")
+
+    if args.live:
+        lat = live_latency(args.session)
+        out["live"] = lat
+        print(
+            f"\nLive loop on raw frames from memory at the session rate: {lat['frames']} frames, {lat['dropped']} "
+            f"dropped; latency grab to publication median {lat['median_ms']:.1f} ms, p99 {lat['p99_ms']:.1f} ms, "
+            f"max {lat['max_ms']:.1f} ms"
+        )
+    _write(args.json, out)
+    return 0
+
+
+def _write(path: Path | None, out: dict) -> None:
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

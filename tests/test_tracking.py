@@ -1,0 +1,94 @@
+"""Sticker tracking: a decoded sticker's identity carried to the next frame without decoding it again."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tagloc.core.types import Detection, Identity, IdSource
+from tagloc.pipeline.localiser import LocaliserConfig, Tracked, TrackingConfig, match_tracked
+
+CFG = TrackingConfig()
+SQUARE = np.array([[100.0, 100.0], [160.0, 100.0], [160.0, 160.0], [100.0, 160.0]])  # clockwise, y down
+
+
+def only(sid):
+    """The tracker's candidates for any detection: just ``sid``."""
+    return lambda det: [sid]
+
+
+def _tracked(outer=SQUARE, sid=7, rotation=1, age=0, t=0.0, camera=0) -> Tracked:
+    return Tracked(outer, Identity(sid, rotation, IdSource.DECODED), camera, t, age)
+
+
+def test_a_sticker_that_moved_keeps_its_identity_and_rotation():
+    moved = Detection(SQUARE + [30.0, -25.0])  # half a side: a brisk step at 30 fps
+    (ident,) = match_tracked([moved], [_tracked()], 0, 1 / 30, CFG, only(7))
+    assert ident is not None and ident.sticker_id == 7 and ident.rotation == 1 and ident.source is IdSource.DECODED
+
+
+@pytest.mark.parametrize("shift", [1, 2, 3])
+def test_rotation_follows_the_canonical_corner_when_the_corner_order_starts_elsewhere(shift):
+    # The detector starts its clockwise corners at the top-left-most one, which changes as the
+    # sticker turns in the image: the canonical corner (outer[1] before) must stay the same point.
+    cur = np.roll(SQUARE, shift, axis=0)  # cur[(j + shift) % 4] == SQUARE[j]
+    (ident,) = match_tracked([Detection(cur + 20.0)], [_tracked()], 0, 1 / 30, CFG, only(7))
+    assert ident is not None
+    np.testing.assert_allclose(cur[ident.rotation], SQUARE[1])
+
+
+def test_a_detection_far_from_or_unlike_the_tracked_sticker_is_decoded():
+    far = Detection(SQUARE + [1.2 * 60, 0.0])  # beyond a side away
+    assert match_tracked([far], [_tracked()], 0, 1 / 30, CFG, only(7)) == [None]
+    bigger = Detection((SQUARE - SQUARE.mean(0)) * 1.5 + SQUARE.mean(0))  # not the same sticker's image
+    assert match_tracked([bigger], [_tracked()], 0, 1 / 30, CFG, only(7)) == [None]
+
+
+def test_the_prediction_must_allow_that_sticker_and_no_other():
+    det = [Detection(SQUARE + 5.0)]
+    assert match_tracked(det, [_tracked()], 0, 1 / 30, CFG, lambda d: [7, 9]) == [None]  # 9 fits too
+    assert match_tracked(det, [_tracked()], 0, 1 / 30, CFG, lambda d: [9]) == [None]  # 7 is not predicted here
+    assert match_tracked(det, [_tracked()], 0, 1 / 30, CFG, lambda d: []) == [None]  # tracker not tracking
+    assert match_tracked(det, [_tracked()], 0, 1 / 30, CFG, only(7))[0] is not None
+
+
+def test_stale_other_camera_or_due_tracks_are_not_carried():
+    det = [Detection(SQUARE + 1.0)]
+    assert match_tracked(det, [_tracked(t=0.0)], 0, 0.2, CFG, only(7)) == [None]  # a gap of dropped frames
+    assert match_tracked(det, [_tracked(camera=1)], 0, 1 / 30, CFG, only(7)) == [None]
+    assert match_tracked(det, [_tracked(age=CFG.redecode_every - 1)], 0, 1 / 30, CFG, only(7)) == [None]
+    assert match_tracked(det, [_tracked(age=CFG.redecode_every - 2)], 0, 1 / 30, CFG, only(7))[0] is not None
+
+
+def test_ambiguous_matches_carry_nothing():
+    # Two tracked stickers on the same spot (cannot tell which) and two detections on one tracked one.
+    two = [_tracked(sid=7), _tracked(outer=SQUARE + 2.0, sid=8)]
+    assert match_tracked([Detection(SQUARE + 1.0)], two, 0, 1 / 30, CFG, only(7)) == [None]
+    dets = [Detection(SQUARE + 1.0), Detection(SQUARE - 1.0)]
+    assert match_tracked(dets, [_tracked()], 0, 1 / 30, CFG, only(7)) == [None, None]
+
+
+def test_tracking_saves_decodes_without_changing_fixes_or_taking_a_wrong_id(tmp_path):
+    from tagloc.eval.evaluate import wrong_id_fixes
+    from tagloc.eval.metrics import trajectory_metrics
+    from tagloc.io.session import SessionReader
+    from tagloc.pipeline.run import run_session
+    from tagloc.sim.mapgen import GridMapConfig, grid_map
+    from tagloc.sim.simulate import SimConfig, simulate_session
+
+    smap = grid_map(GridMapConfig(width_m=12, depth_m=10, spacing_min_m=1.2, spacing_max_m=1.6, seed=5))
+    path = tmp_path / "walk"
+    simulate_session(smap, path, SimConfig(seconds=3, lux=150, speed_mps=1.3, seed=4, unmapped=15), progress=False)
+    logs = {}
+    for on in (False, True):
+        session = SessionReader(path)
+        log = run_session(session, LocaliserConfig(sticker_tracking=on))
+        m = trajectory_metrics(log.stamps[log.valid], log.poses[log.valid], log.covs[log.valid], *session.groundtruth())
+        wrong, checked = wrong_id_fixes(path, log)
+        logs[on] = (log, m, wrong, checked)
+    (off, m_off, wrong_off, _), (on, m_on, wrong_on, checked_on) = logs[False], logs[True]
+    assert wrong_on == 0 and wrong_off == 0 and checked_on >= 20
+    assert on.counts["tracked"] >= 0.5 * off.counts["decoded"]  # most decodes are carried
+    assert on.counts["decoded"] + on.counts["tracked"] >= off.counts["decoded"]
+    assert len(on.fixes) >= len(off.fixes) - 2
+    assert m_on["rmse_m"] <= m_off["rmse_m"] + 0.01
