@@ -12,16 +12,23 @@ MAX_FLOOR_M = 10_000.0  # a floor side beyond 10 km is a typo
 MAX_STICKERS = MAX_ID + 1
 
 NAME = "map"
-HELP = "generate a warehouse sticker map (grid) or summarise a map file (info)"
+HELP = "generate a warehouse sticker map (grid), summarise one (info), audit or refine one from walks (audit, refine)"
 DESCRIPTION = """grid: stickers along parallel aisles (running along y, spaced in x) and cross aisles, consecutive
 stickers spacing-min..spacing-max apart, jittered sideways, at random yaws, with random distinct
 5-digit IDs (or sequential ones); the same seed gives the same map. Written as id,x_m,y_m,yaw_deg.
 info: count, bounds and nearest-neighbour spacing of a map file (after full validation).
+audit: localise recorded sessions with the map and report missing, unmapped, misplaced and
+hard-to-read stickers (report.md, floorplan.png, audit.json, unmapped.csv in the output directory).
+refine: localise recorded sessions with the map and jointly re-estimate the stickers seen together
+with the frames' camera poses, anchored by each sticker's survey sigma; writes the refined map with
+sigma_m/sigma_deg columns and a Markdown report of what moved.
 
 examples:
   tagloc map grid -o maps/demo.csv --width 40 --depth 25 --aisle-spacing 3.0 \\
       --spacing-min 1.2 --spacing-max 2.0 --jitter 0.05 --seed 7
-  tagloc map info maps/demo.csv"""
+  tagloc map info maps/demo.csv
+  tagloc map audit logs/walk1 logs/walk2 logs/walk3 --map site/map.csv -o out/audit
+  tagloc map refine logs/walk1 logs/walk2 logs/walk3 --map site/map.csv -o site/map-refined.csv"""
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -46,6 +53,34 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--seed", type=int, default=7, help="random seed (default 7)")
     i = sub.add_parser("info", help="summarise a map file")
     i.add_argument("map", type=Path, help="map CSV (id,x_m,y_m,yaw_deg)")
+    a = sub.add_parser(
+        "audit",
+        help="find missing, unmapped, misplaced and hard-to-read stickers from sessions",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Localise the sessions with the map and classify its stickers; writes report.md,\n"
+        "floorplan.png, audit.json and unmapped.csv (ready-to-add map rows) to the output directory.\n\n"
+        "example:\n  tagloc map audit logs/walk1 logs/walk2 logs/walk3 --map site/map.csv -o out/audit",
+    )
+    a.add_argument("sessions", type=Path, nargs="+", metavar="SESSION", help="recorded session directories")
+    a.add_argument("--map", type=Path, help="map to audit (default: the first session's map.csv)")
+    a.add_argument("-o", "--out", type=Path, default=Path("out/audit"), help="report directory (default out/audit)")
+    a.add_argument("--quiet", action="store_true", help="no progress bar")
+    r = sub.add_parser(
+        "refine",
+        help="refine sticker positions and yaws from sessions (joint least squares)",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Jointly re-estimate the stickers seen two or more to a frame and those frames' camera\n"
+        "poses, anchored by each sticker's survey sigma; stickers whose survey the walks contradict are\n"
+        "reported as moved. Writes the refined map (sigma_m, sigma_deg columns) and a report.\n\n"
+        "example:\n  tagloc map refine logs/walk1 logs/walk2 logs/walk3 --map site/map.csv -o site/map-refined.csv",
+    )
+    r.add_argument("sessions", type=Path, nargs="+", metavar="SESSION", help="recorded session directories")
+    r.add_argument("--map", type=Path, required=True, help="map to refine (its sigma_m/sigma_deg are the priors)")
+    r.add_argument("-o", "--out", type=Path, required=True, help="refined map CSV to write")
+    r.add_argument("--report", type=Path, help="Markdown report of what moved (default: OUT with .md)")
+    r.add_argument("--sigma-m", type=float, default=0.02, help="survey sigma where the map states none, m (0.02)")
+    r.add_argument("--sigma-deg", type=float, default=2.0, help="survey yaw sigma where the map states none, deg (2)")
+    r.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -54,6 +89,29 @@ def run(args: argparse.Namespace) -> int:
 
     if args.action == "info":
         print(map_info(args.map))
+        return 0
+    if args.action == "audit":
+        from tagloc.eval.mapaudit import audit_sessions
+
+        checks.output_dir(args.out, "-o")
+        res = audit_sessions(args.sessions, args.out, args.map, progress=not args.quiet)
+        counts = ", ".join(f"{len(res.of(k))} {k}" for k in ("missing", "unmapped", "misplaced", "hard"))
+        print(f"{args.out / 'report.md'}: {counts} (of {len(res.map)} mapped stickers, {res.frames} frames)")
+        return 0
+    if args.action == "refine":
+        from tagloc.eval.maprefine import RefineConfig, refine_sessions
+
+        checks.number(args.sigma_m, "--sigma-m", 0, 100.0, lo_open=True)
+        checks.number(args.sigma_deg, "--sigma-deg", 0, 180.0, lo_open=True)
+        checks.output_file(args.out, "-o")
+        checks.output_file(args.report, "--report")
+        cfg = RefineConfig(default_sigma_m=args.sigma_m, default_sigma_deg=args.sigma_deg)
+        res = refine_sessions(args.sessions, args.map, args.out, args.report, cfg, progress=not args.quiet)
+        moved = [c.sticker_id for c in res.changes if c.moved]
+        print(
+            f"{args.out}: {len(res.changes)} stickers refined from {res.frames_used} frames"
+            f" ({len(moved)} moved: {' '.join(map(str, moved)) or 'none'}); {res.note or 'report beside it'}"
+        )
         return 0
     for option, value in (("--width", args.width), ("--depth", args.depth)):
         checks.number(value, option, 0, MAX_FLOOR_M, lo_open=True)

@@ -124,6 +124,7 @@ class Observation:
     fix: Fix | None = None
     rejected_read: str | None = None
     unmapped_id: int | None = None
+    unmapped_rotation: int | None = None  # the unmapped sticker's rotation (0-3), for map audits
 
     @property
     def sticker_id(self) -> int | None:

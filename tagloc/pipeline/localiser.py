@@ -203,11 +203,13 @@ class Read:
         identity: the decoded sticker (in the map), or None.
         rejected: why symbols that were read gave no identity (None: accepted or nothing read).
         unmapped_id: a decoded ID that is not in the map (never a fix, not worth identifying).
+        unmapped_rotation: its rotation (0-3), so that a map audit can place it.
     """
 
     identity: Identity | None = None
     rejected: str | None = None
     unmapped_id: int | None = None
+    unmapped_rotation: int | None = None
 
 
 def read_sticker(
@@ -224,7 +226,11 @@ def read_sticker(
     if res.sticker_id is None:
         return Read(rejected=res.rejected)
     if res.sticker_id not in smap:
-        return Read(rejected=f"decoded {res.sticker_id}, not in the map", unmapped_id=res.sticker_id)
+        return Read(
+            rejected=f"decoded {res.sticker_id}, not in the map",
+            unmapped_id=res.sticker_id,
+            unmapped_rotation=res.rotation,
+        )
     return Read(Identity(res.sticker_id, res.rotation, IdSource.DECODED))
 
 
@@ -392,7 +398,9 @@ class Localiser:
                 identity = self._identify(gray, det, rig_cam, timer)
                 if identity is not None:
                     fix = self._fix(det, identity, rig_cam, t, timer)
-            observations.append(Observation(det, frame.camera, identity, fix, read.rejected, read.unmapped_id))
+            observations.append(
+                Observation(det, frame.camera, identity, fix, read.rejected, read.unmapped_id, read.unmapped_rotation)
+            )
         self._track(observations, carried, frame.camera, t)
 
         with timer("output"):

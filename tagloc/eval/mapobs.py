@@ -1,0 +1,163 @@
+"""What recorded walks saw of the map: every sticker sighting with its geometry, for map audits and refinement.
+
+:func:`collect_walk` runs the localiser over one session with a given map and keeps, per frame, the
+tracked pose and, per detection, the identity (decoded, identified or none), the corners in the
+sticker's canonical order and the sticker's pose in the camera from the pose solver (also for
+decoded stickers that are not in the map: solved against the identity, so they can be placed).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from tagloc.core.geometry import invert
+from tagloc.core.rig import Rig
+from tagloc.core.sticker import rotate_corners
+from tagloc.core.stickermap import StickerMap, load_map
+from tagloc.core.types import FrameResult, IdSource, Observation
+from tagloc.io.session import SessionReader
+from tagloc.pipeline.localiser import Localiser, LocaliserConfig
+from tagloc.pipeline.run import iterate_results
+from tagloc.vision.pose import solve_pose
+
+
+@dataclass
+class Sighting:
+    """One detection in one frame, as the map audit needs it.
+
+    Attributes:
+        camera: rig camera index.
+        centre_px: (2,) mean of the outer corners, distorted pixels.
+        sticker_id: decoded or identified ID (also for decoded IDs not in the map), else None.
+        source: how the ID was obtained (``IdSource`` value).
+        in_map: the ID is in the audited map.
+        accepted: the tracker took its fix (None: none offered); ``gate_reason`` when refused.
+        corners: (4, 2) or (8, 2) outer (then inner) corners in the sticker's canonical order,
+            distorted px; None without an ID and rotation.
+        T_camera_sticker: (4, 4) the sticker's pose in the camera from the pose solver, or None.
+        reprojection_px: RMS reprojection error of that pose (px).
+    """
+
+    camera: int
+    centre_px: np.ndarray
+    sticker_id: int | None = None
+    source: str = IdSource.NONE.value
+    in_map: bool = False
+    accepted: bool | None = None
+    gate_reason: str | None = None
+    corners: np.ndarray | None = None
+    T_camera_sticker: np.ndarray | None = None
+    reprojection_px: float = float("nan")
+
+    @property
+    def decoded(self) -> bool:
+        return self.source == IdSource.DECODED.value
+
+
+@dataclass
+class FrameRecord:
+    """One frame: the tracker's output after it and what was seen.
+
+    Attributes:
+        index, t: frame index and timestamp (s).
+        pose: (3,) body (x, y, yaw) in the world after the frame; cov: (3, 3) its covariance.
+        state: tracker state value ("initialising", "tracking", "lost").
+        sightings: the frame's detections.
+        skipped: why the frame could not be read, else None.
+    """
+
+    index: int
+    t: float
+    pose: np.ndarray
+    cov: np.ndarray
+    state: str
+    sightings: list[Sighting] = field(default_factory=list)
+    skipped: str | None = None
+
+
+@dataclass
+class WalkLog:
+    """One session seen through one map: its rig, image size and per-frame records."""
+
+    path: Path
+    rig: Rig
+    frames: list[FrameRecord]
+    counts: dict = field(default_factory=dict)
+
+    @property
+    def name(self) -> str:
+        return self.path.name
+
+
+def _sighting(obs: Observation, smap: StickerMap, rig: Rig) -> Sighting:
+    det = obs.detection
+    source = obs.source.value
+    if obs.sticker_id is not None and obs.source == IdSource.NONE:
+        source = IdSource.DECODED.value  # the localiser names a sticker without a source only for unmapped reads
+    s = Sighting(obs.camera, det.outer.mean(axis=0), obs.sticker_id, source)
+    s.accepted, s.gate_reason = obs.accepted, obs.gate_reason
+    rotation = obs.identity.rotation if obs.identity is not None else obs.unmapped_rotation
+    if obs.sticker_id is None or rotation is None:
+        return s
+    s.in_map = obs.identity is not None and obs.sticker_id in smap
+    s.corners = rotate_corners(np.asarray(det.points, float), rotation)
+    if s.in_map and obs.poses:
+        fix = obs.poses[0]
+        s.T_camera_sticker = invert(fix.T_world_camera) @ smap.T_world_sticker(obs.sticker_id)
+        s.reprojection_px = fix.reprojection_px
+    elif not s.in_map:
+        # Solved against the sticker's own frame: the "world" pose returned is T_sticker_camera.
+        sol = solve_pose(det, rotation, np.eye(4), rig[obs.camera])
+        if sol.poses:
+            s.T_camera_sticker = invert(sol.poses[0].T_world_camera)
+            s.reprojection_px = sol.poses[0].reprojection_px
+    return s
+
+
+def frame_record(res: FrameResult, smap: StickerMap, rig: Rig) -> FrameRecord:
+    """The audit's record of one localiser result."""
+    out = res.output
+    return FrameRecord(
+        res.index,
+        res.timestamp,
+        np.array(out.pose, float),
+        np.array(out.cov, float),
+        out.state.value,
+        [_sighting(o, smap, rig) for o in res.observations],
+        res.skipped,
+    )
+
+
+def collect_walk(
+    session_dir: str | Path,
+    smap: StickerMap,
+    config: LocaliserConfig | None = None,
+    map_path: str | Path | None = None,
+    progress: bool = False,
+) -> WalkLog:
+    """Localise session ``session_dir`` with ``smap`` (not the session's own map) and record every sighting.
+
+    ``map_path``: the file ``smap`` came from, so the identification's reference cache is kept beside it.
+    """
+    session = SessionReader(session_dir)
+    loc = Localiser(smap, session.rig, config or LocaliserConfig(), map_path=map_path)
+    frames = [frame_record(r, smap, session.rig) for r in iterate_results(session, loc, progress=progress)]
+    counts = dict(loc.counts)
+    counts["skipped_frames"] = len(session.skipped)
+    return WalkLog(session.path, session.rig, frames, counts)
+
+
+def collect_walks(
+    sessions: list[str | Path],
+    map_path: str | Path | None = None,
+    localiser: LocaliserConfig | None = None,
+    progress: bool = False,
+) -> tuple[StickerMap, Path, list[WalkLog]]:
+    """Load the map (default: the first session's ``map.csv``) and localise every session with it."""
+    map_path = Path(map_path) if map_path is not None else Path(sessions[0]) / "map.csv"
+    smap = load_map(map_path)
+    walks = [collect_walk(s, smap, localiser, map_path=map_path, progress=progress) for s in sessions]
+    return smap, map_path, walks

@@ -1,0 +1,521 @@
+"""Refine a sticker map from recorded walks: a joint least-squares estimate of stickers and camera poses.
+
+Unknowns: every sticker seen together with another one in a frame, as (x, y, yaw) on the floor,
+and the 6-DoF pose of the camera in each such frame. Measurements: every sticker corner the
+detector placed (outer, and inner when found), as undistorted pixels against the pinhole
+projection, weighted by the corner noise; and each sticker's survey prior from the map (its own
+``sigma_m``/``sigma_deg``, or a default where the map does not state them), which anchors the map's
+frame so that it does not move. The problem is solved by ``scipy.optimize.least_squares`` with a
+sparse Jacobian pattern (a corner's residual depends on one camera and one sticker).
+
+A sticker whose estimate disagrees with its own prior beyond the chi-square bound (it was moved,
+or surveyed badly) loses its prior, the worst first, and the problem is solved again: a 15 cm move
+would otherwise pull every other sticker by 15 cm / N. Sightings that the solution cannot explain
+(RMS reprojection above a bound: a wrong corner) are dropped the same way.
+
+The stated uncertainty of each refined sticker is its marginal covariance, from the Gauss-Newton
+information with the camera poses eliminated (Schur complement), scaled up by the residuals'
+chi-square per degree of freedom when that exceeds 1. Stickers not refined are left exactly as they
+were, sigma columns included.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.sparse import block_diag, coo_matrix
+from scipy.spatial.transform import Rotation
+from threadpoolctl import threadpool_limits
+
+from tagloc.core.errors import InputError
+from tagloc.core.geometry import wrap_angle
+from tagloc.core.sticker import ALL_CORNERS
+from tagloc.core.stickermap import StickerMap, save_map
+from tagloc.eval.mapobs import Sighting, WalkLog, collect_walks
+
+
+@dataclass
+class RefineConfig:
+    """Choices of :func:`refine_map`.
+
+    Attributes:
+        corner_sigma_px: corner noise assumed for the weights (px). ``tagloc bench`` measures the
+            outer corners' error at 0.17-0.32 px median and 0.4-1.0 px p95 up to 6 px of blur: 0.5 px
+            covers the typical corner; the covariance is rescaled by the residuals if it was optimistic.
+        default_sigma_m: survey sigma per axis (m) of stickers whose map row states none: centimetre
+            surveys (tape or total station on a busy floor) are the realistic case.
+        default_sigma_deg: survey yaw sigma (degrees) where none is stated: a sticker laid by hand
+            against a line is within a few degrees.
+        moved_chi2: a prior whose residual's squared Mahalanobis distance (3 DoF) exceeds this is
+            dropped as a moved sticker: 16.27 is the 99.9 % point, so an honest map loses about one
+            prior in a thousand.
+        max_moved_fraction: at most this share of the refined stickers may lose their prior (with
+            more, the map is not a prior worth anchoring to and the result says so).
+        max_sighting_rms_px: sightings whose corners the solution misses by more than this RMS (px)
+            are dropped and the problem solved again (a corner on the wrong edge, a wrong ID).
+        use_identified: also use stickers identified by appearance/ORB whose fix the tracker
+            accepted (default: decoded stickers only, whose identity does not depend on the map).
+    """
+
+    corner_sigma_px: float = 0.5
+    default_sigma_m: float = 0.02
+    default_sigma_deg: float = 2.0
+    moved_chi2: float = 16.27
+    max_moved_fraction: float = 0.3
+    max_sighting_rms_px: float = 2.0
+    use_identified: bool = False
+
+    def __post_init__(self) -> None:
+        for name in ("corner_sigma_px", "default_sigma_m", "default_sigma_deg", "max_sighting_rms_px"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise InputError(f"refine: {name} must be a positive number, got {value!r}")
+
+
+@dataclass
+class StickerChange:
+    """What the refinement did to one sticker.
+
+    Attributes:
+        sticker_id: the ID.
+        sightings, frames: corner sets and frames it was refined from.
+        prior: (3,) map (x, y, yaw) before; refined: (3,) after (m, m, rad).
+        sigma_m: per-axis position sigma after (the larger principal axis), m; sigma_yaw: rad.
+        moved: its prior was rejected (the sticker is not where the map says).
+        prior_d2: squared Mahalanobis distance of the change under the prior (3 DoF).
+    """
+
+    sticker_id: int
+    sightings: int
+    frames: int
+    prior: np.ndarray
+    refined: np.ndarray
+    sigma_m: float
+    sigma_yaw: float
+    moved: bool
+    prior_d2: float
+
+    @property
+    def offset_m(self) -> float:
+        return float(np.hypot(*(self.refined[:2] - self.prior[:2])))
+
+    @property
+    def dyaw(self) -> float:
+        return float(wrap_angle(self.refined[2] - self.prior[2]))
+
+
+@dataclass
+class RefineResult:
+    """The refined map and what changed.
+
+    Attributes:
+        refined: the whole map, refined stickers updated with sigma columns, the rest unchanged.
+        changes: one entry per refined sticker, in map order.
+        seen_alone: stickers identified but never together with another one (not refinable).
+        frames_used, sightings_used, sightings_dropped: problem size.
+        rms_px: RMS corner residual after the solve; chi2_dof: chi-square per degree of freedom
+            (corners and priors) with ``corner_sigma_px``.
+        solve_s: wall time of the solves, s; evaluations: residual evaluations in all.
+        note: why nothing was refined, or a warning (too many moved stickers).
+    """
+
+    refined: StickerMap
+    changes: list[StickerChange] = field(default_factory=list)
+    seen_alone: list[int] = field(default_factory=list)
+    frames_used: int = 0
+    sightings_used: int = 0
+    sightings_dropped: int = 0
+    rms_px: float = float("nan")
+    chi2_dof: float = float("nan")
+    solve_s: float = 0.0
+    evaluations: int = 0
+    note: str = ""
+
+
+def _usable(s: Sighting, config: RefineConfig) -> bool:
+    if not s.in_map or s.corners is None or s.T_camera_sticker is None:
+        return False
+    return s.decoded or (config.use_identified and s.accepted is True)
+
+
+@dataclass
+class _Problem:
+    """The least-squares problem's index tables (P corner points, V views = camera poses, S stickers)."""
+
+    ids: np.ndarray  # (S,) sticker IDs refined
+    rows: np.ndarray  # (S,) their rows in the map
+    view_sighting: list[list[Sighting]]  # per view, its sightings
+    pt_view: np.ndarray  # (P,) view of each corner point
+    pt_sticker: np.ndarray  # (P,) sticker (0..S-1) of each point
+    pt_sighting: np.ndarray  # (P,) global sighting number of each point
+    obj: np.ndarray  # (P, 2) corner in the sticker frame, m
+    meas: np.ndarray  # (P, 2) undistorted pixel
+    fx: np.ndarray  # (P,), fy, cx, cy of the point's camera
+    fy: np.ndarray
+    cx: np.ndarray
+    cy: np.ndarray
+    x0_views: np.ndarray  # (V, 6) OpenCV rvec, tvec of T_camera_world
+    n_sightings: int
+
+
+def _build(walks: list[WalkLog], smap: StickerMap, config: RefineConfig, drop: set[tuple[int, int, int]]) -> _Problem:
+    """Views (frame, camera) with two or more usable sightings, minus dropped sightings (walk, frame, slot)."""
+    views: list[tuple[WalkLog, int, list[tuple[int, Sighting]]]] = []
+    for w, walk in enumerate(walks):
+        for fr in walk.frames:
+            by_cam: dict[int, list[tuple[int, Sighting]]] = {}
+            for slot, s in enumerate(fr.sightings):
+                if _usable(s, config) and (w, fr.index, slot) not in drop:
+                    by_cam.setdefault(s.camera, []).append((slot, s))
+            for cam, sights in by_cam.items():
+                if len({s.sticker_id for _, s in sights}) >= 2:
+                    views.append((walk, cam, sights))
+    ids = sorted({int(s.sticker_id) for _, _, sights in views for _, s in sights})
+    col = {sid: k for k, sid in enumerate(ids)}
+    tables: dict[str, list] = {k: [] for k in ("view", "sticker", "sighting", "obj", "meas", "f")}
+    x0_views, view_sighting = [], []
+    n_sight = 0
+    for v, (walk, cam, sights) in enumerate(views):
+        camera = walk.rig[cam].camera
+        best = min(sights, key=lambda p: p[1].reprojection_px)[1]
+        # Start from the camera pose that the best-fitting sticker gives through the prior map.
+        T_cw = best.T_camera_sticker @ np.linalg.inv(smap.T_world_sticker(best.sticker_id))
+        x0_views.append(np.concatenate([Rotation.from_matrix(T_cw[:3, :3]).as_rotvec(), T_cw[:3, 3]]))
+        view_sighting.append([s for _, s in sights])
+        for _, s in sights:
+            n = len(s.corners)
+            tables["view"].append(np.full(n, v))
+            tables["sticker"].append(np.full(n, col[int(s.sticker_id)]))
+            tables["sighting"].append(np.full(n, n_sight))
+            tables["obj"].append(ALL_CORNERS[:n, :2])
+            tables["meas"].append(camera.undistort_pixels(s.corners))
+            tables["f"].append(np.tile(camera.K[[0, 1, 0, 1], [0, 1, 2, 2]], (n, 1)))
+            n_sight += 1
+    cat = {k: (np.concatenate(v) if v else np.zeros(0)) for k, v in tables.items()}
+    f = cat["f"].reshape(-1, 4)
+    return _Problem(
+        np.array(ids, np.int64),
+        np.array([smap.row(i) for i in ids], np.int64),
+        view_sighting,
+        cat["view"].astype(np.int64),
+        cat["sticker"].astype(np.int64),
+        cat["sighting"].astype(np.int64),
+        cat["obj"].reshape(-1, 2),
+        cat["meas"].reshape(-1, 2),
+        f[:, 0],
+        f[:, 1],
+        f[:, 2],
+        f[:, 3],
+        np.array(x0_views).reshape(-1, 6),
+        n_sight,
+    )
+
+
+class _Solver:
+    """Residuals, Jacobian pattern and solve of one :class:`_Problem`."""
+
+    def __init__(self, prob: _Problem, prior: np.ndarray, prior_sigma: np.ndarray, config: RefineConfig):
+        self.p = prob
+        self.prior = prior  # (S, 3)
+        self.prior_w = 1.0 / prior_sigma  # (S, 3)
+        self.active = np.ones(len(prob.ids), bool)
+        self.w_px = 1.0 / config.corner_sigma_px
+        self.V, self.S = len(prob.x0_views), len(prob.ids)
+        self.sparsity = self._sparsity()
+        self.W = self._whitening()
+
+    def _whitening(self) -> np.ndarray:
+        """(V, 6, 6) per-view change of variables making each camera's own information the identity.
+
+        A pose from one 10 cm sticker trades rotation against translation almost freely, so the
+        camera blocks are badly conditioned and the trust-region's iterative (lsmr) steps crawl
+        (measured: 200 iterations without converging); in whitened variables they converge in a few.
+        """
+        p = self.p
+        W = np.empty((self.V, 6, 6))
+        order = np.argsort(p.pt_view, kind="stable")
+        starts = np.searchsorted(p.pt_view[order], np.arange(self.V + 1))
+        for v in range(self.V):
+            pts = order[starts[v] : starts[v + 1]]
+            s = self.prior[p.pt_sticker[pts]]
+            c, sn = np.cos(s[:, 2]), np.sin(s[:, 2])
+            world = np.column_stack(
+                [
+                    s[:, 0] + c * p.obj[pts, 0] - sn * p.obj[pts, 1],
+                    s[:, 1] + sn * p.obj[pts, 0] + c * p.obj[pts, 1],
+                    np.zeros(len(pts)),
+                ]
+            )
+            k = pts[0]
+            K = np.array([[p.fx[k], 0.0, p.cx[k]], [0.0, p.fy[k], p.cy[k]], [0.0, 0.0, 1.0]])
+            rvec, tvec = p.x0_views[v, :3], p.x0_views[v, 3:]
+            _, jac = cv2.projectPoints(world.reshape(-1, 1, 3), rvec, tvec, K, None)
+            J = jac[:, :6] * self.w_px
+            lam, Q = np.linalg.eigh(J.T @ J)
+            lam = np.maximum(lam, 1e-12 * lam.max())
+            W[v] = Q / np.sqrt(lam)
+        return W
+
+    def views(self, y: np.ndarray) -> np.ndarray:
+        """(V, 6) rvec, tvec of each view from the whitened variables."""
+        z = y[: 6 * self.V].reshape(self.V, 6)
+        return self.p.x0_views + np.einsum("vij,vj->vi", self.W, z)
+
+    def initial(self, stickers: np.ndarray) -> np.ndarray:
+        """The variable vector at the views' initial poses and the given (S, 3) stickers."""
+        return np.concatenate([np.zeros(6 * self.V), np.asarray(stickers, float).ravel()])
+
+    def _sparsity(self):
+        p, V = self.p, self.V
+        P = len(p.pt_view)
+        rows, cols = [], []
+        r = np.arange(2 * P)
+        pt = r // 2
+        for k in range(6):
+            rows.append(r)
+            cols.append(6 * p.pt_view[pt] + k)
+        for k in range(3):
+            rows.append(r)
+            cols.append(6 * V + 3 * p.pt_sticker[pt] + k)
+        prior_rows = 2 * P + np.arange(3 * self.S)
+        rows.append(prior_rows)
+        cols.append(6 * V + np.arange(3 * self.S))
+        rows, cols = np.concatenate(rows), np.concatenate(cols)
+        return coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(2 * P + 3 * self.S, 6 * V + 3 * self.S)).tocsr()
+
+    def corner_residuals(self, x: np.ndarray) -> np.ndarray:
+        """(P, 2) corner residuals in pixels (not weighted)."""
+        p, V = self.p, self.V
+        views = self.views(x)
+        st = x[6 * V :].reshape(self.S, 3)
+        R = Rotation.from_rotvec(views[:, :3]).as_matrix()[p.pt_view]  # (P, 3, 3) R_camera_world
+        t = views[p.pt_view, 3:]
+        s = st[p.pt_sticker]
+        c, sn = np.cos(s[:, 2]), np.sin(s[:, 2])
+        wx = s[:, 0] + c * p.obj[:, 0] - sn * p.obj[:, 1]
+        wy = s[:, 1] + sn * p.obj[:, 0] + c * p.obj[:, 1]
+        cam = R[:, :, 0] * wx[:, None] + R[:, :, 1] * wy[:, None] + t  # floor points have z = 0
+        z = np.maximum(cam[:, 2], 1e-6)
+        u = p.fx * cam[:, 0] / z + p.cx
+        v = p.fy * cam[:, 1] / z + p.cy
+        return np.column_stack([u, v]) - p.meas
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        st = x[6 * self.V :].reshape(self.S, 3)
+        d = st - self.prior
+        d[:, 2] = wrap_angle(d[:, 2])
+        prior_r = d * self.prior_w * self.active[:, None]
+        return np.concatenate([self.corner_residuals(x).ravel() * self.w_px, prior_r.ravel()])
+
+    def solve(self, x0: np.ndarray):
+        # One BLAS thread: the solver's vectors are small, and threaded BLAS spinning on a busy
+        # machine made it 9 times slower (measured 15 s against 1.7 s on one problem).
+        with threadpool_limits(limits=1, user_api="blas"):
+            return self._solve(x0)
+
+    def _solve(self, x0: np.ndarray):
+        return least_squares(
+            self.residuals,
+            x0,
+            jac_sparsity=self.sparsity,
+            method="trf",
+            x_scale="jac",
+            # lsmr's default tolerances give steps too inexact to meet ftol: measured 200 evaluations
+            # without converging, against 6-11 with these.
+            tr_options={"atol": 1e-10, "btol": 1e-10},
+            max_nfev=200,
+        )
+
+    def sticker_covariance(self, jac) -> np.ndarray:
+        """(S, 3, 3) marginal covariance of each sticker, cameras eliminated (Schur complement)."""
+        V, S = self.V, self.S
+        H = (jac.T @ jac).tocsr()
+        A = H[: 6 * V, : 6 * V]
+        blocks = [np.linalg.pinv(A[6 * i : 6 * i + 6, 6 * i : 6 * i + 6].toarray()) for i in range(V)]
+        A_inv = block_diag(blocks, format="csr")
+        B = H[: 6 * V, 6 * V :]
+        C = H[6 * V :, 6 * V :].toarray()
+        schur = C - (B.T @ (A_inv @ B)).toarray()
+        cov = np.linalg.pinv((schur + schur.T) / 2)
+        return np.stack([cov[3 * k : 3 * k + 3, 3 * k : 3 * k + 3] for k in range(S)]) if S else np.zeros((0, 3, 3))
+
+
+def _prior_sigma(smap: StickerMap, rows: np.ndarray, config: RefineConfig) -> np.ndarray:
+    sxy = np.where(np.isfinite(smap.sigma_xy[rows]), smap.sigma_xy[rows], config.default_sigma_m)
+    syaw = np.where(np.isfinite(smap.sigma_yaw[rows]), smap.sigma_yaw[rows], math.radians(config.default_sigma_deg))
+    # A stated sigma of 0 means "exact": keep it finite so the weights stay finite (0.1 mm, 0.01 deg).
+    return np.column_stack([np.maximum(sxy, 1e-4), np.maximum(sxy, 1e-4), np.maximum(syaw, math.radians(0.01))])
+
+
+def refine_map(walks: list[WalkLog], smap: StickerMap, config: RefineConfig | None = None) -> RefineResult:
+    """Jointly estimate the stickers seen two or more to a frame and those frames' camera poses.
+
+    ``walks`` were collected with ``smap`` (:func:`tagloc.eval.mapobs.collect_walk`). Returns the
+    refined map (unrefined stickers unchanged) and what moved.
+    """
+    config = config or RefineConfig()
+    t0 = time.perf_counter()
+    result = RefineResult(_copy_map(smap))
+    seen = {int(s.sticker_id) for w in walks for fr in w.frames for s in fr.sightings if _usable(s, config)}
+    drop: set[tuple[int, int, int]] = set()
+    x_st: dict[int, np.ndarray] = {}
+    moved: set[int] = set()
+    for _ in range(20):  # each round drops at least one sighting or prior; few are ever needed
+        prob = _build(walks, smap, config, drop)
+        if len(prob.ids) == 0:
+            result.note = "no frame saw two or more usable (decoded) stickers: nothing to refine"
+            result.seen_alone = sorted(seen)
+            return result
+        prior = np.column_stack([smap.xy[prob.rows], smap.yaw[prob.rows]])
+        solver = _Solver(prob, prior, _prior_sigma(smap, prob.rows, config), config)
+        solver.active = np.array([int(i) not in moved for i in prob.ids])
+        x0_st = np.array([x_st.get(int(i), prior[k]) for k, i in enumerate(prob.ids)])
+        sol = solver.solve(solver.initial(x0_st))
+        result.evaluations += int(sol.nfev)
+        st = sol.x[6 * solver.V :].reshape(-1, 3)
+        x_st = {int(i): st[k] for k, i in enumerate(prob.ids)}
+        # Worst sighting first: a wrong corner set also distorts the stickers near it.
+        res = solver.corner_residuals(sol.x)
+        per = np.bincount(prob.pt_sighting, np.sum(res**2, axis=1), prob.n_sightings)
+        npts = np.bincount(prob.pt_sighting, minlength=prob.n_sightings)
+        rms = np.sqrt(per / np.maximum(npts, 1))
+        if rms.max() > config.max_sighting_rms_px:
+            bad = int(np.argmax(rms))
+            drop.add(_sighting_key(walks, prob, bad))
+            continue
+        d = st - prior
+        d[:, 2] = wrap_angle(d[:, 2])
+        d2 = np.sum((d * solver.prior_w) ** 2, axis=1)
+        cand = np.flatnonzero(solver.active & (d2 > config.moved_chi2))
+        if len(cand) and len(moved) < config.max_moved_fraction * len(prob.ids):
+            moved.add(int(prob.ids[cand[np.argmax(d2[cand])]]))
+            continue
+        if len(cand):
+            result.note = (
+                f"more than {config.max_moved_fraction:.0%} of the stickers disagree with their survey:"
+                " the prior map is too far off to anchor to"
+            )
+        break
+    result.solve_s = time.perf_counter() - t0
+    n_res = 2 * len(prob.pt_view) + 3 * int(solver.active.sum())
+    dof = max(n_res - 6 * solver.V - 3 * solver.S, 1)
+    result.chi2_dof = float(2 * sol.cost / dof)
+    result.rms_px = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
+    cov = solver.sticker_covariance(sol.jac) * max(1.0, result.chi2_dof)
+    result.frames_used = solver.V
+    result.sightings_used = prob.n_sightings
+    result.sightings_dropped = len(drop)
+    frames_of = np.zeros(len(prob.ids), np.int64)
+    sightings_of = np.zeros(len(prob.ids), np.int64)
+    for sights in prob.view_sighting:
+        cols = np.searchsorted(prob.ids, [int(s.sticker_id) for s in sights])
+        np.add.at(sightings_of, cols, 1)
+        frames_of[np.unique(cols)] += 1
+    refined = result.refined
+    for k, (sid, row) in enumerate(zip(prob.ids, prob.rows)):
+        sigma_m = float(np.sqrt(max(np.linalg.eigvalsh(cov[k, :2, :2]).max(), 0.0)))
+        sigma_yaw = float(np.sqrt(max(cov[k, 2, 2], 0.0)))
+        refined.xy[row] = st[k, :2]
+        refined.yaw[row] = wrap_angle(float(st[k, 2]))
+        refined.sigma_xy[row] = sigma_m
+        refined.sigma_yaw[row] = sigma_yaw
+        result.changes.append(
+            StickerChange(
+                int(sid),
+                int(sightings_of[k]),
+                int(frames_of[k]),
+                prior[k].copy(),
+                np.array([st[k, 0], st[k, 1], wrap_angle(float(st[k, 2]))]),
+                sigma_m,
+                sigma_yaw,
+                int(sid) in moved,
+                float(d2[k]),
+            )
+        )
+    result.changes.sort(key=lambda c: int(smap.row(c.sticker_id)))
+    result.seen_alone = sorted(seen - {int(i) for i in prob.ids})
+    return _reindex(result)
+
+
+def _sighting_key(walks: list[WalkLog], prob: _Problem, k: int) -> tuple[int, int, int]:
+    """(walk, frame, slot) of the problem's ``k``-th sighting."""
+    n = 0
+    for sights in prob.view_sighting:
+        if k < n + len(sights):
+            target = sights[k - n]
+            break
+        n += len(sights)
+    for w, walk in enumerate(walks):
+        for fr in walk.frames:
+            for slot, s in enumerate(fr.sightings):
+                if s is target:
+                    return (w, fr.index, slot)
+    raise InputError("internal: sighting not found")
+
+
+def _copy_map(smap: StickerMap) -> StickerMap:
+    return StickerMap(
+        smap.ids.copy(), smap.xy.copy(), smap.yaw.copy(), smap.source, smap.sigma_xy.copy(), smap.sigma_yaw.copy()
+    )
+
+
+def _reindex(result: RefineResult) -> RefineResult:
+    """Rebuild the refined map's spatial index after its positions changed."""
+    m = result.refined
+    result.refined = StickerMap(m.ids, m.xy, m.yaw, m.source, m.sigma_xy, m.sigma_yaw)
+    return result
+
+
+def refine_markdown(result: RefineResult, map_name: str, walks: list[str]) -> str:
+    """What the refinement did, as Markdown: the problem, then every refined sticker, largest move first."""
+    moved = [c for c in result.changes if c.moved]
+    lines = [
+        f"# Map refinement of {map_name}",
+        "",
+        f"From {len(walks)} walks ({', '.join(walks)}): {result.frames_used} frames with two or more decoded"
+        f" stickers, {result.sightings_used} sightings ({result.sightings_dropped} dropped as unexplained),"
+        f" {len(result.changes)} stickers refined, RMS corner residual {result.rms_px:.2f} px"
+        f" (chi-square per DoF {result.chi2_dof:.2f}), {result.solve_s:.1f} s.",
+        f"Moved (survey prior rejected): {' '.join(str(c.sticker_id) for c in moved) or 'none'}."
+        f" Seen but never with another sticker, left unchanged: {' '.join(map(str, result.seen_alone)) or 'none'}.",
+    ]
+    if result.note:
+        lines += ["", f"**Note:** {result.note}"]
+    lines += [
+        "",
+        "| id | moved | offset cm | dx cm | dy cm | dyaw deg | sigma cm | sigma deg | frames | chi-square vs survey |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for c in sorted(result.changes, key=lambda c: -c.offset_m):
+        d = (c.refined - c.prior)[:2] * 100
+        lines.append(
+            f"| {c.sticker_id} | {'yes' if c.moved else ''} | {c.offset_m * 100:.2f} | {d[0]:+.2f} | {d[1]:+.2f} |"
+            f" {math.degrees(c.dyaw):+.2f} | {c.sigma_m * 100:.2f} | {math.degrees(c.sigma_yaw):.2f} | {c.frames} |"
+            f" {c.prior_d2:.1f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def refine_sessions(
+    sessions: list[str | Path],
+    map_path: str | Path,
+    out: str | Path,
+    report: str | Path | None = None,
+    config: RefineConfig | None = None,
+    progress: bool = False,
+) -> RefineResult:
+    """``tagloc map refine``: localise the sessions with the map, refine it, write the refined map and
+    a Markdown report of what moved (default: ``out`` with ``.md``)."""
+    smap, map_path, walks = collect_walks(sessions, map_path, progress=progress)
+    result = refine_map(walks, smap, config)
+    out = Path(out)
+    save_map(result.refined, out)
+    report = Path(report) if report is not None else out.with_suffix(".md")
+    report.write_text(refine_markdown(result, str(map_path), [w.name for w in walks]), encoding="utf-8")
+    return result
