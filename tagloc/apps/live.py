@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import signal
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -21,8 +22,8 @@ import numpy as np
 
 from tagloc.core.errors import InputError
 from tagloc.io.capture import CaptureStats, CaptureThread, open_source
-from tagloc.io.session import SessionInfo, SessionWriter
-from tagloc.io.sinks import FrameLog, PoseMessage, Sink, open_sink
+from tagloc.io.session import MAP_FILE, SessionInfo, SessionWriter
+from tagloc.pipeline.output import OutputConfig, Outputs, OutputSummary
 
 
 @dataclass
@@ -42,6 +43,7 @@ class LiveConfig:
         pace: play files and sessions at their own rate (False: every frame, as fast as possible).
         buffer: frames the capture thread keeps (the oldest is dropped when full).
         mode: localiser mode (see :class:`tagloc.pipeline.localiser.LocaliserConfig`).
+        max_age_s: network sinks never send a pose older than this, s (see OutputConfig).
     """
 
     source: str
@@ -61,6 +63,7 @@ class LiveConfig:
     pace: bool = True
     buffer: int = 1
     mode: str = "full"
+    max_age_s: float = 0.5
 
 
 @dataclass
@@ -75,6 +78,7 @@ class LiveSummary:
         sinks: per sink description: (sent, dropped).
         final_state: tracker state after the last frame.
         recorded: frames written to the recording.
+        outputs: the output path's counts (per-sink counters, warnings, refused stamps).
     """
 
     frames: int
@@ -85,6 +89,7 @@ class LiveSummary:
     sinks: dict[str, tuple[int, int]]
     final_state: str
     recorded: int = 0
+    outputs: OutputSummary = field(default_factory=OutputSummary)
 
     def latency(self, q: float) -> float:
         """Latency percentile ``q`` (0-100), ms; NaN without frames."""
@@ -100,7 +105,7 @@ class LiveSummary:
             f"fixes: {self.fixes}; final state: {self.final_state}; capture ended: {c.ended or 'stopped'}",
             f"latency: median {self.latency(50):.1f} ms, p95 {self.latency(95):.1f} ms (grab to publication)",
         ]
-        lines += [f"sink {name}: sent {s}, dropped {d}" for name, (s, d) in self.sinks.items()]
+        lines += self.outputs.format()
         if self.recorded:
             lines.append(f"recorded: {self.recorded} frames")
         return "\n".join(lines)
@@ -112,30 +117,17 @@ def run_live(cfg: LiveConfig, localiser=None, stop: threading.Event | None = Non
     ``localiser`` (anything with ``process(frame) -> FrameResult``, ``map`` and ``rig``) defaults to
     :class:`tagloc.pipeline.localiser.Localiser` on the configured map and rig.
     """
-    if cfg.max_frames is not None and cfg.max_frames < 1:
-        raise InputError(f"--max-frames must be at least 1, not {cfg.max_frames}")
-    if cfg.max_seconds is not None and not cfg.max_seconds > 0:
-        raise InputError(f"--max-seconds must be positive, not {cfg.max_seconds}")
+    _check_limits(cfg)
     if localiser is None:
-        from tagloc.pipeline.localiser import Localiser, LocaliserConfig, load_setup
-
-        smap, rig = load_setup(
-            map_path=cfg.map, calibration=cfg.calibration, rig_path=cfg.rig, config_dir=cfg.config_dir
-        )
-        map_path = cfg.map or (Path(cfg.config_dir) / "map.csv" if cfg.config_dir else None)
-        localiser = Localiser(smap, rig, LocaliserConfig(mode=cfg.mode), map_path=map_path)
+        localiser = _make_localiser(cfg)
     stop = stop or threading.Event()
     source = open_source(cfg.source)
-    sinks: list[Sink] = []
-    writer = log = view = None
     cap = CaptureThread(source, buffer=cfg.buffer, pace=cfg.pace)
+    run = _LiveRun(cfg, localiser, cap, stop)
     restore = _stop_on_signals(stop)
-    latencies: list[float] = []
-    frames = fixes = 0
-    state = "initialising"
-    t_start = time.monotonic()
+    outputs = writer = None
     try:
-        sinks = [open_sink(p, cfg.vest) for p in cfg.publish]
+        outputs = Outputs(localiser.map, localiser.rig, _output_config(cfg, source.live, cap.drop_oldest))
         if cfg.record is not None:
             writer = SessionWriter(
                 cfg.record,
@@ -143,71 +135,113 @@ def run_live(cfg: LiveConfig, localiser=None, stop: threading.Event | None = Non
                 localiser.rig,
                 SessionInfo(source=f"tagloc live {cfg.source}", fps=source.fps, notes=f"vest {cfg.vest}"),
             )
-        if cfg.log is not None:
-            log = FrameLog(cfg.log)
-        if cfg.rerun_spawn or cfg.rerun_connect or cfg.rerun_save:
-            from tagloc.io.rerun_view import RerunView
+        run.loop(outputs, writer)
+    except KeyboardInterrupt:
+        pass  # a second Ctrl-C during shutdown is the user's to give
+    finally:
+        run.seconds = time.monotonic() - run.t_start
+        cap.stop()
+        restore()
+        out_summary = outputs.close() if outputs is not None else OutputSummary()
+        if writer is not None:
+            writer.close()
+    return LiveSummary(
+        run.frames,
+        run.fixes,
+        cap.stats,
+        run.seconds,
+        np.array(run.latencies),
+        {name: (c["sent"], c["dropped"]) for name, c in out_summary.sinks.items()},
+        run.state,
+        writer.count if writer else 0,
+        out_summary,
+    )
 
-            view = RerunView(
-                localiser.map,
-                localiser.rig,
-                save=cfg.rerun_save,
-                spawn=cfg.rerun_spawn,
-                connect=cfg.rerun_connect,
-                clock="timestamp" if source.live else "duration",
-            )
-        cap.start()
-        t_start = time.monotonic()
-        while not stop.is_set():
-            if cfg.max_frames is not None and frames >= cfg.max_frames:
-                break
-            wait = 0.25
-            if cfg.max_seconds is not None:
-                wait = min(wait, cfg.max_seconds - (time.monotonic() - t_start))
-                if wait <= 0:
-                    break
-            item = cap.get(timeout=wait)
+
+def _check_limits(cfg: LiveConfig) -> None:
+    if cfg.max_frames is not None and cfg.max_frames < 1:
+        raise InputError(f"--max-frames must be at least 1, not {cfg.max_frames}")
+    if cfg.max_seconds is not None and not (cfg.max_seconds > 0 and math.isfinite(cfg.max_seconds)):
+        raise InputError(f"--max-seconds must be a positive number, not {cfg.max_seconds}")
+    if not (cfg.max_age_s > 0 and math.isfinite(cfg.max_age_s)):
+        raise InputError(f"--max-age must be a positive number of seconds, not {cfg.max_age_s}")
+    if not 1 <= cfg.buffer <= 1000:
+        raise InputError(f"--buffer must be 1 to 1000 frames, not {cfg.buffer}")
+
+
+def _make_localiser(cfg: LiveConfig):
+    from tagloc.pipeline.localiser import Localiser, LocaliserConfig, load_setup
+
+    smap, rig = load_setup(map_path=cfg.map, calibration=cfg.calibration, rig_path=cfg.rig, config_dir=cfg.config_dir)
+    map_path = cfg.map or (Path(cfg.config_dir) / MAP_FILE if cfg.config_dir else None)
+    refs = None
+    if cfg.mode != "decoded-only":
+        # Before the first frame: building a large map's bank on the first identification would stall
+        # the live loop for minutes. Cached beside the map, so this is quick after the first run.
+        from tagloc.vision.refs import build_refs, load_or_build_refs
+
+        print("tagloc live: preparing the sticker reference bank (cached beside the map)", file=sys.stderr)
+        refs = load_or_build_refs(map_path, progress=True) if map_path else build_refs(smap, progress=True)
+    return Localiser(smap, rig, LocaliserConfig(mode=cfg.mode), refs=refs, map_path=map_path)
+
+
+def _output_config(cfg: LiveConfig, live_clock: bool, real_time: bool) -> OutputConfig:
+    return OutputConfig(
+        publish=list(cfg.publish),
+        vest=cfg.vest,
+        log=cfg.log,
+        rerun_save=cfg.rerun_save,
+        rerun_spawn=cfg.rerun_spawn,
+        rerun_connect=cfg.rerun_connect,
+        rerun_clock="timestamp" if live_clock else "duration",
+        max_age_s=cfg.max_age_s,
+        drop_stale=real_time,
+    )
+
+
+class _LiveRun:
+    """The loop's state: counts, latencies, the tracker state after the last frame."""
+
+    def __init__(self, cfg: LiveConfig, localiser, cap: CaptureThread, stop: threading.Event):
+        self.cfg, self.localiser, self.cap, self.stop = cfg, localiser, cap, stop
+        self.latencies: list[float] = []
+        self.frames = self.fixes = 0
+        self.state = "initialising"
+        self.t_start = time.monotonic()
+        self.seconds = 0.0
+
+    def _wait(self) -> float | None:
+        """How long to wait for the next frame (s), or None when a limit is reached."""
+        cfg = self.cfg
+        if self.stop.is_set() or (cfg.max_frames is not None and self.frames >= cfg.max_frames):
+            return None
+        wait = 0.25
+        if cfg.max_seconds is not None:
+            wait = min(wait, cfg.max_seconds - (time.monotonic() - self.t_start))
+            if wait <= 0:
+                return None
+        return wait
+
+    def loop(self, outputs: Outputs, writer: SessionWriter | None) -> None:
+        """Process frames until the source ends, a limit is reached or ``stop`` is set."""
+        self.cap.start()
+        self.t_start = time.monotonic()
+        while (wait := self._wait()) is not None:
+            item = self.cap.get(timeout=wait)
             if item is None:
-                if cap.finished:
+                if self.cap.finished:
                     break
+                outputs.check()  # no frames: still tell the user about a sink that cannot publish
                 continue
             frame = item.frame
             if writer is not None:
                 # Before processing: a crash inside the localiser must still leave this frame recorded.
                 writer.write(frame.index, frame.timestamp, frame.image)
-            result = localiser.process(frame)
-            msg = PoseMessage(cfg.vest, frame.index, result.output, (time.monotonic() - item.grabbed) * 1e3)
-            for s in sinks:
-                s.publish(msg)
-            latencies.append((time.monotonic() - item.grabbed) * 1e3)
-            frames += 1
-            fixes += sum(o.accepted is True for o in result.observations)
-            state = result.output.state.value
-            if log is not None:
-                log.write(result)
-            if view is not None:
-                view.log(frame, result)
-    except KeyboardInterrupt:
-        pass  # a second Ctrl-C during shutdown is the user's to give
-    finally:
-        seconds = time.monotonic() - t_start
-        cap.stop()
-        restore()
-        for s in sinks:
-            s.close()
-        for closable in (writer, log, view):
-            if closable is not None:
-                closable.close()
-    return LiveSummary(
-        frames,
-        fixes,
-        cap.stats,
-        seconds,
-        np.array(latencies),
-        {s.name: (s.sent, s.dropped) for s in sinks},
-        state,
-        writer.count if writer else 0,
-    )
+            result = self.localiser.process(frame)
+            self.latencies.append(outputs.emit(result, frame, grabbed=item.grabbed))
+            self.frames += 1
+            self.fixes += sum(o.accepted is True for o in result.observations)
+            self.state = result.output.state.value
 
 
 def _stop_on_signals(stop: threading.Event):

@@ -18,7 +18,7 @@ import cv2
 from tagloc.core.types import Frame, FrameResult
 from tagloc.eval.metrics import trajectory_metrics
 from tagloc.io.session import SessionReader
-from tagloc.io.sinks import FrameLog, PoseMessage, Sink, TumSink, open_sink
+from tagloc.pipeline.output import OutputConfig, Outputs, OutputSummary
 
 
 @dataclass
@@ -59,6 +59,7 @@ class ReplayResult:
         frames: frames processed; skipped: unreadable frames; posed: frames with a pose.
         fixes: accepted fixes by identification source.
         seconds: wall time; metrics: :func:`tagloc.eval.metrics.trajectory_metrics` or None without GT.
+        outputs: the output path's counts; warnings: what the session reader noticed (e.g. clock jumps).
     """
 
     frames: int
@@ -67,6 +68,8 @@ class ReplayResult:
     fixes: dict[str, int]
     seconds: float
     metrics: dict | None = None
+    outputs: OutputSummary = field(default_factory=OutputSummary)
+    warnings: list[str] = field(default_factory=list)
 
     def format(self) -> str:
         """Human-readable summary."""
@@ -76,6 +79,8 @@ class ReplayResult:
             f"frames: {self.frames} ({self.skipped} unreadable, {self.posed} with a pose) in "
             f"{self.seconds:.1f} s ({fps:.1f} fps)",
             f"fixes: {sum(self.fixes.values())} ({by})",
+            *self.warnings,
+            *self.outputs.format(),
         ]
         m = self.metrics
         if m is not None:
@@ -98,31 +103,28 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
 
     session = SessionReader(cfg.session)
     gt = session.groundtruth()
-    tum = TumSink(cfg.out) if cfg.out is not None else None
-    log = FrameLog(cfg.log, include_times=cfg.log_times) if cfg.log is not None else None
-    sinks: list[Sink] = []
-    view = None
     fixes: dict[str, int] = {}
+    outputs = Outputs(
+        session.map,
+        session.rig,
+        OutputConfig(
+            publish=list(cfg.publish),
+            vest=cfg.vest,
+            tum=cfg.out,
+            log=cfg.log,
+            log_times=cfg.log_times,
+            rerun_save=cfg.rerun_save,
+            rerun_spawn=cfg.spawn,
+            groundtruth=gt,
+        ),
+    )
     try:
-        sinks = [open_sink(p, cfg.vest) for p in cfg.publish]
-        if cfg.rerun_save or cfg.spawn:
-            from tagloc.io.rerun_view import RerunView
-
-            view = RerunView(session.map, session.rig, save=cfg.rerun_save, spawn=cfg.spawn, groundtruth=gt)
 
         def on_result(res: FrameResult) -> None:
-            if tum is not None:
-                tum.write(res.output)
-            msg = PoseMessage(cfg.vest, res.index, res.output)
-            for s in sinks:
-                s.publish(msg)
-            if log is not None:
-                log.write(res)
             for o in res.observations:
                 if o.accepted:
                     fixes[o.source.value] = fixes.get(o.source.value, 0) + 1
-            if view is not None:
-                view.log(_reload(session, res), res)
+            outputs.emit(res, _reload(session, res) if outputs.view is not None else None)
 
         t0 = time.monotonic()
         run = run_session(
@@ -134,13 +136,13 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
         )
         seconds = time.monotonic() - t0
     finally:
-        for c in (tum, log, view, *sinks):
-            if c is not None:
-                c.close()
+        summary = outputs.close()
     metrics = None
     if gt is not None:
         metrics = trajectory_metrics(run.stamps[run.valid], run.poses[run.valid], run.covs[run.valid], *gt)
-    return ReplayResult(len(run.stamps), len(session.skipped), int(run.valid.sum()), fixes, seconds, metrics)
+    return ReplayResult(
+        len(run.stamps), len(session.skipped), int(run.valid.sum()), fixes, seconds, metrics, summary, session.warnings
+    )
 
 
 def _reload(session: SessionReader, res: FrameResult) -> Frame:

@@ -44,6 +44,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-frames", type=int, help="stop after this many processed frames")
     p.add_argument("--no-pace", action="store_true", help="files/sessions: process every frame, as fast as possible")
     p.add_argument("--buffer", type=int, default=1, help="frames the capture thread keeps (default 1)")
+    p.add_argument(
+        "--max-age",
+        type=float,
+        default=0.5,
+        metavar="S",
+        help="never send a pose older than S seconds over UDP/MQTT (default 0.5; see the README's Reliability)",
+    )
     p.add_argument("--mode", default="full", choices=("full", "decoded-only", "orb-all"), help="localiser mode")
 
 
@@ -69,6 +76,7 @@ def run(args: argparse.Namespace) -> int:
             pace=not args.no_pace,
             buffer=args.buffer,
             mode=args.mode,
+            max_age_s=args.max_age,
         )
     )
     print(summary.format(), file=sys.stderr)

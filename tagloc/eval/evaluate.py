@@ -20,7 +20,7 @@ import numpy as np
 
 from tagloc.eval.consistency import nees_blocks, nees_test
 from tagloc.eval.metrics import TrajectoryErrors, error_metrics, trajectory_errors
-from tagloc.io.session import SessionReader
+from tagloc.io.session import FRAMES_CSV, SessionReader
 from tagloc.pipeline.localiser import MODES, LocaliserConfig
 from tagloc.pipeline.run import RunLog, run_session
 
@@ -95,7 +95,7 @@ def make_session(sc: Scenario, root: Path, progress: bool) -> Path:
     path = root / "sessions" / sc.name
     stamp = path / "scenario.json"
     made = {**asdict(sc), "simulator": SIM_REVISION}
-    if stamp.exists() and json.loads(stamp.read_text()) == made and (path / "frames.csv").exists():
+    if stamp.exists() and json.loads(stamp.read_text()) == made and (path / FRAMES_CSV).exists():
         return path
     if path.exists():
         import shutil

@@ -37,6 +37,19 @@ from tagloc.core.types import Frame
 
 FORMAT = "tagloc-session"
 VERSION = 1
+# The session's file names: the one definition every reader and writer uses.
+SESSION_JSON = "session.json"
+CAMERA_FILE = "camera.yaml"
+RIG_FILE = "rig.json"
+MAP_FILE = "map.csv"
+FRAMES_DIR = "frames"
+FRAMES_CSV = "frames.csv"
+GROUNDTRUTH_FILE = "groundtruth.tum"
+# A step between consecutive frames longer than this is reported as a clock jump (s). 5 s: longer
+# than any pause of a recording camera we know of, and longer than the tracker keeps a track
+# without fixes, so the track is lost across it either way.
+CLOCK_JUMP_S = 5.0
+MAX_FPS = 1000.0  # a frame rate above this in session.json is a typo, not a camera
 IMAGE_EXTENSIONS = (".jpg", ".png", ".jpeg", ".bmp", ".tif", ".tiff")
 
 
@@ -60,11 +73,20 @@ class SessionInfo:
         }
 
 
+def tum_line(t: float, T: np.ndarray) -> str:
+    """One TUM line ``timestamp x y z qx qy qz qw`` (newline included) for the 4x4 pose ``T`` at ``t`` (s).
+
+    The one number format of every TUM file tagloc writes; "+ 0.0" prints -0.0 as 0.0 so that equal
+    poses always print equal.
+    """
+    return f"{t + 0.0:.6f} " + " ".join(f"{v + 0.0:.6f}" for v in T_to_tum(T)) + "\n"
+
+
 def write_tum(path: str | Path, stamps: np.ndarray, poses: list[np.ndarray] | np.ndarray) -> None:
     """Write 4x4 poses with timestamps as a TUM trajectory file."""
     with Path(path).open("w", encoding="utf-8") as f:
         for t, T in zip(stamps, poses):
-            f.write(f"{t:.6f} " + " ".join(f"{v:.6f}" for v in T_to_tum(T)) + "\n")
+            f.write(tum_line(float(t), T))
 
 
 def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
@@ -75,6 +97,8 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         lines = path.read_text(encoding="utf-8").splitlines()
     except OSError as exc:
         raise SessionError(f"{path}: cannot read ({exc.strerror})") from exc
+    except UnicodeDecodeError as exc:
+        raise SessionError(f"{path}: not a text file (byte {exc.start} is not UTF-8)") from None
     for n, line in enumerate(lines, 1):
         line = line.strip()
         if not line or line.startswith("#"):
@@ -98,14 +122,16 @@ class SessionReader:
         self.path = Path(path)
         if not self.path.is_dir():
             raise SessionError(f"{self.path}: not a session directory")
+        self.warnings: list[str] = []  # one line each: what was odd but usable (clock jumps)
         self.info = self._read_info()
-        self.map: StickerMap = load_map(self._need("map.csv"))
+        self.map: StickerMap = load_map(self._need(MAP_FILE))
         self.rig: Rig = (
-            load_rig(self._need("rig.json"), calibration)
-            if (self.path / "rig.json").exists()
+            load_rig(self._need(RIG_FILE), calibration)
+            if (self.path / RIG_FILE).exists()
             else self._rig_from_camera(calibration)
         )
         self.index, self.timestamps = self._read_frames_csv()
+        self._check_clock()
         self.skipped: list[tuple[int, str]] = []
 
     def _need(self, name: str) -> Path:
@@ -118,36 +144,69 @@ class SessionReader:
         from tagloc.core.camera import load_calibration
         from tagloc.core.rig import default_rig
 
-        return default_rig(camera=calibration or load_calibration(self._need("camera.yaml")))
+        return default_rig(camera=calibration or load_calibration(self._need(CAMERA_FILE)))
 
     def _read_info(self) -> SessionInfo:
-        p = self.path / "session.json"
+        p = self.path / SESSION_JSON
         if not p.exists():
             return SessionInfo(source="unknown", fps=0.0)
         try:
-            doc = json.loads(p.read_text(encoding="utf-8"))
+            doc = json.loads(p.read_bytes().decode("utf-8"))
+        except OSError as exc:
+            raise SessionError(f"{p}: cannot read ({exc.strerror})") from exc
+        except UnicodeDecodeError as exc:
+            raise SessionError(f"{p}: not a text file (byte {exc.start} is not UTF-8)") from None
         except json.JSONDecodeError as exc:
-            raise SessionError(f"{p}: line {exc.lineno}: not valid JSON ({exc.msg})") from exc
+            raise SessionError(f"{p}: line {exc.lineno}: not valid JSON ({exc.msg})") from None
+        except RecursionError:
+            raise SessionError(f"{p}: JSON nested too deeply") from None
         if not isinstance(doc, dict):
             raise SessionError(f"{p}: not a JSON object")
+        fps = doc.get("fps", 0.0)
+        if fps is None:
+            fps = 0.0
+        if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not 0.0 <= fps <= MAX_FPS:
+            raise SessionError(f"{p}: fps must be a number from 0 to {MAX_FPS:g}, got {json.dumps(fps)[:40]}")
         extra = {k: v for k, v in doc.items() if k not in ("format", "version", "source", "fps", "notes")}
-        return SessionInfo(
-            str(doc.get("source", "unknown")), float(doc.get("fps", 0.0) or 0.0), str(doc.get("notes", "")), extra
-        )
+        return SessionInfo(str(doc.get("source", "unknown")), float(fps), str(doc.get("notes", "")), extra)
+
+    def _check_clock(self) -> None:
+        """Refuse frames.csv with a repeated index or a timestamp that goes backwards; note forward jumps."""
+        p = self.path / FRAMES_CSV
+        if len(self.index) != len(np.unique(self.index)):
+            _, first, counts = np.unique(self.index, return_index=True, return_counts=True)
+            dup = int(self.index[np.sort(first[counts > 1])[0]])
+            raise SessionError(f"{p}: frame index {dup} appears more than once")
+        steps = np.diff(self.timestamps)
+        back = np.flatnonzero(steps <= 0)
+        if len(back):
+            k = int(back[0]) + 1
+            raise SessionError(
+                f"{p}: frame {int(self.index[k])}: timestamp {self.timestamps[k]:.6f} s is not after the previous "
+                f"frame's {self.timestamps[k - 1]:.6f} s (sort frames.csv by time, or fix the clock)"
+            )
+        for k in np.flatnonzero(steps > CLOCK_JUMP_S)[:5]:
+            self.warnings.append(
+                f"{p}: frame {int(self.index[k + 1])}: timestamp jumps {steps[k]:.1f} s forward "
+                "(the track will be lost and found again)"
+            )
 
     def _read_frames_csv(self) -> tuple[np.ndarray, np.ndarray]:
-        p = self.path / "frames.csv"
+        p = self.path / FRAMES_CSV
         if not p.exists():
             # Without frames.csv, fall back to the images and session fps (documented, for hand-made sessions).
-            files = sorted(f for f in (self.path / "frames").glob("*") if f.suffix.lower() in IMAGE_EXTENSIONS)
+            files = sorted(f for f in (self.path / FRAMES_DIR).glob("*") if f.suffix.lower() in IMAGE_EXTENSIONS)
             if not files:
                 raise SessionError(f"{self.path}: missing frames.csv and no images in frames/")
             fps = self.info.fps or 30.0
             idx = np.array([int(f.stem) for f in files if f.stem.isdigit()])
             return idx, idx / fps
         index, stamps = [], []
-        lines = p.read_text(encoding="utf-8", errors="replace").splitlines(keepends=True)
-        if lines and not lines[-1].endswith("\n") and (self.path / "session.json").exists():
+        try:
+            lines = p.read_text(encoding="utf-8", errors="replace").splitlines(keepends=True)
+        except OSError as exc:
+            raise SessionError(f"{p}: cannot read ({exc.strerror})") from exc
+        if lines and not lines[-1].endswith("\n") and (self.path / SESSION_JSON).exists():
             # tagloc ends every line with a newline: an unterminated last line is a write cut short by a
             # crash, and its number may be cut too ("12.5" -> "1"), so it is not trusted.
             lines = lines[:-1]
@@ -156,6 +215,8 @@ class SessionReader:
                 continue
             try:
                 i, t = int(row[0]), float(row[1])
+                if not 0 <= i < 10**9:
+                    raise ValueError
             except (ValueError, IndexError):
                 if n == len(lines):  # a last line cut short by a crash while recording: stop there
                     break
@@ -176,7 +237,7 @@ class SessionReader:
 
     def frame_path(self, index: int) -> Path | None:
         """Path of frame ``index``'s image, whatever its extension, or None."""
-        stem = self.path / "frames" / f"{index:06d}"
+        stem = self.path / FRAMES_DIR / f"{index:06d}"
         for ext in IMAGE_EXTENSIONS:
             p = stem.with_suffix(ext)
             if p.exists():
@@ -202,7 +263,7 @@ class SessionReader:
 
     def groundtruth(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(timestamps (N,), T_world_body (N, 4, 4)) when the session has ground truth, else None."""
-        p = self.path / "groundtruth.tum"
+        p = self.path / GROUNDTRUTH_FILE
         return read_tum(p) if p.exists() else None
 
 
@@ -219,22 +280,28 @@ class SessionWriter:
         image_ext: str = ".jpg",
     ):
         self.path = Path(path)
-        (self.path / "frames").mkdir(parents=True, exist_ok=True)
-        if (self.path / "frames.csv").exists() and any((self.path / "frames").iterdir()):
-            raise SessionError(f"{self.path}: already holds a session; choose a new directory")
-        (self.path / "session.json").write_text(json.dumps(info.to_json(), indent=2) + "\n", encoding="utf-8")
-        save_map(smap, self.path / "map.csv")
-        save_rig(rig, self.path / "rig.json")
+        frames = self.path / FRAMES_DIR
+        try:
+            frames.mkdir(parents=True, exist_ok=True)
+            if (self.path / FRAMES_CSV).exists() and any(frames.iterdir()):
+                raise SessionError(f"{self.path}: already holds a session; choose a new directory")
+            for stale in frames.glob("*.tmp.*"):
+                stale.unlink()  # an image a killed recorder was writing (never listed in frames.csv)
+            (self.path / SESSION_JSON).write_text(json.dumps(info.to_json(), indent=2) + "\n", encoding="utf-8")
+            save_map(smap, self.path / MAP_FILE)
+            save_rig(rig, self.path / RIG_FILE)
+            self._csv = (self.path / FRAMES_CSV).open("w", encoding="utf-8", buffering=1)
+        except OSError as exc:
+            raise SessionError(f"{exc.filename or self.path}: cannot write ({exc.strerror})") from None
         self.jpeg_quality = int(jpeg_quality)
         self.image_ext = image_ext
-        self._csv = (self.path / "frames.csv").open("w", encoding="utf-8", buffering=1)
         self._csv.write("index,timestamp_s\n")
         self._csv.flush()
         self.count = 0
 
     def write(self, index: int, timestamp: float, image: np.ndarray) -> None:
         """Write one frame: image first (atomic rename), then its frames.csv line, flushed."""
-        final = self.path / "frames" / f"{index:06d}{self.image_ext}"
+        final = self.path / FRAMES_DIR / f"{index:06d}{self.image_ext}"
         tmp = final.with_name(final.stem + ".tmp" + self.image_ext)
         params = [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality] if self.image_ext == ".jpg" else []
         if not cv2.imwrite(str(tmp), image, params):

@@ -27,6 +27,7 @@ import math
 import socket
 import sys
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, TYPE_CHECKING
@@ -35,8 +36,9 @@ from urllib.parse import urlsplit
 import numpy as np
 
 from tagloc.core.errors import BackendUnavailable, InputError
-from tagloc.core.geometry import T_to_tum, planar_T
+from tagloc.core.geometry import planar_T
 from tagloc.core.types import FrameResult, TrackerOutput, TrackState
+from tagloc.io.session import tum_line
 
 if TYPE_CHECKING:
     import paho.mqtt.client as mqtt
@@ -54,6 +56,9 @@ class PoseMessage:
         output: the tracker's output.
         latency_ms: capture-to-publication latency, ms, or None (offline replay).
         frame: name of the frame the pose is expressed in.
+        grabbed: when the frame was grabbed (``time.monotonic()``, s), or None when age does not
+            count (offline, or a file played as fast as possible); network sinks drop a pose older
+            than their bound instead of sending it late.
     """
 
     vest: str
@@ -61,6 +66,13 @@ class PoseMessage:
     output: TrackerOutput
     latency_ms: float | None = None
     frame: str = "world"
+    grabbed: float | None = None
+
+    def age_s(self, now: float | None = None) -> float:
+        """Seconds since the frame was grabbed (0 offline)."""
+        if self.grabbed is None:
+            return 0.0
+        return (time.monotonic() if now is None else now) - self.grabbed
 
     def to_json(self) -> dict:
         """The ``tagloc.vision.pose/1`` object."""
@@ -81,6 +93,9 @@ class PoseMessage:
             "last_id": o["last_id"],
             "last_source": o["last_source"],
             "latency_ms": None if self.latency_ms is None else round(float(self.latency_ms), 3),
+            # Sender's wall clock at publication (live only): with clocks in sync (NTP), a receiver
+            # knows a pose's age as now - wall_t + latency_ms / 1000 and drops it past its bound.
+            "wall_t": None if self.latency_ms is None else round(time.time(), 3),
         }
 
     def encode(self) -> bytes:
@@ -100,6 +115,14 @@ class Sink:
     def publish(self, message: PoseMessage) -> bool:
         """Send one pose; True if it went out (never raises for network trouble)."""
         raise NotImplementedError
+
+    def counts(self) -> dict[str, int]:
+        """Message counters for the summary (at least ``sent`` and ``dropped``)."""
+        return {"sent": self.sent, "dropped": self.dropped}
+
+    def status(self) -> str | None:
+        """What keeps poses from going out now (for a warning), or None if they flow."""
+        return None
 
     def close(self) -> None:
         """Flush and release resources."""
@@ -141,40 +164,71 @@ class JsonLinesSink(Sink):
 
 
 class UdpSink(Sink):
-    """One datagram per pose to ``host:port`` (sendto only: nothing is bound or listened on)."""
+    """One datagram per pose to ``host:port``.
 
-    def __init__(self, host: str, port: int):
+    The socket is connected to the destination, so the kernel binds it to the routing interface's
+    address and an ephemeral port (never the wildcard address) and delivers it only the
+    destination's replies (ICMP errors); nothing listens.
+    """
+
+    def __init__(self, host: str, port: int, max_age_s: float = 0.5):
         super().__init__()
         self.name = f"udp://{host}:{port}"
+        self.max_age_s = float(max_age_s)
+        self.stale = 0
         try:
             family, _, _, _, addr = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)[0]
         except socket.gaierror as exc:
             raise InputError(f"{self.name}: cannot resolve host ({exc.strerror})") from exc
-        self._addr = addr
         self._sock = socket.socket(family, socket.SOCK_DGRAM)
+        try:
+            self._sock.connect(addr)
+        except OSError as exc:
+            self._sock.close()
+            raise InputError(f"{self.name}: cannot send there ({exc.strerror})") from exc
         self.errors = 0
+        self._last_error = ""
 
     def publish(self, message: PoseMessage) -> bool:
-        try:
-            self._sock.sendto(message.encode(), self._addr)
-        except OSError:
-            # Network trouble (no route, ICMP refusals) must never stop localisation.
-            self.errors += 1
+        if message.age_s() > self.max_age_s:
+            self.stale += 1
             self.dropped += 1
             return False
+        try:
+            self._sock.send(message.encode())
+        except OSError as exc:
+            # Network trouble (no route, ICMP refusals) must never stop localisation.
+            self.errors += 1
+            self._last_error = exc.strerror or str(exc)
+            self.dropped += 1
+            return False
+        self._last_error = ""
         self.sent += 1
         return True
+
+    def status(self) -> str | None:
+        return f"send failed ({self._last_error})" if self._last_error else None
 
     def close(self) -> None:
         self._sock.close()
 
 
 class MqttSink(Sink):
-    """Publish poses at QoS 0 to an MQTT broker, reconnecting in the background.
+    """Publish poses at QoS 0 to an MQTT 5 broker, reconnecting in the background; never deliver stale ones.
 
-    While the broker is unreachable messages are dropped, not queued; while connected at most
-    ``max_pending`` messages may wait to be written to the socket, beyond that they are dropped.
-    Both are counted in ``dropped``. ``connects`` counts successful (re)connections.
+    Nothing is queued for later: while the broker is unreachable, while the link is stalled, or while
+    ``max_pending`` poses already wait to be written to the socket, a pose is dropped (counted).
+    A pose older than ``max_age_s`` (from the frame's grab) is never handed to the socket, and each
+    carries an MQTT 5 message expiry of ``ceil(max_age_s)`` s so that the broker discards it rather
+    than forward it late to a slow subscriber.
+
+    QoS 0 gets no acknowledgement, so the sink sends a small QoS 1 probe (``TOPIC/probe``, payload
+    ``{"schema": "tagloc.probe/1", ...}``) every ``probe_s`` while connected, one at a time. The broker
+    handles one connection's packets in order, so a probe's PUBACK proves that every pose written
+    before it reached the broker (``confirmed``). A probe unanswered for ``max_age_s`` means the link
+    is stalled (a hung broker, a partition): poses are dropped as stale until it answers or paho's
+    keepalive gives up and reconnects. Poses written but never confirmed are ``unconfirmed``: lost
+    or delivered, QoS 0 cannot tell. Whether subscribers received anything is beyond any publisher.
     """
 
     def __init__(
@@ -183,29 +237,46 @@ class MqttSink(Sink):
         port: int,
         topic: str,
         client_id: str = "",
-        keepalive: int = 10,
-        max_pending: int = 10,
+        keepalive: int = 5,
+        max_pending: int = 4,
         reconnect_max_s: float = 2.0,
+        max_age_s: float = 0.5,
+        probe_s: float = 0.1,
     ):
         super().__init__()
         try:
             import paho.mqtt.client as mqtt
+            from paho.mqtt.packettypes import PacketTypes
+            from paho.mqtt.properties import Properties
         except ImportError as exc:  # pragma: no cover - paho is a dependency
             raise BackendUnavailable("paho-mqtt is not installed; pip install paho-mqtt") from exc
+        if not max_age_s > 0:
+            raise InputError(f"{host}: MQTT max age must be positive, not {max_age_s}")
         self.name = f"mqtt://{host}:{port}/{topic}"
         self._success = mqtt.MQTT_ERR_SUCCESS
         self.topic = topic
         self.max_pending = int(max_pending)
+        self.max_age_s = float(max_age_s)
+        self.probe_s = float(probe_s)
         self.connects = 0
+        self.stale = 0  # dropped: older than max_age_s, or the link stalled
+        self.confirmed = 0  # written before a probe the broker acknowledged
         self._lock = threading.Lock()
         self._pending = 0
+        self._probe: tuple[int, float, int] | None = None  # (mid, monotonic send time, poses written before it)
+        self._last_probe = -math.inf
+        self._props = Properties(PacketTypes.PUBLISH)
+        self._props.MessageExpiryInterval = max(1, math.ceil(self.max_age_s))
         self._client: mqtt.Client = mqtt.Client(
-            callback_api_version=mqtt.CallbackAPIVersion.VERSION2, client_id=client_id, clean_session=True
+            callback_api_version=mqtt.CallbackAPIVersion.VERSION2, client_id=client_id, protocol=mqtt.MQTTv5
         )
+        # One probe in flight at a time; a probe left over from a dead connection is not resent late.
+        self._client.max_inflight_messages_set(1)
         self._client.reconnect_delay_set(min_delay=1, max_delay=max(1, int(math.ceil(reconnect_max_s))))
         self._client.on_connect = self._on_connect
+        self._client.on_disconnect = self._on_disconnect
         self._client.on_publish = self._on_publish
-        self._client.connect_async(host, port, keepalive=keepalive)
+        self._client.connect_async(host, port, keepalive=keepalive, clean_start=True)
         self._client.loop_start()
 
     def _on_connect(
@@ -215,24 +286,82 @@ class MqttSink(Sink):
             with self._lock:
                 # paho discards unsent packets when it reconnects; start counting afresh.
                 self._pending = 0
+                self._probe = None
                 self.connects += 1
+
+    def _on_disconnect(
+        self, client: mqtt.Client, userdata: object, flags: object, reason: object, props: object
+    ) -> None:
+        with self._lock:
+            # A probe of a dead connection will never be answered; poses it would have confirmed
+            # stay unconfirmed.
+            self._probe = None
 
     def _on_publish(self, client: mqtt.Client, userdata: object, mid: int, reason: object, properties: object) -> None:
         with self._lock:
-            self._pending = max(0, self._pending - 1)
+            if self._probe is not None and mid == self._probe[0]:
+                self.confirmed = max(self.confirmed, self._probe[2])
+                self._probe = None
+            else:
+                self._pending = max(0, self._pending - 1)
 
     @property
     def connected(self) -> bool:
         """Whether the client is connected to the broker now."""
         return self._client.is_connected()
 
-    def publish(self, message: PoseMessage) -> bool:
+    @property
+    def unconfirmed(self) -> int:
+        """Poses written to the socket that no broker acknowledgement covers (lost or unknown)."""
         with self._lock:
-            if not self._client.is_connected() or self._pending >= self.max_pending:
+            return self.sent - self.confirmed
+
+    def stalled_s(self, now: float | None = None) -> float:
+        """How long the outstanding probe has waited for the broker, s (0 if none)."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            return 0.0 if self._probe is None else now - self._probe[1]
+
+    def status(self) -> str | None:
+        """What is wrong now (for warnings), or None when poses flow."""
+        if not self._client.is_connected():
+            return "not connected to the broker: poses are dropped"
+        stalled = self.stalled_s()
+        if stalled > self.max_age_s:
+            return f"broker has not answered for {stalled:.1f} s (hung or partitioned): poses are dropped"
+        return None
+
+    def _send_probe(self, now: float) -> None:
+        with self._lock:
+            if self._probe is not None or now - self._last_probe < self.probe_s:
+                return
+            written = self.sent
+            self._last_probe = now
+        payload = json.dumps({"schema": "tagloc.probe/1", "written": written}, separators=(",", ":")).encode()
+        info = self._client.publish(self.topic + "/probe", payload, qos=1)
+        if info.rc == self._success:
+            with self._lock:
+                if self._probe is None:
+                    self._probe = (info.mid, now, written)
+
+    def publish(self, message: PoseMessage) -> bool:
+        now = time.monotonic()
+        if not self._client.is_connected():
+            self.dropped += 1
+            return False
+        self._send_probe(now)
+        with self._lock:
+            age = message.age_s(now)
+            stalled = self._probe is not None and now - self._probe[1] > self.max_age_s
+            if age > self.max_age_s or stalled:
+                self.stale += 1
+                self.dropped += 1
+                return False
+            if self._pending >= self.max_pending:
                 self.dropped += 1
                 return False
             self._pending += 1
-        info = self._client.publish(self.topic, message.encode(), qos=0)
+        info = self._client.publish(self.topic, message.encode(), qos=0, properties=self._props)
         if info.rc != self._success:
             with self._lock:
                 self._pending = max(0, self._pending - 1)
@@ -241,7 +370,24 @@ class MqttSink(Sink):
         self.sent += 1
         return True
 
-    def close(self) -> None:
+    def counts(self) -> dict[str, int]:
+        with self._lock:
+            return {
+                "sent": self.sent,
+                "confirmed": self.confirmed,
+                "unconfirmed": self.sent - self.confirmed,
+                "dropped": self.dropped,
+                "stale": self.stale,
+            }
+
+    def close(self, flush_s: float = 1.0) -> None:
+        """Confirm what was written if the broker answers within ``flush_s``, then disconnect."""
+        if self._client.is_connected() and self.sent > self.confirmed:
+            deadline = time.monotonic() + flush_s
+            self._last_probe = -math.inf
+            while time.monotonic() < deadline and self.sent > self.confirmed and self._client.is_connected():
+                self._send_probe(time.monotonic())
+                time.sleep(0.01)
         self._client.disconnect()
         self._client.loop_stop()
 
@@ -264,13 +410,12 @@ class TumSink(Sink):
         return self.write(message.output)
 
     def write(self, out: TrackerOutput) -> bool:
-        """Append one pose line (same number format as :func:`tagloc.io.session.write_tum`)."""
+        """Append one pose line (:func:`tagloc.io.session.tum_line`)."""
         if out.state == TrackState.INITIALISING:
             self.dropped += 1
             return False
         T = planar_T(float(out.pose[0]), float(out.pose[1]), float(out.pose[2]))
-        # "+ 0.0" turns -0.0 into 0.0 so that equal poses always print equal.
-        self._f.write(f"{out.t:.6f} " + " ".join(f"{v + 0.0:.6f}" for v in T_to_tum(T)) + "\n")
+        self._f.write(tum_line(out.t, T))
         self._f.flush()
         self.sent += 1
         return True
@@ -342,12 +487,12 @@ def _json_default(value: object) -> object:
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
-def open_sink(target: str, vest: str = "vest") -> Sink:
+def open_sink(target: str, vest: str = "vest", max_age_s: float = 0.5) -> Sink:
     """Open a sink from its description.
 
     ``stdout`` or ``-``: JSON lines on stdout. ``udp://HOST:PORT``: datagrams. ``mqtt://HOST[:PORT][/TOPIC]``:
     MQTT (default port 1883, default topic ``tagloc/VEST/pose``). A path ending in ``.tum``: TUM
-    trajectory. Any other path: JSON lines file.
+    trajectory. Any other path: JSON lines file. ``max_age_s``: network sinks never send an older pose.
     """
     if target in ("stdout", "-"):
         return JsonLinesSink(sys.stdout)
@@ -362,10 +507,10 @@ def open_sink(target: str, vest: str = "vest") -> Sink:
         if url.scheme == "udp":
             if port is None:
                 raise InputError(f"{target}: UDP needs a port (udp://HOST:PORT)")
-            return UdpSink(url.hostname, port)
+            return UdpSink(url.hostname, port, max_age_s=max_age_s)
         if url.scheme == "mqtt":
             topic = url.path.lstrip("/") or f"tagloc/{vest}/pose"
-            return MqttSink(url.hostname, port or 1883, topic, client_id=f"tagloc-{vest}")
+            return MqttSink(url.hostname, port or 1883, topic, client_id=f"tagloc-{vest}", max_age_s=max_age_s)
         raise InputError(f"{target}: unknown sink scheme {url.scheme!r} (want udp://, mqtt://, stdout or a file)")
     if target.lower().endswith(".tum"):
         return TumSink(target)

@@ -18,6 +18,7 @@ from tagloc.core.errors import CalibrationError, InputError
 from tagloc.core.rig import Rig, default_rig, load_rig
 from tagloc.core.stickermap import StickerMap, load_map
 from tagloc.core.types import Frame, FrameResult, IdSource, Observation, TrackerOutput, TrackState
+from tagloc.io.session import CAMERA_FILE, MAP_FILE, RIG_FILE
 from tagloc.vision.decode import decode
 from tagloc.vision.detect import detect
 from tagloc.vision.odometry import FloorOdometry, OdometryConfig
@@ -69,17 +70,17 @@ def load_setup(
     cdir = Path(config_dir) if config_dir is not None else None
     if cdir is not None and not cdir.is_dir():
         raise InputError(f"{cdir}: --config must be a directory holding camera.yaml, rig.json, map.csv")
-    map_path = map_path or (cdir / "map.csv" if cdir else None)
+    map_path = map_path or (cdir / MAP_FILE if cdir else None)
     if map_path is None:
         raise InputError("no map: give --map FILE or --config DIR")
     smap = load_map(map_path)
     camera = load_calibration(calibration) if calibration else None
-    rig_path = rig_path or (cdir / "rig.json" if cdir and (cdir / "rig.json").exists() else None)
+    rig_path = rig_path or (cdir / RIG_FILE if cdir and (cdir / RIG_FILE).exists() else None)
     if rig_path is not None:
         rig = load_rig(rig_path, camera)
     else:
-        if camera is None and cdir is not None and (cdir / "camera.yaml").exists():
-            camera = load_calibration(cdir / "camera.yaml")
+        if camera is None and cdir is not None and (cdir / CAMERA_FILE).exists():
+            camera = load_calibration(cdir / CAMERA_FILE)
         rig = default_rig(camera=camera)
     return smap, rig
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from tagloc.core.types import FrameResult
-from tagloc.io.session import SessionReader
+from tagloc.io.session import MAP_FILE, SessionReader
 from tagloc.pipeline.localiser import Localiser, LocaliserConfig
 
 
@@ -84,7 +84,7 @@ def run_session(
 
     ``realtime`` paces frames at their timestamps; otherwise they go as fast as they can.
     """
-    loc = Localiser(session.map, session.rig, config or LocaliserConfig(), refs=refs, map_path=session.path / "map.csv")
+    loc = Localiser(session.map, session.rig, config or LocaliserConfig(), refs=refs, map_path=session.path / MAP_FILE)
     stamps, poses, covs, valid, frame_ms, tracker_ms, odometry_ms = [], [], [], [], [], [], []
     fixes, rejected = [], []
     for res in iterate_results(session, loc, progress=progress, realtime=realtime):

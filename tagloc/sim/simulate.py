@@ -36,7 +36,7 @@ from tagloc.core.geometry import make_T, planar_T
 from tagloc.core.rig import Rig, RigCamera, default_rig, load_rig, looking_forward
 from tagloc.core.sticker import INNER_CORNERS, OUTER_CORNERS
 from tagloc.core.stickermap import StickerMap, load_map
-from tagloc.io.session import SessionInfo, SessionWriter, write_tum
+from tagloc.io.session import GROUNDTRUTH_FILE, SessionInfo, SessionWriter, write_tum
 from tagloc.sim.floor import Floor, FloorConfig
 from tagloc.sim.render import ExposureConfig, OpticsConfig, Renderer, RenderResult, SensorConfig, exposure_time
 from tagloc.sim.walk import Walk, WalkConfig, plan_walk
@@ -278,7 +278,7 @@ def simulate_session(
     t_wall = time.perf_counter()
     stats = []
     with SessionWriter(out, smap, rig, info, jpeg_quality=config.jpeg_quality) as writer:
-        write_tum(out / "groundtruth.tum", stamps, walk.T_world_body(stamps))
+        write_tum(out / GROUNDTRUTH_FILE, stamps, walk.T_world_body(stamps))
         with (out / "groundtruth_frames.jsonl").open("w", encoding="utf-8") as gt:
             for k in tqdm(range(n), desc="simulate", unit="frame", disable=not progress):
                 t = float(stamps[k])

@@ -17,6 +17,8 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import zipfile
+import zlib
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -274,30 +276,44 @@ def save_refs(bank: ReferenceBank, path: str | Path) -> None:
 
 
 def load_refs(path: str | Path) -> ReferenceBank:
-    """Read a bank written by :func:`save_refs`; :class:`InputError` if it is not one."""
+    """Read a bank written by :func:`save_refs`; :class:`InputError` if it is not one (truncated, foreign)."""
     path = Path(path)
     try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except (OSError, ValueError, EOFError) as exc:
-        raise InputError(f"{path}: not a readable reference bank ({exc})") from exc
+        return _load_refs(path)
+    except (OSError, ValueError, EOFError, KeyError, TypeError, IndexError, zipfile.BadZipFile, zlib.error) as exc:
+        # np.load reads members lazily: a cut or damaged archive fails on any of these.
+        raise InputError(f"{path}: not a readable reference bank ({type(exc).__name__}: {exc})"[:300]) from None
+
+
+def _load_refs(path: Path) -> ReferenceBank:
+    with np.load(path, allow_pickle=False) as z:
+        data = {k: z[k] for k in z.files}
     need = {"ids", "offsets", "xy", "des", "mean_template", "orb_mask", "params", "key", "version"}
     if not need <= data.keys():
         raise InputError(f"{path}: reference bank lacks {', '.join(sorted(need - data.keys()))}")
-    if int(data["version"]) != BANK_VERSION:
-        raise InputError(f"{path}: reference bank version {int(data['version'])}, want {BANK_VERSION}")
+    if data["version"].shape != () or int(data["version"]) != BANK_VERSION:
+        raise InputError(f"{path}: reference bank version is not {BANK_VERSION}")
     try:
         params = BankParams(**json.loads(str(data["params"])))
     except (TypeError, ValueError) as exc:
         raise InputError(f"{path}: reference bank parameters are malformed") from exc
     ids, offsets = data["ids"].astype(np.int64), data["offsets"].astype(np.int64)
-    if offsets.shape != (len(ids) + 1,) or offsets[-1] != len(data["des"]) or data["des"].shape[1:] != (32,):
+    des = data["des"]
+    if (
+        ids.ndim != 1
+        or offsets.shape != (len(ids) + 1,)
+        or des.ndim != 2
+        or offsets[-1] != len(des)
+        or des.shape[1:] != (32,)
+        or np.any(np.diff(offsets) < 0)
+        or offsets[0] != 0
+    ):
         raise InputError(f"{path}: reference bank arrays are inconsistent")
     return ReferenceBank(
         ids=ids,
         offsets=offsets,
         xy=data["xy"].astype(np.float32),
-        des=data["des"].astype(np.uint8),
+        des=des.astype(np.uint8),
         mean_template=data["mean_template"].astype(np.float32),
         orb_mask=data["orb_mask"].astype(bool),
         params=params,
