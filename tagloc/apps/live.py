@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from tagloc.core.errors import InputError
-from tagloc.io.capture import CaptureStats, CaptureThread, open_source
+from tagloc.io.capture import CameraSettings, CaptureStats, CaptureThread, open_source
 from tagloc.io.session import MAP_FILE, SessionInfo, SessionWriter
 from tagloc.pipeline.output import OutputConfig, Outputs, OutputSummary
 
@@ -44,6 +44,8 @@ class LiveConfig:
         buffer: frames the capture thread keeps (the oldest is dropped when full).
         mode: localiser mode (see :class:`tagloc.pipeline.localiser.LocaliserConfig`).
         max_age_s: network sinks never send a pose older than this, s (see OutputConfig).
+        camera_settings: exposure, gain, frame rate and resolution asked of a camera; what the
+            driver accepted is printed and written into the recording's session.json.
     """
 
     source: str
@@ -64,6 +66,7 @@ class LiveConfig:
     buffer: int = 1
     mode: str = "full"
     max_age_s: float = 0.5
+    camera_settings: CameraSettings = field(default_factory=CameraSettings)
 
 
 @dataclass
@@ -121,7 +124,10 @@ def run_live(cfg: LiveConfig, localiser=None, stop: threading.Event | None = Non
     if localiser is None:
         localiser = _make_localiser(cfg)
     stop = stop or threading.Event()
-    source = open_source(cfg.source)
+    source = open_source(cfg.source, cfg.camera_settings)
+    camera_report = source.settings_report()
+    if source.live:
+        print(f"tagloc live: camera {format_camera_report(camera_report)}", file=sys.stderr)
     cap = CaptureThread(source, buffer=cfg.buffer, pace=cfg.pace)
     run = _LiveRun(cfg, localiser, cap, stop)
     restore = _stop_on_signals(stop)
@@ -133,7 +139,12 @@ def run_live(cfg: LiveConfig, localiser=None, stop: threading.Event | None = Non
                 cfg.record,
                 localiser.map,
                 localiser.rig,
-                SessionInfo(source=f"tagloc live {cfg.source}", fps=source.fps, notes=f"vest {cfg.vest}"),
+                SessionInfo(
+                    source=f"tagloc live {cfg.source}",
+                    fps=source.fps,
+                    notes=f"vest {cfg.vest}",
+                    extra={"camera": camera_report},
+                ),
             )
         run.loop(outputs, writer)
     except KeyboardInterrupt:
@@ -156,6 +167,20 @@ def run_live(cfg: LiveConfig, localiser=None, stop: threading.Event | None = Non
         writer.count if writer else 0,
         out_summary,
     )
+
+
+def format_camera_report(report: dict) -> str:
+    """One line: what the camera runs at as read back, and the requested values it differs from."""
+    parts = []
+    if report.get("resolution"):
+        parts.append("x".join(str(v) for v in report["resolution"]))
+    for key, unit in (("fps", " fps"), ("exposure_ms", " ms exposure"), ("gain", " gain")):
+        if report.get(key) is not None:
+            parts.append(f"{report[key]:g}{unit}")
+    req = report.get("requested") or {}
+    asked = [f"{k} {v}" for k, v in req.items() if v is not None]
+    text = ", ".join(parts) + f" (timestamps: {report.get('clock', '?')} clock)"
+    return text + (f"; requested {', '.join(asked)}" if asked else "")
 
 
 def _check_limits(cfg: LiveConfig) -> None:
