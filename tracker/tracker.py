@@ -162,6 +162,14 @@ class Tracker:
             return None
         return vest_pose(self._ekf.x[:, 0]), vest_cov(self._ekf.P)
 
+    def velocity(self) -> np.ndarray | None:
+        """(3,) the body's predicted motion (forward m/s, sideways m/s (0: the model has no sideways
+        speed), yaw rate rad/s) in the body frame; None unless TRACKING."""
+        if self._state is not TrackState.TRACKING:
+            return None
+        x = self._ekf.x[:, 0]
+        return np.array([float(x[3]), 0.0, float(x[4])])
+
     def candidates(self, smap: StickerMap, rig_camera: RigCamera, observed_px: np.ndarray, k: int = 5) -> list[int]:
         """Sticker IDs that may be the one seen at ``observed_px``, most likely first ([] unless TRACKING)."""
         prior = self.prior()

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+SENSOR_CHOICES = ("standard", "ov5647")  # tagloc.sim.render.SENSOR_PRESETS (not imported: --help stays fast)
+
 NAME = "simulate"
 HELP = "simulate a walking session over a sticker map (frames + ground truth)"
 DESCRIPTION = """Simulate an operator walking along the map's sticker lines with the vest camera, and write a
@@ -16,8 +18,14 @@ The images are formed physically: floor reflectance, illuminance (lux) and f-num
 motion-priority auto exposure (t = 0.3 lux*s / lux, capped), motion blur from the true motion
 during the exposure, shot and read noise, gain, vignetting, lens distortion, gamma and JPEG.
 
+Field conditions (all seeded): a rolling shutter, the driver's timestamp jitter and dropped frames,
+a map with survey error (the frames show the true stickers), a dimmer sensor.
+
 example:
-  tagloc simulate --map maps/demo.csv --seconds 20 --lux 100 --speed 1.3 --seed 1 -o logs/sim1"""
+  tagloc simulate --map maps/demo.csv --seconds 20 --lux 100 --speed 1.3 --seed 1 -o logs/sim1
+  tagloc simulate --map maps/demo.csv --seconds 20 --seed 1 --rolling-shutter --jitter-ms 2 \
+      --drop-fraction 0.04 --drop-bursts-per-min 3 --survey-sigma-cm 1 --survey-sigma-deg 1.5 \
+      --sensor ov5647 -o logs/field1"""
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -30,7 +38,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
     p.add_argument("--pitch", type=float, default=55.0, help="camera pitch below horizontal, degrees (default 55)")
     p.add_argument("--height", type=float, default=1.3, help="camera height above the floor, m (default 1.3)")
-    p.add_argument("--rolling-shutter", action="store_true", help="rows exposed at staggered times (30 ms read-out)")
+    p.add_argument("--rolling-shutter", action="store_true", help="rows exposed at staggered times (see --readout-ms)")
+    p.add_argument("--readout-ms", type=float, default=30.0, help="rolling shutter: top-to-bottom read-out, ms (30)")
+    p.add_argument("--jitter-ms", type=float, default=0.0, help="timestamp jitter, uniform +-ms (default 0)")
+    p.add_argument("--drop-fraction", type=float, default=0.0, help="share of frames lost on their own (default 0)")
+    p.add_argument(
+        "--drop-bursts-per-min", type=float, default=0.0, help="bursts of 3-8 lost frames per minute (default 0)"
+    )
+    p.add_argument(
+        "--survey-sigma-cm", type=float, default=0.0, help="map survey error per sticker, cm per axis (default 0)"
+    )
+    p.add_argument("--survey-sigma-deg", type=float, default=0.0, help="map survey yaw error per sticker, deg (0)")
+    p.add_argument("--survey-stated", action="store_true", help="state the survey sigmas in the map's columns")
+    p.add_argument(
+        "--sensor", choices=SENSOR_CHOICES, default="standard", help="sensor model (default standard; ov5647: dimmer)"
+    )
     p.add_argument(
         "--distractors",
         type=float,
@@ -52,7 +74,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tagloc.sim.render import ExposureConfig
     from tagloc.sim.simulate import SimConfig, simulate_session
+    from tagloc.sim.survey import SurveyConfig
+    from tagloc.sim.timing import TimingConfig
 
     summary = simulate_session(
         args.map,
@@ -73,6 +98,14 @@ def run(args: argparse.Namespace) -> int:
             scale=args.scale,
             calibration=args.calibration,
             rig=args.rig,
+            exposure=ExposureConfig(readout_s=args.readout_ms * 1e-3),
+            sensor_preset=args.sensor,
+            timing=TimingConfig(
+                jitter_s=args.jitter_ms * 1e-3,
+                drop_fraction=args.drop_fraction,
+                bursts_per_min=args.drop_bursts_per_min,
+            ),
+            survey=SurveyConfig(args.survey_sigma_cm * 1e-2, args.survey_sigma_deg, args.survey_stated),
         ),
         progress=not args.quiet,
     )

@@ -7,6 +7,9 @@ Body frame: origin on the floor under the vest, +x forward, +y left, +z up. ``ri
 
 ``T_body_camera`` (row-major, metres) maps points from the OpenCV camera frame (x right, y down,
 z along the optical axis) into the body frame. ``calibration`` is relative to the rig file.
+An optional ``"readout_s"`` gives a rolling-shutter camera's read-out time, first row to last
+(seconds; 0 or absent: global shutter): row ``v`` is exposed ``(v - (H - 1) / 2) * readout_s / H``
+after the frame's timestamp, which belongs to the middle row.
 """
 
 from __future__ import annotations
@@ -25,12 +28,14 @@ from tagloc.core.geometry import make_T
 
 @dataclass
 class RigCamera:
-    """One camera of the rig: a name, its intrinsics and ``T_body_camera`` (4, 4)."""
+    """One camera of the rig: a name, its intrinsics, ``T_body_camera`` (4, 4) and its rolling-shutter
+    read-out ``readout_s`` (s, first row to last; 0: global shutter)."""
 
     name: str
     camera: Camera
     T_body_camera: np.ndarray
     calibration_file: str = "camera.yaml"
+    readout_s: float = 0.0
 
 
 @dataclass
@@ -44,6 +49,15 @@ class Rig:
 
     def __len__(self) -> int:
         return len(self.cameras)
+
+
+def row_delay_s(rows: np.ndarray | float, height: int, readout_s: float) -> np.ndarray | float:
+    """Rolling shutter: when row ``rows`` (0 = top, may be fractional) is exposed, relative to the frame time (s).
+
+    The sensor reads one row every ``readout_s / height`` seconds, top row first; the frame's time
+    is the middle row's (``(height - 1) / 2``), so rows above it are exposed earlier (negative).
+    """
+    return (np.asarray(rows, float) - 0.5 * (height - 1)) * (readout_s / height)
 
 
 def looking_forward(
@@ -98,7 +112,10 @@ def load_rig(path: str | Path, calibration: Camera | None = None) -> Rig:
         name = str(entry.get("name", f"cam{i}"))
         calib_file = str(entry.get("calibration", "camera.yaml"))
         cam = calibration if calibration is not None else load_calibration(path.parent / calib_file)
-        out.append(RigCamera(name, cam, _check_T(entry["T_body_camera"], where), calib_file))
+        readout = entry.get("readout_s", 0.0)
+        if isinstance(readout, bool) or not isinstance(readout, (int, float)) or not 0.0 <= readout < 1.0:
+            raise CalibrationError(f"{where}: readout_s {readout!r} must be a number of seconds in [0, 1)")
+        out.append(RigCamera(name, cam, _check_T(entry["T_body_camera"], where), calib_file, float(readout)))
     return Rig(out)
 
 
@@ -108,6 +125,7 @@ def save_rig(rig: Rig, path: str | Path, write_calibrations: bool = True) -> Non
     doc = {
         "cameras": [
             {"name": c.name, "calibration": c.calibration_file, "T_body_camera": np.round(c.T_body_camera, 12).tolist()}
+            | ({"readout_s": c.readout_s} if c.readout_s > 0 else {})
             for c in rig.cameras
         ]
     }

@@ -22,7 +22,7 @@ from tagloc.io.session import CAMERA_FILE, MAP_FILE, RIG_FILE
 from tagloc.vision.decode import decode
 from tagloc.vision.detect import detect
 from tagloc.vision.odometry import FloorOdometry, OdometryConfig
-from tagloc.vision.pose import solve_pose
+from tagloc.vision.pose import PoseConfig, SurveyPasses, solve_pose
 from tracker.candidates import select_candidates
 from tracker.tracker import Tracker, TrackerConfig
 
@@ -44,6 +44,10 @@ class LocaliserConfig:
         tracker: the EKF's configuration.
         odometry: measure the body's motion between frames from the floor texture and feed it to
             the tracker ("full" mode only); ``odometry_config`` tunes it.
+        pose: the pose solver's options (corner noise, the map's default survey sigmas).
+        rolling_shutter: for a rig camera with a rolling shutter (``readout_s`` in rig.json),
+            move each sticker's corners to the frame's time with the body's motion (this frame's
+            odometry step, else the tracker's prediction) before solving its pose.
     """
 
     mode: str = "full"
@@ -54,6 +58,8 @@ class LocaliserConfig:
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     odometry: bool = True
     odometry_config: OdometryConfig = field(default_factory=OdometryConfig)
+    pose: PoseConfig = field(default_factory=PoseConfig)
+    rolling_shutter: bool = True
 
 
 def load_setup(
@@ -102,6 +108,8 @@ class Localiser:
         if self.config.mode not in MODES:
             raise InputError(f"unknown localiser mode {self.config.mode!r} (want one of {', '.join(MODES)})")
         self.tracker = Tracker(self.config.tracker)
+        self._passes = SurveyPasses()  # repeated fixes of a sticker share its survey error
+        self._step = None  # this frame's odometry step, for the rolling-shutter correction
         self._held: TrackerOutput | None = None  # the baselines' last fix
         self._refs = refs
         self._map_path = map_path
@@ -210,6 +218,7 @@ class Localiser:
     def _odometry_step(self, gray: np.ndarray, camera: int, t: float) -> None:
         odo = self.floor_odometry(camera)
         step = odo.measure(gray, t) if odo is not None else None
+        self._step = step
         if step is not None:
             self.counts["odometry_steps"] += 1
             self.tracker.update_odometry(step)
@@ -246,7 +255,18 @@ class Localiser:
 
     def _fix(self, obs: Observation, rig_cam, t: float) -> None:
         ts = time.perf_counter()
-        sol = solve_pose(obs.detection, obs.rotation, self.map.T_world_sticker(obs.sticker_id), rig_cam)
+        row = self.map.row(obs.sticker_id)
+        survey = (float(self.map.sigma_xy[row]), float(self.map.sigma_yaw[row]))  # NaN: the default
+        sol = solve_pose(
+            obs.detection,
+            obs.rotation,
+            self.map.T_world_sticker(obs.sticker_id),
+            rig_cam,
+            config=self.config.pose,
+            map_sigma=survey,
+            map_scale=self._passes.scale(obs.sticker_id, t) if self.config.mode == "full" else 1.0,
+            body_twist=self._body_twist(rig_cam, t),
+        )
         obs.times_ms["pose"] = (time.perf_counter() - ts) * 1e3
         obs.poses, obs.ambiguous = sol.poses, sol.ambiguous
         if not sol.poses or self.config.mode != "full":
@@ -256,6 +276,16 @@ class Localiser:
         obs.times_ms["update"] = (time.perf_counter() - ts) * 1e3
         obs.accepted = res.accepted
         obs.gate_reason = res.reason
+
+    def _body_twist(self, rig_cam, t: float) -> np.ndarray | None:
+        """The body's motion (vx, vy, yaw rate; body frame) for the rolling-shutter correction, or None."""
+        if not (self.config.rolling_shutter and rig_cam.readout_s > 0 and self.config.mode == "full"):
+            return None
+        s = self._step
+        if s is not None and s.t1 == t and s.t1 > s.t0:
+            # The vest's own motion over the last frame interval, wobble included.
+            return np.asarray(s.delta, float) / (s.t1 - s.t0)
+        return self.tracker.velocity()
 
     def _baseline_output(self, observations: list[Observation], t: float) -> TrackerOutput:
         """The baselines' pose: this frame's best fix, else the last one held (no filter)."""

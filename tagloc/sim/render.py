@@ -12,8 +12,10 @@ Pipeline of one frame (all in linear light until the tone curve):
    true camera poses over that window are rendered as sub-frames and averaged in linear light, so the
    blur follows the real motion (translation, bobbing, rotation) rather than a fixed kernel. The
    number of sub-frames follows the expected blur length (``px_per_subframe`` px per sub-frame,
-   at most ``max_subframes``). With a rolling shutter the sensor is cut into row bands, each exposed
-   ``readout_s * row / height`` later than the first, and rendered with its own poses.
+   at most ``max_subframes``). With a rolling shutter the sensor reads one row every
+   ``readout_s / height`` seconds, top first (:func:`row_delay_s`); the image is cut into
+   ``bands`` row bands, each rendered with the poses at its middle row's time (96 bands of ~10 rows
+   at 972 rows: a row is at most 0.15 ms off its own time, 0.3 px of image motion at a brisk turn).
 3. **Optics.** Image-plane illuminance from the Lambertian floor: ``E_img = rho * E * T / (4 N^2)``
    (f-number ``N`` = 2.9 of the Pi camera v1 lens, transmission ``T``), times a natural vignetting
    ``cos^(4*v)`` of the field angle (``v`` < 1: the ISP's lens-shading correction undoes part of it),
@@ -44,7 +46,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import cv2
@@ -52,6 +54,7 @@ import numpy as np
 
 from tagloc.core.camera import Camera
 from tagloc.core.errors import InputError
+from tagloc.core.rig import row_delay_s
 from tagloc.core.sticker import sticker_pixel_to_metres
 from tagloc.sim.floor import Floor, sticker_size_px
 
@@ -88,6 +91,56 @@ class SensorConfig:
     noise: bool = True
 
 
+#: Sensor models by name (see :func:`sensor_preset`).
+SENSOR_PRESETS = ("standard", "ov5647")
+
+
+def sensor_preset(name: str) -> SensorConfig:
+    """The named sensor model.
+
+    ``standard``: the model tagloc's figures were measured with (:class:`SensorConfig` defaults).
+    ``ov5647``: the Raspberry Pi camera v1 from its datasheet-level figures (OmniVision OV5647:
+    1.4 um pixels, full well 4.3 ke-, 68 dB dynamic range), binned 2x2 as in the 1296x972 mode:
+
+    * full well 4 x 4300 = 17 200 e- (four pixels averaged in the analog domain hold four wells);
+    * read noise: 68 dB of dynamic range is a full well 2 500 times the noise floor, 1.7 e- per
+      pixel; four reads averaged add in quadrature, 2 x 1.7 = 3.4 e- in binned electrons;
+    * quantum efficiency for white light, averaged over the RGGB quad: a BSI pixel of that
+      generation peaks near 0.5; within each colour band silicon reaches about 0.85 of its peak;
+      each colour filter passes about a third of a white spectrum (the three bands split it, with
+      ~0.9 peak transmission), and the IR-cut filter 0.9 of the visible: 0.5 x 0.85 x 0.33 x 0.9 =
+      0.126. The ``standard`` model's 0.25 took 0.45 for the filters, 1 for the in-band response
+      and no IR-cut loss.
+
+    So the ``ov5647`` pixel gathers 0.126 / 0.25 = 0.50 of the electrons: at the same light the
+    auto exposure needs 2.0x the exposure (:func:`exposure_for_sensor`), and the blur grows with
+    it. A cross-check from the datasheet's photosensitivity (680 mV/lux-s without a lens), with
+    the full well spanning an assumed ~1 V swing (0.23 mV/e-): 2 900 e-/lux-s per native pixel at
+    the sensor face against the ``standard`` model's 4 900, a factor 1.7 (under the datasheet's
+    light source, not stated).
+    """
+    if name == "standard":
+        return SensorConfig()
+    if name == "ov5647":
+        return SensorConfig(quantum_efficiency=0.126, full_well_e=17200.0, read_noise_e=3.4)
+    raise InputError(f"unknown sensor preset {name!r} (want one of {', '.join(SENSOR_PRESETS)})")
+
+
+def exposure_for_sensor(exposure: ExposureConfig, sensor: SensorConfig) -> ExposureConfig:
+    """``exposure`` with its policy scaled to ``sensor``'s sensitivity relative to the ``standard`` one.
+
+    The motion-priority policy (``e0_lux_s``, ``max_exposure_s``) was set for the ``standard``
+    sensor; a sensor gathering ``k`` times fewer electrons per lux-second needs ``k`` times the
+    exposure for the same signal before gain, so both are scaled by ``k`` (capped at the frame
+    interval when rendering, as always). For the ``standard`` sensor this is ``exposure`` unchanged.
+    """
+    ref = SensorConfig()
+    k = (ref.quantum_efficiency * ref.pixel_pitch_m**2) / (sensor.quantum_efficiency * sensor.pixel_pitch_m**2)
+    if abs(k - 1.0) < 1e-12:
+        return exposure
+    return replace(exposure, e0_lux_s=exposure.e0_lux_s * k, max_exposure_s=exposure.max_exposure_s * k)
+
+
 @dataclass
 class ExposureConfig:
     """Auto-exposure policy and motion sampling.
@@ -111,7 +164,7 @@ class ExposureConfig:
     max_subframes: int = 16
     rolling_shutter: bool = False
     readout_s: float = 0.030
-    bands: int = 32
+    bands: int = 96
     max_range_m: float = 8.0
 
 
@@ -243,7 +296,7 @@ class Renderer:
             ax0, ay0 = max(0, math.floor(float(bx.min())) - 1), max(0, math.floor(float(by.min())) - 1)
             ax1 = min(self.canvas_size[0], math.ceil(float(bx.max())) + 2)
             ay1 = min(self.canvas_size[1], math.ceil(float(by.max())) + 2)
-            dt = self.exposure.readout_s * ((r0 + r1 - 1) / 2 / max(H - 1, 1) - 0.5) if n_bands > 1 else 0.0
+            dt = float(row_delay_s((r0 + r1 - 1) / 2, H, self.exposure.readout_s)) if n_bands > 1 else 0.0
             m1, m2 = cv2.convertMaps(np.ascontiguousarray(bx - ax0), np.ascontiguousarray(by - ay0), cv2.CV_16SC2)
             self._bands.append(_Band(slice(r0, r1), (ax0, ay0, ax1 - ax0, ay1 - ay0), m1, m2, dt))
         # Fixed per-pixel response: natural vignetting (field angle from the ideal ray) and PRNU.

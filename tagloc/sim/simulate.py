@@ -3,7 +3,7 @@
 :func:`simulate_session` writes the standard session layout (see :mod:`tagloc.io.session`) plus
 ``groundtruth_frames.jsonl``, one JSON object per frame::
 
-    {"index": 12, "t": 0.4, "T_world_body": 4x4, "T_world_camera": 4x4, "exposure_s": 0.003,
+    {"index": 12, "t": 0.4, "stamp": 0.4012, "T_world_body": 4x4, "T_world_camera": 4x4, "exposure_s": 0.003,
      "gain": 12.1, "blur_px": 3.4, "subframes": 4, "mean_signal_e": 95.2,
      "visible": [{"id": 4242, "in_map": true, "corners": [[u, v] x 4], "inner": [[u, v] x 4],
                   "inside": true, "distance_m": 1.52}, ...]}
@@ -14,7 +14,12 @@ time, vest motion included. ``corners``/``inner`` are the sticker's outer and in
 distorted pixels, canonical order (top-left first, clockwise on the sticker); ``inside`` says all
 eight are in the image. Stickers in the map but left off the floor never appear; stickers on the
 floor but not in the map appear with ``in_map: false``. Frame ``k`` is exposed around ``t = k / fps``
-(with a rolling shutter: the middle row; corners are then projected at their own rows' times).
+(with a rolling shutter: the middle row; corners are then projected at their own rows' times,
+:func:`tagloc.sim.render.row_delay_s`). ``stamp`` is the timestamp written to ``frames.csv``: ``t``
+plus the driver's jitter; dropped frames have no record, no image and no ``frames.csv`` line, and
+``groundtruth.tum`` holds the delivered frames at their true times ``t`` (see
+:mod:`tagloc.sim.timing`). With survey error (:mod:`tagloc.sim.survey`) the session's ``map.csv`` is
+the surveyed map and ``map_true.csv`` the stickers' true poses, which the frames show.
 
 :func:`render_view` renders one frame from a given camera pose (with an optional straight motion
 that makes a chosen blur length), for tests and benchmarks of the other stages.
@@ -35,10 +40,22 @@ from tagloc.core.errors import InputError
 from tagloc.core.geometry import make_T, planar_T
 from tagloc.core.rig import Rig, RigCamera, default_rig, load_rig, looking_forward
 from tagloc.core.sticker import INNER_CORNERS, OUTER_CORNERS
-from tagloc.core.stickermap import StickerMap, load_map
+from tagloc.core.stickermap import StickerMap, load_map, save_map
 from tagloc.io.session import GROUNDTRUTH_FILE, SessionInfo, SessionWriter, write_tum
 from tagloc.sim.floor import Floor, FloorConfig
-from tagloc.sim.render import ExposureConfig, OpticsConfig, Renderer, RenderResult, SensorConfig, exposure_time
+from tagloc.sim.render import (
+    ExposureConfig,
+    OpticsConfig,
+    Renderer,
+    RenderResult,
+    SensorConfig,
+    exposure_for_sensor,
+    exposure_time,
+    row_delay_s,
+    sensor_preset,
+)
+from tagloc.sim.survey import SurveyConfig, surveyed_map
+from tagloc.sim.timing import TimingConfig, frame_schedule
 from tagloc.sim.walk import Walk, WalkConfig, plan_walk
 
 # Bumped whenever the simulated physics change, so that sessions cached by ``tagloc eval`` are made
@@ -67,6 +84,12 @@ class SimConfig:
             Only its first camera is simulated.
         walk, floor, optics, sensor, exposure: detailed models; the fields above override their
             seconds/speed/seed, distractors/missing/unmapped and rolling_shutter.
+        sensor_preset: a named sensor model (:func:`tagloc.sim.render.sensor_preset`) instead of
+            ``sensor``; the auto exposure is scaled to its sensitivity
+            (:func:`tagloc.sim.render.exposure_for_sensor`).
+        timing: jittered timestamps and dropped frames (:mod:`tagloc.sim.timing`).
+        survey: survey error of the map written to the session (:mod:`tagloc.sim.survey`); the
+            floor keeps the true poses.
     """
 
     seconds: float = 20.0
@@ -89,12 +112,17 @@ class SimConfig:
     optics: OpticsConfig = field(default_factory=OpticsConfig)
     sensor: SensorConfig = field(default_factory=SensorConfig)
     exposure: ExposureConfig = field(default_factory=ExposureConfig)
+    sensor_preset: str | None = None
+    timing: TimingConfig = field(default_factory=TimingConfig)
+    survey: SurveyConfig = field(default_factory=SurveyConfig)
 
     def __post_init__(self) -> None:
         if not self.seconds > 0 or not self.fps > 0 or not self.lux > 0 or not self.speed_mps > 0:
             raise InputError("seconds, fps, lux and speed must be positive")
         if not 0 < self.scale <= 4:
             raise InputError(f"scale {self.scale} must be in (0, 4]")
+        if not self.exposure.readout_s >= 0:
+            raise InputError(f"rolling-shutter read-out {self.exposure.readout_s} s must be >= 0")
         if not 1 <= self.jpeg_quality <= 100:
             raise InputError(f"JPEG quality {self.jpeg_quality} is not in 1-100")
 
@@ -111,9 +139,13 @@ class SimConfig:
             unmapped=self.unmapped,
         )
 
+    def sensor_config(self) -> SensorConfig:
+        """The sensor model: the named preset if one is given, else ``sensor``."""
+        return sensor_preset(self.sensor_preset) if self.sensor_preset else self.sensor
+
     def exposure_config(self) -> ExposureConfig:
-        """The exposure model with this config's shutter type."""
-        return replace(self.exposure, rolling_shutter=self.rolling_shutter)
+        """The exposure model with this config's shutter type, scaled to the sensor's sensitivity."""
+        return exposure_for_sensor(replace(self.exposure, rolling_shutter=self.rolling_shutter), self.sensor_config())
 
     def build_rig(self) -> Rig:
         """The rig to simulate (first camera used), with the camera scaled by ``scale``."""
@@ -126,7 +158,9 @@ class SimConfig:
             rig = self.rig if isinstance(self.rig, Rig) else load_rig(self.rig, cam)
         rc = rig.cameras[0]
         camera = rc.camera.scaled(self.scale) if self.scale != 1 else rc.camera
-        return Rig([RigCamera(rc.name, camera, rc.T_body_camera.copy(), rc.calibration_file)])
+        # A rolling-shutter camera says so in the session's rig.json (its read-out), as a real one would.
+        readout = self.exposure.readout_s if self.rolling_shutter else 0.0
+        return Rig([RigCamera(rc.name, camera, rc.T_body_camera.copy(), rc.calibration_file, readout)])
 
     def to_json(self) -> dict:
         """Plain-data description for ``session.json`` (files by name; objects summarised)."""
@@ -201,7 +235,7 @@ def visible_stickers(floor: Floor, renderer: Renderer, pose_at, t: float, readou
             continue
         if readout_s > 0:
             for _ in range(2):
-                tc = t + readout_s * (np.clip(px[:, 1], 0, cam.height - 1) / max(cam.height - 1, 1) - 0.5)
+                tc = t + row_delay_s(np.clip(px[:, 1], 0, cam.height - 1), cam.height, readout_s)
                 poses = pose_at(tc)
                 new = [_project_corners(cam, T, p[None]) for T, p in zip(poses, pts)]
                 if any(n is None for n in new):
@@ -242,9 +276,13 @@ def simulate_session(
     walk = simulate_walk(smap, config)
     floor = Floor(smap, config.floor_config(), seed=config.seed)
     exp_cfg = config.exposure_config()
-    renderer = Renderer(floor, rc.camera, config.optics, config.sensor, exp_cfg, seed=config.seed)
-    n = int(math.floor(config.seconds * config.fps + 1e-9))
-    stamps = np.arange(n) / config.fps
+    renderer = Renderer(floor, rc.camera, config.optics, config.sensor_config(), exp_cfg, seed=config.seed)
+    n_all = int(math.floor(config.seconds * config.fps + 1e-9))
+    schedule = frame_schedule(n_all, config.fps, config.timing, config.seed)
+    n = len(schedule.index)
+    # Ground truth at the frames' true times; frames.csv gets the driver's jittered stamps.
+    stamps = schedule.true_t
+    given_map = surveyed_map(smap, config.survey, config.seed)
     out = Path(out_dir)
     unmapped = [int(i) for i in floor.stickers.ids[~floor.in_map]]
     sim_info = {
@@ -261,6 +299,8 @@ def simulate_session(
                 for k in np.flatnonzero(~floor.in_map)
             ],
             "groundtruth_frames": "groundtruth_frames.jsonl",
+            "dropped_frames": schedule.dropped,
+            "drop_bursts": schedule.bursts,
         }
     }
     info = SessionInfo(
@@ -277,11 +317,14 @@ def simulate_session(
 
     t_wall = time.perf_counter()
     stats = []
-    with SessionWriter(out, smap, rig, info, jpeg_quality=config.jpeg_quality) as writer:
+    with SessionWriter(out, given_map, rig, info, jpeg_quality=config.jpeg_quality) as writer:
+        if given_map is not smap:
+            save_map(smap, out / "map_true.csv")
         write_tum(out / GROUNDTRUTH_FILE, stamps, walk.T_world_body(stamps))
         with (out / "groundtruth_frames.jsonl").open("w", encoding="utf-8") as gt:
-            for k in tqdm(range(n), desc="simulate", unit="frame", disable=not progress):
-                t = float(stamps[k])
+            for j in tqdm(range(n), desc="simulate", unit="frame", disable=not progress):
+                k = int(schedule.index[j])
+                t = float(stamps[j])
                 res = renderer.render(
                     pose_at,
                     t,
@@ -289,10 +332,11 @@ def simulate_session(
                     np.random.default_rng([config.seed, 23, k]),
                     frame_interval_s=1.0 / config.fps,
                 )
-                writer.write(k, t, res.image)
+                writer.write(k, float(schedule.stamp[j]), res.image)
                 rec = {
                     "index": k,
                     "t": round(t, 6),
+                    "stamp": round(float(schedule.stamp[j]), 6),
                     "T_world_body": np.round(walk.T_world_body(t), 6).tolist(),
                     "T_world_camera": np.round(pose_at(np.array([t]))[0], 6).tolist(),
                     "exposure_s": round(res.exposure_s, 7),

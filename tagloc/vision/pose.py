@@ -9,10 +9,28 @@ the camera centre's (1.2 mm against 1.1 cm at 1.4 m, 0.3 px); the vest's tilt on
 what the tracker's floor covers.
 When the second IPPE solution explains the corners about as well as the first (within a chi-square
 margin of the corner noise), both are returned, best first, and the solution is flagged ambiguous.
+
+The map is a measurement too: a sticker surveyed ``e`` off in position moves the fix by ``e``, and
+one ``a`` off in yaw turns the whole fix about the sticker's centre, moving the body by ``a`` times
+its distance from the sticker (1.5 m and 1 degree: 2.6 cm) and its heading by ``a``. The fix's
+covariance adds that (:func:`map_covariance`), with the map's per-sticker ``sigma_m``/``sigma_deg``
+when stated and :class:`PoseConfig`'s defaults when not. A sticker's survey error is the same in
+every frame that sees it, so the fixes of one pass past it share it and must not average it away:
+:class:`SurveyPasses` scales the k-th fix's map part by k^2, which caps the information a pass
+draws from that one map pose at pi^2/6 times one fix's, however many frames see the sticker.
+
+A rolling-shutter camera (``RigCamera.readout_s`` > 0) exposes each row at its own time, so a
+moving camera sees each corner from a slightly different pose: the sticker is skewed and, lower
+in the image, seen later than the frame's time (the middle row's). Given the body's motion
+(``body_twist``: from the floor odometry's last step or the tracker's prediction), the solver
+first solves as usual, then moves each corner to where it would have been seen at the frame's
+time (:func:`rolling_shutter_shift`: the corner's point in the camera, moved back by the camera's
+velocity over its row's delay, projected) and solves again on the corrected corners.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -21,7 +39,7 @@ import numpy as np
 
 from tagloc.core.errors import InputError
 from tagloc.core.geometry import T_from_rvec_tvec, invert, planar_from_T, wrap_angle
-from tagloc.core.rig import RigCamera
+from tagloc.core.rig import RigCamera, row_delay_s
 from tagloc.core.sticker import ALL_CORNERS, OUTER_CORNERS, rotate_corners
 from tagloc.core.types import Detection, PoseFix
 
@@ -38,6 +56,12 @@ class PoseConfig:
         ambiguity_chi2: keep the second IPPE solution when its sum of squared residuals exceeds
             the best one's by less than this many sigma^2.
         max_reprojection_px: solutions with a larger RMS reprojection error are dropped.
+        map_sigma_m, map_sigma_yaw: survey standard deviation of a sticker's centre (per axis, m)
+            and yaw (rad) where the map does not state one. Stickers are stuck down by hand and
+            measured with tape or a laser: 1 cm and 1 degree, the better end of the 1-2 cm and 1-2
+            degrees such surveys achieve (a total-station survey states its own, smaller, sigmas in
+            the map). Too small a value makes a mis-surveyed sticker's fixes fail the gate pass
+            after pass; too large one only leans on odometry a little more.
     """
 
     use_inner: bool = True
@@ -45,6 +69,8 @@ class PoseConfig:
     sigma_4pt_px: float = 0.5
     ambiguity_chi2: float = 16.0
     max_reprojection_px: float = 5.0
+    map_sigma_m: float = 0.01
+    map_sigma_yaw: float = math.radians(1.0)
 
 
 @dataclass
@@ -80,38 +106,76 @@ def _body_jacobian(
     return J
 
 
-def solve_pose(
-    detection: Detection,
-    rotation: int,
-    T_world_sticker: np.ndarray,
-    rig_camera: RigCamera,
-    corner_sigma_px: float | None = None,
-    config: PoseConfig | None = None,
-) -> PoseSolution:
-    """Pose of the camera and the body from one sticker.
+def map_covariance(body: np.ndarray, sticker_xy: np.ndarray, sigma_m: float, sigma_yaw: float) -> np.ndarray:
+    """(3, 3) covariance of a fix's body (x, y, yaw) from its sticker's survey error.
 
-    Args:
-        detection: corners in distorted pixels (outer, optional inner), clockwise on screen.
-        rotation: r (0-3), the canonical top-left corner is ``detection.outer[r]``.
-        T_world_sticker: (4, 4) the sticker's pose in the world (from the map).
-        rig_camera: the camera that saw it (intrinsics and ``T_body_camera``).
-        corner_sigma_px: corner noise (px) if known (else the detection's own, if it states one);
-            else estimated from the 8-point residual
-            (floored at ``config.min_sigma_px``) or ``config.sigma_4pt_px`` with 4 points.
-    Returns:
-        :class:`PoseSolution` with PoseFix(T_world_camera, body (x, y, yaw), cov (3, 3), RMS px).
+    The fix is the sticker's map pose composed with the measured sticker-to-body transform, so an
+    error (dx, dy, da) of the map pose moves the body by (dx, dy) plus the turn ``da`` about the
+    sticker's centre: ``J = [[1, 0, -ry], [0, 1, rx], [0, 0, 1]]`` with ``r = body - sticker``
+    (m), and the covariance is ``J diag(sigma_m^2, sigma_m^2, sigma_yaw^2) J^T``.
     """
-    config = config or PoseConfig()
-    t0 = time.perf_counter()
-    if rotation not in (0, 1, 2, 3):
-        raise InputError(f"solve_pose: rotation {rotation!r} is not 0-3")
-    cam = rig_camera.camera
-    K, dist = cam.K, cam.dist
-    outer = rotate_corners(np.asarray(detection.outer, float), rotation)
-    use8 = config.use_inner and detection.inner is not None
-    img = rotate_corners(np.asarray(detection.points, float), rotation) if use8 else outer
-    obj = ALL_CORNERS if use8 else OUTER_CORNERS
+    rx, ry = float(body[0] - sticker_xy[0]), float(body[1] - sticker_xy[1])
+    J = np.array([[1.0, 0.0, -ry], [0.0, 1.0, rx], [0.0, 0.0, 1.0]])
+    return (J * np.array([sigma_m**2, sigma_m**2, sigma_yaw**2])) @ J.T
 
+
+class SurveyPasses:
+    """How often each sticker has given a fix in its current pass, for the map part of the covariance.
+
+    Consecutive fixes of one sticker carry one and the same survey error. Fused as independent,
+    n of them would claim to know the sticker's map pose n times better than the survey does,
+    and a mis-surveyed sticker would pull the track (and later stickers would be gated). The
+    k-th fix of a pass therefore carries its map covariance times k^2: the information about the
+    map pose summed over a pass is then at most sum 1/k^2 = pi^2/6 = 1.64 times one fix's, while
+    the corner-noise part (independent between frames) keeps its full weight. A pass ends when
+    the sticker has given no fix for ``gap_s`` seconds: the filter's own process noise has by then
+    spread its pose by more than the survey sigma (walking 1.3 m/s, over 1 s), so seeing the
+    sticker again is worth a fresh pass.
+    """
+
+    def __init__(self, gap_s: float = 1.0):
+        self.gap_s = gap_s
+        self._seen: dict[int, tuple[float, int]] = {}  # id -> (time of the last fix, fixes in the pass)
+
+    def scale(self, sticker_id: int, t: float) -> float:
+        """Factor on the map covariance of the fix of ``sticker_id`` at time ``t`` (s); counts that fix."""
+        last = self._seen.get(int(sticker_id))
+        k = last[1] + 1 if last is not None and 0.0 <= t - last[0] <= self.gap_s else 1
+        self._seen[int(sticker_id)] = (float(t), k)
+        if len(self._seen) > 256:  # forget stickers long out of view
+            self._seen = {i: v for i, v in self._seen.items() if t - v[0] <= self.gap_s}
+        return float(k * k)
+
+
+def camera_twist(rig_camera: RigCamera, body_twist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(v (3,), w (3,)): the camera's linear (m/s) and angular (rad/s) velocity in its own frame for
+    the body moving at ``body_twist`` = (vx, vy, yaw rate) in the body frame (m/s, m/s, rad/s)."""
+    vx, vy, w = (float(a) for a in np.asarray(body_twist, float).ravel()[:3])
+    R_bc, r = rig_camera.T_body_camera[:3, :3], rig_camera.T_body_camera[:3, 3]
+    v_body = np.array([vx - w * r[1], vy + w * r[0], 0.0])  # the camera's point of the body
+    return R_bc.T @ v_body, R_bc.T @ np.array([0.0, 0.0, w])
+
+
+def rolling_shutter_shift(
+    points_camera: np.ndarray, observed_px: np.ndarray, rig_camera: RigCamera, body_twist: np.ndarray
+) -> np.ndarray:
+    """(N, 2) pixel shifts that move corners seen at their own rows' times to the frame's time.
+
+    ``points_camera`` (N, 3): the corners' points in the camera frame at the frame's time (from a
+    first solve); ``observed_px`` (N, 2): where they were seen (their rows give their delays).
+    A static point moves in the camera frame as dX/dt = -(v + w x X); over a row's delay ``d``
+    (a few ms) that is first order: X(d) = X - d (v + w x X).
+    """
+    cam = rig_camera.camera
+    X = np.asarray(points_camera, float)
+    d = row_delay_s(np.asarray(observed_px, float)[:, 1], cam.height, rig_camera.readout_s)
+    v, w = camera_twist(rig_camera, body_twist)
+    X_seen = X - d[:, None] * (v + np.cross(w, X))
+    return cam.project(X) - cam.project(X_seen)
+
+
+def _ippe_solutions(outer: np.ndarray, img: np.ndarray, obj: np.ndarray, use8: bool, K: np.ndarray, dist: np.ndarray):
+    """Distinct IPPE solutions refined on all points, best first: (SSR px^2, rvec, tvec, J (2N, 6))."""
     n_sol, rvecs, tvecs, _ = cv2.solvePnPGeneric(
         OUTER_CORNERS, outer.reshape(-1, 1, 2), K, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE
     )
@@ -131,6 +195,59 @@ def solve_pose(
     for c in cands:
         if all(np.linalg.norm(c[1] - u[1]) > 1e-4 or np.linalg.norm(c[2] - u[2]) > 1e-6 for u in uniq):
             uniq.append(c)
+    return uniq
+
+
+def solve_pose(
+    detection: Detection,
+    rotation: int,
+    T_world_sticker: np.ndarray,
+    rig_camera: RigCamera,
+    corner_sigma_px: float | None = None,
+    config: PoseConfig | None = None,
+    map_sigma: tuple[float, float] | None = None,
+    map_scale: float = 1.0,
+    body_twist: np.ndarray | None = None,
+) -> PoseSolution:
+    """Pose of the camera and the body from one sticker.
+
+    Args:
+        detection: corners in distorted pixels (outer, optional inner), clockwise on screen.
+        rotation: r (0-3), the canonical top-left corner is ``detection.outer[r]``.
+        T_world_sticker: (4, 4) the sticker's pose in the world (from the map).
+        rig_camera: the camera that saw it (intrinsics and ``T_body_camera``).
+        corner_sigma_px: corner noise (px) if known (else the detection's own, if it states one);
+            else estimated from the 8-point residual
+            (floored at ``config.min_sigma_px``) or ``config.sigma_4pt_px`` with 4 points.
+        map_sigma: the sticker's survey (sigma per axis m, sigma yaw rad) from the map, NaN where
+            the map states none (then ``config.map_sigma_m`` / ``config.map_sigma_yaw``); None:
+            ``T_world_sticker`` is exact (no map part). ``map_scale`` multiplies
+            that part of the covariance (see :class:`SurveyPasses`).
+        body_twist: the body's motion (vx, vy, yaw rate) in the body frame (m/s, m/s, rad/s), for
+            a rolling-shutter camera (``rig_camera.readout_s`` > 0): the corners are moved to the
+            frame's time before the final solve (see the module docstring). None: no correction.
+    Returns:
+        :class:`PoseSolution` with PoseFix(T_world_camera, body (x, y, yaw), cov (3, 3), RMS px);
+        ``cov`` has the corner noise and the map's survey error (:func:`map_covariance`).
+    """
+    config = config or PoseConfig()
+    t0 = time.perf_counter()
+    if rotation not in (0, 1, 2, 3):
+        raise InputError(f"solve_pose: rotation {rotation!r} is not 0-3")
+    cam = rig_camera.camera
+    K, dist = cam.K, cam.dist
+    outer = rotate_corners(np.asarray(detection.outer, float), rotation)
+    use8 = config.use_inner and detection.inner is not None
+    img = rotate_corners(np.asarray(detection.points, float), rotation) if use8 else outer
+    obj = ALL_CORNERS if use8 else OUTER_CORNERS
+
+    uniq = _ippe_solutions(outer, img, obj, use8, K, dist)
+    if uniq and body_twist is not None and rig_camera.readout_s > 0:
+        R = cv2.Rodrigues(uniq[0][1])[0]
+        shift = rolling_shutter_shift(obj @ R.T + uniq[0][2].ravel(), img, rig_camera, body_twist)
+        img = img + shift
+        outer = img[:4]
+        uniq = _ippe_solutions(outer, img, obj, use8, K, dist)
     if not uniq:
         return PoseSolution([], False, (time.perf_counter() - t0) * 1e3)
 
@@ -148,6 +265,9 @@ def solve_pose(
     if len(uniq) > 1 and uniq[1][0] - uniq[0][0] < config.ambiguity_chi2 * sigma**2:
         keep.append(uniq[1])
 
+    sig_m, sig_yaw = map_sigma if map_sigma is not None else (0.0, 0.0)
+    sig_m = config.map_sigma_m if not math.isfinite(sig_m) else float(sig_m)
+    sig_yaw = config.map_sigma_yaw if not math.isfinite(sig_yaw) else float(sig_yaw)
     T_camera_body = invert(rig_camera.T_body_camera)
     poses = []
     for ssr, rvec, tvec, J in keep:
@@ -160,5 +280,7 @@ def solve_pose(
         cov = (cov + cov.T) / 2
         T_world_camera = T_world_sticker @ invert(T_from_rvec_tvec(rvec, tvec))
         body = np.array(planar_from_T(T_world_camera @ T_camera_body))
+        if sig_m > 0 or sig_yaw > 0:
+            cov = cov + map_scale * map_covariance(body, T_world_sticker[:2, 3], sig_m, sig_yaw)
         poses.append(PoseFix(T_world_camera, body, cov, rms))
     return PoseSolution(poses, len(poses) > 1, (time.perf_counter() - t0) * 1e3, sigma)

@@ -1,0 +1,110 @@
+"""Part B of issue 14 measured: tagloc on seeded walks with one field condition at a time.
+
+Run: ``python benchmarks/field_sensor.py [--seeds 3] [--seconds 15] [--conditions clean,survey,...]
+[--variants default,...] [-o out/field_sensor]``. Each seed makes one eval-like walk (24 x 14 m
+grid map, 1.5 m spacing, 150 lux, 1.3 m/s, pitch 55 deg) per condition; sessions are cached in the
+output directory. Each (condition, variant) row pools the seeds: horizontal RMSE, heading RMSE,
+share of frames within 10 cm (frames without a pose count as misses), mean position NEES,
+accepted and gated fixes. Variants switch the localiser's part-B handling off for comparison.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from tagloc.eval.metrics import trajectory_errors
+from tagloc.io.session import SessionReader
+from tagloc.pipeline.localiser import LocaliserConfig
+from tagloc.pipeline.run import run_session
+from tagloc.sim.mapgen import GridMapConfig, grid_map
+from tagloc.sim.simulate import SIM_REVISION, SimConfig, simulate_session
+from tagloc.sim.survey import FIELD_SURVEY
+from tagloc.sim.timing import FIELD_TIMING
+
+CONDITIONS = {
+    "clean": {},
+    "rolling": {"rolling_shutter": True},
+    "timing": {"timing": FIELD_TIMING},
+    "survey": {"survey": FIELD_SURVEY},
+    "dim": {"sensor_preset": "ov5647"},
+}
+
+
+def variants() -> dict[str, LocaliserConfig]:
+    """Localiser configurations to compare (default: everything on)."""
+    from tagloc.vision.pose import PoseConfig
+
+    base = LocaliserConfig()
+    out = {"default": base}
+    out["no-map-sigma"] = replace(base, pose=PoseConfig(map_sigma_m=0.0, map_sigma_yaw=0.0))
+    for cm, deg in ((1.0, 1.0), (1.0, 1.5), (1.5, 1.5), (1.5, 2.0), (1.0, 3.0)):
+        out[f"map-sigma-{cm:g}cm-{deg:g}deg"] = replace(
+            base, pose=PoseConfig(map_sigma_m=cm / 100, map_sigma_yaw=math.radians(deg))
+        )
+    if "rolling_shutter" in {f.name for f in base.__dataclass_fields__.values()}:
+        out["no-rs-correction"] = replace(base, rolling_shutter=False)
+    return out
+
+
+def make(path: Path, seed: int, seconds: float, condition: str) -> Path:
+    cfg = SimConfig(seconds=seconds, lux=150.0, speed_mps=1.3, seed=seed, pitch_deg=55.0, **CONDITIONS[condition])
+    stamp = {"sim": SIM_REVISION, "config": cfg.to_json()}
+    meta = path / "made.json"
+    if meta.exists() and json.loads(meta.read_text()) == json.loads(json.dumps(stamp)):
+        return path
+    smap = grid_map(GridMapConfig(width_m=24.0, depth_m=14.0, spacing_min_m=1.4, spacing_max_m=1.6, seed=seed))
+    simulate_session(smap, path, cfg, progress=False)
+    meta.write_text(json.dumps(stamp))
+    return path
+
+
+def main() -> None:
+    import cv2
+
+    cv2.setNumThreads(1)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--seconds", type=float, default=15.0)
+    ap.add_argument("--conditions", default=",".join(CONDITIONS))
+    ap.add_argument("--variants", default="default")
+    ap.add_argument("-o", "--out", type=Path, default=Path("out/field_sensor"))
+    args = ap.parse_args()
+    vs = variants()
+    print(
+        f"{'condition':10s} {'variant':18s} {'RMSE cm':>8s} {'worst cm':>8s} {'head deg':>8s} {'<10cm':>6s}"
+        f" {'NEES':>6s} {'fixes':>6s} {'gated':>6s}"
+    )
+    for cond in args.conditions.split(","):
+        paths = [make(args.out / f"{cond}-{s}", 100 + s, args.seconds, cond) for s in range(args.seeds)]
+        for vname in args.variants.split(","):
+            sq, yaw2, n, within, nees, fixes, gated, worst = 0.0, 0.0, 0, 0, [], 0, 0, 0.0
+            for p in paths:
+                session = SessionReader(p)
+                log = run_session(session, vs[vname])
+                v = log.valid
+                e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *session.groundtruth())
+                n += len(log.stamps)
+                sq += float(np.sum(e.position**2))
+                yaw2 += float(np.sum(e.yaw**2))
+                within += int(np.sum(e.position <= 0.10))
+                nees.append(e.nees)
+                fixes += len(log.fixes)
+                gated += sum(1 for r in log.rejected if (r["reason"] or "").startswith("gated"))
+                worst = max(worst, math.sqrt(float(np.mean(e.position**2))))
+            m = max(sum(len(x) for x in nees), 1)
+            print(
+                f"{cond:10s} {vname:18s} {100 * math.sqrt(sq / m):8.2f} {100 * worst:8.2f}"
+                f" {math.degrees(math.sqrt(yaw2 / m)):8.2f} {100 * within / max(n, 1):5.1f}%"
+                f" {float(np.mean(np.concatenate(nees))):6.2f} {fixes:6d} {gated:6d}",
+                flush=True,
+            )
+
+
+if __name__ == "__main__":
+    main()
