@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -143,9 +143,20 @@ class RigFit:
     warnings: list[str] = field(default_factory=list)
 
 
+#: Rolling shutter: corrected solves after the first (measured on a rendered 8 s walk with 30 ms
+#: read-out: mean pitch error 2.6 degrees uncorrected, 0.26 / 0.10 / 0.02 after 1 / 2 / 3 passes;
+#: roll and yaw 2.7-2.8 uncorrected, within 0.16 after 3).
+RS_ITERATIONS = 3
+
+
 def camera_fixes(session: SessionReader, rig_camera: RigCamera, cfg: RigFitConfig, progress: bool = True) -> list:
-    """Decoded, unambiguous camera poses of ``cfg.camera`` over the session, in time order."""
-    out = []
+    """Decoded, unambiguous camera poses of ``cfg.camera`` over the session, in time order.
+
+    With a rolling-shutter camera (``rig_camera.readout_s`` > 0) each pose is solved again with
+    the rows moved to the frame's time (``solve_pose(body_twist=...)``), the motion taken from the
+    first pass's neighbouring fixes (:func:`_twists`).
+    """
+    seen = []
     frames = session.frames()
     for k, frame in enumerate(tqdm(frames, total=len(session), desc="rig fit", unit="frame", disable=not progress)):
         if k % cfg.step or frame.image is None or frame.camera != cfg.camera:
@@ -155,9 +166,45 @@ def camera_fixes(session: SessionReader, rig_camera: RigCamera, cfg: RigFitConfi
             res = decode(frame.image, det, cam, backend=cfg.decoder)
             if res.sticker_id is None or res.sticker_id not in session.map:
                 continue
-            sol = solve_pose(det, res.rotation, session.map.T_world_sticker(res.sticker_id), rig_camera)
+            T_ws = session.map.T_world_sticker(res.sticker_id)
+            sol = solve_pose(det, res.rotation, T_ws, rig_camera)
             if sol.poses and not sol.ambiguous:
-                out.append(CameraFix(frame.timestamp, int(res.sticker_id), sol.poses[0].T_world_camera))
+                fix = CameraFix(frame.timestamp, int(res.sticker_id), sol.poses[0].T_world_camera)
+                seen.append((fix, det, res.rotation, T_ws))
+    if rig_camera.readout_s <= 0 or not seen:
+        return [f for f, *_ in seen]
+    fixes = [f for f, *_ in seen]
+    for _ in range(RS_ITERATIONS):
+        # Each pass takes the motion from the previous pass's (better) poses.
+        twists = _twists(fixes, rig_camera.T_body_camera)
+        fixes = []
+        for (fix, det, rotation, T_ws), twist in zip(seen, twists):
+            sol = solve_pose(det, rotation, T_ws, rig_camera, body_twist=twist)
+            pose = sol.poses[0].T_world_camera if sol.poses else fix.T_world_camera
+            fixes.append(CameraFix(fix.t, fix.sticker_id, pose))
+    return fixes
+
+
+def _twists(fixes: list[CameraFix], T_body_camera: np.ndarray, window_s: float = 0.4) -> list[np.ndarray | None]:
+    """Body motion (vx, vy, yaw rate) at each fix from the camera poses within ``window_s``: line
+    fits of position and heading against time, turned into the body frame with the prior mount's
+    yaw (a few degrees of error in it change the correction by a few per cent). None where the
+    neighbours span too little time to tell."""
+    t = np.array([f.t for f in fixes])
+    xy = np.array([f.T_world_camera[:2, 3] for f in fixes])
+    heading = np.unwrap(np.radians([mount_angles(f.T_world_camera)[3] for f in fixes]))
+    mount_yaw = math.radians(mount_angles(T_body_camera)[3])
+    out: list[np.ndarray | None] = []
+    for i in range(len(fixes)):
+        near = np.flatnonzero(np.abs(t - t[i]) <= window_s)
+        if np.ptp(t[near]) < 0.1:
+            out.append(None)
+            continue
+        v = np.polyfit(t[near], xy[near], 1)[0]
+        rate = float(np.polyfit(t[near], heading[near], 1)[0])
+        yaw = heading[i] - mount_yaw
+        c, sn = math.cos(yaw), math.sin(yaw)
+        out.append(np.array([c * v[0] + sn * v[1], -sn * v[0] + c * v[1], rate]))
     return out
 
 
@@ -342,7 +389,7 @@ def fit_rig(
     rc = rig[cfg.camera]
     fit = fit_rig_fixes(camera_fixes(session, rc, cfg, progress), rc.T_body_camera, cfg)
     cams = list(rig.cameras)
-    cams[cfg.camera] = RigCamera(rc.name, rc.camera, fit.T_body_camera, rc.calibration_file)
+    cams[cfg.camera] = replace(rc, T_body_camera=fit.T_body_camera)  # read-out and the rest unchanged
     # The calibration is written next to the rig only when absent: never overwrite the user's file.
     save_rig(Rig(cams), out, write_calibrations=False)
     for c in cams:
