@@ -261,7 +261,7 @@ class _LiveRun:
             frame = item.frame
             if writer is not None:
                 # Before processing: a crash inside the localiser must still leave this frame recorded.
-                writer.write(frame.index, frame.timestamp, frame.image)
+                writer.write(frame.index, frame.timestamp, frame.image, frame.camera)
             result = self.localiser.process(frame)
             self.latencies.append(outputs.emit(result, frame, grabbed=item.grabbed))
             self.frames += 1

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
+import numpy as np
 
 from tagloc.core.types import Frame, FrameResult
 from tagloc.eval.metrics import trajectory_metrics
@@ -147,6 +148,8 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
 
 def _reload(session: SessionReader, res: FrameResult) -> Frame:
     """The frame's image again, for Rerun (run_session hands over results, not images)."""
-    p = session.frame_path(res.index)
+    hit = np.flatnonzero(session.index == res.index)
+    camera = int(session.cameras[hit[0]]) if len(hit) else 0
+    p = session.frame_path(res.index, camera)
     img = None if p is None or res.skipped else cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
-    return Frame(res.index, res.timestamp, img)
+    return Frame(res.index, res.timestamp, img, camera)
