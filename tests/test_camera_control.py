@@ -226,3 +226,51 @@ def test_live_records_the_camera_settings_and_driver_stamps(tmp_path, v4l2, caps
     assert info["camera"]["exposure_ms"] == pytest.approx(3.0) and info["camera"]["requested"]["exposure_ms"] == 3.0
     rec = SessionReader(tmp_path / "rec")
     assert np.all(np.diff(rec.timestamps) > 0.03)  # the driver's 33 ms intervals, not grab times
+
+
+class Stamped(capture.FrameSource):
+    """A file-like source with given timestamps (one grey level per frame)."""
+
+    def __init__(self, stamps, level0=0):
+        self.stamps, self.k, self.level0 = list(stamps), 0, level0
+        self.fps = 10.0
+
+    def read(self):
+        if self.k >= len(self.stamps):
+            return None
+        f = Frame(self.k, self.stamps[self.k], np.full((H, W), self.level0 + self.k, np.uint8))
+        self.k += 1
+        return f
+
+
+def test_multi_capture_merges_cameras_in_time_order():
+    front = Stamped([0.0, 0.1, 0.2, 0.3])
+    rear = Stamped([0.05, 0.15, 0.1, 0.35], level0=100)  # its third frame is out of order: late
+    cap = capture.MultiCapture([front, rear], buffer=8, pace=False).start()
+    got = []
+    while (item := cap.get(timeout=5.0)) is not None:
+        got.append(item.frame)
+    t = [f.timestamp for f in got]
+    assert t == [0.0, 0.05, 0.1, 0.15, 0.2, 0.3, 0.35] and [f.index for f in got] == list(range(7))
+    assert [f.camera for f in got] == [0, 1, 0, 1, 0, 0, 1]
+    assert cap.late == [0, 1] and cap.stats.dropped == 1 and cap.stats.grabbed == 8 and cap.finished
+    assert cap.per_camera()[1]["late"] == 1
+    cap.stop()
+
+
+def test_live_with_two_cameras_records_both(tmp_path):
+    from tagloc.eval.multicam import front_rear_rig
+
+    a = make_session(tmp_path / "a", 6, 10.0)
+    b = make_session(tmp_path / "b", 6, 7.0)  # its own clock: frames between the other camera's
+    loc = Echo(a)
+    loc.rig = front_rear_rig()
+    cfg = LiveConfig(source=str(a), more_cameras=[str(b)], record=tmp_path / "rec", pace=False, buffer=16)
+    summary = run_live(cfg, localiser=loc)
+    assert len(summary.per_camera) == 2 and summary.per_camera[1]["grabbed"] == 6
+    assert summary.frames == 11  # 12 frames, the second camera's first is as old as the first's: late
+    assert "camera 1: grabbed 6" in summary.format()
+    rec = SessionReader(tmp_path / "rec")
+    assert set(rec.cameras) == {0, 1} and np.all(np.diff(rec.timestamps) > 0)
+    with pytest.raises(InputError, match="rig has 2"):
+        run_live(LiveConfig(source=str(a), more_cameras=[str(b), str(b)]), localiser=loc)

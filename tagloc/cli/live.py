@@ -19,6 +19,7 @@ Camera control (a camera index through V4L2, or picam[:N] through picamera2 on a
 
 examples:
   tagloc live --camera 0 --config site/ --publish udp://10.0.0.5:9000 --vest v07
+  tagloc live --camera 0 --camera 2 --rig front_rear/rig.json --map map.csv --publish stdout
   tagloc live --camera picam --exposure-ms 2 --gain 8 --fps 30 --resolution 1296x972 --config site/ --record rec/
   tagloc live --camera walk.avi --map map.csv --calibration cam.yaml --rig rig.json \\
       --publish stdout --publish mqtt://broker:1883/tagloc/v07/pose --record rec/ --rerun-save live.rrd"""
@@ -28,8 +29,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--camera",
         required=True,
+        action="append",
         metavar="SRC",
-        help="camera index (0), picam[:N], video file, stream URL or session directory",
+        help="camera index (0), picam[:N], video file, stream URL or session directory; "
+        "repeat for rig cameras 1, 2, ... (one capture thread each)",
     )
     p.add_argument("--config", type=Path, metavar="DIR", help="directory with camera.yaml, rig.json, map.csv")
     p.add_argument("--map", type=Path, help="sticker map CSV (overrides --config's)")
@@ -79,7 +82,8 @@ def run(args: argparse.Namespace) -> int:
 
     summary = run_live(
         LiveConfig(
-            source=args.camera,
+            source=args.camera[0],
+            more_cameras=args.camera[1:],
             config_dir=args.config,
             map=args.map,
             calibration=args.calibration,

@@ -497,3 +497,107 @@ class CaptureThread:
         if self._thread.ident is not None:  # started
             self._thread.join(timeout=5.0)
         self.source.close()
+
+
+class MultiCapture:
+    """Several cameras, one capture thread each, merged into one stream in timestamp order.
+
+    Each frame is tagged with its camera's position in ``sources`` (its rig camera) and renumbered
+    in delivery order (indices unique over all cameras, as a session needs). ``get`` waits
+    until every running camera has a frame buffered, or ``merge_wait_s`` has passed, then hands
+    over the oldest; a frame older than one already handed over (a camera that lagged past the
+    wait) would make the tracker go back in time, so it is dropped and counted as late.
+    Presents the interface of :class:`CaptureThread` that the live loop uses.
+    """
+
+    def __init__(
+        self, sources: list[FrameSource], buffer: int = 1, pace: bool = True, merge_wait_s: float | None = None
+    ):
+        if len(sources) < 2:
+            raise InputError("MultiCapture needs at least two sources")
+        self.threads = [CaptureThread(s, buffer=buffer, pace=pace) for s in sources]
+        self.source = sources[0]
+        self.drop_oldest = any(t.drop_oldest for t in self.threads)
+        fps = max(s.fps for s in sources) or 30.0
+        # Cameras: one frame period, long enough for the other camera's frame of the same instant to
+        # arrive. Files and sessions always deliver their next frame: wait for it (exact order).
+        live = any(s.live for s in sources)
+        default_wait = 1.0 / fps if live else math.inf
+        self.merge_wait_s = merge_wait_s if merge_wait_s is not None else default_wait
+        self.late = [0] * len(sources)
+        self._pending: list[CapturedFrame | None] = [None] * len(sources)
+        self._last_t = -math.inf
+        self._next_index = 0
+
+    def start(self) -> MultiCapture:
+        for t in self.threads:
+            t.start()
+        return self
+
+    def _fill(self) -> None:
+        for c, t in enumerate(self.threads):
+            if self._pending[c] is None and not t.finished:
+                item = t.get(timeout=0.0)
+                if item is not None:
+                    item.frame.camera = c
+                    self._pending[c] = item
+
+    def get(self, timeout: float | None = None) -> CapturedFrame | None:
+        """The oldest frame over all cameras; None when all have ended (or on ``timeout``, s)."""
+        start = time.monotonic()
+        while True:
+            self._fill()
+            waiting = [c for c, t in enumerate(self.threads) if self._pending[c] is None and not t.finished]
+            ready = [c for c in range(len(self.threads)) if self._pending[c] is not None]
+            waited = time.monotonic() - start
+            if ready and (not waiting or waited >= self.merge_wait_s):
+                c = min(ready, key=lambda k: self._pending[k].frame.timestamp)
+                item, self._pending[c] = self._pending[c], None
+                if item.frame.timestamp <= self._last_t:
+                    self.late[c] += 1
+                    continue
+                self._last_t = item.frame.timestamp
+                # One index over all cameras, in delivery order: a recording needs unique indices.
+                item.frame.index = self._next_index
+                self._next_index += 1
+                return item
+            if not ready and not waiting:
+                for t in self.threads:
+                    if t.error is not None:
+                        raise t.error
+                return None
+            if timeout is not None and waited >= timeout:
+                return None
+            time.sleep(0.001)
+
+    @property
+    def finished(self) -> bool:
+        """True once every camera has ended and nothing is left to hand over."""
+        return all(t.finished for t in self.threads) and all(p is None for p in self._pending)
+
+    @property
+    def stats(self) -> CaptureStats:
+        """All cameras' counters summed; late frames count as dropped."""
+        s = CaptureStats()
+        for t, late in zip(self.threads, self.late):
+            s.grabbed += t.stats.grabbed
+            s.delivered += t.stats.delivered - late
+            s.dropped += t.stats.dropped + late
+            s.skipped += t.stats.skipped
+        s.ended = "; ".join(f"camera {c}: {t.stats.ended or 'running'}" for c, t in enumerate(self.threads))
+        return s
+
+    def per_camera(self) -> list[dict]:
+        """Each camera's counters (dropped: processing behind; late: out of time order)."""
+        return [
+            {"grabbed": t.stats.grabbed, "dropped": t.stats.dropped, "late": late, "skipped": t.stats.skipped}
+            for t, late in zip(self.threads, self.late)
+        ]
+
+    def join(self, timeout: float | None = None) -> None:
+        for t in self.threads:
+            t.join(timeout)
+
+    def stop(self) -> None:
+        for t in self.threads:
+            t.stop()
