@@ -113,3 +113,17 @@ def test_cli(image_dir, tmp_path, capsys):
     assert "not a folder, video file or camera index" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["calibrate", "board", "-o", str(tmp_path / "b.pdf"), "--squares", "5"])
+
+
+def test_video_source_is_read_with_a_step(tmp_path):
+    from tagloc.apps.calibrate import SourceConfig, _frames
+
+    path = tmp_path / "board.avi"
+    out = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (640, 480), False)
+    for i, T in enumerate(board_poses(CAM, 6, seed=2)):
+        out.write(render_board_view(CAM, T, rng=np.random.default_rng(i)))
+    out.release()
+    got = list(_frames(str(path), SourceConfig(step=2)))
+    assert [i for i, _, _ in got] == [0, 2, 4]
+    assert all(img is not None and img.shape[:2] == (480, 640) for _, img, _ in got)
+    assert BoardDetector().detect(got[0][1]) is not None
