@@ -233,9 +233,12 @@ def test_localiser_with_odometry_follows_the_stop(stop_walk):
     m_off, _, _ = results[False]
     m_on, states, counts = results[True]
     assert counts["tracker_odometry_accepted"] > 100
-    assert m_on["rmse_m"] < 0.08
-    assert m_on["rmse_m"] < 0.7 * m_off["rmse_m"]
-    assert m_on["p95_m"] < m_off["p95_m"]
+    assert m_on["rmse_m"] < 0.03
+    # Stickers pass every second here and each fix measures the vest point itself (1.7 cm RMSE
+    # without odometry), so odometry has little to add between them: it must not spoil them, even
+    # through the braking's lean (which its fixed homography sees as floor motion).
+    assert m_on["rmse_m"] < 1.25 * m_off["rmse_m"]
+    assert m_on["max_m"] < 1.25 * m_off["max_m"]
     assert 0.3 < m_on["nees_mean"] < 6.0
     first = next(i for i, s in enumerate(states) if s is not TrackState.INITIALISING)
     assert np.mean([s is TrackState.TRACKING for s in states[first:]]) > 0.95

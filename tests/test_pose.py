@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from tagloc.core.camera import default_camera
@@ -147,14 +148,19 @@ def test_covariance_is_honest(estimated):
 
 
 def test_covariance_grows_with_distance():
+    """The vest point is the camera's mount, so its (x, y) is as certain as the camera centre: best
+    at middle distances (a sticker nearly under the camera trades its tilt for its position), then
+    growing with distance; the heading's variance grows with distance throughout."""
     rng = np.random.default_rng(4)
     rc = rig_camera()
-    traces = []
-    for dist in (1.4, 2.4):
+    traces, yaws = [], []
+    for dist in (1.8, 3.5):
         body, sticker = scene(rng, rc, dist)
         sol = solve_pose(corners(rc, body, sticker, 0, 0.0, rng), 0, sticker, rc, corner_sigma_px=0.3)
         traces.append(np.trace(sol.poses[0].cov[:2, :2]))
+        yaws.append(sol.poses[0].cov[2, 2])
     assert traces[1] > 2 * traces[0]
+    assert yaws[1] > 2 * yaws[0]
 
 
 def test_head_on_is_ambiguous_oblique_is_not():
@@ -200,3 +206,34 @@ def test_detection_states_its_own_corner_noise():
     assert sol.sigma_px == 2.0
     assert np.allclose(sol.poses[0].cov, base * (2.0 / PoseConfig().sigma_4pt_px) ** 2, rtol=1e-6)
     assert solve_pose(coarse, 0, sticker, rc, corner_sigma_px=0.5).sigma_px == 0.5
+
+
+@pytest.mark.parametrize("x_m", [0.0, 0.15])
+def test_tilted_torso_reports_the_vest_point_projected_vertically(x_m):
+    """A torso leaning 8 deg (roll) and 5 deg (pitch) about its vest point: the fix's (x, y) is the
+    vest point's vertical projection and its yaw the heading of the body's +x axis; the old
+    definition (the body origin carried through the tilt) was 1.3 m sin(tilt) off."""
+    rng = np.random.default_rng(21)
+    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0, x_m=x_m))
+    vest = rc.vest_point
+    assert np.allclose(vest, [0.0, 0.0, 1.3])
+    upright, sticker = scene(rng, rc, 1.6, 0.1)
+    tilt = np.eye(4)
+    tilt[:3, :3] = Rotation.from_euler("xyz", [math.radians(8.0), math.radians(5.0), 0.0]).as_matrix()
+    # Rotate the torso about the vest point: T_world_body = upright @ T(vest) @ tilt @ T(-vest).
+    to_vest, back = np.eye(4), np.eye(4)
+    to_vest[:3, 3], back[:3, 3] = vest, -vest
+    T_world_body = upright @ to_vest @ tilt @ back
+    sol = solve_pose(corners(rc, T_world_body, sticker, 0, 0.0, rng), 0, sticker, rc)
+    fix = sol.poses[0]
+    p_vest = T_world_body[:3, :3] @ vest + T_world_body[:3, 3]
+    heading = math.atan2(T_world_body[1, 0], T_world_body[0, 0])
+    assert np.allclose(fix.body[:2], p_vest[:2], atol=1e-6)
+    assert abs(wrap_angle(fix.body[2] - heading)) < 1e-6
+    # The vest point did not move under the tilt: the upright pose's (x, y).
+    assert np.allclose(fix.body[:2], upright[:2, 3], atol=1e-6)
+    old = planar_from_T(T_world_body)
+    assert np.hypot(old[0] - fix.body[0], old[1] - fix.body[1]) > 0.1
+    # Its covariance is the camera centre's (about a centimetre at 1.6 m), not the floor point's.
+    sigma = np.sqrt(np.linalg.eigvalsh(fix.cov[:2, :2]))
+    assert 0.001 < sigma.max() < 0.05

@@ -173,7 +173,7 @@ def test_walk_speed_stops_turns_and_smoothness(long_walk):
     d = np.minimum(np.min(np.abs(p[:, :1] - [0.0, 3.0, 6.0]), axis=1), np.min(np.abs(p[:, 1:] - [0.0, 12.0]), axis=1))
     assert np.percentile(d, 90) < 0.45
     # Ground truth body frame is on the floor, upright.
-    T = walk.T_world_body(t[::100])
+    T = walk.T_world_body(t[::100], np.array([0.0, 0.0, 1.3]))
     assert np.allclose(T[:, 2, 3], 0.0) and np.allclose(T[:, 2, 2], 1.0)
 
 
@@ -201,7 +201,7 @@ def test_walk_vest_bobbing_at_step_frequency():
     amplitude = math.sqrt(2) * z.std()
     assert 0.02 <= amplitude <= 0.03
     # Lateral sway (in the body frame) at half the step frequency.
-    lateral = np.einsum("ni,ni->n", Tc[:, :3, 3] - walk.T_world_body(t)[:, :3, 3], walk.T_world_body(t)[:, :3, 1])
+    lateral = np.einsum("ni,ni->n", Tc[:, :3, 3] - walk.T_world_path(t)[:, :3, 3], walk.T_world_path(t)[:, :3, 1])
     spec = np.abs(np.fft.rfft((lateral - lateral.mean()) * np.hanning(len(t))))
     assert 0.8 < freqs[np.argmax(spec)] < 1.1
     # Pitch jitter of the camera relative to the rig's nominal pitch: about a degree.
@@ -212,15 +212,13 @@ def test_walk_vest_bobbing_at_step_frequency():
 def test_vest_drifts_in_roll_while_standing(long_walk):
     """Standing people shift their weight sideways: the vest's roll drifts (0.35 deg RMS) with no gait."""
     smap, walk = long_walk
-    T_bc = np.eye(4)
-    T_bc[2, 3] = 1.3
     standing = np.concatenate([np.linspace(a + 0.1, b - 0.1, 50) for a, b in walk.stops if 0 < a and b < 60])
     assert walk.speed(standing).max() < 0.05
-    R = walk.T_body_vest(standing, T_bc[:3, 3])[:, :3, :3]
+    R = walk.T_body_vest(standing)[:, :3, :3]
     roll = np.degrees(np.arctan2(R[:, 2, 1], R[:, 2, 2]))
     assert 0.1 < np.sqrt(np.mean(roll**2)) < 0.8
-    still = plan_walk(smap, WalkConfig(seconds=60.0, seed=4, stop_every_s=10.0, roll_drift_deg=0.0))
-    R0 = still.T_body_vest(standing, T_bc[:3, 3])[:, :3, :3]
+    still = plan_walk(smap, WalkConfig(seconds=60.0, seed=4, stop_every_s=10.0, roll_drift_deg=0.0, lean=False))
+    R0 = still.T_body_vest(standing)[:, :3, :3]
     assert np.allclose(np.arctan2(R0[:, 2, 1], R0[:, 2, 2]), 0.0, atol=1e-9)
     # Drawn from a stream of its own: the path is the same with or without it.
     t = np.linspace(0.0, 60.0, 500)
@@ -434,3 +432,42 @@ def test_cli_simulate(tmp_path, capsys):
         ]
     )
     assert rc == 2 and "missing fraction" in capsys.readouterr().err
+
+
+def test_walker_leans_into_turns_and_with_acceleration(long_walk):
+    """Roll atan(v omega / g) into the turn, pitch atan(a / g) with the speed change, through the
+    body's pendulum lag sqrt(h_com / g); the ground truth is the vest point, moved by the lean."""
+    smap, walk = long_walk
+    cfg = walk.config
+    assert cfg.lean_tau_s == pytest.approx(math.sqrt(0.95 / 9.81))
+    t = np.arange(1.0, 59.0, 0.01)
+    v = walk.speed(t)
+    omega = np.gradient(walk.planar(t)[:, 2], t)
+    accel = np.gradient(v, t)
+    roll, pitch = walk.lean(t).T
+    roll_demand, pitch_demand = -np.arctan(v * omega / 9.81), np.arctan(accel / 9.81)
+    # The lean is the demand through a first-order lag of time constant tau (integrated here by hand).
+    tau, dt = cfg.lean_tau_s, 0.01
+    expect = np.zeros((len(t), 2))
+    expect[0] = roll[0], pitch[0]
+    for i in range(1, len(t)):
+        expect[i] = expect[i - 1] + (np.array([roll_demand[i], pitch_demand[i]]) - expect[i - 1]) * dt / tau
+    assert np.max(np.abs(expect[:, 0] - roll)) < math.radians(0.5)
+    assert np.max(np.abs(expect[:, 1] - pitch)) < math.radians(0.5)
+    # Into the turn: a left turn (omega > 0) tips the torso's top to the left (roll < 0 about +x).
+    turning = np.abs(v * omega) > 1.0
+    assert np.all(np.sign(roll[turning]) == -np.sign(omega[turning]))
+    assert math.radians(5) < np.max(np.abs(roll)) < math.radians(15)
+    # Braking into each stop at 0.8 m/s^2: about atan(0.8 / g) = 4.7 deg backwards at the end.
+    assert np.min(pitch) == pytest.approx(-math.atan(cfg.accel_mps2 / 9.81), abs=math.radians(0.3))
+    # The lean is in the torso's tilt (about the centre of mass): the vest point 0.35 m above it moves.
+    R = walk.T_body_vest(t)[:, :3, :3]
+    still = plan_walk(smap, WalkConfig(seconds=60.0, seed=4, stop_every_s=10.0, lean=False))
+    assert np.allclose(still.planar(t), walk.planar(t)) and np.allclose(still.lean(t), 0.0)
+    R0 = still.T_body_vest(t)[:, :3, :3]
+    up, up0 = R[:, :, 2], R0[:, :, 2]
+    k = np.argmax(np.abs(roll))
+    assert np.degrees(np.arccos(np.clip(up[k] @ up0[k], -1, 1))) == pytest.approx(np.degrees(abs(roll[k])), abs=1.5)
+    vest = np.array([0.0, 0.0, 1.3])
+    shift = walk.groundtruth(t[k], vest)[:2] - still.groundtruth(t[k], vest)[:2]
+    assert np.hypot(*shift) == pytest.approx((1.3 - 0.95) * math.sin(abs(roll[k])), rel=0.3)

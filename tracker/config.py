@@ -1,4 +1,4 @@
-"""The tracker's configuration: walking-motion noise, rig noise floor, gates and life-cycle limits.
+"""The tracker's configuration: walking-motion noise, vest offset, gates and life-cycle limits.
 
 Every number below is chosen by reasoning about a person walking in a warehouse with a camera on a
 vest, not by fitting a test. Units: metres, seconds, radians.
@@ -44,35 +44,58 @@ class TrackerConfig:
     Physical limits (the state is clipped to them after every step): speed ``v_min``..``v_max``
     (walking backwards slowly .. running 2.5 m/s), yaw rate +-``w_max``.
 
-    Rig/vest noise floor: how far the vest's pose strays from the body's through the nominal rig
-    that the pose solver assumes, as the vest moves on the body. As standard deviations (RMS, not
-    peak), along and across the walk, since the gait moves the chest differently in the two
-    directions. Each tilt of the chest moves the floor point under the camera through the 1.3 m
-    lever (1 deg: 2.3 cm). Two parts:
+    Vest offset: where the vest is, relative to the smooth walk the motion model follows. A fix
+    measures the vest point projected onto the floor (see :mod:`tagloc.core.rig`), which does not
+    move when the torso tilts about it, so tilt is not in the offset; what remains is the torso's
+    real motion on the walk, which is where the operator is (the tracker reports body + offset).
+    As standard deviations (RMS, not peak), along and across the walk, since the gait moves the
+    chest differently in the two directions. The torso's rotations pivot about the centre of mass
+    (~0.95 m up), 0.35 m below the vest point (1.3 m), so a tilt moves the vest point by 0.35 m
+    times its angle (1 deg: 6 mm). Two parts:
 
-    - Posture, walking or not (``floor_still_sigma_xy`` 1 cm, ``floor_still_sigma_yaw`` 0.5 deg,
-      correlation ``floor_still_corr_s`` 2 s): people lean, bend and shift their weight by about
-      0.5 deg RMS over seconds.
+    - Posture, walking or not (``floor_still_sigma_xy`` 5 mm, ``floor_still_sigma_yaw`` 0.5 deg,
+      correlation ``floor_still_corr_s`` 2 s): quiet standing sways the body as an inverted pendulum
+      about the ankles by a few millimetres RMS, and weight shifts tilt it ~0.5 deg (3 mm on the
+      0.35 m arm); together about 5 mm.
     - Gait, on top of it, scaled by ``min(1, |v| / floor_walk_speed)^2`` (``v`` is the filter's own
       speed estimate): the wobble builds up over the first steps and is all there from a slow walk,
-      0.6 m/s, on (sideways sway does not grow with speed, people sway as much or more at a slow
-      pace; the nod and twist grow a little with step length, so this is conservative for them
-      between a slow and a brisk pace), with correlation ``floor_corr_s``:
+      0.6 m/s, on (sideways sway does not grow with speed; the nod and the surge grow a little with
+      step length, so this is conservative for them between a slow and a brisk pace), with
+      correlation ``floor_corr_s``:
 
-      - forward (``floor_sigma_forward``): the chest nods ~0.6 deg (semi-amplitude) with each
-        step, 0.45 deg RMS: 1.0 cm;
+      - forward (``floor_sigma_forward``): the trunk's forward speed rises and falls by ~0.1 m/s
+        with each step (at ~1.9 Hz: 0.1 / (2 pi 1.9) = 8 mm semi-amplitude, 6 mm RMS), and the
+        chest's ~0.6 deg nod moves the vest point 3 mm RMS on the 0.35 m arm: 6.5 mm in quadrature;
       - sideways (``floor_sigma_lateral``): the torso sways ~2 cm over the stance foot and rolls
-        ~0.7 deg with it (1.6 cm through the lever); both follow the stance at half the step
-        frequency, so they add in amplitude, not in quadrature: 3.6 cm semi-amplitude, 2.5 cm RMS;
-      - heading (``floor_sigma_yaw``): the torso twists by ~2.5 deg semi-amplitude, 1.8 deg RMS.
+        ~0.7 deg with it (4 mm on the arm); both follow the stance at half the step frequency, so
+        they add in amplitude, not in quadrature: 2.4 cm semi-amplitude, 1.7 cm RMS;
+      - heading (``floor_sigma_yaw``): the torso twists by ~2.5 deg semi-amplitude, 1.8 deg RMS (the
+        reported heading is the torso's, so the twist is real heading).
 
-    Vertical bobbing does not count: the solver sees the camera higher, and the floor point under
-    it stays put. The offset's correlation time is the two parts' times weighted by their variances.
-    The floor is the stationary covariance of the vest offset, a state of the filter (see
-    :mod:`tracker.ekf`): first-order Gauss-Markov. The gait's sway
-    and the torso's tilt and twist swing at half the step frequency (~1 Hz) and keep their sign for
-    about half a period, 0.5 s. So fixes of one frame share the offset, consecutive frames share
-    most of it, and a stream of 30 fixes a second does not average the wobble away on paper.
+    The lean into turns and with speed changes (up to ~10 deg) moves the vest point by up to 6 cm
+    on the arm, but smoothly, over as long as the turn or the braking lasts: a bend of the walk's
+    path that the motion model's noise (below) follows, not a ~1 Hz wobble. Vertical bobbing does
+    not count (the vest point is projected onto the floor). The offset's correlation time is the
+    two parts' times weighted by their variances. The offset is a state of the filter (see
+    :mod:`tracker.ekf`): first-order Gauss-Markov with these as its stationary covariance. The
+    gait's sway and twist swing at half the step frequency (~1 Hz) and keep their sign for about
+    half a period, 0.5 s. So fixes of one frame share the offset, consecutive frames share most of
+    it, and the offset decays back onto the walk between fixes.
+
+    Tilt offset, seen by floor odometry only: the odometry maps the image to the floor through the
+    rig's nominal pose, so a change of the torso's tilt between two frames looks like floor motion:
+    for the patch centre ~0.9 m ahead of a camera 1.3 m up, (h^2 + d^2) / h = 1.9 m per radian of
+    pitch (forward) and h = 1.3 m per radian of roll (sideways). The gait's nod and roll are in the
+    odometry's own per-step noise; the lean of the whole body is not: atan(a / g) with the speed
+    changes (people start and stop at ~1 m/s^2, 5.8 deg, for about a second every ~10-15 s of
+    walking: ~0.4 m/s^2 RMS, 2.3 deg) and atan(v omega / g) into turns (~0.45 m/s^2 RMS over a walk
+    with a turn every few seconds, 2.6 deg). So ``tilt_sigma_forward`` = 1.9 x 0.040 = 7.7 cm and
+    ``tilt_sigma_lateral`` = 1.3 x 0.046 = 6.0 cm (stationary, body axes), correlation
+    ``tilt_corr_s`` 1 s (a braking or a turn lasts about that long), scaled by
+    ``min(1, |v| / floor_walk_speed)`` (a lean needs speed). A second Gauss-Markov state (x, y):
+    fixes do not see it (the vest point does not move when the torso tilts about it), odometry steps
+    measure the motion of vest + tilt offset, so the lean's apparent motion is bounded instead of
+    integrated into the pose.
 
     Gates (squared Mahalanobis distance of the innovation over x, y, yaw, 3 DoF):
 
@@ -130,14 +153,17 @@ class TrackerConfig:
     w_max: float = 4.0
     init_v_sigma: float = 1.0
     init_w_sigma: float = 1.0
-    floor_sigma_forward: float = 0.010
-    floor_sigma_lateral: float = 0.025
+    floor_sigma_forward: float = 0.0065
+    floor_sigma_lateral: float = 0.017
     floor_sigma_yaw: float = math.radians(1.8)
     floor_walk_speed: float = 0.6
-    floor_still_sigma_xy: float = 0.01
+    floor_still_sigma_xy: float = 0.005
     floor_still_sigma_yaw: float = math.radians(0.5)
     floor_still_corr_s: float = 2.0
     floor_corr_s: float = 0.5
+    tilt_sigma_forward: float = 0.077
+    tilt_sigma_lateral: float = 0.060
+    tilt_corr_s: float = 1.0
     gate_prob: float = 0.999
     gate_prob_identified: float = 0.99
     lost_sigma_m: float = 0.5
@@ -171,7 +197,7 @@ class TrackerConfig:
         return (still * self.floor_still_corr_s + gait * self.floor_corr_s) / max(still + gait, 1e-12)
 
     def floor_cov(self, yaw: float, speed: float | None = None) -> np.ndarray:
-        """(3, 3) rig/vest floor covariance in world axes (x, y, yaw).
+        """(3, 3) stationary covariance of the vest offset in world axes (x, y, yaw).
 
         ``yaw`` (rad) is the walker's heading; ``speed`` (m/s) scales the gait part (None: full
         gait, for when the speed is not known yet).
@@ -190,6 +216,16 @@ class TrackerConfig:
                 [0.0, 0.0, self.floor_still_sigma_yaw**2 + g * self.floor_sigma_yaw**2],
             ]
         )
+
+    def tilt_cov(self, yaw: float, speed: float | None = None) -> np.ndarray:
+        """(2, 2) stationary covariance of the odometry's tilt offset in world axes (x, y).
+
+        ``yaw`` (rad) is the walker's heading; ``speed`` (m/s) scales it (None: walking).
+        """
+        g = 1.0 if speed is None else min(1.0, abs(speed) / self.floor_walk_speed)
+        c, s = math.cos(yaw), math.sin(yaw)
+        R = np.array([[c, -s], [s, c]])
+        return g * (R @ np.diag([self.tilt_sigma_forward**2, self.tilt_sigma_lateral**2]) @ R.T)
 
     @property
     def gate(self) -> float:

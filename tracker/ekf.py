@@ -8,7 +8,10 @@ filterpy's ``update`` with an angle-wrapping residual. After every step the cova
 symmetrised, its eigenvalues floored and its variances capped, so it stays finite and SPD.
 
 The state carries, besides the walking body (x, y, yaw, speed, yaw rate), the vest's offset from
-the nominal rig (dx, dy, dyaw, world axes): a first-order Gauss-Markov process with the floor
+that smooth walk (dx, dy, dyaw, world axes; the torso's sway and twist, see
+:class:`TrackerConfig`), and the tilt offset (tx, ty, world axes) that floor odometry alone sees:
+its fixed homography turns a change of the torso's lean into apparent floor motion
+(:meth:`TrackerConfig.tilt_cov`). Each offset is a first-order Gauss-Markov process with the floor
 covariance F as its stationary covariance. F and the correlation time follow the walk
 (:meth:`TrackerConfig.floor_cov`, :meth:`TrackerConfig.floor_corr`): stated along and across the
 walk, turned into world axes with the current heading, and grown with the speed (the gait makes
@@ -16,7 +19,8 @@ most of the wobble). A fix
 measures the vest pose, ``body + offset``; an odometry step measures the vest's motion. So fixes of
 one frame share the offset exactly, consecutive frames share most of it, and the wobble the
 odometry integrates is bounded instead of accumulating: the filter separates the smooth walk
-(body) from the ~1 Hz wobble (offset) by their dynamics.
+(body) from the ~1 Hz wobble (offset) by their dynamics. The operator's pose is the vest's,
+body + offset (:func:`vest_pose`, :func:`vest_cov`).
 """
 
 from __future__ import annotations
@@ -33,22 +37,36 @@ from tracker import motion
 from tracker.config import TrackerConfig
 
 POSE = slice(0, 3)
-DIM = motion.DIM + 3  # walking body + vest offset
-OFF = slice(motion.DIM, DIM)
-M_VEST = np.hstack([np.eye(3), np.zeros((3, motion.DIM - 3)), np.eye(3)])  # vest pose = body pose + offset
+DIM = motion.DIM + 3 + 2  # walking body + vest offset + odometry's tilt offset
+OFF = slice(motion.DIM, motion.DIM + 3)
+TILT = slice(motion.DIM + 3, DIM)
+M_VEST = np.hstack([np.eye(3), np.zeros((3, motion.DIM - 3)), np.eye(3), np.zeros((3, 2))])  # body + offset
 M_VEST.flags.writeable = False
+# What floor odometry follows: the vest pose plus the tilt offset (x, y only).
+M_ODO = M_VEST + np.hstack([np.zeros((3, DIM - 2)), np.vstack([np.eye(2), np.zeros((1, 2))])])
+M_ODO.flags.writeable = False
 _NO_NOISE = np.zeros((3, 3))
 _NO_NOISE.flags.writeable = False
 
 
 def vest_pose(x: np.ndarray) -> np.ndarray:
-    """(3,) vest pose (body pose + offset) from the state mean ``x`` (8,); yaw not wrapped."""
+    """(3,) vest pose (body pose + offset) from the state mean ``x`` (DIM,); yaw not wrapped."""
     return x[POSE] + x[OFF]
 
 
 def vest_cov(P: np.ndarray) -> np.ndarray:
-    """(3, 3) covariance of the vest pose (body pose + offset) from the state covariance ``P`` (8, 8)."""
+    """(3, 3) covariance of the vest pose (body pose + offset) from the state covariance ``P`` (DIM, DIM)."""
     return P[POSE, POSE] + P[POSE, OFF] + P[OFF, POSE] + P[OFF, OFF]
+
+
+def odometry_pose(x: np.ndarray) -> np.ndarray:
+    """(3,) the pose floor odometry follows (vest pose + tilt offset on x, y) from the mean ``x`` (DIM,)."""
+    return M_ODO @ x
+
+
+def odometry_cov(P: np.ndarray) -> np.ndarray:
+    """(3, 3) covariance of :func:`odometry_pose` from the state covariance ``P`` (DIM, DIM)."""
+    return M_ODO @ P @ M_ODO.T
 
 
 def pose_residual(z: np.ndarray, hx: np.ndarray) -> np.ndarray:
@@ -97,7 +115,8 @@ class Innovation:
 
 
 class WalkingEKF(ExtendedKalmanFilter):
-    """8-state EKF: CTRV body (x, y, yaw, v, w) and vest offset (dx, dy, dyaw); vest-pose measurements."""
+    """10-state EKF: CTRV body (x, y, yaw, v, w), vest offset (dx, dy, dyaw), tilt offset (tx, ty);
+    vest-pose measurements (fixes) and odometry-pose steps."""
 
     def __init__(self, config: TrackerConfig):
         super().__init__(dim_x=DIM, dim_z=3)
@@ -105,6 +124,8 @@ class WalkingEKF(ExtendedKalmanFilter):
         self._dt = 0.0
         full = config.floor_cov(0.0)
         big = max(full[0, 0], full[1, 1])
+        tilt = config.tilt_cov(0.0)
+        big_tilt = max(tilt[0, 0], tilt[1, 1])
         self._caps = np.r_[
             config.pos_var_cap,
             config.pos_var_cap,
@@ -112,6 +133,7 @@ class WalkingEKF(ExtendedKalmanFilter):
             config.v_var_cap,
             config.w_var_cap,
             4.0 * np.array([big, big, full[2, 2]]),
+            4.0 * np.array([big_tilt, big_tilt]),
         ]
 
     def _decay(self, dt: float) -> float:
@@ -119,19 +141,24 @@ class WalkingEKF(ExtendedKalmanFilter):
         tau = self.cfg.floor_corr(float(self.x[motion.V, 0]))
         return math.exp(-abs(dt) / tau) if tau > 0 else 0.0
 
+    def _tilt_decay(self, dt: float) -> float:
+        """Correlation left in the tilt offset after ``dt`` s."""
+        tau = self.cfg.tilt_corr_s
+        return math.exp(-abs(dt) / tau) if tau > 0 else 0.0
+
     # -- state access -------------------------------------------------------------------------
     @property
     def mean(self) -> np.ndarray:
-        """(8,) state mean: body (x, y, yaw, v, w), vest offset (dx, dy, dyaw)."""
+        """(DIM,) state mean: body (x, y, yaw, v, w), vest offset (dx, dy, dyaw), tilt offset (tx, ty)."""
         return self.x[:, 0].copy()
 
     @property
     def cov(self) -> np.ndarray:
-        """(8, 8) state covariance."""
+        """(DIM, DIM) state covariance."""
         return self.P.copy()
 
     def set(self, mean: np.ndarray, cov: np.ndarray) -> None:
-        """Replace the state (mean (8,), cov (8, 8)), then clip and condition it."""
+        """Replace the state (mean (DIM,), cov (DIM, DIM)), then clip and condition it."""
         self.x = np.asarray(mean, float).reshape(DIM, 1).copy()
         self.P = np.asarray(cov, float).copy()
         self._tidy()
@@ -146,9 +173,10 @@ class WalkingEKF(ExtendedKalmanFilter):
         P[OFF, OFF] = F
         P[POSE, OFF] = -F
         P[OFF, POSE] = -F
+        P[TILT, TILT] = self.cfg.tilt_cov(float(pose[2]))
         P[motion.V, motion.V] = self.cfg.init_v_sigma**2
         P[motion.W, motion.W] = self.cfg.init_w_sigma**2
-        self.set(np.r_[np.asarray(pose, float), 0.0, 0.0, 0.0, 0.0, 0.0], P)
+        self.set(np.r_[np.asarray(pose, float), np.zeros(DIM - 3)], P)
 
     def forget_motion(self) -> None:
         """Drop what is known about speed and yaw rate (zero mean, initial variance, uncorrelated)."""
@@ -166,11 +194,11 @@ class WalkingEKF(ExtendedKalmanFilter):
         """Nonlinear mean propagation (filterpy calls this from ``predict``)."""
         x = self.x[:, 0]
         body = motion.propagate(x[: motion.DIM], self._dt)
-        # The offset is linear: its block of F (set by ``advance`` for this step) is its decay.
-        self.x = np.concatenate((body, self.F[OFF, OFF] @ x[OFF])).reshape(DIM, 1)
+        # The offsets are linear: their blocks of F (set by ``advance`` for this step) are their decays.
+        self.x = np.concatenate((body, self.F[OFF, OFF] @ x[OFF], self.F[TILT, TILT] @ x[TILT])).reshape(DIM, 1)
 
     def _transition(self, x: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
-        """(F (8, 8), Q (8, 8)) of a step of ``h`` s (negative: backwards) from state ``x``."""
+        """(F (DIM, DIM), Q (DIM, DIM)) of a step of ``h`` s (negative: backwards) from state ``x``."""
         cfg = self.cfg
         a = self._decay(h)
         F = np.zeros((DIM, DIM))
@@ -181,12 +209,15 @@ class WalkingEKF(ExtendedKalmanFilter):
             x[: motion.DIM], h, cfg.accel_psd, cfg.yaw_accel_psd, cfg.lateral_psd
         )
         Q[OFF, OFF] = (1.0 - a * a) * cfg.floor_cov(float(x[motion.YAW]), float(x[motion.V]))
+        b = self._tilt_decay(h)
+        F[TILT, TILT] = b * np.eye(2)
+        Q[TILT, TILT] = (1.0 - b * b) * cfg.tilt_cov(float(x[motion.YAW]), float(x[motion.V]))
         return F, Q
 
     def advance(self, dt: float) -> np.ndarray:
         """Predict ``dt`` >= 0 seconds ahead, in steps of at most ``max_step_s`` (then one last step).
 
-        Returns the (8, 8) Jacobian of the new state with respect to the old one (the steps'
+        Returns the (DIM, DIM) Jacobian of the new state with respect to the old one (the steps'
         ``F`` multiplied), which gives the cross-covariance with a clone of the old state.
         """
         F_total = np.eye(DIM)
@@ -206,7 +237,7 @@ class WalkingEKF(ExtendedKalmanFilter):
 
     # -- measurement --------------------------------------------------------------------------
     def _model(self, lag: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(h(x) (3,), H (3, 8), extra noise (3, 3)) of a vest pose measured ``lag`` s before the state."""
+        """(h(x) (3,), H (3, DIM), extra noise (3, 3)) of a vest pose measured ``lag`` s before the state."""
         x = self.x[:, 0]
         if lag <= 0.0:
             # Shared read-only constants: callers only combine them into new arrays.
@@ -215,7 +246,7 @@ class WalkingEKF(ExtendedKalmanFilter):
         # backwards too (decay a, fresh variance (1 - a^2) F).
         back = motion.propagate(x[: motion.DIM], -lag)
         F, Q = self._transition(x, -lag)
-        H = np.hstack([F[POSE, : motion.DIM], F[OFF, OFF]])
+        H = np.hstack([F[POSE, : motion.DIM], F[OFF, OFF], np.zeros((3, 2))])
         Qb = Q[POSE, POSE] + Q[OFF, OFF]
         return back[POSE] + F[OFF, OFF] @ x[OFF], H, Qb
 
@@ -249,7 +280,7 @@ class WalkingEKF(ExtendedKalmanFilter):
         if not math.isfinite(float(x.sum())):
             raise FloatingPointError("non-finite EKF state")
         x[motion.YAW] = wrap_angle(float(x[motion.YAW]))
-        x[DIM - 1] = wrap_angle(float(x[DIM - 1]))
+        x[OFF.stop - 1] = wrap_angle(float(x[OFF.stop - 1]))
         x[motion.V] = min(max(x[motion.V], cfg.v_min), cfg.v_max)
         x[motion.W] = min(max(x[motion.W], -cfg.w_max), cfg.w_max)
         self.x = x.reshape(DIM, 1)

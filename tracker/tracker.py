@@ -8,7 +8,8 @@ Rules, in one place:
   backwards, plus the process noise over the lag); an older fix is rejected
   (``out_of_order_fixes``).
 - A fix measures the vest's pose: the body's plus the vest offset, a state of the filter (see
-  :mod:`tracker.ekf`) whose stationary covariance is the rig/vest floor (see :class:`TrackerConfig`).
+  :mod:`tracker.ekf`): the torso's sway on the smooth walk (see :class:`TrackerConfig`); the tracker
+  reports body + offset, the vest point on the floor.
   Fixes of one frame share it exactly, so three stickers in one frame do not count as three
   independent vest poses, and consecutive frames share most of it.
 - Two IPPE alternatives (ambiguous pose): while tracking, the one with the smaller Mahalanobis
@@ -45,7 +46,18 @@ from tagloc.core.stickermap import StickerMap
 from tagloc.core.types import IdSource, PoseFix, TrackerOutput, TrackState
 from tracker.candidates import select_candidates
 from tracker.config import TrackerConfig
-from tracker.ekf import DIM, M_VEST, OFF, POSE, WalkingEKF, largest_eig_2x2, pose_residual, sym_spd, vest_cov, vest_pose
+from tracker.ekf import (
+    DIM,
+    M_ODO,
+    WalkingEKF,
+    largest_eig_2x2,
+    odometry_cov,
+    odometry_pose,
+    pose_residual,
+    sym_spd,
+    vest_cov,
+    vest_pose,
+)
 
 __all__ = ["Tracker", "TrackerConfig", "UpdateResult"]
 
@@ -69,7 +81,8 @@ class UpdateResult:
 
 @dataclass
 class _Clone:
-    """The vest pose at ``t0`` (3,), its covariance (3, 3) and its cross-covariance with the state (8, 3)."""
+    """The odometry pose (vest + tilt offset) at ``t0`` (3,), its covariance (3, 3) and its
+    cross-covariance with the state (DIM, 3)."""
 
     t0: float
     pose: np.ndarray
@@ -193,7 +206,7 @@ class Tracker:
                 jac: list[np.ndarray] = []
                 if self._guarded(lambda: jac.append(self._ekf.advance(t - t0))):
                     JP = jac[0] @ P0
-                    self._clone = _Clone(t0, vest_pose(x0), vest_cov(P0), JP[:, POSE] + JP[:, OFF])
+                    self._clone = _Clone(t0, odometry_pose(x0), odometry_cov(P0), JP @ M_ODO.T)
         self._t = t
         self._check_lost()
 
@@ -411,22 +424,23 @@ class Tracker:
             return UpdateResult(False, "odometry interval does not match the filter's last prediction")
         x8, P8 = self._ekf.x[:, 0], self._ekf.P
         n = DIM
-        # Joint state [x (8), clone (3)]; the measurement is the vest pose at t1 seen from the clone.
+        # Joint state [x (DIM), clone (3)]; the measurement is the odometry pose (the vest's, plus the
+        # tilt offset that the odometry's fixed homography adds) at t1 seen from the clone.
         x = np.concatenate((x8, c.pose))
         P = np.zeros((n + 3, n + 3))
         P[:n, :n], P[n:, n:], P[:n, n:], P[n:, :n] = P8, c.P, c.cross, c.cross.T
         P = sym_spd(P, cfg.min_eig)  # the caps applied while advancing may have bent it slightly
-        v1 = vest_pose(x8)
+        v1 = odometry_pose(x8)
         yaw0 = c.pose[2]
         co, si = math.cos(yaw0), math.sin(yaw0)
         Rt = np.array([[co, si], [-si, co]])  # world -> body at t0
         d = v1[:2] - c.pose[:2]
         hx = np.append(Rt @ d, wrap_angle(float(v1[2] - yaw0)))
         H = np.zeros((3, n + 3))
-        H[:2, :n] = Rt @ M_VEST[:2]
+        H[:2, :n] = Rt @ M_ODO[:2]
         H[:2, n : n + 2] = -Rt
         H[:2, n + 2] = np.array([[-si, co], [-co, -si]]) @ d
-        H[2, :n] = M_VEST[2]
+        H[2, :n] = M_ODO[2]
         H[2, n + 2] = -1.0
         R = sym_spd(C * np.outer(self._odo_scale, self._odo_scale), cfg.min_eig)
         y = pose_residual(z, hx)
@@ -455,7 +469,10 @@ class Tracker:
 
     # -- output -------------------------------------------------------------------------------------
     def output(self, t: float | None = None) -> TrackerOutput:
-        """The pose at ``t`` (default: the filter's time) without changing the filter.
+        """The operator's pose at ``t`` (default: the filter's time) without changing the filter.
+
+        The pose is the vest's (body + offset): the vest point on the floor, where the operator is,
+        moving with the torso's sway (see :mod:`tracker.config`).
 
         ``t`` earlier than the filter's time (or non-finite) gives the latest estimate, stamped with
         the filter's time. Pose zeros and a huge covariance while initialising. Never NaN.
@@ -484,5 +501,13 @@ class Tracker:
                 state = TrackState.LOST
         else:
             x, P = self._ekf.x[:, 0], self._ekf.P
-        cov = sym_spd(P[:3, :3], cfg.min_eig)
-        return TrackerOutput(target, x[:3].copy(), cov, state, since, self._last_id, self._last_source)
+        # The operator is where the vest is: the smooth walk plus the torso's sway on it (the offset).
+        pose = vest_pose(x)
+        pose[2] = wrap_angle(float(pose[2]))
+        cov = sym_spd(vest_cov(P), cfg.min_eig)
+        # The body's caps hold for the sum too (scaling rows and columns alike keeps it SPD).
+        caps = np.array([cfg.pos_var_cap, cfg.pos_var_cap, cfg.yaw_var_cap])
+        if (cov.diagonal() > caps).any():
+            d = np.sqrt(np.minimum(1.0, caps / cov.diagonal()))
+            cov = cov * np.outer(d, d)
+        return TrackerOutput(target, pose, cov, state, since, self._last_id, self._last_source)

@@ -1,8 +1,11 @@
 """The camera rig on the operator's vest: each camera's calibration and pose in the body frame.
 
-Body frame: origin on the floor under the vest, +x forward, +y left, +z up. ``rig.json``::
+Body frame: rigid with the torso (the vest), +x forward, +y left, +z up when the operator stands
+upright; its origin is on the floor under the vest's reference point, the point of the torso where
+the rig is mounted, ``vest_point = (0, 0, vest_height_m)`` in the body frame. ``rig.json``::
 
-    {"cameras": [{"name": "front", "calibration": "camera.yaml",
+    {"vest_height_m": 1.3,
+     "cameras": [{"name": "front", "calibration": "camera.yaml",
                   "T_body_camera": [[...4 rows of 4...]]}]}
 
 ``T_body_camera`` (row-major, metres) maps points from the OpenCV camera frame (x right, y down,
@@ -10,6 +13,13 @@ z along the optical axis) into the body frame. ``calibration`` is relative to th
 An optional ``"readout_s"`` gives a rolling-shutter camera's read-out time, first row to last
 (seconds; 0 or absent: global shutter): row ``v`` is exposed ``(v - (H - 1) / 2) * readout_s / H``
 after the frame's timestamp, which belongs to the middle row.
+``vest_height_m`` is optional (default: the cameras' mean height).
+
+The operator's reported pose is **not** the body origin carried through the tilted torso: it is
+the vest point projected vertically onto the floor, (x, y), with the heading of the body's +x axis
+projected onto the floor. A torso leaning by a degree would swing the origin, 1.3 m down the torso's
+own z axis, by 2.3 cm; the vest point does not move when the torso tilts about it, so tilt measured
+by a sticker fix does not move (x, y) (see :func:`vest_planar`).
 """
 
 from __future__ import annotations
@@ -36,6 +46,16 @@ class RigCamera:
     T_body_camera: np.ndarray
     calibration_file: str = "camera.yaml"
     readout_s: float = 0.0
+    vest_height_m: float | None = None  # height of the vest point in the body frame; None: the camera's
+
+    def __post_init__(self) -> None:
+        if self.vest_height_m is None:
+            self.vest_height_m = float(np.asarray(self.T_body_camera)[2, 3])
+
+    @property
+    def vest_point(self) -> np.ndarray:
+        """(3,) the vest's reference point in the body frame, m: ``(0, 0, vest_height_m)``."""
+        return np.array([0.0, 0.0, float(self.vest_height_m)])
 
 
 @dataclass
@@ -44,11 +64,40 @@ class Rig:
 
     cameras: list[RigCamera]
 
+    def __post_init__(self) -> None:
+        # One torso, one vest point: cameras made one by one each default to their own height.
+        if len({c.vest_height_m for c in self.cameras}) > 1:
+            _shared_height(self.cameras, None)
+
     def __getitem__(self, index: int) -> RigCamera:
         return self.cameras[index]
 
     def __len__(self) -> int:
         return len(self.cameras)
+
+    @property
+    def vest_point(self) -> np.ndarray:
+        """(3,) the vest's reference point in the body frame (m), shared by all cameras."""
+        return self.cameras[0].vest_point
+
+
+def vest_planar(T_world_body: np.ndarray, vest_point: np.ndarray) -> np.ndarray:
+    """The reported pose (x, y, yaw) of a (possibly tilted) body pose ``T_world_body`` (4, 4).
+
+    (x, y): the vest point ``vest_point`` (3,) (body frame, m) carried into the world and projected
+    vertically onto the floor; yaw: the horizontal direction of the body's +x axis (rad).
+    """
+    T = np.asarray(T_world_body, float)
+    p = T[:3, :3] @ np.asarray(vest_point, float) + T[:3, 3]
+    return np.array([p[0], p[1], math.atan2(T[1, 0], T[0, 0])])
+
+
+def _shared_height(cameras: list[RigCamera], height: float | None) -> list[RigCamera]:
+    """The cameras with one vest height: ``height``, or the cameras' mean height."""
+    h = float(np.mean([c.T_body_camera[2, 3] for c in cameras])) if height is None else float(height)
+    for c in cameras:
+        c.vest_height_m = h
+    return cameras
 
 
 def row_delay_s(rows: np.ndarray | float, height: int, readout_s: float) -> np.ndarray | float:
@@ -72,7 +121,8 @@ def looking_forward(
 
 
 def default_rig(height_m: float = 1.3, pitch_deg: float = 55.0, camera: Camera | None = None) -> Rig:
-    """One forward camera ``height_m`` up, pitched ``pitch_deg`` below horizontal (default Pi camera)."""
+    """One forward camera ``height_m`` up, pitched ``pitch_deg`` below horizontal (default Pi camera);
+    the vest point is the camera's mounting point."""
     return Rig([RigCamera("front", camera or default_camera(), looking_forward(height_m, pitch_deg))])
 
 
@@ -116,18 +166,24 @@ def load_rig(path: str | Path, calibration: Camera | None = None) -> Rig:
         if isinstance(readout, bool) or not isinstance(readout, (int, float)) or not 0.0 <= readout < 1.0:
             raise CalibrationError(f"{where}: readout_s {readout!r} must be a number of seconds in [0, 1)")
         out.append(RigCamera(name, cam, _check_T(entry["T_body_camera"], where), calib_file, float(readout)))
-    return Rig(out)
+    height = doc.get("vest_height_m")
+    if height is not None and (
+        isinstance(height, bool) or not isinstance(height, (int, float)) or not 0.0 < float(height) < 3.0
+    ):
+        raise CalibrationError(f"{path}: vest_height_m must be a height in metres (0-3), got {height!r}")
+    return Rig(_shared_height(out, height))
 
 
 def save_rig(rig: Rig, path: str | Path, write_calibrations: bool = True) -> None:
     """Write ``rig.json`` (and, by default, each camera's calibration file next to it)."""
     path = Path(path)
     doc = {
+        "vest_height_m": round(float(rig.vest_point[2]), 6),
         "cameras": [
             {"name": c.name, "calibration": c.calibration_file, "T_body_camera": np.round(c.T_body_camera, 12).tolist()}
             | ({"readout_s": c.readout_s} if c.readout_s > 0 else {})
             for c in rig.cameras
-        ]
+        ],
     }
     path.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
     if write_calibrations:

@@ -389,7 +389,11 @@ def fit_rig(
     rc = rig[cfg.camera]
     fit = fit_rig_fixes(camera_fixes(session, rc, cfg, progress), rc.T_body_camera, cfg)
     cams = list(rig.cameras)
-    cams[cfg.camera] = replace(rc, T_body_camera=fit.T_body_camera)  # read-out and the rest unchanged
+    # The vest point defaults to the camera's height (tagloc.core.rig): a one-camera rig whose vest
+    # height was that default follows the fitted height; a stated one is kept.
+    follows = len(rig) == 1 and abs(rc.vest_height_m - rc.T_body_camera[2, 3]) < 1e-9
+    vest_h = fit.height_m.value if follows else rc.vest_height_m
+    cams[cfg.camera] = replace(rc, T_body_camera=fit.T_body_camera, vest_height_m=vest_h)  # read-out kept
     # The calibration is written next to the rig only when absent: never overwrite the user's file.
     save_rig(Rig(cams), out, write_calibrations=False)
     for c in cams:

@@ -8,9 +8,10 @@
      "visible": [{"id": 4242, "in_map": true, "corners": [[u, v] x 4], "inner": [[u, v] x 4],
                   "inside": true, "distance_m": 1.52}, ...]}
 
-``T_world_body`` is the ground-truth body pose (also in ``groundtruth.tum``): the floor-projected
-body frame, z = 0, without the vest motion. ``T_world_camera`` is the true camera pose at the frame's
-time, vest motion included. ``corners``/``inner`` are the sticker's outer and inner frame corners in
+``T_world_body`` is the ground-truth body pose (also in ``groundtruth.tum``): the rig's vest point
+projected vertically onto the floor (z = 0) with the horizontal heading of the torso's +x axis, so it
+moves with the torso's sway, twist and lean (see :mod:`tagloc.sim.walk`). ``T_world_camera`` is the
+true camera pose at the frame's time, torso motion included. ``corners``/``inner`` are the sticker's outer and inner frame corners in
 distorted pixels, canonical order (top-left first, clockwise on the sticker); ``inside`` says all
 eight are in the image. Stickers in the map but left off the floor never appear; stickers on the
 floor but not in the map appear with ``in_map: false``. Frame ``k`` is exposed around ``t = k / fps``
@@ -62,8 +63,9 @@ from tagloc.sim.walk import Walk, WalkConfig, plan_walk
 CAMERA_SEED_STEP = 7919
 
 # Bumped whenever the simulated physics change, so that sessions cached by ``tagloc eval`` are made
-# again (2: slow roll drift of the vest).
-SIM_REVISION = 2
+# again (2: slow roll drift of the vest; 3: lean into turns and with acceleration, torso rotations
+# about the centre of mass, ground truth at the vest point's vertical projection).
+SIM_REVISION = 3
 
 
 @dataclass
@@ -169,6 +171,7 @@ class SimConfig:
                     rc.T_body_camera.copy(),
                     rc.calibration_file,
                     readout,
+                    vest_height_m=rc.vest_height_m,
                 )
                 for rc in rig.cameras
             ]
@@ -342,12 +345,24 @@ def simulate_session(
     with SessionWriter(out, given_map, rig, info, jpeg_quality=config.jpeg_quality) as writer:
         if given_map is not smap:
             save_map(smap, out / "map_true.csv")
-        write_tum(out / GROUNDTRUTH_FILE, gt_stamps, walk.T_world_body(gt_stamps))
+        write_tum(out / GROUNDTRUTH_FILE, gt_stamps, walk.T_world_body(gt_stamps, rig.vest_point))
         with (out / "groundtruth_frames.jsonl").open("w", encoding="utf-8") as gt:
             for j in tqdm(range(n), desc="simulate", unit="frame", disable=not progress):
                 for c, (renderer, pose_at) in enumerate(zip(renderers, poses)):
                     rec, stat = _simulate_frame(
-                        writer, renderer, pose_at, walk, floor, config, schedule, j, c, n_cams, stagger, readout
+                        writer,
+                        renderer,
+                        pose_at,
+                        walk,
+                        floor,
+                        config,
+                        schedule,
+                        j,
+                        c,
+                        n_cams,
+                        stagger,
+                        readout,
+                        rig.vest_point,
                     )
                     gt.write(json.dumps(rec) + "\n")
                     gt.flush()
@@ -379,6 +394,7 @@ def _simulate_frame(
     n_cams: int,
     stagger: float,
     readout: float,
+    vest_point: np.ndarray,
 ) -> tuple[dict, tuple]:
     """Render and write frame ``j`` of the schedule for rig camera ``camera``; its ground-truth record.
 
@@ -396,7 +412,7 @@ def _simulate_frame(
     rec |= {
         "t": round(t, 6),
         "stamp": round(stamp, 6),
-        "T_world_body": np.round(walk.T_world_body(t), 6).tolist(),
+        "T_world_body": np.round(walk.T_world_body(t, vest_point), 6).tolist(),
         "T_world_camera": np.round(pose_at(np.array([t]))[0], 6).tolist(),
         "exposure_s": round(res.exposure_s, 7),
         "gain": round(res.gain, 4),

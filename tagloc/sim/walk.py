@@ -1,19 +1,32 @@
-"""The operator's walk: a smooth, seeded trajectory along the map's sticker lines, plus vest motion.
+"""The operator's walk: a smooth, seeded trajectory along the map's sticker lines, plus torso motion.
 
-Two motions are kept apart on purpose:
+Two motions are kept apart:
 
-* **Body motion** (ground truth): the floor-projected body frame (origin on the floor under the
-  vest, +x forward, +y left, +z up, so z = 0, roll = pitch = 0). Its path follows the stickers'
-  lines (aisles): straight on mostly, sometimes turning at a crossing, turning on the spot where a
-  line ends, with a slowly varying speed and occasional stops. Position is C2 (a cubic spline
-  through a 100 Hz kinematic simulation whose speed and turn rate are acceleration-limited), and
-  the heading is smooth. ``groundtruth.tum`` stores this pose.
-* **Vest motion** (not in the ground truth): what the torso does to the camera on top of the body
-  path, ``T_body_vest``: vertical bobbing at the step frequency, lateral sway and torso yaw at half
-  the step frequency, pitch jitter (gait part plus slow drift) and a little roll (gait part plus
-  slow drift: standing people shift their weight side to side as well as back and forth). The rotation is
-  about the camera's mounting point. A localiser that assumes a rigid rig sees it as real,
-  unmodelled motion: ``T_world_camera = T_world_body @ T_body_vest @ T_body_camera``.
+* **Path** (``T_world_path``): the walker's planned centre-of-mass path projected onto the floor
+  (+x forward, +y left, +z up, z = 0). It follows the stickers' lines (aisles): straight on mostly,
+  sometimes turning at a crossing, turning on the spot where a line ends, with a slowly varying
+  speed and occasional stops. Position is C2 (a cubic spline through a 100 Hz kinematic simulation
+  whose speed and turn rate are acceleration-limited), and the heading is smooth.
+* **Torso motion** (``T_body_vest``): the rigid torso, which carries the vest and its cameras, moves
+  on the path: vertical bobbing at the step frequency, lateral sway and torso yaw at half the step
+  frequency, pitch jitter (gait part plus slow drift), a little roll (gait part plus slow drift:
+  standing people shift their weight side to side as well as back and forth), and the **lean** of
+  the whole body that walking needs (below). The rotations are about the centre of mass, on the
+  path ``com_height_m`` up. ``T_world_camera = T_world_path @ T_body_vest @ T_body_camera``.
+
+Lean: to walk a curve of radius R at speed v the ground force must supply the centripetal
+acceleration a_c = v^2 / R = v omega, and a body in balance leans so that the resultant of gravity
+and that force passes through its centre of mass: roll = atan(v omega / g) into the turn. Speeding
+up or braking at a forward acceleration a likewise needs a pitch of atan(a / g) (forward when
+speeding up). Both are computed from the path's own speed, turn rate and acceleration and follow
+them through a first-order lag of the body's inverted-pendulum time constant sqrt(h_com / g)
+(0.31 s at 0.95 m): the body cannot tilt faster than it falls. Turns on the spot (v ~ 0) need no
+lean. (At 1.3 m/s on a 1.5 m arc: 6.5 deg; braking at 0.8 m/s^2: 4.7 deg.)
+
+**Ground truth** (``T_world_body``): the vest point (on the torso, where the rig is mounted)
+projected vertically onto the floor, with the horizontal heading of the torso's +x axis
+(:func:`tagloc.core.rig.vest_planar`): it moves with the sway, the twist and the lean (the vest
+point is ``vest_height - com_height`` above the lean's pivot), not with the bobbing.
 
 All gait amplitudes are semi-amplitudes (half peak-to-peak), scaled by how fast the operator walks
 (none when standing); the slow drifts of pitch and roll go on when standing.
@@ -21,6 +34,7 @@ All gait amplitudes are semi-amplitudes (half peak-to-peak), scaled by how fast 
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -30,10 +44,11 @@ from scipy.signal import lfilter
 from scipy.spatial.transform import Rotation
 
 from tagloc.core.errors import InputError
-from tagloc.core.geometry import wrap_angle
+from tagloc.core.geometry import planar_T, wrap_angle
 from tagloc.core.stickermap import StickerMap
 
 _DT = 0.01  # kinematic simulation step (s); the spline makes the result continuous in time
+G = 9.81  # gravity, m/s^2
 
 
 @dataclass
@@ -59,6 +74,9 @@ class WalkConfig:
         roll_drift_deg: slow roll drift of the vest (RMS, 1.5 s correlation like the pitch drift),
             walking or standing: people sway side to side less than back and forth (quiet-standing
             sway is ~0.7 times as large sideways), so 0.7 of the pitch drift's 0.5 deg.
+        lean: lean into turns and with acceleration (see the module docstring).
+        com_height_m: height of the centre of mass, the lean's and the torso rotations' pivot
+            (about 0.55 of the stature; 0.95 m for a 1.75 m adult).
     """
 
     seconds: float = 20.0
@@ -79,14 +97,23 @@ class WalkConfig:
     roll_deg: float = 0.7
     pitch_jitter_deg: float = 1.0
     roll_drift_deg: float = 0.35
+    lean: bool = True
+    com_height_m: float = 0.95
 
     def __post_init__(self) -> None:
         if not self.seconds > 0 or not self.speed_mps > 0:
             raise InputError(f"walk needs positive seconds and speed (got {self.seconds}, {self.speed_mps})")
+        if not self.com_height_m > 0:
+            raise InputError(f"walk needs a positive centre-of-mass height (got {self.com_height_m})")
+
+    @property
+    def lean_tau_s(self) -> float:
+        """Time constant of the lean (s): the inverted pendulum's sqrt(h_com / g)."""
+        return math.sqrt(self.com_height_m / G)
 
 
-# Columns of the walk's state spline.
-_X, _Y, _YAW, _V, _BOB, _SWAY, _TYAW, _PITCH, _ROLL = range(9)
+# Columns of the walk's state spline (the lean is in PITCH and ROLL).
+_X, _Y, _YAW, _V, _BOB, _SWAY, _TYAW, _PITCH, _ROLL, _LPITCH, _LROLL = range(11)
 
 
 @dataclass
@@ -94,7 +121,8 @@ class Walk:
     """A simulated walk, defined for any time in ``[t_start, t_end]`` (s).
 
     Attributes:
-        spline: cubic spline of the state columns (x, y, yaw, speed, bob, sway, torso yaw, pitch, roll).
+        spline: cubic spline of the state columns (x, y, yaw, speed, bob, sway, torso yaw, pitch,
+            roll, and the lean's part of pitch and roll, rad).
         stops: (K, 2) start and end times of the stops (standing still), s.
         waypoints: (M, 2) the points the walker steered at, world metres.
         config: what produced it.
@@ -115,16 +143,22 @@ class Walk:
         return self.spline(t)
 
     def planar(self, t: float | np.ndarray) -> np.ndarray:
-        """Body (x, y, yaw) at ``t``: (3,) or (N, 3); yaw is continuous (not wrapped)."""
+        """Path (x, y, yaw) at ``t``: (3,) or (N, 3); yaw is continuous (not wrapped)."""
         return self._state(t)[..., :3]
 
     def speed(self, t: float | np.ndarray) -> np.ndarray:
-        """Forward speed of the body (m/s) at ``t``, from the path's derivative."""
+        """Forward speed of the path (m/s) at ``t``, from its derivative."""
         d = self.spline(np.clip(np.asarray(t, float), self.t_start, self.t_end), 1)
         return np.hypot(d[..., _X], d[..., _Y])
 
-    def T_world_body(self, t: float | np.ndarray) -> np.ndarray:
-        """True body pose(s): (4, 4) for a scalar ``t``, (N, 4, 4) for an array."""
+    def lean(self, t: float | np.ndarray) -> np.ndarray:
+        """The lean's (roll, pitch) at ``t`` (rad; roll > 0 tips the torso's top to the right, pitch
+        > 0 forward): (2,) or (N, 2)."""
+        s = self._state(t)
+        return np.stack([s[..., _LROLL], s[..., _LPITCH]], axis=-1)
+
+    def T_world_path(self, t: float | np.ndarray) -> np.ndarray:
+        """The planned path's pose(s) on the floor: (4, 4) for a scalar ``t``, (N, 4, 4) for an array."""
         s = self._state(t)
         x, y, a = s[..., _X], s[..., _Y], s[..., _YAW]
         T = np.zeros(s.shape[:-1] + (4, 4))
@@ -134,13 +168,13 @@ class Walk:
         T[..., 0, 3], T[..., 1, 3] = x, y
         return T
 
-    def T_body_vest(self, t: float | np.ndarray, pivot: np.ndarray) -> np.ndarray:
-        """Vest motion: (4, 4) or (N, 4, 4), rotating about ``pivot`` (3,) in the body frame (m)."""
+    def T_body_vest(self, t: float | np.ndarray) -> np.ndarray:
+        """Torso motion on the path: (4, 4) or (N, 4, 4), rotating about the centre of mass (m)."""
         s = self._state(t)
         euler = np.stack([s[..., _ROLL], s[..., _PITCH], s[..., _TYAW]], axis=-1)
         R = Rotation.from_euler("xyz", euler.reshape(-1, 3)).as_matrix().reshape(s.shape[:-1] + (3, 3))
         offset = np.stack([np.zeros_like(s[..., _SWAY]), s[..., _SWAY], s[..., _BOB]], axis=-1)
-        pivot = np.asarray(pivot, float)
+        pivot = np.array([0.0, 0.0, self.config.com_height_m])
         T = np.zeros(s.shape[:-1] + (4, 4))
         T[..., :3, :3] = R
         # Rotate about the pivot, then translate: p' = R (p - pivot) + pivot + offset.
@@ -148,10 +182,28 @@ class Walk:
         T[..., 3, 3] = 1.0
         return T
 
+    def T_world_vest(self, t: float | np.ndarray) -> np.ndarray:
+        """The tilted torso's frame(s) in the world: ``T_world_path @ T_body_vest``."""
+        return self.T_world_path(t) @ self.T_body_vest(t)
+
     def T_world_camera(self, t: float | np.ndarray, T_body_camera: np.ndarray) -> np.ndarray:
-        """True camera pose(s) with the vest motion: ``T_world_body @ T_body_vest @ T_body_camera``."""
-        T_bc = np.asarray(T_body_camera, float)
-        return self.T_world_body(t) @ self.T_body_vest(t, T_bc[:3, 3]) @ T_bc
+        """True camera pose(s) with the torso motion: ``T_world_path @ T_body_vest @ T_body_camera``."""
+        return self.T_world_vest(t) @ np.asarray(T_body_camera, float)
+
+    def groundtruth(self, t: float | np.ndarray, vest_point: np.ndarray) -> np.ndarray:
+        """Ground truth (x, y, yaw) at ``t``: (3,) or (N, 3), the vest point ``vest_point`` (3,) (body
+        frame, m) projected onto the floor and the horizontal heading of the torso's +x axis."""
+        T = self.T_world_vest(t)
+        p = np.einsum("...ij,j->...i", T[..., :3, :3], np.asarray(vest_point, float)) + T[..., :3, 3]
+        return np.stack([p[..., 0], p[..., 1], np.arctan2(T[..., 1, 0], T[..., 0, 0])], axis=-1)
+
+    def T_world_body(self, t: float | np.ndarray, vest_point: np.ndarray) -> np.ndarray:
+        """Ground-truth body pose(s) on the floor (z = 0, upright) from :meth:`groundtruth`:
+        (4, 4) for a scalar ``t``, (N, 4, 4) for an array."""
+        g = self.groundtruth(t, vest_point)
+        if g.ndim == 1:
+            return planar_T(*g)
+        return np.stack([planar_T(*row) for row in g])
 
 
 def _ou(rng: np.random.Generator, n: int, tau_s: float) -> np.ndarray:
@@ -230,6 +282,23 @@ class _Router:
         return self._place(k, u), line_end
 
 
+def _lean(speed: np.ndarray, turn_rate: np.ndarray, cfg: WalkConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(roll, pitch) of the body's lean (rad) at the ``_DT`` samples of ``speed`` (m/s) and
+    ``turn_rate`` (rad/s): atan(v omega / g) into the turn (a left turn tips the top to the left,
+    roll < 0 about +x), atan(a / g) forward when speeding up, each through the pendulum's lag."""
+    if not cfg.lean:
+        return np.zeros_like(speed), np.zeros_like(speed)
+    accel = np.gradient(speed, _DT)
+    a = math.exp(-_DT / cfg.lean_tau_s)
+    lag = functools.partial(lfilter, [1.0 - a], [1.0, -a])
+    # Started at the first sample's demand (the lag's steady state), not at zero.
+    roll_demand = -np.arctan(speed * turn_rate / G)
+    pitch_demand = np.arctan(accel / G)
+    roll = lag(roll_demand, zi=[a * roll_demand[0]])[0]
+    pitch = lag(pitch_demand, zi=[a * pitch_demand[0]])[0]
+    return roll, pitch
+
+
 def plan_walk(smap: StickerMap, cfg: WalkConfig) -> Walk:
     """Simulate a seeded walk over ``smap``'s sticker lines (see the module docstring)."""
     if len(smap) == 0:
@@ -262,8 +331,10 @@ def plan_walk(smap: StickerMap, cfg: WalkConfig) -> Walk:
     spinning = False
     w_spin = math.radians(cfg.turn_rate_dps)
     states = np.zeros((n, 4))
+    turn_rate = np.zeros(n)
     for i in range(n):
         states[i] = pos[0], pos[1], heading, v
+        turn_rate[i] = omega
         to_wp = wp - pos
         dist = float(np.hypot(*to_wp))
         if dist < max(0.35, 0.5 * v):
@@ -305,5 +376,6 @@ def plan_walk(smap: StickerMap, cfg: WalkConfig) -> Walk:
     roll = math.radians(cfg.roll_deg) * g * np.sin(phase / 2 - 0.3) + math.radians(cfg.roll_drift_deg) * roll_drift
     pj = math.radians(cfg.pitch_jitter_deg)
     pitch = pj * (0.5 * g * np.sin(phase + 1.0) + 0.5 * drift)
-    cols = np.column_stack([states, bob, sway, tyaw, pitch, roll])
+    lean_roll, lean_pitch = _lean(speed, turn_rate, cfg)
+    cols = np.column_stack([states, bob, sway, tyaw, pitch + lean_pitch, roll + lean_roll, lean_pitch, lean_roll])
     return Walk(CubicSpline(t, cols), np.array(stops).reshape(-1, 2), np.array(waypoints), cfg)

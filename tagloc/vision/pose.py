@@ -4,9 +4,12 @@ IPPE_SQUARE on the four outer corners gives the two planar-pose candidates; each
 Levenberg-Marquardt on every corner the detector found (outer + inner black-frame corners). The
 covariance of the 6-DoF pose is sigma^2 (J^T J)^-1 with J the reprojection Jacobian from
 ``cv2.projectPoints``, propagated to the body's planar (x, y, yaw) by a central-difference Jacobian.
-The body point on the floor lies near the sticker, so its position is far better determined than
-the camera centre's (1.2 mm against 1.1 cm at 1.4 m, 0.3 px); the vest's tilt on that lever is
-what the tracker's floor covers.
+The body's planar pose is the vest point projected vertically onto the floor and the horizontal
+heading of the body's +x axis (:func:`tagloc.core.rig.vest_planar`), not the body origin carried
+through the tilted torso: every degree of torso tilt would swing that origin, 1.3 m down the
+torso's axis, by 2.3 cm. The vest point sits at the camera's mount, so its position is about as
+well determined as the camera centre's (~1 cm at 1.4 m and 0.3 px: worse than a point on the floor
+near the sticker, but it is where the operator is, whatever the torso's tilt).
 When the second IPPE solution explains the corners about as well as the first (within a chi-square
 margin of the corner noise), both are returned, best first, and the solution is flagged ambiguous.
 
@@ -38,8 +41,8 @@ import cv2
 import numpy as np
 
 from tagloc.core.errors import InputError
-from tagloc.core.geometry import T_from_rvec_tvec, invert, planar_from_T, wrap_angle
-from tagloc.core.rig import RigCamera, row_delay_s
+from tagloc.core.geometry import T_from_rvec_tvec, invert, wrap_angle
+from tagloc.core.rig import RigCamera, row_delay_s, vest_planar
 from tagloc.core.sticker import ALL_CORNERS, OUTER_CORNERS, rotate_corners
 from tagloc.core.types import Detection, PoseFix
 
@@ -83,14 +86,21 @@ class PoseSolution:
     sigma_px: float = 0.0  # corner noise used for the covariances
 
 
-def _body_from_rt(r: np.ndarray, t: np.ndarray, T_world_sticker: np.ndarray, T_camera_body: np.ndarray) -> np.ndarray:
-    """Body (x, y, yaw) for sticker-in-camera pose (rvec ``r``, tvec ``t``)."""
+def _body_from_rt(
+    r: np.ndarray, t: np.ndarray, T_world_sticker: np.ndarray, T_camera_body: np.ndarray, vest_point: np.ndarray
+) -> np.ndarray:
+    """Body (x, y, yaw) (vest point on the floor, heading) for sticker-in-camera pose (rvec ``r``, tvec ``t``)."""
     T_world_camera = T_world_sticker @ invert(T_from_rvec_tvec(r, t))
-    return np.array(planar_from_T(T_world_camera @ T_camera_body))
+    return vest_planar(T_world_camera @ T_camera_body, vest_point)
 
 
 def _body_jacobian(
-    rvec: np.ndarray, tvec: np.ndarray, T_world_sticker: np.ndarray, T_camera_body: np.ndarray, h: float = 1e-6
+    rvec: np.ndarray,
+    tvec: np.ndarray,
+    T_world_sticker: np.ndarray,
+    T_camera_body: np.ndarray,
+    vest_point: np.ndarray,
+    h: float = 1e-6,
 ) -> np.ndarray:
     """(3, 6) d body(x, y, yaw) / d (rvec, tvec), central differences."""
     x0 = np.concatenate([rvec.ravel(), tvec.ravel()])
@@ -98,8 +108,8 @@ def _body_jacobian(
     for i in range(6):
         d = np.zeros(6)
         d[i] = h
-        bp = _body_from_rt((x0 + d)[:3], (x0 + d)[3:], T_world_sticker, T_camera_body)
-        bm = _body_from_rt((x0 - d)[:3], (x0 - d)[3:], T_world_sticker, T_camera_body)
+        bp = _body_from_rt((x0 + d)[:3], (x0 + d)[3:], T_world_sticker, T_camera_body, vest_point)
+        bm = _body_from_rt((x0 - d)[:3], (x0 - d)[3:], T_world_sticker, T_camera_body, vest_point)
         diff = bp - bm
         diff[2] = wrap_angle(diff[2])
         J[:, i] = diff / (2 * h)
@@ -227,7 +237,8 @@ def solve_pose(
             a rolling-shutter camera (``rig_camera.readout_s`` > 0): the corners are moved to the
             frame's time before the final solve (see the module docstring). None: no correction.
     Returns:
-        :class:`PoseSolution` with PoseFix(T_world_camera, body (x, y, yaw), cov (3, 3), RMS px);
+        :class:`PoseSolution` with PoseFix(T_world_camera, body (x, y, yaw), cov (3, 3), RMS px); body
+        (x, y) is the vest point's vertical projection, yaw the heading of the body's +x axis;
         ``cov`` has the corner noise and the map's survey error (:func:`map_covariance`).
     """
     config = config or PoseConfig()
@@ -275,11 +286,11 @@ def solve_pose(
         if rms > config.max_reprojection_px:
             continue
         cov6 = sigma**2 * np.linalg.pinv(J.T @ J)
-        Jb = _body_jacobian(rvec, tvec, T_world_sticker, T_camera_body)
+        Jb = _body_jacobian(rvec, tvec, T_world_sticker, T_camera_body, rig_camera.vest_point)
         cov = Jb @ cov6 @ Jb.T
         cov = (cov + cov.T) / 2
         T_world_camera = T_world_sticker @ invert(T_from_rvec_tvec(rvec, tvec))
-        body = np.array(planar_from_T(T_world_camera @ T_camera_body))
+        body = vest_planar(T_world_camera @ T_camera_body, rig_camera.vest_point)
         if sig_m > 0 or sig_yaw > 0:
             cov = cov + map_scale * map_covariance(body, T_world_sticker[:2, 3], sig_m, sig_yaw)
         poses.append(PoseFix(T_world_camera, body, cov, rms))
