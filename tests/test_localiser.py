@@ -12,10 +12,12 @@ import numpy as np
 import pytest
 
 from tagloc.cli import main
+from tagloc.core.types import Frame, IdSource, TrackState
+from tagloc.eval.baselines import make_localiser
 from tagloc.eval.evaluate import EvalConfig, evaluate, wrong_id_fixes
 from tagloc.eval.metrics import trajectory_metrics
 from tagloc.io.session import SessionReader
-from tagloc.pipeline.localiser import LocaliserConfig, load_setup
+from tagloc.pipeline.localiser import Localiser, LocaliserConfig, load_setup
 from tagloc.pipeline.run import run_session
 from tagloc.sim.mapgen import GridMapConfig, grid_map
 from tagloc.sim.simulate import SimConfig, simulate_session
@@ -35,9 +37,15 @@ def walk(tmp_path_factory) -> Path:
     return path
 
 
-def test_full_localiser_is_accurate_and_takes_no_wrong_id(walk):
+@pytest.fixture(scope="module")
+def full_log(walk):
+    """tagloc's localiser over the walk, run once for the tests that read it."""
+    return run_session(SessionReader(walk), LocaliserConfig())
+
+
+def test_full_localiser_is_accurate_and_takes_no_wrong_id(walk, full_log):
     session = SessionReader(walk)
-    log = run_session(session, LocaliserConfig())
+    log = full_log
     m = trajectory_metrics(log.stamps[log.valid], log.poses[log.valid], log.covs[log.valid], *session.groundtruth())
     assert log.valid.mean() > 0.7
     assert m["rmse_m"] < 0.10
@@ -49,18 +57,18 @@ def test_full_localiser_is_accurate_and_takes_no_wrong_id(walk):
     assert np.all(np.linalg.eigvalsh(log.covs) > 0)
 
 
-def test_unmapped_stickers_are_read_but_never_fixes(walk):
+def test_unmapped_stickers_are_read_but_never_fixes(walk, full_log):
     info = json.loads((walk / "session.json").read_text())
     unmapped = {int(u["id"]) for u in info["simulation"]["unmapped"]}
     session = SessionReader(walk)
-    log = run_session(session, LocaliserConfig())
-    assert not unmapped & {f["id"] for f in log.fixes}
+    assert full_log.counts["unmapped_reads"] > 0
+    assert not unmapped & {f["id"] for f in full_log.fixes}
     assert not unmapped & set(map(int, session.map.ids))
 
 
 def test_baselines_run_on_the_same_frames(walk):
     session = SessionReader(walk)
-    dec = run_session(session, LocaliserConfig(mode="decoded-only"))
+    dec = run_session(session, localiser=make_localiser("decoded-only", session.map, session.rig))
     assert dec.fixes and all(f["source"] == "decoded" for f in dec.fixes)
     assert wrong_id_fixes(walk, dec)[0] == 0
     # Without a filter, the pose is held between fixes: its stated covariance is the last fix's.
@@ -71,7 +79,8 @@ def test_bad_mode_is_refused(walk):
     from tagloc.core.errors import InputError
 
     with pytest.raises(InputError, match="mode"):
-        run_session(SessionReader(walk), LocaliserConfig(mode="nonsense"))
+        session = SessionReader(walk)
+        make_localiser("nonsense", session.map, session.rig)
 
 
 def test_load_setup_from_a_session_directory(walk):
@@ -138,3 +147,35 @@ def test_demo_runs_without_arguments_beyond_output(tmp_path):
     assert r.returncode == 0, r.stderr
     assert "rerun " in r.stdout and (out / "demo.rrd").exists() and (out / "estimate.tum").exists()
     assert "RMSE" in r.stdout
+
+
+def _first_tracked(loc, session):
+    """Feed ``loc`` the session's frames until it has a pose; that frame and its result."""
+    for frame in session.frames():
+        res = loc.process(frame)
+        if res.output.state is TrackState.TRACKING:
+            return frame, res
+    raise AssertionError("no pose in the whole session")
+
+
+def test_one_frame_stages_observations_and_times(walk):
+    session = SessionReader(walk)
+    loc = Localiser(session.map, session.rig, map_path=walk / "map.csv")
+    frame, res = _first_tracked(loc, session)
+    assert res.frame is frame  # handed on, so a viewer need not read the image again
+    fixed = [o for o in res.observations if o.accepted]
+    assert fixed and all(o.identity.source is IdSource.DECODED and o.fix.poses for o in fixed)
+    assert all(o.fix is None for o in res.observations if o.identity is None)
+    assert {"predict", "odometry", "detect", "decode", "pose", "update", "output", "total"} <= set(res.times_ms)
+    assert "identify" not in res.times_ms  # nothing was left to identify on the first fix
+
+
+def test_baseline_holds_its_last_fix_over_an_unreadable_frame(walk):
+    session = SessionReader(walk)
+    loc = make_localiser("decoded-only", session.map, session.rig)
+    frame, res = _first_tracked(loc, session)
+    bad = loc.process(Frame(frame.index + 1, frame.timestamp + 0.1, None, error="corrupt"))
+    assert bad.skipped == "corrupt" and bad.output.state is TrackState.TRACKING
+    assert np.array_equal(bad.output.pose, res.output.pose)
+    assert bad.output.since_fix == pytest.approx(0.1)
+    assert loc.stats()["skipped"] == 1 and not any(k.startswith("tracker_") for k in loc.stats())

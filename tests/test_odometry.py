@@ -87,7 +87,7 @@ def test_body_motion_of_a_synthetic_shift_and_turn():
     Ainv = np.linalg.inv(p.A)
     Wl = Ainv @ R @ p.A
     wt = Ainv @ (R @ p.origin + np.array([dx, dy]) - p.origin)
-    assert np.allclose(odo._body_motion(Wl, wt), [dx, dy, dyaw], atol=1e-12)
+    assert np.allclose(odo.body_motion(Wl, wt), [dx, dy, dyaw], atol=1e-12)
 
 
 # -- simulated sessions -----------------------------------------------------------------------------

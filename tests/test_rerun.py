@@ -10,7 +10,17 @@ import tagloc.io.rerun_view as rv
 from tagloc.core.geometry import planar_T
 from tagloc.core.rig import default_rig
 from tagloc.core.stickermap import StickerMap
-from tagloc.core.types import Detection, Frame, FrameResult, IdSource, Observation, TrackerOutput, TrackState
+from tagloc.core.types import (
+    Detection,
+    Fix,
+    Frame,
+    FrameResult,
+    Identity,
+    IdSource,
+    Observation,
+    TrackerOutput,
+    TrackState,
+)
 from tagloc.io.rerun_view import RerunView, read_rrd
 
 N = 12
@@ -48,9 +58,9 @@ def recording(tmp_path_factory):
         img = rng.integers(0, 255, (972, 1296), dtype=np.uint8)
         outer = np.array([[100.0, 100.0], [300.0, 110.0], [290.0, 300.0], [95.0, 290.0]])
         obs = [
-            Observation(Detection(outer), 0, 7, IdSource.DECODED, 0, 1.0, accepted=True),
-            Observation(Detection(outer + 400), 0, 8, IdSource.ORB, 2, 0.8, accepted=False, gate_reason="gate"),
-            Observation(Detection(outer + [600, 0]), 0, None),
+            Observation(Detection(outer), 0, Identity(7, 0, IdSource.DECODED), Fix([], accepted=True)),
+            Observation(Detection(outer + 400), 0, Identity(8, 2, IdSource.ORB, 0.8), Fix([], False, False, "gate")),
+            Observation(Detection(outer + [600, 0]), 0),
         ]
         state = TrackState.INITIALISING if k < FIRST_POSE else TrackState.TRACKING
         out = TrackerOutput(

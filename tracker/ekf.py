@@ -76,6 +76,30 @@ def pose_residual(z: np.ndarray, hx: np.ndarray) -> np.ndarray:
     return y
 
 
+def odometry_model(x: np.ndarray, clone: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Measurement model of a floor-odometry step, beside the fix model (:meth:`WalkingEKF.innovation`).
+
+    The step is the odometry pose now (:func:`odometry_pose`: the vest's, plus the tilt offset that
+    the odometry's fixed homography adds) seen from the odometry pose ``clone`` (3,) at the earlier
+    frame: ``h = (R(yaw0)^T (v1 - c)[:2], v1.yaw - yaw0)`` with ``v1`` the odometry pose of the state
+    mean ``x`` (DIM,). Returns h (3,) and its Jacobian H (3, DIM + 3) over the joint state
+    [x (DIM), clone (3)] (stochastic cloning).
+    """
+    v1 = odometry_pose(x)
+    yaw0 = clone[2]
+    co, si = math.cos(yaw0), math.sin(yaw0)
+    Rt = np.array([[co, si], [-si, co]])  # world -> body at t0
+    d = v1[:2] - clone[:2]
+    hx = np.append(Rt @ d, wrap_angle(float(v1[2] - yaw0)))
+    H = np.zeros((3, DIM + 3))
+    H[:2, :DIM] = Rt @ M_ODO[:2]
+    H[:2, DIM : DIM + 2] = -Rt
+    H[:2, DIM + 2] = np.array([[-si, co], [-co, -si]]) @ d
+    H[2, :DIM] = M_ODO[2]
+    H[2, DIM + 2] = -1.0
+    return hx, H
+
+
 def largest_eig_2x2(P: np.ndarray) -> float:
     """Largest eigenvalue of the symmetric (x, y) block ``P[:2, :2]`` (closed form, no LAPACK call)."""
     a, b, c = float(P[0, 0]), 0.5 * float(P[0, 1] + P[1, 0]), float(P[1, 1])

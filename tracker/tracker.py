@@ -35,7 +35,9 @@ Rules, in one place:
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 from filterpy.kalman import update as kf_update
@@ -52,6 +54,7 @@ from tracker.ekf import (
     WalkingEKF,
     largest_eig_2x2,
     odometry_cov,
+    odometry_model,
     odometry_pose,
     pose_residual,
     sym_spd,
@@ -102,6 +105,18 @@ class _Hypothesis:
 
 
 _SOURCES = (IdSource.DECODED, IdSource.ORB, IdSource.APPEARANCE)
+
+R = TypeVar("R")
+
+
+def _checked(step: Callable[[], R]) -> tuple[bool, R | None]:
+    """Run a filter step with overflow and invalid results raised: (True, its result), or (False,
+    None) when it failed numerically (the one numeric guard; callers decide what failure undoes)."""
+    try:
+        with np.errstate(over="raise", invalid="raise"):
+            return True, step()
+    except (FloatingPointError, np.linalg.LinAlgError):
+        return False, None
 
 
 class Tracker:
@@ -229,14 +244,11 @@ class Tracker:
     def _guarded(self, step) -> bool:
         """Run a filter step; on a numerical failure restore the state before it, count it, return False."""
         x, P = self._ekf.x[:, 0].copy(), self._ekf.P
-        try:
-            with np.errstate(over="raise", invalid="raise"):
-                step()
-            return True
-        except (FloatingPointError, np.linalg.LinAlgError):
+        ok, _ = _checked(step)
+        if not ok:
             self._stats["numeric_errors"] += 1
             self._ekf.set(x, P)
-            return False
+        return ok
 
     # -- fixes --------------------------------------------------------------------------------------
     def _clean(self, fixes: list[PoseFix]) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -357,20 +369,9 @@ class Tracker:
         if h is not None and (t < h.t or t - h.t0 > cfg.reinit_window_s):
             h = None
         if h is not None:
-            try:
-                with np.errstate(over="raise", invalid="raise"):
-                    h.ekf.advance(t - h.t)
-                    h.t = t
-                    best = min((h.ekf.innovation(z, C).nis, i) for i, (z, C) in enumerate(alts))
-                    if best[0] <= cfg.gate:
-                        z, C = alts[best[1]]
-                        h.ekf.fuse(z, C)
-                        h.ids.add(int(sticker_id))
-                        h.count += 1
-                    else:
-                        h = None
-            except (FloatingPointError, np.linalg.LinAlgError):
-                self._stats["numeric_errors"] += 1
+            ok, fused = _checked(lambda: self._extend_hypothesis(h, alts, sticker_id, t))
+            self._stats["numeric_errors"] += not ok
+            if not fused:
                 h = None
         if h is None:
             ekf = WalkingEKF(cfg)
@@ -389,6 +390,18 @@ class Tracker:
         self._accept(sticker_id, IdSource.DECODED, t)
         self._stats["reinitialisations"] += 1
         self._stats["reinit_consistent"] += 1
+        return True
+
+    def _extend_hypothesis(self, h: _Hypothesis, alts, sticker_id: int, t: float) -> bool:
+        """Fuse the best of ``alts`` into the hypothesis if it passes its gate; False if none does."""
+        h.ekf.advance(t - h.t)
+        h.t = t
+        nis, i = min((h.ekf.innovation(z, C).nis, i) for i, (z, C) in enumerate(alts))
+        if not nis <= self.config.gate:  # NaN included
+            return False
+        h.ekf.fuse(*alts[i])
+        h.ids.add(int(sticker_id))
+        h.count += 1
         return True
 
     # -- odometry ---------------------------------------------------------------------------------
@@ -430,18 +443,7 @@ class Tracker:
         P = np.zeros((n + 3, n + 3))
         P[:n, :n], P[n:, n:], P[:n, n:], P[n:, :n] = P8, c.P, c.cross, c.cross.T
         P = sym_spd(P, cfg.min_eig)  # the caps applied while advancing may have bent it slightly
-        v1 = odometry_pose(x8)
-        yaw0 = c.pose[2]
-        co, si = math.cos(yaw0), math.sin(yaw0)
-        Rt = np.array([[co, si], [-si, co]])  # world -> body at t0
-        d = v1[:2] - c.pose[:2]
-        hx = np.append(Rt @ d, wrap_angle(float(v1[2] - yaw0)))
-        H = np.zeros((3, n + 3))
-        H[:2, :n] = Rt @ M_ODO[:2]
-        H[:2, n : n + 2] = -Rt
-        H[:2, n + 2] = np.array([[-si, co], [-co, -si]]) @ d
-        H[2, :n] = M_ODO[2]
-        H[2, n + 2] = -1.0
+        hx, H = odometry_model(x8, c.pose)
         R = sym_spd(C * np.outer(self._odo_scale, self._odo_scale), cfg.min_eig)
         y = pose_residual(z, hx)
         S = H @ P @ H.T + R
@@ -491,10 +493,7 @@ class Tracker:
         if target > now:
             ekf = WalkingEKF(cfg)
             ekf.set(self._ekf.mean, self._ekf.cov)
-            try:
-                with np.errstate(over="raise", invalid="raise"):
-                    ekf.advance(target - now)
-            except (FloatingPointError, np.linalg.LinAlgError):
+            if not _checked(lambda: ekf.advance(target - now))[0]:
                 ekf.set(self._ekf.mean, self._ekf.cov)
             x, P = ekf.mean, ekf.cov
             if state is TrackState.TRACKING and self._is_lost(P, target):

@@ -48,6 +48,7 @@ class LiveConfig:
             driver accepted is printed and written into the recording's session.json.
         more_cameras: further sources, rig cameras 1, 2, ... (``source`` is camera 0): one capture
             thread each, frames merged in timestamp order for the one tracker.
+        record_bag: rosbag2 directory to write (poses, /tf, detections; images too with ``bag_images``).
     """
 
     source: str
@@ -70,6 +71,8 @@ class LiveConfig:
     max_age_s: float = 0.5
     camera_settings: CameraSettings = field(default_factory=CameraSettings)
     more_cameras: list[str] = field(default_factory=list)
+    record_bag: Path | None = None
+    bag_images: bool = False
 
 
 @dataclass
@@ -151,6 +154,12 @@ def run_live(cfg: LiveConfig, localiser=None, stop: threading.Event | None = Non
     outputs = writer = None
     try:
         outputs = Outputs(localiser.map, localiser.rig, _output_config(cfg, source.live, cap.drop_oldest))
+        if cfg.record_bag is not None:
+            from tagloc.io.rosbag import BagWriter
+
+            # A sink for the poses; the loop also hands it each frame's detections (and image).
+            run.bag = BagWriter(cfg.record_bag, cfg.vest, localiser.rig, images=cfg.bag_images)
+            outputs.add_sink(run.bag)
         if cfg.record is not None:
             writer = SessionWriter(
                 cfg.record,
@@ -229,7 +238,8 @@ def _check_limits(cfg: LiveConfig) -> None:
 
 
 def _make_localiser(cfg: LiveConfig):
-    from tagloc.pipeline.localiser import Localiser, LocaliserConfig, load_setup
+    from tagloc.eval.baselines import make_localiser
+    from tagloc.pipeline.localiser import load_setup
 
     smap, rig = load_setup(map_path=cfg.map, calibration=cfg.calibration, rig_path=cfg.rig, config_dir=cfg.config_dir)
     map_path = cfg.map or (Path(cfg.config_dir) / MAP_FILE if cfg.config_dir else None)
@@ -241,7 +251,7 @@ def _make_localiser(cfg: LiveConfig):
 
         print("tagloc live: preparing the sticker reference bank (cached beside the map)", file=sys.stderr)
         refs = load_or_build_refs(map_path, progress=True) if map_path else build_refs(smap, progress=True)
-    return Localiser(smap, rig, LocaliserConfig(mode=cfg.mode), refs=refs, map_path=map_path)
+    return make_localiser(cfg.mode, smap, rig, refs=refs, map_path=map_path)
 
 
 def _output_config(cfg: LiveConfig, live_clock: bool, real_time: bool) -> OutputConfig:
@@ -268,6 +278,7 @@ class _LiveRun:
         self.state = "initialising"
         self.t_start = time.monotonic()
         self.seconds = 0.0
+        self.bag = None  # a tagloc.io.rosbag.BagWriter when recording a bag
 
     def _wait(self) -> float | None:
         """How long to wait for the next frame (s), or None when a limit is reached."""
@@ -301,6 +312,8 @@ class _LiveRun:
             self.frames += 1
             self.fixes += sum(o.accepted is True for o in result.observations)
             self.state = result.output.state.value
+            if self.bag is not None:
+                self.bag.write_frame(frame, result)
 
 
 def _stop_on_signals(stop: threading.Event):

@@ -13,10 +13,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
-import numpy as np
-
-from tagloc.core.types import Frame, FrameResult
+from tagloc.core.errors import InputError
+from tagloc.core.types import FrameResult
 from tagloc.eval.metrics import trajectory_metrics
 from tagloc.io.session import SessionReader
 from tagloc.pipeline.output import OutputConfig, Outputs, OutputSummary
@@ -35,6 +33,11 @@ class ReplayConfig:
         publish: pose sinks (see :func:`tagloc.io.sinks.open_sink`), ``vest`` the ID in messages.
         mode: localiser mode; detector, decoder: per-frame methods (see LocaliserConfig).
         progress: show a progress bar.
+        bag: rosbag2 directory to write (poses, /tf, detections; images too with ``bag_images``).
+        topic, map, rig, calibration, info_topic: when ``session`` is a bag (rosbag2 directory or ROS 1
+            .bag), its image topic, the sticker map, the rig and calibration (see
+            :class:`tagloc.io.rosbag.BagSession`).
+        png: write the walk's floor plan (trajectory, 2-sigma ellipses, ground truth) as a PNG.
     """
 
     session: Path
@@ -50,6 +53,25 @@ class ReplayConfig:
     detector: str = "contour"
     decoder: str = "zxing"
     progress: bool = True
+    bag: Path | None = None
+    bag_images: bool = False
+    topic: str | None = None
+    map: Path | None = None
+    rig: Path | None = None
+    calibration: Path | None = None
+    info_topic: str | None = None
+    png: Path | None = None
+
+
+def open_replay_source(cfg: ReplayConfig):
+    """The session to replay: a session directory, or a bag's camera topic."""
+    from tagloc.io.rosbag import BagSession, is_bag
+
+    if not is_bag(cfg.session) and cfg.topic is None:
+        return SessionReader(cfg.session)
+    if cfg.topic is None or cfg.map is None:
+        raise InputError(f"{cfg.session}: replaying a bag needs --topic IMAGE_TOPIC and --map MAP.csv")
+    return BagSession(cfg.session, cfg.topic, cfg.map, cfg.rig, cfg.calibration, cfg.info_topic)
 
 
 @dataclass
@@ -99,10 +121,11 @@ class ReplayResult:
 
 def replay(cfg: ReplayConfig) -> ReplayResult:
     """Replay a session through the localiser and write what ``cfg`` asks for."""
+    from tagloc.eval.baselines import make_localiser
     from tagloc.pipeline.localiser import LocaliserConfig
     from tagloc.pipeline.run import run_session
 
-    session = SessionReader(cfg.session)
+    session = open_replay_source(cfg)
     gt = session.groundtruth()
     fixes: dict[str, int] = {}
     outputs = Outputs(
@@ -120,17 +143,37 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
         ),
     )
     try:
+        bag = None
+        if cfg.bag is not None:
+            from tagloc.io.rosbag import BagWriter
+
+            bag = BagWriter(cfg.bag, cfg.vest, session.rig, images=cfg.bag_images)
+            outputs.add_sink(bag)
 
         def on_result(res: FrameResult) -> None:
             for o in res.observations:
                 if o.accepted:
                     fixes[o.source.value] = fixes.get(o.source.value, 0) + 1
-            outputs.emit(res, _reload(session, res) if outputs.view is not None else None)
+            outputs.emit(res, res.frame)
+            if bag is not None:
+                # A session's JPEG goes into the bag byte for byte; a bag source's frame is re-encoded.
+                p = (
+                    session.frame_path(res.index, res.frame.camera if res.frame is not None else 0)
+                    if cfg.bag_images
+                    else None
+                )
+                bag.write_frame(res.frame, res, p.read_bytes() if p is not None else None)
 
         t0 = time.monotonic()
         run = run_session(
             session,
-            LocaliserConfig(mode=cfg.mode, detector=cfg.detector, decoder=cfg.decoder),
+            localiser=make_localiser(
+                cfg.mode,
+                session.map,
+                session.rig,
+                LocaliserConfig(detector=cfg.detector, decoder=cfg.decoder),
+                map_path=session.map_path,
+            ),
             progress=cfg.progress,
             on_result=on_result,
             realtime=cfg.realtime,
@@ -141,15 +184,11 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
     metrics = None
     if gt is not None:
         metrics = trajectory_metrics(run.stamps[run.valid], run.poses[run.valid], run.covs[run.valid], *gt)
+    if cfg.png is not None:
+        from tagloc.io.fleet_plot import plot_walk
+
+        v = run.valid
+        plot_walk(session.map, run.stamps[v], run.poses[v], run.covs[v], cfg.png, gt, title=f"{cfg.session.name}")
     return ReplayResult(
         len(run.stamps), len(session.skipped), int(run.valid.sum()), fixes, seconds, metrics, summary, session.warnings
     )
-
-
-def _reload(session: SessionReader, res: FrameResult) -> Frame:
-    """The frame's image again, for Rerun (run_session hands over results, not images)."""
-    hit = np.flatnonzero(session.index == res.index)
-    camera = int(session.cameras[hit[0]]) if len(hit) else 0
-    p = session.frame_path(res.index, camera)
-    img = None if p is None or res.skipped else cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
-    return Frame(res.index, res.timestamp, img, camera)

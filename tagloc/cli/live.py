@@ -22,7 +22,8 @@ examples:
   tagloc live --camera 0 --camera 2 --rig front_rear/rig.json --map map.csv --publish stdout
   tagloc live --camera picam --exposure-ms 2 --gain 8 --fps 30 --resolution 1296x972 --config site/ --record rec/
   tagloc live --camera walk.avi --map map.csv --calibration cam.yaml --rig rig.json \\
-      --publish stdout --publish mqtt://broker:1883/tagloc/v07/pose --record rec/ --rerun-save live.rrd"""
+      --publish stdout --publish mqtt://broker:1883/tagloc/v07/pose --record rec/ --rerun-save live.rrd
+  tagloc live --camera 0 --config site/ --record-bag out/v07.bag2 --vest v07"""
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -67,6 +68,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fps", type=float, help="camera frame rate")
     p.add_argument("--resolution", metavar="WxH", help="camera resolution, e.g. 1296x972")
     p.add_argument("--mode", default="full", choices=("full", "decoded-only", "orb-all"), help="localiser mode")
+    p.add_argument("--record-bag", type=Path, metavar="DIR", help="write a rosbag2 (MCAP): pose, /tf, detections")
+    p.add_argument("--bag-images", action="store_true", help="also put the camera images and CameraInfo in the bag")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -100,6 +103,8 @@ def run(args: argparse.Namespace) -> int:
             pace=not args.no_pace,
             buffer=args.buffer,
             mode=args.mode,
+            record_bag=args.record_bag,
+            bag_images=args.bag_images,
             max_age_s=args.max_age,
             camera_settings=settings,
         )

@@ -14,11 +14,13 @@ the same session gives byte-identical TUM and log files.
 
 examples:
   tagloc replay rec/ --out est.tum --log frames.jsonl
-  tagloc replay sim/walk01 --rerun walk01.rrd      # then: rerun walk01.rrd"""
+  tagloc replay sim/walk01 --rerun walk01.rrd      # then: rerun walk01.rrd
+  tagloc replay logs/walk2s --bag out/walk2s.bag2  # a rosbag2 (MCAP) of poses, /tf and detections
+  tagloc replay rec.bag --topic /cam/image_raw/compressed --map map.csv --rig rig.json --out est.tum"""
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("session", type=Path, help="session directory")
+    p.add_argument("session", type=Path, help="session directory, or a rosbag2 directory / ROS 1 .bag with --topic")
     p.add_argument("--out", type=Path, metavar="FILE.tum", help="write the estimated body trajectory (TUM)")
     p.add_argument("--log", type=Path, metavar="FILE.jsonl", help="write the per-frame JSON lines log")
     p.add_argument("--log-times", action="store_true", help="add stage timings to the log (makes it vary run to run)")
@@ -26,6 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     view.add_argument("--rerun", type=Path, metavar="FILE.rrd", help="save a Rerun recording")
     view.add_argument("--spawn", action="store_true", help="stream to a new Rerun viewer")
     p.add_argument("--realtime", action="store_true", help="pace frames at their timestamps")
+    p.add_argument("--png", type=Path, metavar="FILE.png", help="write the walk's floor plan as a PNG (matplotlib)")
     p.add_argument(
         "--publish",
         action="append",
@@ -48,6 +51,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="Data Matrix backend (default zxing; libdmtx needs the system library)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    b = p.add_argument_group("ROS bags")
+    b.add_argument("--bag", type=Path, metavar="DIR", help="write a rosbag2 (MCAP): pose, /tf, detections")
+    b.add_argument("--bag-images", action="store_true", help="also put the camera images and CameraInfo in --bag")
+    b.add_argument("--topic", help="replaying a bag: its image topic (sensor_msgs/Image or CompressedImage)")
+    b.add_argument("--map", type=Path, help="replaying a bag: the sticker map CSV")
+    b.add_argument("--rig", type=Path, help="replaying a bag: rig JSON (default rig otherwise)")
+    b.add_argument("--calibration", type=Path, help="replaying a bag: calibration YAML (overrides its CameraInfo)")
+    b.add_argument("--info-topic", help="replaying a bag: CameraInfo topic (default: camera_info beside --topic)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -68,6 +79,14 @@ def run(args: argparse.Namespace) -> int:
             detector=args.detector,
             decoder=args.decoder,
             progress=not args.quiet,
+            bag=args.bag,
+            bag_images=args.bag_images,
+            topic=args.topic,
+            map=args.map,
+            rig=args.rig,
+            calibration=args.calibration,
+            info_topic=args.info_topic,
+            png=args.png,
         )
     )
     print(res.format())

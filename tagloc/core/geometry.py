@@ -63,12 +63,6 @@ def T_from_rvec_tvec(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     return make_T(R, np.asarray(tvec, float).ravel())
 
 
-def rvec_tvec_from_T(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """OpenCV (rvec (3,1), tvec (3,1)) from a 4x4 transform."""
-    rvec, _ = cv2.Rodrigues(T[:3, :3])
-    return rvec, T[:3, 3].reshape(3, 1).copy()
-
-
 def T_to_tum(T: np.ndarray) -> tuple[float, float, float, float, float, float, float]:
     """(x, y, z, qx, qy, qz, qw) of a 4x4 transform, as a TUM line stores it."""
     q = Rotation.from_matrix(T[:3, :3]).as_quat()  # scipy order: x, y, z, w
@@ -79,15 +73,6 @@ def T_from_tum(values: np.ndarray) -> np.ndarray:
     """4x4 transform from (x, y, z, qx, qy, qz, qw)."""
     values = np.asarray(values, float)
     return make_T(Rotation.from_quat(values[3:7]).as_matrix(), values[:3])
-
-
-def interpolate_T(T0: np.ndarray, T1: np.ndarray, alpha: float) -> np.ndarray:
-    """Pose between ``T0`` (alpha=0) and ``T1`` (alpha=1): linear translation, slerped rotation."""
-    from scipy.spatial.transform import Slerp
-
-    rots = Rotation.from_matrix(np.stack([T0[:3, :3], T1[:3, :3]]))
-    R = Slerp([0.0, 1.0], rots)([alpha]).as_matrix()[0]
-    return make_T(R, (1 - alpha) * T0[:3, 3] + alpha * T1[:3, 3])
 
 
 def interpolate_groundtruth(

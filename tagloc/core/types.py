@@ -80,40 +80,84 @@ class PoseFix:
     reprojection_px: float
 
 
-@dataclass
-class Observation:
-    """Everything the per-frame stage knows about one sticker in one frame.
+@dataclass(frozen=True)
+class Identity:
+    """Which sticker a detection is, known by decoding or by identification among candidates.
 
-    ``rotation`` r (0-3) means the canonical top-left corner is ``detection.outer[r]``.
+    ``rotation`` r (0-3) means the canonical top-left corner is ``detection.outer[r]``. ``score``
+    and ``margin`` are the identification's (1 and 0 for a decoded sticker).
+    """
+
+    sticker_id: int
+    rotation: int
+    source: IdSource
+    score: float = 1.0
+    margin: float = 0.0
+
+
+@dataclass(frozen=True)
+class Fix:
+    """The pose one identified sticker gives, and what the tracker did with it.
+
     ``poses`` holds one solution, or two when IPPE's two solutions are close in error
-    (``ambiguous``), best first; it is empty until the sticker is identified.
+    (``ambiguous``), best first; empty when the pose solver found none.
+    """
+
+    poses: list[PoseFix]
+    ambiguous: bool = False
+    accepted: bool | None = None  # did the tracker take this fix (None: not offered)
+    gate_reason: str | None = None  # the tracker's reason, "fused", "initialised" or why it refused
+
+
+@dataclass(frozen=True)
+class Observation:
+    """One sticker in one frame, built once the per-frame stages are done with it.
+
+    The stages run detection -> identity (decoded, or identified among the tracker's candidates;
+    None if neither) -> fix (only with an identity). ``rejected_read`` says why symbols that were
+    read gave no identity; ``unmapped_id`` is a decoded ID that is not in the map (never a fix).
     """
 
     detection: Detection
     camera: int = 0
-    sticker_id: int | None = None
-    source: IdSource = IdSource.NONE
-    rotation: int | None = None
-    score: float = 0.0
-    margin: float = 0.0
-    poses: list[PoseFix] = field(default_factory=list)
-    ambiguous: bool = False
-    times_ms: dict[str, float] = field(default_factory=dict)
+    identity: Identity | None = None
+    fix: Fix | None = None
     rejected_read: str | None = None
-    accepted: bool | None = None  # did the tracker take this fix (None: no fix offered)
-    gate_reason: str | None = None  # the tracker's reason when it refused
+    unmapped_id: int | None = None
+
+    @property
+    def sticker_id(self) -> int | None:
+        """The identity's sticker ID, else the unmapped decoded ID, else None."""
+        return self.identity.sticker_id if self.identity is not None else self.unmapped_id
+
+    @property
+    def source(self) -> IdSource:
+        return self.identity.source if self.identity is not None else IdSource.NONE
+
+    @property
+    def poses(self) -> list[PoseFix]:
+        return self.fix.poses if self.fix is not None else []
+
+    @property
+    def accepted(self) -> bool | None:
+        return self.fix.accepted if self.fix is not None else None
+
+    @property
+    def gate_reason(self) -> str | None:
+        return self.fix.gate_reason if self.fix is not None else None
 
     def to_json(self) -> dict:
         """Plain-data form for the JSON-lines log."""
+        ident, fix = self.identity, self.fix
         return {
             "camera": self.camera,
             "corners": np.round(self.detection.outer, 3).tolist(),
             "sticker_id": self.sticker_id,
             "source": self.source.value,
-            "rotation": self.rotation,
-            "score": round(float(self.score), 4),
-            "margin": round(float(self.margin), 4),
-            "ambiguous": self.ambiguous,
+            "rotation": ident.rotation if ident is not None else None,
+            "score": round(float(ident.score), 4) if ident is not None else 0.0,
+            "margin": round(float(ident.margin), 4) if ident is not None else 0.0,
+            "ambiguous": fix.ambiguous if fix is not None else False,
             "poses": [
                 {
                     "body": np.round(p.body, 5).tolist(),
@@ -122,7 +166,6 @@ class Observation:
                 }
                 for p in self.poses
             ],
-            "times_ms": {k: round(v, 3) for k, v in self.times_ms.items()},
             "rejected_read": self.rejected_read,
             "accepted": self.accepted,
             "gate_reason": self.gate_reason,
@@ -174,7 +217,11 @@ class TrackerOutput:
 
 @dataclass
 class FrameResult:
-    """What the localiser made of one frame: its observations and the tracker's output after it."""
+    """What the localiser made of one frame: its observations and the tracker's output after it.
+
+    ``times_ms`` is the wall time of each stage over the whole frame (see
+    :class:`tagloc.pipeline.localiser.StageTimer`), with ``total`` for the frame.
+    """
 
     index: int
     timestamp: float
@@ -182,3 +229,4 @@ class FrameResult:
     output: TrackerOutput
     times_ms: dict[str, float] = field(default_factory=dict)
     skipped: str | None = None  # why the frame was skipped (corrupt image), else None
+    frame: Frame | None = None  # the frame itself, for a viewer (so it is read and decoded once)

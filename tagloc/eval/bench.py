@@ -14,7 +14,7 @@ with painted lines, stains and dark distractor squares) holding, 16 m apart so t
 
 Map IDs are consecutive, so a sticker's spatial neighbours share leading digits with it (the hard
 case for identification); the identification candidates are the true ID and the K-1 nearest IDs of
-the map (:func:`tagloc.eval.bench_identify._candidates`), and, to count wrong IDs where the true sticker
+the map (:func:`tagloc.eval.bench_identify.candidate_ids`), and, to count wrong IDs where the true sticker
 is absent, K map IDs near it without it.
 
 Tables (see :func:`format_tables`):
@@ -53,19 +53,20 @@ from tagloc.core.rig import Rig, default_rig, looking_forward
 from tagloc.core.stickermap import StickerMap
 from tagloc.core.types import IdSource, PoseFix
 from tagloc.eval.bench_detect import match_detections
-from tagloc.eval.bench_identify import _candidates
+from tagloc.eval.bench_identify import candidate_ids
+from tagloc.pipeline.localiser import LocaliserConfig
 from tagloc.sim.floor import Floor, FloorConfig
 from tagloc.sim.simulate import render_view, true_corners
-from tagloc.vision.decode import decode
+from tagloc.vision.decode import BACKENDS, decode
 from tagloc.vision.detect import detect
-from tagloc.vision.identify import identify
+from tagloc.vision.identify import METHODS, identify
 from tagloc.vision.pose import solve_pose
 from tagloc.vision.refs import ReferenceBank, build_refs
 
-DECODERS = ("zxing", "libdmtx", "both")
-IDENTIFIERS = ("orb", "appearance", "auto")
-DEFAULT_DECODER = "zxing"  # decode()'s and the localiser's default backend
-DEFAULT_IDENTIFIER = "auto"
+DECODERS = BACKENDS
+IDENTIFIERS = METHODS
+DEFAULT_DECODER = LocaliserConfig().decoder  # what the localiser runs
+DEFAULT_IDENTIFIER = LocaliserConfig().identify
 _STATION_SPACING_M = 16.0  # far enough apart that no view sees two stations
 
 
@@ -213,7 +214,7 @@ def _build_scene(cfg: BenchConfig, rig: Rig) -> _Scene:
     return _Scene(floor, smap, singles, triples, empties, bank, rig)
 
 
-def _view_at_distance(rng: np.random.Generator, camera: Camera, target_xy: np.ndarray, distance_m: float) -> np.ndarray:
+def view_at_distance(rng: np.random.Generator, camera: Camera, target_xy: np.ndarray, distance_m: float) -> np.ndarray:
     """``T_world_camera`` seeing the floor point ``target_xy`` at ``distance_m``, at a random place in
     the middle of the image, from a vest-like height, at a random heading."""
     for _ in range(1000):
@@ -366,6 +367,12 @@ class _Runner:
             jpeg_quality=self.cfg.jpeg_quality,
         )
 
+    def single_pose(self, rng: np.random.Generator, d: float) -> tuple[int, np.ndarray]:
+        """A random single sticker and a camera pose ``T_wc`` looking at it from ``d`` m."""
+        sc = self.scene
+        sid = int(rng.choice(sc.singles))
+        return sid, view_at_distance(rng, self.cam, sc.floor.stickers.xy[sc.floor.stickers.row(sid)], d)
+
     def measure(
         self,
         cell: _Cell,
@@ -412,8 +419,8 @@ class _Runner:
                 cell.decode_right[backend] += ok
                 cell.decode_wrong[backend] += not ok
         k = self.cfg.candidates
-        present = _candidates(self.pool, sticker_id, k, False, rng)
-        absent = _candidates(self.pool, sticker_id, k, True, rng)
+        present = candidate_ids(self.pool, sticker_id, k, False, rng)
+        absent = candidate_ids(self.pool, sticker_id, k, True, rng)
         for method in IDENTIFIERS:
             r = identify(gray, det, self.cam, present, self.scene.bank, method=method)
             if r.sticker_id is not None:
@@ -427,7 +434,7 @@ class _Runner:
 # -- timing -----------------------------------------------------------------------------------------
 
 
-def _aruco_frame(gray: np.ndarray, corners: np.ndarray, rng: np.random.Generator, marker_px: int = 40) -> np.ndarray:
+def aruco_frame(gray: np.ndarray, corners: np.ndarray, rng: np.random.Generator, marker_px: int = 40) -> np.ndarray:
     """``gray`` with a DICT_4X4_50 marker (black square = the sticker's outer square, one white
     module of margin) pasted over the sticker whose outer corners (4, 2) are given."""
     d = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50)
@@ -476,7 +483,7 @@ def _stage_times(
         det, sid, rot = dets[mt.detection], ids[mt.truth], mt.rotation
         times["decode"] += _timed(decode, gray, det, cam, backend=DEFAULT_DECODER)[1]
         if sid in sc.smap:
-            cands = _candidates(runner.pool, sid, runner.cfg.candidates, False, rng)
+            cands = candidate_ids(runner.pool, sid, runner.cfg.candidates, False, rng)
             times["identify"] += _timed(identify, gray, det, cam, cands, sc.bank, method=DEFAULT_IDENTIFIER)[1]
             times["pose"] += _timed(solve_pose, det, rot, sc.smap.T_world_sticker(sid), runner.rig_cam)[1]
     times["matched"] = len(m)
@@ -546,53 +553,15 @@ def run_bench(config: BenchConfig | None = None) -> dict:
         total = n * (len(cfg.blurs_px) + len(cfg.lux_levels) + len(cfg.distances_m) + 3) + 1
         bar = tqdm(total=total, desc="bench", unit="view", disable=not cfg.progress)
 
-        def single_pose(rng: np.random.Generator, d: float) -> tuple[int, np.ndarray]:
-            sid = int(rng.choice(scene.singles))
-            return sid, _view_at_distance(rng, runner.cam, scene.floor.stickers.xy[scene.floor.stickers.row(sid)], d)
-
         # Warm-up view (imports, lazily built caches, first-call costs); not counted.
         rng = np.random.default_rng([cfg.seed, 99])
-        sid, T = single_pose(rng, 1.5)
+        sid, T = runner.single_pose(rng, 1.5)
         runner.measure(_Cell(), runner.render(T, cfg.seed, cfg.lux, blur_px=6.0).image, T, sid, rng, True, cfg.paper)
         bar.update(1)
 
-        blur_cells = []
-        for b in cfg.blurs_px:
-            cell, rng = _Cell(), np.random.default_rng([cfg.seed, 2, int(round(b * 10))])
-            for _i in range(n):
-                sid, T = single_pose(rng, rng.uniform(cfg.near_m, cfg.far_m))
-                res = runner.render(T, int(rng.integers(2**31)), cfg.lux, blur_px=b, blur_dir=rng.uniform(0, 180))
-                cell.blur_px.append(res.blur_px)
-                cell.exposure_ms.append(res.exposure_s * 1e3)
-                runner.measure(cell, res.image, T, sid, rng, True, cfg.paper)
-                bar.update(1)
-            blur_cells.append({"blur_px": b, **cell.summary(runner.decoders, IDENTIFIERS, True, cfg.paper)})
-
-        lux_cells = []
-        for lx in cfg.lux_levels:
-            cell, rng = _Cell(), np.random.default_rng([cfg.seed, 3, int(round(lx))])
-            for _i in range(n):
-                sid, T = single_pose(rng, rng.uniform(cfg.near_m, cfg.far_m))
-                heading = T[:3, 2].copy()
-                heading[2] = 0.0
-                v = cfg.walk_speed_mps * heading / np.linalg.norm(heading)
-                res = runner.render(T, int(rng.integers(2**31)), lx, velocity=v)
-                cell.blur_px.append(res.blur_px)
-                cell.exposure_ms.append(res.exposure_s * 1e3)
-                runner.measure(cell, res.image, T, sid, rng, True, False)
-                bar.update(1)
-            lux_cells.append({"lux": lx, **cell.summary(runner.decoders, IDENTIFIERS, True, False)})
-
-        dist_cells = []
-        for d in cfg.distances_m:
-            cell, rng = _Cell(), np.random.default_rng([cfg.seed, 4, int(round(d * 100))])
-            for _i in range(n):
-                sid, T = single_pose(rng, d)
-                res = runner.render(T, int(rng.integers(2**31)), cfg.lux)
-                runner.measure(cell, res.image, T, sid, rng, False, False)
-                bar.update(1)
-            dist_cells.append({"distance_m": d, **cell.summary(runner.decoders, IDENTIFIERS, False, False)})
-
+        blur_cells = _blur_sweep(cfg, runner, bar)
+        lux_cells = _lux_sweep(cfg, runner, bar)
+        dist_cells = _distance_sweep(cfg, runner, bar)
         timing = _timing(cfg, runner, bar)
         bar.close()
     finally:
@@ -609,6 +578,55 @@ def run_bench(config: BenchConfig | None = None) -> dict:
     }
     result["targets"] = _targets(result)
     return result
+
+
+def _blur_sweep(cfg: BenchConfig, runner: _Runner, bar: Any) -> list[dict]:
+    """One cell per blur length: views 1.3-2.0 m away, blurred along a random direction."""
+    cells = []
+    for b in cfg.blurs_px:
+        cell, rng = _Cell(), np.random.default_rng([cfg.seed, 2, int(round(b * 10))])
+        for _i in range(cfg.frames):
+            sid, T = runner.single_pose(rng, rng.uniform(cfg.near_m, cfg.far_m))
+            res = runner.render(T, int(rng.integers(2**31)), cfg.lux, blur_px=b, blur_dir=rng.uniform(0, 180))
+            cell.blur_px.append(res.blur_px)
+            cell.exposure_ms.append(res.exposure_s * 1e3)
+            runner.measure(cell, res.image, T, sid, rng, True, cfg.paper)
+            bar.update(1)
+        cells.append({"blur_px": b, **cell.summary(runner.decoders, IDENTIFIERS, True, cfg.paper)})
+    return cells
+
+
+def _lux_sweep(cfg: BenchConfig, runner: _Runner, bar: Any) -> list[dict]:
+    """One cell per illuminance: natural exposure, walking towards the view at ``walk_speed_mps``."""
+    cells = []
+    for lx in cfg.lux_levels:
+        cell, rng = _Cell(), np.random.default_rng([cfg.seed, 3, int(round(lx))])
+        for _i in range(cfg.frames):
+            sid, T = runner.single_pose(rng, rng.uniform(cfg.near_m, cfg.far_m))
+            heading = T[:3, 2].copy()
+            heading[2] = 0.0
+            v = cfg.walk_speed_mps * heading / np.linalg.norm(heading)
+            res = runner.render(T, int(rng.integers(2**31)), lx, velocity=v)
+            cell.blur_px.append(res.blur_px)
+            cell.exposure_ms.append(res.exposure_s * 1e3)
+            runner.measure(cell, res.image, T, sid, rng, True, False)
+            bar.update(1)
+        cells.append({"lux": lx, **cell.summary(runner.decoders, IDENTIFIERS, True, False)})
+    return cells
+
+
+def _distance_sweep(cfg: BenchConfig, runner: _Runner, bar: Any) -> list[dict]:
+    """One cell per distance: sharp views (no motion) at ``lux``."""
+    cells = []
+    for d in cfg.distances_m:
+        cell, rng = _Cell(), np.random.default_rng([cfg.seed, 4, int(round(d * 100))])
+        for _i in range(cfg.frames):
+            sid, T = runner.single_pose(rng, d)
+            res = runner.render(T, int(rng.integers(2**31)), cfg.lux)
+            runner.measure(cell, res.image, T, sid, rng, False, False)
+            bar.update(1)
+        cells.append({"distance_m": d, **cell.summary(runner.decoders, IDENTIFIERS, False, False)})
+    return cells
 
 
 def _timing(cfg: BenchConfig, runner: _Runner, bar: Any) -> dict:
@@ -665,7 +683,7 @@ def _timing(cfg: BenchConfig, runner: _Runner, bar: Any) -> dict:
             acc["end_to_end"].append(_end_to_end(runner, gray, body, T_wc))
             acc["stickers_seen"].append(len(visible))
             if name == "1 sticker" and visible:
-                af = _aruco_frame(gray, true_corners(sc.floor, cam, T_wc, visible[0])[:4], rng)
+                af = aruco_frame(gray, true_corners(sc.floor, cam, T_wc, visible[0])[:4], rng)
                 (corners, marker_ids, _), ms = _timed(aruco.detectMarkers, af)
                 aruco_ms.append(ms)
                 aruco_found += marker_ids is not None and 7 in np.ravel(marker_ids)
@@ -814,16 +832,25 @@ def _table(title: str, headers: list[str], rows: list[list[str]]) -> str:
 
 def format_tables(result: dict) -> str:
     """The bench's result (from :func:`run_bench`) as aligned text tables with units."""
-    out = []
     env = result["environment"]
     cfg = result["config"]
-    out.append(
+    out = [
         f"tagloc bench: {cfg['frames']} views per cell, seed {cfg['seed']}, 1296x972 Pi v1 camera, "
         f"single-threaded OpenCV {env['start']['opencv']}; load average at start "
         f"{'/'.join(map(str, env['start']['load_average']))}, at end {'/'.join(map(str, env['end_load_average']))} "
         f"({env['start']['cpus']} CPUs, shared); wall {result['wall_s']} s"
-    )
+    ]
+    out += _timing_tables(result)
+    out += _rate_tables(result)
+    out += _geometry_tables(result)
+    out += _detector_tables(result)
+    out += _target_tables(result)
+    return "\n".join(out)
 
+
+def _timing_tables(result: dict) -> list[str]:
+    """Table 1: stage times per frame group, and the ratios to ArUco."""
+    out: list[str] = []
     tm = result["timing"]
     cond = tm["conditions"]
     rows = []
@@ -858,36 +885,44 @@ def format_tables(result: dict) -> str:
         f"ratio 1-sticker end to end / ArUco: {_fmt(tm['ratio_end_to_end_vs_aruco'], '.3f')}; "
         f"detect only / ArUco: {_fmt(tm['ratio_detect_vs_aruco'], '.3f')}"
     )
+    return out
 
-    def reads_table(title: str, cells: list[dict], key: str, unit: str) -> str:
-        decs = list(cells[0]["decode"]) if cells else []
-        ids = list(cells[0]["identify"]) if cells else []
-        headers = [unit, "frame blur px (median)", "exposure ms", "stickers", "detected %"]
-        headers += [f"read {d}{' (default)' if d == DEFAULT_DECODER else ''} %" for d in decs]
-        headers += [f"id {m}{' (default)' if m == DEFAULT_IDENTIFIER else ''} %" for m in ids]
-        headers += ["wrong IDs read/id/absent"]
-        rows = []
-        for c in cells:
-            n = c["stickers"]
-            row = [
-                _fmt(c[key], "g"),
-                _fmt(c["blur_px_median"]),
-                _fmt(c["exposure_ms_median"]),
-                str(n),
-                _pct(c["detected"], n),
-            ]
-            row += [_pct(c["decode"][d]["right"], n) for d in decs]
-            row += [_pct(c["identify"][m]["right"], n) for m in ids]
-            wr = sum(c["decode"][d]["wrong"] for d in decs)
-            wi = sum(c["identify"][m]["wrong"] for m in ids)
-            wa = sum(c["identify"][m]["absent_wrong"] for m in ids)
-            row.append(f"{wr}/{wi}/{wa}")
-            rows.append(row)
-        return _table(title, headers, rows)
 
+def _reads_table(title: str, cells: list[dict], key: str, unit: str) -> str:
+    """Rates of one sweep (``cells`` keyed by ``key``) as a table."""
+    decs = list(cells[0]["decode"]) if cells else []
+    ids = list(cells[0]["identify"]) if cells else []
+    headers = [unit, "frame blur px (median)", "exposure ms", "stickers", "detected %"]
+    headers += [f"read {d}{' (default)' if d == DEFAULT_DECODER else ''} %" for d in decs]
+    headers += [f"id {m}{' (default)' if m == DEFAULT_IDENTIFIER else ''} %" for m in ids]
+    headers += ["wrong IDs read/id/absent"]
+    rows = []
+    for c in cells:
+        n = c["stickers"]
+        row = [
+            _fmt(c[key], "g"),
+            _fmt(c["blur_px_median"]),
+            _fmt(c["exposure_ms_median"]),
+            str(n),
+            _pct(c["detected"], n),
+        ]
+        row += [_pct(c["decode"][d]["right"], n) for d in decs]
+        row += [_pct(c["identify"][m]["right"], n) for m in ids]
+        wr = sum(c["decode"][d]["wrong"] for d in decs)
+        wi = sum(c["identify"][m]["wrong"] for m in ids)
+        wa = sum(c["identify"][m]["absent_wrong"] for m in ids)
+        row.append(f"{wr}/{wi}/{wa}")
+        rows.append(row)
+    return _table(title, headers, rows)
+
+
+def _rate_tables(result: dict) -> list[str]:
+    """Tables 2a and 2b: read and identification rates vs blur and vs illuminance."""
+    cfg = result["config"]
+    out: list[str] = []
     out.append("")
     out.append(
-        reads_table(
+        _reads_table(
             f"2a. Read and identification rate vs blur ({cfg['near_m']:g}-{cfg['far_m']:g} m, "
             f"{cfg['lux']:g} lux; % of fully visible stickers, ID and rotation right; "
             f"{cfg['candidates']} candidates; absent = true ID not among them)",
@@ -898,7 +933,7 @@ def format_tables(result: dict) -> str:
     )
     out.append("")
     out.append(
-        reads_table(
+        _reads_table(
             f"2b. Read and identification rate vs illuminance (natural exposure, walking "
             f"{cfg['walk_speed_mps']:g} m/s, {cfg['near_m']:g}-{cfg['far_m']:g} m)",
             result["lux"],
@@ -906,40 +941,48 @@ def format_tables(result: dict) -> str:
             "lux",
         )
     )
+    return out
 
-    def geo_table(title: str, cells: list[dict], key: str, unit: str) -> str:
-        rows = []
-        for c in cells:
-            rows.append(
-                [
-                    _fmt(c[key], "g"),
-                    str(c["stickers"]),
-                    _pct(c["detected"], c["stickers"]),
-                    _fmt(c["outer_err_px"]["median"], ".3f"),
-                    _fmt(c["outer_err_px"]["p95"], ".3f"),
-                    _fmt(c["inner_err_px"]["median"], ".3f"),
-                    _fmt(c["position_err_cm"]["median"], ".2f"),
-                    _fmt(c["position_err_cm"]["p95"], ".2f"),
-                ]
-            )
-        return _table(
-            title,
+
+def _geo_table(title: str, cells: list[dict], key: str, unit: str) -> str:
+    """Corner and position errors of one sweep (``cells`` keyed by ``key``) as a table."""
+    rows = []
+    for c in cells:
+        rows.append(
             [
-                unit,
-                "stickers",
-                "detected %",
-                "outer err px (median)",
-                "outer err px (p95)",
-                "inner err px (median)",
-                "position err cm (median)",
-                "position err cm (p95)",
-            ],
-            rows,
+                _fmt(c[key], "g"),
+                str(c["stickers"]),
+                _pct(c["detected"], c["stickers"]),
+                _fmt(c["outer_err_px"]["median"], ".3f"),
+                _fmt(c["outer_err_px"]["p95"], ".3f"),
+                _fmt(c["inner_err_px"]["median"], ".3f"),
+                _fmt(c["position_err_cm"]["median"], ".2f"),
+                _fmt(c["position_err_cm"]["p95"], ".2f"),
+            ]
         )
+    return _table(
+        title,
+        [
+            unit,
+            "stickers",
+            "detected %",
+            "outer err px (median)",
+            "outer err px (p95)",
+            "inner err px (median)",
+            "position err cm (median)",
+            "position err cm (p95)",
+        ],
+        rows,
+    )
 
+
+def _geometry_tables(result: dict) -> list[str]:
+    """Tables 3a and 3b: corner and camera position errors vs blur and vs distance."""
+    cfg = result["config"]
+    out: list[str] = []
     out.append("")
     out.append(
-        geo_table(
+        _geo_table(
             "3a. Corner and camera position error vs blur (pose from true ID/rotation)",
             result["blur"],
             "blur_px",
@@ -948,14 +991,19 @@ def format_tables(result: dict) -> str:
     )
     out.append("")
     out.append(
-        geo_table(
+        _geo_table(
             f"3b. Corner and camera position error vs distance (no blur, {cfg['lux']:g} lux)",
             result["distance"],
             "distance_m",
             "distance m",
         )
     )
+    return out
 
+
+def _detector_tables(result: dict) -> list[str]:
+    """Table 4: the paper's detector against ours (empty without it)."""
+    out: list[str] = []
     if result["detectors"]:
         rows = []
         for d in result["detectors"]:
@@ -987,7 +1035,11 @@ def format_tables(result: dict) -> str:
                 rows,
             )
         )
+    return out
 
+
+def _target_tables(result: dict) -> list[str]:
+    """The targets with PASS/MISS."""
     rows = [
         [
             t["target"],
@@ -997,9 +1049,7 @@ def format_tables(result: dict) -> str:
         ]
         for t in result["targets"]
     ]
-    out.append("")
-    out.append(_table("Targets", ["target", "measured", "goal", "result"], rows))
-    return "\n".join(out)
+    return ["", _table("Targets", ["target", "measured", "goal", "result"], rows)]
 
 
 def bench_command(

@@ -20,7 +20,8 @@ import numpy as np
 from tagloc.core.camera import Camera, default_camera
 from tagloc.core.sticker import INNER_CORNERS, OUTER_CORNERS, render_sticker
 from tagloc.core.types import Detection
-from tagloc.vision.identify import IdentifyConfig, appearance_scores, identify, motion_kernel, orb_scores
+from tagloc.vision.identify import IdentifyConfig, appearance_scores, identify, orb_scores
+from tagloc.vision.psf import motion_kernel
 from tagloc.vision.refs import ReferenceBank, build_refs
 
 
@@ -75,6 +76,33 @@ def synth_view(
     view = np.radians(rng.uniform(20, 70) if view_deg is None else view_deg)
     r_true = int(rng.integers(4)) if rotation is None else int(rotation)
     side = rng.uniform(60, 110) if size_px is None else float(size_px)
+    plane, outer, inner = _place_sticker(cam, rng, view, side)
+
+    # Region to render: the sticker's box plus room for the blur and the floor around it.
+    pad = int(blur_px) + 12
+    x0, y0 = np.floor(outer.min(0)).astype(int) - pad
+    x1, y1 = np.ceil(outer.max(0)).astype(int) + pad
+    box = (max(x0, 0), max(y0, 0), min(x1, cam.width), min(y1, cam.height))
+    img, floor_level = _render_region(cam, sticker_id, plane, box, rng)
+    img = _sensor(img, blur_px, noise, jpeg, rng)
+    x0, y0, x1, y1 = box
+    gray = np.full((cam.height, cam.width), int(floor_level), np.uint8)
+    gray[y0:y1, x0:x1] = img
+
+    # Canonical corners project clockwise on screen; the detector may start at any of them.
+    if corner_noise_px is None:
+        corner_noise_px = 0.5 + 0.1 * blur_px
+    outer_d = np.roll(outer, r_true, 0) + rng.normal(0, corner_noise_px, (4, 2))
+    inner_d = np.roll(inner, r_true, 0) + rng.normal(0, corner_noise_px, (4, 2)) if with_inner else None
+    return View(gray, Detection(outer_d, inner_d), int(sticker_id), r_true, side)
+
+
+def _place_sticker(
+    cam: Camera, rng: np.random.Generator, view: float, side: float
+) -> tuple[tuple[np.ndarray, ...], np.ndarray, np.ndarray]:
+    """A sticker plane seen at ``view`` rad from its normal, ~``side`` px across, somewhere in the
+    middle of the image: ((centre, normal, ex, ey) in camera coordinates (m), outer (4, 2) and
+    inner (4, 2) corners in distorted pixels)."""
     u = np.array([rng.uniform(0.2, 0.8) * cam.width, rng.uniform(0.2, 0.8) * cam.height])
     ray = cv2.undistortPoints(u.reshape(1, 1, 2), cam.K, cam.dist).reshape(2)
     v = _unit(np.array([ray[0], ray[1], 1.0]))
@@ -87,15 +115,17 @@ def synth_view(
     ey = np.cross(n, ex)
     corners3 = centre + OUTER_CORNERS[:, :1] * ex + OUTER_CORNERS[:, 1:2] * ey
     inner3 = centre + INNER_CORNERS[:, :1] * ex + INNER_CORNERS[:, 1:2] * ey
-    outer = cam.project(corners3)
-    inner = cam.project(inner3)
+    return (centre, n, ex, ey), cam.project(corners3), cam.project(inner3)
 
-    # Region to render: the sticker's box plus room for the blur and the floor around it.
-    pad = int(blur_px) + 12
-    x0, y0 = np.floor(outer.min(0)).astype(int) - pad
-    x1, y1 = np.ceil(outer.max(0)).astype(int) + pad
-    x0, y0 = max(x0, 0), max(y0, 0)
-    x1, y1 = min(x1, cam.width), min(y1, cam.height)
+
+def _render_region(
+    cam: Camera, sticker_id: int, plane: tuple[np.ndarray, ...], box: tuple[int, int, int, int], rng
+) -> tuple[np.ndarray, float]:
+    """The image region ``box`` (x0, y0, x1, y1) px, float32: every pixel ray-cast (2x supersampled)
+    onto the sticker plane through the lens distortion, sticker or textured floor, with random
+    ink/paper/floor levels, a brightness gradient and a gamma; and the floor level."""
+    centre, n, ex, ey = plane
+    x0, y0, x1, y1 = box
     ss = 2
     xs = x0 - 0.5 + (np.arange((x1 - x0) * ss) + 0.5) / ss
     ys = y0 - 0.5 + (np.arange((y1 - y0) * ss) + 0.5) / ss
@@ -127,7 +157,11 @@ def synth_view(
     )[:, None] * np.sin(g)
     img = img * (1 + rng.uniform(-0.25, 0.25) * ramp)
     img = 255.0 * (np.clip(img, 0, 255) / 255.0) ** rng.uniform(0.8, 1.25)
-    img = cv2.resize(img.astype(np.float32), (x1 - x0, y1 - y0), interpolation=cv2.INTER_AREA)
+    return cv2.resize(img.astype(np.float32), (x1 - x0, y1 - y0), interpolation=cv2.INTER_AREA), floor_level
+
+
+def _sensor(img: np.ndarray, blur_px: float, noise: float, jpeg: bool, rng: np.random.Generator) -> np.ndarray:
+    """Motion blur of ``blur_px`` in a random direction, sensor noise, 8 bits and optionally JPEG."""
     if blur_px > 0:
         a = rng.uniform(0, np.pi)
         img = cv2.filter2D(
@@ -137,18 +171,12 @@ def synth_view(
     if jpeg:
         ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(70, 96))])
         img = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
-    gray = np.full((cam.height, cam.width), int(floor_level), np.uint8)
-    gray[y0:y1, x0:x1] = img
-
-    # Canonical corners project clockwise on screen; the detector may start at any of them.
-    if corner_noise_px is None:
-        corner_noise_px = 0.5 + 0.1 * blur_px
-    outer_d = np.roll(outer, r_true, 0) + rng.normal(0, corner_noise_px, (4, 2))
-    inner_d = np.roll(inner, r_true, 0) + rng.normal(0, corner_noise_px, (4, 2)) if with_inner else None
-    return View(gray, Detection(outer_d, inner_d), int(sticker_id), r_true, side)
+    return img
 
 
-def _candidates(pool: np.ndarray, true_id: int, k: int, absent: bool, rng: np.random.Generator) -> list[int]:
+def candidate_ids(pool: np.ndarray, true_id: int, k: int, absent: bool, rng: np.random.Generator) -> list[int]:
+    """``k`` candidate IDs from ``pool`` as the tracker would hand them over: the true ID at a random
+    place among its nearest IDs, or (``absent``) only its neighbours."""
     # Maps number stickers consecutively and the tracker's candidates are neighbours, so the
     # others are drawn among the closest IDs: they share leading digits, hence Data Matrix
     # codewords, with the true one -- the hard case.
@@ -188,7 +216,7 @@ def score_samples(
     for i in range(trials):
         true_id = int(rng.choice(pool))
         v = synth_view(true_id, rng, cam, blur_px=blur_px)
-        cands = _candidates(pool, true_id, k, absent, rng)
+        cands = candidate_ids(pool, true_id, k, absent, rng)
         score_fn = orb_scores if method == "orb" else appearance_scores
         s = score_fn(v.gray, v.detection, cam, cands, bank, cfg)
         c, r = s.best
@@ -224,7 +252,7 @@ def bench_identification(
                 for _ in range(trials):
                     true_id = int(rng.choice(pool))
                     v = synth_view(true_id, rng, cam, blur_px=blur)
-                    cands = _candidates(pool, true_id, k, absent, rng)
+                    cands = candidate_ids(pool, true_id, k, absent, rng)
                     t0 = time.perf_counter()
                     res = identify(v.gray, v.detection, cam, cands, bank, method=method, config=cfg)
                     times.append((time.perf_counter() - t0) * 1e3)
@@ -276,3 +304,64 @@ def format_rows(rows: list[dict]) -> str:
             f"{r['refused']} | {r['ms_median']:.2f} | {r['ms_p95']:.2f} |"
         )
     return "\n".join(lines)
+
+
+def format_thresholds(samples: dict[tuple[str, float], tuple[np.ndarray, np.ndarray]], cfg: IdentifyConfig) -> str:
+    """Markdown table of where :class:`IdentifyConfig`'s thresholds sit in the score distributions.
+
+    ``samples`` maps (method, blur px) to :func:`score_samples` of the true sticker present and
+    absent. Right answers (ID and rotation) should clear both thresholds; wrong ones (any answer
+    with the true sticker absent, or a wrong ID or rotation) should fail at least one.
+    """
+    lines = [
+        "| method | blur px | right: score p5 / margin p5 | wrong: score p95 / margin p95 | thresholds "
+        "| right passing | wrong passing |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for (method, blur), (present, absent) in samples.items():
+        lo = (cfg.min_inliers, cfg.min_inlier_margin) if method == "orb" else (cfg.min_ncc, cfg.min_ncc_margin)
+        right = present[present[:, 3] == 1]
+        wrong = np.vstack([present[present[:, 3] == 0], absent])
+
+        def passing(rows: np.ndarray, lo=lo) -> str:
+            return f"{int(np.sum((rows[:, 0] >= lo[0]) & (rows[:, 1] >= lo[1])))}/{len(rows)}"
+
+        def pct(rows: np.ndarray, q: float) -> str:
+            return " / ".join(f"{np.percentile(rows[:, j], q):.2f}" for j in (0, 1)) if len(rows) else "-"
+
+        lines.append(
+            f"| {method} | {blur:g} | {pct(right, 5)} | {pct(wrong, 95)} | {lo[0]:g} / {lo[1]:g} "
+            f"| {passing(right)} | {passing(wrong)} |"
+        )
+    return "\n".join(lines)
+
+
+def identify_bench_command(
+    methods: tuple[str, ...] = ("appearance", "orb"),
+    blurs_px: tuple[float, ...] = (0, 2, 4, 8),
+    trials: int = 100,
+    k: int = 5,
+    seed: int = 0,
+    progress: bool = True,
+) -> str:
+    """The identification bench as ``tagloc bench-identify`` prints it: rates and wrong IDs vs blur
+    (:func:`bench_identification`), and where the thresholds of :class:`IdentifyConfig` sit in the
+    raw score distributions they were chosen from (:func:`format_thresholds`)."""
+    from tqdm import tqdm
+
+    cfg = IdentifyConfig()
+    bank, pool = _bank(200, seed + 1000)
+    samples = {}
+    cells = [(m, b) for m in methods for b in blurs_px]
+    for method, blur in tqdm(cells, desc="score samples", unit="cell", disable=not progress, leave=False):
+        present, absent = (
+            score_samples(method, blur, trials, k, absent, seed, bank, pool, cfg) for absent in (False, True)
+        )
+        samples[(method, blur)] = (present, absent)
+    rates = bench_identification(methods, blurs_px, trials, k, seed, cfg)
+    return (
+        f"Identification, {trials} views per cell, {k} candidates (seed {seed})\n\n"
+        + format_rows(rates["rows"])
+        + "\n\nThresholds against the raw scores (before thresholds)\n\n"
+        + format_thresholds(samples, cfg)
+    )

@@ -18,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
+from tagloc.eval.baselines import MODES, make_localiser
 from tagloc.eval.consistency import nees_blocks, nees_test
 from tagloc.eval.metrics import TrajectoryErrors, error_metrics, trajectory_errors
 from tagloc.io.session import FRAMES_CSV, SessionReader
-from tagloc.pipeline.localiser import MODES, LocaliserConfig
 from tagloc.pipeline.run import RunLog, run_session
 
 
@@ -189,7 +189,12 @@ def evaluate(cfg: EvalConfig) -> dict:
         for mode in cfg.modes:
             session = SessionReader(path)
             log = _timed_on_one_core(
-                functools.partial(run_session, session, LocaliserConfig(mode=mode), progress=cfg.progress)
+                functools.partial(
+                    run_session,
+                    session,
+                    localiser=make_localiser(mode, session.map, session.rig, map_path=session.path / "map.csv"),
+                    progress=cfg.progress,
+                )
             )
             gt = session.groundtruth()
             v = log.valid

@@ -3,6 +3,7 @@
 Entity tree (``CAM`` is the rig camera's name, e.g. ``front``)::
 
     world/map/stickers              static: sticker outlines on the floor, labelled with their IDs
+    world/map/extent                static: the floor's outline (the stickers' extent plus 1 m)
     world/body                      estimated body pose (Transform3D), per frame once tracking
     world/body/CAM                  static: T_body_camera
     world/body/CAM/image            static Pinhole (scaled to the logged image) + JPEG image per frame
@@ -70,27 +71,132 @@ def image_entity(rig: Rig, camera: int) -> str:
     return f"world/body/{rig[camera].name}/image"
 
 
-def blueprint(rig: Rig, groundtruth: bool = False):
-    """3D view and camera image(s) on the left, time series on the right."""
+def blueprint(
+    rig: Rig,
+    groundtruth: bool = False,
+    smap: StickerMap | None = None,
+    box: tuple[float, float, float, float] | None = None,
+):
+    """Floor plan (top-down) and camera image(s) on the left, time series grouped by unit on the right.
+
+    Each plot holds one unit: position error beside its 2-sigma bound (m), heading error beside its
+    sigma (deg), time since the last fix (s), stage timings (ms). Each image view is bounded to its
+    image, so the whole frame shows at its aspect ratio.
+    """
     import rerun.blueprint as rrb
 
-    images = [
-        rrb.Spatial2DView(origin=image_entity(rig, k), name=f"camera {rc.name}") for k, rc in enumerate(rig.cameras)
-    ]
+    images = []
+    for k, rc in enumerate(rig.cameras):
+        w, h = rc.camera.width, rc.camera.height
+        images.append(
+            rrb.Spatial2DView(
+                origin=image_entity(rig, k),
+                name=f"camera {rc.name}",
+                visual_bounds=rrb.VisualBounds2D(x_range=[0, w], y_range=[0, h]),
+            )
+        )
+    err = ["plots/error/position_m"] if groundtruth else []
+    yerr = ["plots/error/yaw_deg"] if groundtruth else []
     series = [
-        rrb.TimeSeriesView(origin="plots/uncertainty", name="uncertainty"),
-        rrb.TimeSeriesView(origin="plots/timing", name="timing (ms)"),
+        rrb.TimeSeriesView(
+            origin="plots",
+            contents=[*err, "plots/uncertainty/position_2sigma_m"],
+            name="position: error and 2-sigma (m)" if groundtruth else "position 2-sigma (m)",
+        ),
+        rrb.TimeSeriesView(
+            origin="plots",
+            contents=[*yerr, "plots/uncertainty/yaw_sigma_deg"],
+            name="heading: error and sigma (deg)" if groundtruth else "heading sigma (deg)",
+        ),
+        rrb.TimeSeriesView(origin="plots", contents=["plots/uncertainty/since_fix_s"], name="since last fix (s)"),
+        rrb.TimeSeriesView(origin="plots/timing", name="stage timing (ms)"),
     ]
-    if groundtruth:
-        series.insert(0, rrb.TimeSeriesView(origin="plots/error", name="error"))
+    plan = (
+        top_down_view(smap, "world", "floor plan (top-down)")
+        if smap is not None
+        else rrb.Spatial3DView(origin="world", name="map")
+    )
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Vertical(rrb.Spatial3DView(origin="world", name="map"), rrb.Horizontal(*images), row_shares=[3, 2]),
+            rrb.Vertical(plan, rrb.Horizontal(*images), row_shares=[3, 2]),
             rrb.Vertical(*series, rrb.TextDocumentView(origin="status", name="status")),
             column_shares=[3, 2],
         ),
         collapse_panels=True,
     )
+
+
+FLOOR_GRID_M = 1.0  # floor-plan grid spacing: one square per metre gives the scale at a glance
+WALK_MARGIN_M = 3.0  # floor shown around a known walk in the replay's floor plan
+TOP_DOWN_HEIGHT_FACTOR = 1.1  # top-down eye height as a multiple of the map's larger side (whole map in view)
+
+
+def map_corners(smap: StickerMap) -> np.ndarray:
+    """(N, 4, 3) outer corners of every sticker in the world (m), in map order."""
+    if not len(smap):
+        return np.zeros((0, 4, 3))
+    return np.stack([(smap.T_world_sticker(int(i)) @ np.c_[OUTER_CORNERS, np.ones(4)].T).T[:, :3] for i in smap.ids])
+
+
+def map_extent(smap: StickerMap, margin_m: float = 1.0) -> tuple[float, float, float, float]:
+    """(x_min, y_min, x_max, y_max) of the stickers' centres grown by ``margin_m`` (the floor shown)."""
+    if not len(smap):
+        return (-5.0, -5.0, 5.0, 5.0)
+    xy = np.array([smap.T_world_sticker(int(i))[:2, 3] for i in smap.ids])
+    lo, hi = xy.min(axis=0) - margin_m, xy.max(axis=0) + margin_m
+    return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+
+
+def top_down_view(smap: StickerMap, origin: str, name: str, box: tuple[float, float, float, float] | None = None):
+    """A 3-D view looking straight down on the map (x right, y up), with a 1 m floor grid.
+
+    ``box`` (x_min, y_min, x_max, y_max, m) is the floor to frame; the whole map by default.
+
+    A 3-D view with its eye overhead keeps world coordinates as they are (a 2-D view would draw +y
+    downwards, mirroring the warehouse).
+    """
+    import rerun as rr
+    import rerun.blueprint as rrb
+
+    x0, y0, x1, y1 = box or map_extent(smap)
+    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+    height = TOP_DOWN_HEIGHT_FACTOR * max(x1 - x0, y1 - y0)
+    return rrb.Spatial3DView(
+        origin=origin,
+        name=name,
+        line_grid=rrb.LineGrid3D(visible=True, spacing=FLOOR_GRID_M, plane=rr.components.Plane3D.XY),
+        eye_controls=rrb.EyeControls3D(position=[cx, cy, height], look_target=[cx, cy, 0.0], eye_up=[0.0, 1.0, 0.0]),
+    )
+
+
+def log_floor_plan(rec, smap: StickerMap, entity: str) -> None:
+    """Log (static) the map's stickers with their IDs and the floor's outline under ``entity``."""
+    rr = _rr()
+    rec.log(entity, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    corners = map_corners(smap)
+    if len(corners):
+        strips = np.concatenate([corners, corners[:, :1]], axis=1)  # close each square
+        rec.log(
+            f"{entity}/map/stickers",
+            rr.LineStrips3D(
+                strips, labels=[str(int(i)) for i in smap.ids], colors=(90, 90, 90), radii=rr.Radius.ui_points(1.0)
+            ),
+            static=True,
+        )
+    x0, y0, x1, y1 = map_extent(smap)
+    rec.log(
+        f"{entity}/map/extent",
+        rr.LineStrips3D([[[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0], [x0, y0, 0]]], colors=(60, 60, 60)),
+        static=True,
+    )
+
+
+def circle(center: tuple[float, float], a: float, b: float, angle: float, n: int = 48) -> np.ndarray:
+    """(n + 1, 3) closed polyline on the floor: an ellipse with half-axes a (along ``angle``) and b."""
+    th = np.linspace(0.0, 2 * np.pi, n + 1)
+    c, s = math.cos(angle), math.sin(angle)
+    ex, ey = a * np.cos(th), b * np.sin(th)
+    return np.c_[center[0] + c * ex - s * ey, center[1] + s * ex + c * ey, np.zeros(n + 1)]
 
 
 class RerunView:
@@ -135,7 +241,12 @@ class RerunView:
         self.clock = clock
         self.gt = groundtruth if groundtruth is not None and len(groundtruth[0]) else None
         self.rec = rr.RecordingStream(app_id, recording_id=recording_id)
-        bp = blueprint(rig, groundtruth=self.gt is not None)
+        box = None
+        if self.gt is not None:
+            # Frame the walk (with room around it) rather than the whole warehouse.
+            lo, hi = self.gt[1][:, :2, 3].min(axis=0) - WALK_MARGIN_M, self.gt[1][:, :2, 3].max(axis=0) + WALK_MARGIN_M
+            box = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+        bp = blueprint(rig, groundtruth=self.gt is not None, smap=smap, box=box)
         sinks = []
         if save:
             Path(save).parent.mkdir(parents=True, exist_ok=True)
@@ -160,17 +271,7 @@ class RerunView:
     def _log_static(self, smap: StickerMap) -> None:
         rr = _rr()
         rec = self.rec
-        rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        if len(smap):
-            corners = np.stack(
-                [(smap.T_world_sticker(int(i)) @ np.c_[OUTER_CORNERS, np.ones(4)].T).T[:, :3] for i in smap.ids]
-            )
-            strips = np.concatenate([corners, corners[:, :1]], axis=1)  # close each square
-            rec.log(
-                "world/map/stickers",
-                rr.LineStrips3D(strips, labels=[str(int(i)) for i in smap.ids], colors=(90, 90, 90), radii=0.004),
-                static=True,
-            )
+        log_floor_plan(rec, smap, "world")
         for k, rc in enumerate(self.rig.cameras):
             T = rc.T_body_camera
             rec.log(f"world/body/{rc.name}", rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]), static=True)
@@ -188,7 +289,11 @@ class RerunView:
         if self.gt is not None:
             xyz = self.gt[1][:, :3, 3].copy()
             xyz[:, 2] = 0.0
-            rec.log("world/groundtruth/path", rr.LineStrips3D([xyz], colors=TRUTH_COLOUR, radii=0.01), static=True)
+            rec.log(
+                "world/groundtruth/path",
+                rr.LineStrips3D([xyz], colors=TRUTH_COLOUR, radii=rr.Radius.ui_points(1.5)),
+                static=True,
+            )
 
     def _set_time(self, result: FrameResult) -> None:
         self.rec.set_time("frame", sequence=int(result.index))
@@ -220,7 +325,7 @@ class RerunView:
             start = max(0, piece * PATH_PIECE - 1)
             rec.log(
                 f"world/estimate/path/{piece:04d}",
-                rr.LineStrips3D([self._path[start:]], colors=ESTIMATE_COLOUR, radii=0.012),
+                rr.LineStrips3D([self._path[start:]], colors=ESTIMATE_COLOUR, radii=rr.Radius.ui_points(2.0)),
             )
             evals, evecs = np.linalg.eigh(out.cov[:2, :2])
             half = 2.0 * np.sqrt(np.clip(evals, 0.0, None))

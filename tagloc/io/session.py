@@ -129,7 +129,8 @@ class SessionReader:
             raise SessionError(f"{self.path}: not a session directory")
         self.warnings: list[str] = []  # one line each: what was odd but usable (clock jumps)
         self.info = self._read_info()
-        self.map: StickerMap = load_map(self._need(MAP_FILE))
+        self.map_path = self._need(MAP_FILE)  # beside it the map's reference cache (tagloc.vision.refs)
+        self.map: StickerMap = load_map(self.map_path)
         self.rig: Rig = (
             load_rig(self._need(RIG_FILE), calibration)
             if (self.path / RIG_FILE).exists()
@@ -324,6 +325,18 @@ class SessionWriter:
         params = [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality] if self.image_ext == ".jpg" else []
         if not cv2.imwrite(str(tmp), image, params):
             raise SessionError(f"{tmp}: cannot write frame")
+        os.replace(tmp, final)
+        self._csv.write(f"{index},{timestamp:.6f},{camera}\n" if self.multi_camera else f"{index},{timestamp:.6f}\n")
+        self._csv.flush()
+        self.count += 1
+
+    def write_encoded(self, index: int, timestamp: float, data: bytes, ext: str = ".jpg", camera: int = 0) -> None:
+        """Write one frame already encoded (e.g. a camera's JPEG, kept byte for byte), crash-safe like :meth:`write`."""
+        if camera and not self.multi_camera:
+            raise SessionError(f"{self.path}: frame {index} from camera {camera}, but the rig has one camera")
+        final = self.path / FRAMES_DIR / f"{frame_stem(index, camera)}{ext}"
+        tmp = final.with_name(final.stem + ".tmp" + ext)
+        tmp.write_bytes(data)
         os.replace(tmp, final)
         self._csv.write(f"{index},{timestamp:.6f},{camera}\n" if self.multi_camera else f"{index},{timestamp:.6f}\n")
         self._csv.flush()

@@ -1,32 +1,69 @@
 """The localiser: one frame in, observations and a tracked pose out.
 
 The frame flows one way: detect -> decode, or identify against the tracker's candidates ->
-pose -> tracker. Sources and sinks live elsewhere (:mod:`tagloc.io.capture`, :mod:`tagloc.io.sinks`).
+pose -> tracker. Sources and sinks live elsewhere (:mod:`tagloc.io.capture`, :mod:`tagloc.io.sinks`);
+the paper's baselines, which share the stages but not the tracker, in :mod:`tagloc.eval.baselines`.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Protocol
 
-import cv2
 import numpy as np
 
-from tagloc.core.camera import load_calibration
+from tagloc.core.camera import Camera, load_calibration
 from tagloc.core.errors import CalibrationError, InputError
-from tagloc.core.rig import Rig, default_rig, load_rig
+from tagloc.core.rig import Rig, RigCamera, default_rig, load_rig
 from tagloc.core.stickermap import StickerMap, load_map
-from tagloc.core.types import Frame, FrameResult, IdSource, Observation, TrackerOutput, TrackState
+from tagloc.core.types import (
+    Detection,
+    Fix,
+    Frame,
+    FrameResult,
+    Identity,
+    IdSource,
+    Observation,
+)
 from tagloc.io.session import CAMERA_FILE, MAP_FILE, RIG_FILE
 from tagloc.vision.decode import decode
 from tagloc.vision.detect import detect
+from tagloc.vision.image import as_gray
 from tagloc.vision.odometry import FloorOdometry, OdometryConfig
 from tagloc.vision.pose import PoseConfig, SurveyPasses, solve_pose
-from tracker.candidates import select_candidates
 from tracker.tracker import Tracker, TrackerConfig
 
-MODES = ("full", "decoded-only", "orb-all")
+#: The stages whose time is the tracker's: its prediction, candidate choice, updates and output.
+TRACKER_STAGES = ("predict", "candidates", "update", "output")
+
+
+class StageTimer:
+    """Wall time per stage of one frame, ms: each stage is timed once, where the localiser runs it.
+
+    ``with timer("decode"): ...`` adds the block's time to ``timer.ms["decode"]`` (stages that run
+    once per sticker add up over the frame).
+    """
+
+    def __init__(self) -> None:
+        self.ms: dict[str, float] = {}
+        self._t0 = time.perf_counter()
+
+    @contextmanager
+    def __call__(self, stage: str) -> Iterator[None]:
+        ts = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.ms[stage] = self.ms.get(stage, 0.0) + (time.perf_counter() - ts) * 1e3
+
+    def finish(self) -> dict[str, float]:
+        """The stage times with ``total``, the time since the timer was made."""
+        self.ms["total"] = (time.perf_counter() - self._t0) * 1e3
+        return self.ms
 
 
 @dataclass
@@ -34,23 +71,19 @@ class LocaliserConfig:
     """Choices of the per-frame stage and the tracker.
 
     Attributes:
-        mode: "full" (tagloc), or a baseline from the paper: "decoded-only" (decoded fixes, no
-            filter: the last fix is held) or "orb-all" (ORB against every reference in the
-            map when decoding fails, no prediction, no filter).
         detector: "contour" (ours) or "paper" (ORB + k-means, for comparison).
         decoder: Data Matrix backend: "zxing", "libdmtx" or "both".
         identify: identification when decoding fails: "auto", "orb", "appearance" or "off".
         candidates: K, the most candidates handed to identification.
         tracker: the EKF's configuration.
         odometry: measure the body's motion between frames from the floor texture and feed it to
-            the tracker ("full" mode only); ``odometry_config`` tunes it.
+            the tracker; ``odometry_config`` tunes it.
         pose: the pose solver's options (corner noise, the map's default survey sigmas).
         rolling_shutter: for a rig camera with a rolling shutter (``readout_s`` in rig.json),
             move each sticker's corners to the frame's time with the body's motion (this frame's
             odometry step, else the tracker's prediction) before solving its pose.
     """
 
-    mode: str = "full"
     detector: str = "contour"
     decoder: str = "zxing"
     identify: str = "auto"
@@ -60,6 +93,73 @@ class LocaliserConfig:
     odometry_config: OdometryConfig = field(default_factory=OdometryConfig)
     pose: PoseConfig = field(default_factory=PoseConfig)
     rolling_shutter: bool = True
+
+
+@dataclass(frozen=True)
+class Read:
+    """What decoding made of one detection: an identity, or why not.
+
+    Attributes:
+        identity: the decoded sticker (in the map), or None.
+        rejected: why symbols that were read gave no identity (None: accepted or nothing read).
+        unmapped_id: a decoded ID that is not in the map (never a fix, not worth identifying).
+    """
+
+    identity: Identity | None = None
+    rejected: str | None = None
+    unmapped_id: int | None = None
+
+
+def read_sticker(
+    gray: np.ndarray,
+    detection: Detection,
+    camera: Camera,
+    smap: StickerMap,
+    backend: str,
+    candidates: list[int] | None = None,
+) -> Read:
+    """Decode one detection against the map (``candidates``: the tracker's, which may confirm a lone
+    libdmtx read; see :func:`tagloc.vision.decode.decode`)."""
+    res = decode(gray, detection, camera, backend=backend, candidates=candidates)
+    if res.sticker_id is None:
+        return Read(rejected=res.rejected)
+    if res.sticker_id not in smap:
+        return Read(rejected=f"decoded {res.sticker_id}, not in the map", unmapped_id=res.sticker_id)
+    return Read(Identity(res.sticker_id, res.rotation, IdSource.DECODED))
+
+
+def new_counts() -> dict[str, int]:
+    """The per-run counters a localiser keeps (the baselines keep the same ones)."""
+    keys = ("frames", "skipped", "detections", "decoded", "identified", "rejected_reads", "unmapped_reads")
+    return dict.fromkeys((*keys, "odometry_steps", "odometry_unavailable"), 0)
+
+
+def count_read(counts: dict[str, int], read: Read) -> None:
+    """Add one decode outcome to ``counts``."""
+    counts["decoded"] += read.identity is not None
+    counts["unmapped_reads"] += read.unmapped_id is not None
+    counts["rejected_reads"] += read.rejected is not None and read.unmapped_id is None
+
+
+def reference_bank(smap: StickerMap, map_path: str | Path | None = None):
+    """The ORB/appearance references of ``smap``: cached beside ``map_path`` when given, else built."""
+    from tagloc.vision.refs import build_refs, load_or_build_refs
+
+    if map_path is not None:
+        return load_or_build_refs(map_path, progress=False)
+    return build_refs(smap, progress=False)
+
+
+class FrameProcessor(Protocol):
+    """Anything that turns frames into results: the :class:`Localiser`, or a paper baseline."""
+
+    map: StickerMap
+    rig: Rig
+    counts: dict[str, int]
+
+    def process(self, frame: Frame) -> FrameResult: ...
+
+    def stats(self) -> dict[str, int]: ...
 
 
 def load_setup(
@@ -92,7 +192,12 @@ def load_setup(
 
 
 class Localiser:
-    """Per-frame vision plus the tracker, for one operator."""
+    """Per-frame vision plus the tracker, for one operator.
+
+    One frame runs: predict -> floor odometry -> detect -> for each detection, decode and fuse its
+    fix -> for each detection still unknown, identify among the tracker's candidates and fuse its fix
+    -> output. Decoded stickers go first: their fixes sharpen the prediction the candidates come from.
+    """
 
     def __init__(
         self,
@@ -105,104 +210,65 @@ class Localiser:
         self.map = smap
         self.rig = rig
         self.config = config or LocaliserConfig()
-        if self.config.mode not in MODES:
-            raise InputError(f"unknown localiser mode {self.config.mode!r} (want one of {', '.join(MODES)})")
         self.tracker = Tracker(self.config.tracker)
-        self._passes = SurveyPasses()  # repeated fixes of a sticker share its survey error
-        self._step = None  # this frame's odometry step, for the rolling-shutter correction
-        self._held: TrackerOutput | None = None  # the baselines' last fix
         self._refs = refs
         self._map_path = map_path
         self._odometry: dict[int, FloorOdometry | None] = {}  # per rig camera; None: camera sees too little floor
-        self.counts = {
-            "frames": 0,
-            "skipped": 0,
-            "detections": 0,
-            "decoded": 0,
-            "identified": 0,
-            "rejected_reads": 0,
-            "unmapped_reads": 0,
-            "odometry_steps": 0,
-            "odometry_unavailable": 0,
-        }
+        self._passes = SurveyPasses()  # repeated fixes of a sticker share its survey error
+        self._step = None  # this frame's odometry step, for the rolling-shutter correction
+        self.counts = new_counts()
 
     @property
     def refs(self):
         """The ORB/appearance reference bank, built or loaded on first need."""
         if self._refs is None:
-            from tagloc.vision.refs import build_refs, load_or_build_refs
-
-            if self._map_path is not None:
-                self._refs = load_or_build_refs(self._map_path, progress=False)
-            else:
-                self._refs = build_refs(self.map, progress=False)
+            self._refs = reference_bank(self.map, self._map_path)
         return self._refs
+
+    def stats(self) -> dict[str, int]:
+        """The localiser's counters with the tracker's (prefixed ``tracker_``)."""
+        return {**self.counts, **{f"tracker_{k}": v for k, v in self.tracker.stats.items()}}
 
     def process(self, frame: Frame) -> FrameResult:
         """Run one frame through the pipeline and return what was seen and the pose after it."""
-        t0 = time.perf_counter()
+        timer = StageTimer()
         t = frame.timestamp
         self.counts["frames"] += 1
-        times: dict[str, float] = {}
-        self.tracker.predict(t)
-        times["tracker"] = (time.perf_counter() - t0) * 1e3
+        with timer("predict"):
+            self.tracker.predict(t)
         if frame.image is None:
             self.counts["skipped"] += 1
-            return FrameResult(frame.index, t, [], self.tracker.output(t), {}, frame.error or "unreadable")
-        gray = frame.image if frame.image.ndim == 2 else cv2.cvtColor(frame.image, cv2.COLOR_BGR2GRAY)
+            with timer("output"):
+                out = self.tracker.output(t)
+            return FrameResult(frame.index, t, [], out, timer.finish(), frame.error or "unreadable", frame)
+        gray = as_gray(frame.image)
         rig_cam = self.rig[frame.camera]
-        cam = rig_cam.camera
-        if self.config.odometry and self.config.mode == "full":
+        if self.config.odometry:
             # Before the fixes: the step covers the interval the tracker just predicted over.
-            ts = time.perf_counter()
-            self._odometry_step(gray, frame.camera, t)
-            times["odometry"] = (time.perf_counter() - ts) * 1e3
-
-        ts = time.perf_counter()
-        detections = detect(gray, cam, method=self.config.detector)
-        times["detect"] = (time.perf_counter() - ts) * 1e3
+            with timer("odometry"):
+                self._odometry_step(gray, frame.camera, t)
+        with timer("detect"):
+            detections = detect(gray, rig_cam.camera, method=self.config.detector)
         self.counts["detections"] += len(detections)
-        observations = [Observation(d, frame.camera) for d in detections]
 
-        # Decoded stickers first: their fixes sharpen the prediction the candidates come from.
-        undecoded = []
-        for obs in observations:
-            ts = time.perf_counter()
-            res = decode(gray, obs.detection, cam, backend=self.config.decoder)
-            obs.times_ms["decode"] = (time.perf_counter() - ts) * 1e3
-            if res.sticker_id is None:
-                obs.rejected_read = res.rejected
-                self.counts["rejected_reads"] += res.rejected is not None
-                undecoded.append(obs)
-                continue
-            if res.sticker_id not in self.map:
-                # A real sticker that is not in our map: never a fix, and not worth identifying.
-                obs.rejected_read = f"decoded {res.sticker_id}, not in the map"
-                obs.sticker_id = res.sticker_id
-                self.counts["unmapped_reads"] += 1
-                continue
-            obs.sticker_id, obs.rotation, obs.source = res.sticker_id, res.rotation, IdSource.DECODED
-            obs.score = 1.0
-            self.counts["decoded"] += 1
-            self._fix(obs, rig_cam, t)
+        reads, fixes = [], []
+        for det in detections:
+            read = self._decode(gray, det, rig_cam, timer)
+            reads.append(read)
+            fixes.append(self._fix(det, read.identity, rig_cam, t, timer) if read.identity is not None else None)
 
-        if self.config.mode == "full" and self.config.identify != "off":
-            for obs in undecoded:
-                self._identify(obs, gray, rig_cam, t)
-        elif self.config.mode == "orb-all":
-            for obs in undecoded:
-                self._identify(obs, gray, rig_cam, t, list(map(int, self.map.ids)))
+        observations = []
+        for det, read, fix in zip(detections, reads, fixes):
+            identity = read.identity
+            if identity is None and read.unmapped_id is None and self.config.identify != "off":
+                identity = self._identify(gray, det, rig_cam, timer)
+                if identity is not None:
+                    fix = self._fix(det, identity, rig_cam, t, timer)
+            observations.append(Observation(det, frame.camera, identity, fix, read.rejected, read.unmapped_id))
 
-        for name in ("decode", "identify", "candidates", "pose", "update"):
-            vals = [o.times_ms[name] for o in observations if name in o.times_ms]
-            if vals:
-                times[name] = float(sum(vals))
-        times["tracker"] += times.get("candidates", 0.0) + times.get("update", 0.0)
-        ts = time.perf_counter()
-        out = self.tracker.output(t) if self.config.mode == "full" else self._baseline_output(observations, t)
-        times["tracker"] = times.get("tracker", 0.0) + (time.perf_counter() - ts) * 1e3
-        times["total"] = (time.perf_counter() - t0) * 1e3
-        return FrameResult(frame.index, t, observations, out, times)
+        with timer("output"):
+            out = self.tracker.output(t)
+        return FrameResult(frame.index, t, observations, out, timer.finish(), None, frame)
 
     def floor_odometry(self, camera: int) -> FloorOdometry | None:
         """The floor odometry of rig camera ``camera`` (made on first use), or None if that camera
@@ -223,63 +289,34 @@ class Localiser:
             self.counts["odometry_steps"] += 1
             self.tracker.update_odometry(step)
 
-    def _identify(self, obs: Observation, gray: np.ndarray, rig_cam, t: float, cands: list[int] | None = None) -> None:
-        from tagloc.vision.identify import IdentifyConfig, identify
+    def _candidates(self, det: Detection, rig_cam: RigCamera, timer: StageTimer) -> list[int]:
+        with timer("candidates"):
+            return self.tracker.candidates(self.map, rig_cam, det.outer.mean(axis=0), k=self.config.candidates)
 
-        method, id_config = self.config.identify, None
-        if cands is not None:
-            # The paper's baseline: ORB against every reference, each scored by its own match count.
-            method, id_config = "orb", IdentifyConfig(orb_global_above=len(cands) + 1)
-        else:
-            ts = time.perf_counter()
-            prior = self.tracker.prior()
-            cands = (
-                []
-                if prior is None
-                else select_candidates(
-                    prior[0], prior[1], self.map, rig_cam, obs.detection.outer.mean(axis=0), k=self.config.candidates
-                )
-            )
-            obs.times_ms["candidates"] = (time.perf_counter() - ts) * 1e3
+    def _decode(self, gray: np.ndarray, det: Detection, rig_cam: RigCamera, timer: StageTimer) -> Read:
+        # Only libdmtx can need the tracker's word: zxing reads stand or fall on their own.
+        cands = self._candidates(det, rig_cam, timer) if self.config.decoder != "zxing" else None
+        with timer("decode"):
+            read = read_sticker(gray, det, rig_cam.camera, self.map, self.config.decoder, cands)
+        count_read(self.counts, read)
+        return read
+
+    def _identify(self, gray: np.ndarray, det: Detection, rig_cam: RigCamera, timer: StageTimer) -> Identity | None:
+        from tagloc.vision.identify import identify
+
+        cands = self._candidates(det, rig_cam, timer)
         if not cands:
-            return
-        ts = time.perf_counter()
-        res = identify(gray, obs.detection, rig_cam.camera, cands, self.refs, method=method, config=id_config)
-        obs.times_ms["identify"] = (time.perf_counter() - ts) * 1e3
+            return None
+        with timer("identify"):
+            res = identify(gray, det, rig_cam.camera, cands, self.refs, method=self.config.identify)
         if res.sticker_id is None:
-            return
-        obs.sticker_id, obs.rotation, obs.source = res.sticker_id, res.rotation, res.source
-        obs.score, obs.margin = res.score, res.margin
+            return None
         self.counts["identified"] += 1
-        self._fix(obs, rig_cam, t)
+        return Identity(res.sticker_id, res.rotation, res.source, res.score, res.margin)
 
-    def _fix(self, obs: Observation, rig_cam, t: float) -> None:
-        ts = time.perf_counter()
-        row = self.map.row(obs.sticker_id)
-        survey = (float(self.map.sigma_xy[row]), float(self.map.sigma_yaw[row]))  # NaN: the default
-        sol = solve_pose(
-            obs.detection,
-            obs.rotation,
-            self.map.T_world_sticker(obs.sticker_id),
-            rig_cam,
-            config=self.config.pose,
-            map_sigma=survey,
-            map_scale=self._passes.scale(obs.sticker_id, t) if self.config.mode == "full" else 1.0,
-            body_twist=self._body_twist(rig_cam, t),
-        )
-        obs.times_ms["pose"] = (time.perf_counter() - ts) * 1e3
-        obs.poses, obs.ambiguous = sol.poses, sol.ambiguous
-        if not sol.poses or self.config.mode != "full":
-            return
-        ts = time.perf_counter()
-        res = self.tracker.update(sol.poses, obs.sticker_id, obs.source, t)
-        obs.times_ms["update"] = (time.perf_counter() - ts) * 1e3
-        obs.accepted = res.accepted
-        obs.gate_reason = res.reason
-
-    def _body_twist(self, rig_cam, t: float) -> np.ndarray | None:
+    def _body_twist(self, rig_cam: RigCamera, t: float) -> np.ndarray | None:
         """The body's motion (vx, vy, yaw rate; body frame) for the rolling-shutter correction, or None."""
-        if not (self.config.rolling_shutter and rig_cam.readout_s > 0 and self.config.mode == "full"):
+        if not (self.config.rolling_shutter and rig_cam.readout_s > 0):
             return None
         s = self._step
         if s is not None and s.t1 == t and s.t1 > s.t0:
@@ -287,18 +324,22 @@ class Localiser:
             return np.asarray(s.delta, float) / (s.t1 - s.t0)
         return self.tracker.velocity()
 
-    def _baseline_output(self, observations: list[Observation], t: float) -> TrackerOutput:
-        """The baselines' pose: this frame's best fix, else the last one held (no filter)."""
-        fixes = [(o, o.poses[0]) for o in observations if o.poses]
-        if fixes:
-            o, p = min(fixes, key=lambda f: f[1].reprojection_px)
-            o.accepted = True
-            self._held = TrackerOutput(t, p.body.copy(), p.cov.copy(), TrackState.TRACKING, 0.0, o.sticker_id, o.source)
-        if self._held is None:
-            return TrackerOutput(t, np.zeros(3), np.diag([1e6, 1e6, np.pi**2]), TrackState.INITIALISING, float("inf"))
-        h = self._held
-        return TrackerOutput(t, h.pose, h.cov, h.state, t - (h.t - h.since_fix), h.last_id, h.last_source)
-
-    def output_at(self, t: float) -> TrackerOutput:
-        """The pose at time ``t`` (>= the last frame), without a frame."""
-        return self.tracker.output(t) if self.config.mode == "full" else self._baseline_output([], t)
+    def _fix(self, det: Detection, identity: Identity, rig_cam: RigCamera, t: float, timer: StageTimer) -> Fix:
+        with timer("pose"):
+            row = self.map.row(identity.sticker_id)
+            survey = (float(self.map.sigma_xy[row]), float(self.map.sigma_yaw[row]))  # NaN: the default
+            sol = solve_pose(
+                det,
+                identity.rotation,
+                self.map.T_world_sticker(identity.sticker_id),
+                rig_cam,
+                config=self.config.pose,
+                map_sigma=survey,
+                map_scale=self._passes.scale(identity.sticker_id, t),
+                body_twist=self._body_twist(rig_cam, t),
+            )
+        if not sol.poses:
+            return Fix([], sol.ambiguous)
+        with timer("update"):
+            res = self.tracker.update(sol.poses, identity.sticker_id, identity.source, t)
+        return Fix(sol.poses, sol.ambiguous, res.accepted, res.reason)

@@ -1,27 +1,22 @@
 """Run a localiser (or a baseline) over a whole session and collect what the evaluation needs.
 
 Shared by ``tagloc replay``, ``tagloc eval`` and ``tagloc demo`` so that they measure the same
-thing. Three variants run on the same frames:
-
-- ``full``: tagloc (detect, decode or identify among the tracker's candidates, EKF).
-- ``decoded-only``: the paper's variant: decoded fixes only, no filter; the last fix is held.
-- ``orb-all``: the paper's ORB identification against every reference in the map, no prediction
-  (and no filter: each frame's best fix is the pose).
+thing. Any :class:`tagloc.pipeline.localiser.FrameProcessor` runs: tagloc's
+:class:`~tagloc.pipeline.localiser.Localiser` (the default) or one of the paper's baselines
+(:mod:`tagloc.eval.baselines`, chosen by ``tagloc replay --mode`` and ``tagloc eval --modes``).
 """
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 from tagloc.core.types import FrameResult
-from tagloc.io.session import MAP_FILE, SessionReader
-from tagloc.pipeline.localiser import Localiser, LocaliserConfig
+from tagloc.io.session import SessionReader
+from tagloc.pipeline.localiser import TRACKER_STAGES, FrameProcessor, Localiser, LocaliserConfig
 
 
 @dataclass
@@ -37,7 +32,7 @@ class RunLog:
         fixes: list of dicts, one per accepted fix: frame index, sticker id, source, corners centre.
         counts: counters from the localiser and tracker.
         frame_ms: (N,) wall time per frame, ms; tracker_ms, odometry_ms: (N,) of which in the
-            tracker (predict, candidates, update, output) and in the floor odometry.
+            tracker (``TRACKER_STAGES``: predict, candidates, update, output) and in the floor odometry.
     """
 
     stamps: np.ndarray
@@ -53,7 +48,7 @@ class RunLog:
 
 
 def iterate_results(
-    session: SessionReader, localiser: Localiser, progress: bool = False, realtime: bool = False
+    session: SessionReader, localiser: FrameProcessor, progress: bool = False, realtime: bool = False
 ) -> Iterator[FrameResult]:
     """Yield the localiser's result for each frame of ``session``, in order."""
     from tqdm import tqdm
@@ -79,12 +74,16 @@ def run_session(
     progress: bool = False,
     on_result: Callable[[FrameResult], None] | None = None,
     realtime: bool = False,
+    localiser: FrameProcessor | None = None,
 ) -> RunLog:
-    """Run the localiser (``config.mode`` picks tagloc or a baseline) over every frame of a session.
+    """Run ``localiser`` over every frame of a session.
 
-    ``realtime`` paces frames at their timestamps; otherwise they go as fast as they can.
+    ``localiser`` defaults to a :class:`Localiser` on the session's map and rig with ``config`` and
+    ``refs``. ``realtime`` paces frames at their timestamps; otherwise they go as fast as they can.
     """
-    loc = Localiser(session.map, session.rig, config or LocaliserConfig(), refs=refs, map_path=session.path / MAP_FILE)
+    loc = localiser or Localiser(
+        session.map, session.rig, config or LocaliserConfig(), refs=refs, map_path=session.map_path
+    )
     stamps, poses, covs, valid, frame_ms, tracker_ms, odometry_ms = [], [], [], [], [], [], []
     fixes, rejected = [], []
     for res in iterate_results(session, loc, progress=progress, realtime=realtime):
@@ -94,7 +93,7 @@ def run_session(
         covs.append(out.cov)
         valid.append(out.state.value != "initialising")
         frame_ms.append(res.times_ms.get("total", 0.0))
-        tracker_ms.append(res.times_ms.get("tracker", 0.0))
+        tracker_ms.append(sum(res.times_ms.get(k, 0.0) for k in TRACKER_STAGES))
         odometry_ms.append(res.times_ms.get("odometry", 0.0))
         for obs in res.observations:
             if obs.poses and obs.sticker_id is not None:
@@ -109,9 +108,7 @@ def run_session(
                 (fixes if obs.accepted else rejected).append(rec)
         if on_result is not None:
             on_result(res)
-    counts = dict(loc.counts)
-    if loc.config.mode == "full":
-        counts.update({f"tracker_{k}": v for k, v in loc.tracker.stats.items()})
+    counts = loc.stats()
     counts["skipped_frames"] = len(session.skipped)
     return RunLog(
         np.array(stamps),
@@ -125,10 +122,3 @@ def run_session(
         np.array(tracker_ms),
         np.array(odometry_ms),
     )
-
-
-def write_jsonl(path: str | Path, results: list[dict]) -> None:
-    """Write dicts as JSON lines."""
-    with Path(path).open("w", encoding="utf-8") as f:
-        for r in results:
-            f.write(json.dumps(r, separators=(",", ":")) + "\n")

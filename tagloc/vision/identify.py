@@ -21,12 +21,12 @@ clockwise by r quarter turns, so geometry is known and no RANSAC is needed.
   (Hamming, ratio test); a match counts only if it lands where the square's known geometry puts it
   for that rotation. Score = number of such matches.
 
-Thresholds come from :mod:`tagloc.eval.bench_identify` (see ``IdentifyConfig``).
+Thresholds come from :mod:`tagloc.eval.bench_identify` (see ``IdentifyConfig``); ``tagloc
+bench-identify`` re-measures the rates and shows where the thresholds sit in the score distributions.
 """
 
 from __future__ import annotations
 
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -36,6 +36,8 @@ import numpy as np
 from tagloc.core.camera import Camera
 from tagloc.core.errors import InputError
 from tagloc.core.types import Detection, IdSource
+from tagloc.vision.image import require_gray
+from tagloc.vision.psf import motion_kernel
 from tagloc.vision.rectify import rectify
 from tagloc.vision.refs import ReferenceBank, inner_box, make_orb, orb_features
 
@@ -87,7 +89,6 @@ class IdResult:
         margin: best score minus the best other (candidate, rotation) pair's score.
         source: ``IdSource.APPEARANCE`` / ``IdSource.ORB``; ``IdSource.NONE`` if refused.
         runner_up: best other candidate's ID (None with a single candidate).
-        time_ms: wall time of the call.
         blur_px: (2,) blur vector estimated in the appearance raster (px), or None.
     """
 
@@ -97,7 +98,6 @@ class IdResult:
     margin: float
     source: IdSource
     runner_up: int | None = None
-    time_ms: float = 0.0
     blur_px: np.ndarray | None = None
 
 
@@ -127,28 +127,6 @@ class _Scores:
 
 
 # ---------------------------------------------------------------- appearance
-
-
-def motion_kernel(blur: np.ndarray) -> np.ndarray:
-    """Linear motion-blur kernel (odd square, float32, sums to 1) for a blur vector (2,) px.
-
-    The segment from -blur/2 to +blur/2 is sampled densely and each sample splatted bilinearly,
-    so the kernel has the segment's exact length and no width across it.
-    """
-    b = np.asarray(blur, float).reshape(2)
-    length = float(np.hypot(*b))
-    if length < 0.25:
-        return np.ones((1, 1), np.float32)
-    half = int(np.ceil(length / 2)) + 1
-    n = 2 * half + 1
-    t = np.linspace(-0.5, 0.5, max(2, int(np.ceil(length * 8))))
-    x, y = half + t * b[0], half + t * b[1]
-    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
-    fx, fy = x - x0, y - y0
-    k = np.zeros((n, n))
-    for dx, dy, w in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
-        np.add.at(k, (y0 + dy, x0 + dx), w)
-    return (k / k.sum()).astype(np.float32)
 
 
 def _blur(img: np.ndarray, kernel: np.ndarray) -> np.ndarray:
@@ -411,15 +389,13 @@ def identify(
     Returns:
         :class:`IdResult`; ``sticker_id`` is None when no candidate is clearly the one seen.
     """
-    t0 = time.perf_counter()
     cfg = config or IdentifyConfig()
     if method not in METHODS:
         raise InputError(f"identify: unknown method {method!r} (want one of {', '.join(METHODS)})")
-    if gray.ndim != 2 or gray.dtype != np.uint8:
-        raise InputError(f"identify: expected a uint8 greyscale image, got {gray.dtype} {gray.shape}")
+    require_gray(gray, "identify")
     cands = list(dict.fromkeys(int(c) for c in candidate_ids))  # unique, order kept
     if not cands or not _usable(detection):
-        return IdResult(None, None, 0.0, 0.0, IdSource.NONE, time_ms=(time.perf_counter() - t0) * 1e3)
+        return IdResult(None, None, 0.0, 0.0, IdSource.NONE)
     if method == "orb":
         s = orb_scores(gray, detection, camera, cands, bank, cfg)
         ok = s.score >= cfg.min_inliers and s.margin >= cfg.min_inlier_margin
@@ -430,7 +406,6 @@ def identify(
         source = IdSource.APPEARANCE
     c, r = s.best
     runner = cands[s.runner_up] if s.runner_up is not None else None
-    ms = (time.perf_counter() - t0) * 1e3
     if not ok:
-        return IdResult(None, None, s.score, s.margin, IdSource.NONE, runner, ms, s.blur)
-    return IdResult(cands[c], r, s.score, s.margin, source, runner, ms, s.blur)
+        return IdResult(None, None, s.score, s.margin, IdSource.NONE, runner, s.blur)
+    return IdResult(cands[c], r, s.score, s.margin, source, runner, s.blur)

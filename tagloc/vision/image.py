@@ -41,6 +41,15 @@ def as_gray(image: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
+def require_gray(image: np.ndarray, stage: str) -> np.ndarray:
+    """``image`` itself if it is what every stage takes, a (H, W) uint8 array; else InputError naming
+    ``stage`` (convert with :func:`as_gray` first)."""
+    if not isinstance(image, np.ndarray) or image.ndim != 2 or image.dtype != np.uint8:
+        what = f"{image.dtype} {image.shape}" if isinstance(image, np.ndarray) else type(image).__name__
+        raise InputError(f"{stage}: expected a (H, W) uint8 greyscale image, got {what} (see as_gray)")
+    return image
+
+
 def clockwise(quad: np.ndarray) -> np.ndarray:
     """Quad (4, 2) in clockwise on-screen order (positive shoelace area with y down), top-left-most first."""
     x, y = quad[:, 0], quad[:, 1]

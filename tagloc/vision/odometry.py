@@ -34,8 +34,20 @@ import numpy as np
 
 from tagloc.core.errors import CalibrationError, InputError
 from tagloc.core.rig import RigCamera
+from tagloc.vision.image import require_gray
 
 __all__ = ["OdometryConfig", "OdometryStep", "FloorOdometry", "floor_patch"]
+
+# Search resolution of the floor square (:func:`floor_patch`); finer changes the square by
+# under a millimetre.
+_BORDER_SAMPLES = 41  # points per image side traced onto the floor for the footprint polygon
+_MIN_FLOOR_POINTS = 8  # fewer border points on the floor: no footprint to speak of
+_EDGE_SAMPLES = 5  # points per square side tested inside the footprint (it is convex)
+_NEAR_EDGE_STEPS = 60  # near-edge positions tried across the footprint's depth
+_BISECTIONS = 20  # bisection steps of the side: max_side_m / 2**20, about a micrometre
+_SIDE_TOL_M = 1e-4  # a farther square must be larger by this to win
+_ZNCC_INSET = 6  # the turn guesses are compared on the patch less 1/6 at each border (warped in)
+_SAME_TURN_RAD = 1e-9  # a grid guess this close to the one already tried is skipped
 
 
 @dataclass
@@ -55,6 +67,9 @@ class OdometryConfig:
       walks fail to match, at 0.17 ms less per frame).
     - ``highpass_sigma_px``: the local mean (Gaussian of this sigma) is subtracted, so lighting
       gradients and vignetting do not correlate.
+    - ``min_camera_height``: a camera lower than this (m) sees no floor patch worth matching;
+      ``min_side_m``: a floor square smaller than this (20 cm: 2.5 mm pixels at 80 px, finer
+      than the camera resolves at 1-2 m) is refused.
 
     Acceptance (otherwise :meth:`FloorOdometry.measure` returns None):
 
@@ -67,6 +82,14 @@ class OdometryConfig:
     - ``rotation_step``, ``max_rotation``: the grid of turn guesses tried when the match from the
       turn under way fails (a person turns at up to ~4 rad/s, 7.6 degrees between frames at
       30 Hz); 0 turns the search off.
+    - ``turn_memory``: the last step's turn rate is the first guess while that step is at most
+      this many ``max_dt`` old (two frame gaps: a person's yaw acceleration keeps it close).
+    - ``ecc_turn_tolerance``: ECC ending further than this fraction of ``rotation_step`` from the
+      guessed turn may have found a wrong optimum, so the grid of guesses is tried too (half a
+      step: beyond it another grid guess is nearer).
+    - ``ecc_shift_allowance``: ECC may move the alignment this many times further than
+      ``max_shift_frac`` before the step is refused (its sub-pixel refinement and the turn's
+      lever arm add to phase correlation's shift).
     - ``ecc_iterations``, ``ecc_eps``: ECC stops after this many iterations or once its update is
       below ``ecc_eps`` pixels of the matched patch (0.01 px: under 0.1 mm on the floor, far below
       the per-frame noise; 1e-4 gave the same step errors on the six eval walks, to 0.02 mm RMS,
@@ -114,6 +137,11 @@ class OdometryConfig:
     max_shift_frac: float = 0.3
     rotation_step: float = math.radians(3.0)
     max_rotation: float = math.radians(9.0)
+    turn_memory: float = 2.0
+    ecc_turn_tolerance: float = 0.5
+    ecc_shift_allowance: float = 1.5
+    min_camera_height: float = 0.05
+    min_side_m: float = 0.2
     ecc_iterations: int = 5
     ecc_eps: float = 1e-2
     sigma_forward: float = 0.0014
@@ -193,11 +221,11 @@ def floor_patch(rig_camera: RigCamera, config: OdometryConfig | None = None) -> 
     """
     cfg = config or OdometryConfig()
     cam = rig_camera.camera
-    if rig_camera.T_body_camera[2, 3] <= 0.05:
+    if rig_camera.T_body_camera[2, 3] <= cfg.min_camera_height:
         raise CalibrationError(f"camera {rig_camera.name!r}: floor odometry needs the camera above the floor")
     m = cfg.image_margin
     # The image border (inset by the margin), densely, as the footprint polygon on the floor.
-    k = np.linspace(0.0, 1.0, 41)
+    k = np.linspace(0.0, 1.0, _BORDER_SAMPLES)
     u0, u1 = m * (cam.width - 1), (1 - m) * (cam.width - 1)
     v0, v1 = m * (cam.height - 1), (1 - m) * (cam.height - 1)
     border = np.vstack(
@@ -210,37 +238,38 @@ def floor_patch(rig_camera: RigCamera, config: OdometryConfig | None = None) -> 
     )
     floor = _floor_from_pixels(rig_camera, border, cfg.min_depression)
     ok = np.all(np.isfinite(floor), axis=1)
-    if ok.sum() < 8:
+    if ok.sum() < _MIN_FLOOR_POINTS:
         raise CalibrationError(f"camera {rig_camera.name!r}: sees too little floor for odometry")
     # Rays above the depression limit are dropped: what is left is the footprint's near part.
     poly = cv2.convexHull(floor[ok].astype(np.float32))
     yc = float(rig_camera.T_body_camera[1, 3])
 
     def fits(x0: float, s: float) -> bool:
-        t = np.linspace(0.0, 1.0, 5)
+        n = _EDGE_SAMPLES
+        t = np.linspace(0.0, 1.0, n)
         edge = np.vstack(
             [
-                np.column_stack([x0 + s * t, np.full(5, yc - s / 2)]),
-                np.column_stack([x0 + s * t, np.full(5, yc + s / 2)]),
-                np.column_stack([np.full(5, x0), yc - s / 2 + s * t]),
-                np.column_stack([np.full(5, x0 + s), yc - s / 2 + s * t]),
+                np.column_stack([x0 + s * t, np.full(n, yc - s / 2)]),
+                np.column_stack([x0 + s * t, np.full(n, yc + s / 2)]),
+                np.column_stack([np.full(n, x0), yc - s / 2 + s * t]),
+                np.column_stack([np.full(n, x0 + s), yc - s / 2 + s * t]),
             ]
         )
         return all(cv2.pointPolygonTest(poly, (float(a), float(b)), False) >= 0 for a, b in edge)
 
     xs = floor[ok, 0]
     best = (0.0, 0.0)
-    for x0 in np.linspace(xs.min(), xs.max(), 60):
+    for x0 in np.linspace(xs.min(), xs.max(), _NEAR_EDGE_STEPS):
         lo, hi = 0.0, cfg.max_side_m
         if best[1] >= hi and fits(x0, hi):
             continue  # a nearer square of full size was already found
-        for _ in range(20):
+        for _ in range(_BISECTIONS):
             mid = 0.5 * (lo + hi)
             lo, hi = (mid, hi) if fits(x0, mid) else (lo, mid)
-        if lo > best[1] + 1e-4:
+        if lo > best[1] + _SIDE_TOL_M:
             best = (float(x0), lo)
     x0, side = best
-    if side < 0.2:
+    if side < cfg.min_side_m:
         raise CalibrationError(
             f"camera {rig_camera.name!r}: the floor square in view is {side:.2f} m, too small for odometry"
         )
@@ -286,7 +315,8 @@ class FloorOdometry:
     def birdseye(self, gray: np.ndarray) -> np.ndarray:
         """The bird's-eye patch (patch_px, patch_px) of a (H, W) uint8 frame, float32, high-passed."""
         cam = self.rig_camera.camera
-        if gray.ndim != 2 or gray.shape != (cam.height, cam.width):
+        require_gray(gray, "odometry")
+        if gray.shape != (cam.height, cam.width):
             raise InputError(f"odometry wants a {cam.width}x{cam.height} greyscale frame, got shape {gray.shape}")
         img = cv2.remap(gray, self._map_x, self._map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         if self._levels:
@@ -321,7 +351,7 @@ class FloorOdometry:
         # First from the turn under way (the last measured rate; people's yaw acceleration is
         # limited, so it is usually within a degree of this frame's turn); if phase correlation or
         # ECC fails from there, or ECC ends far from it, also from the best of a grid of guesses.
-        if self._last_turn is not None and 0.0 <= t0 - self._last_turn[0] <= 2 * cfg.max_dt:
+        if self._last_turn is not None and 0.0 <= t0 - self._last_turn[0] <= cfg.turn_memory * cfg.max_dt:
             g0 = float(np.clip(self._last_turn[1] * dt, -cfg.max_rotation, cfg.max_rotation))
             rounds = ([g0], self._turn_grid(g0))
         else:
@@ -345,15 +375,15 @@ class FloorOdometry:
                 best = (float(rho), W, start[1])
             # ECC that had to turn far from the guess may have stopped at a wrong optimum (the
             # turn changed fast): then compare with the grid's start before trusting it.
-            if abs(self._turn(W[:, :2].astype(np.float64)) - g0) <= 0.5 * cfg.rotation_step:
+            if abs(self._turn(W[:, :2].astype(np.float64)) - g0) <= cfg.ecc_turn_tolerance * cfg.rotation_step:
                 break
         if best is None:
             return None
         _, W, response = best
         W = W.astype(np.float64)
-        if np.hypot(*W[:, 2]) > cfg.max_shift_frac * n * 1.5:
+        if np.hypot(*W[:, 2]) > cfg.max_shift_frac * n * cfg.ecc_shift_allowance:
             return None
-        delta = self._body_motion(W[:, :2], W[:, 2])
+        delta = self.body_motion(W[:, :2], W[:, 2])
         self._last_turn = (float(t), float(delta[2]) / dt)
         return OdometryStep(t0, float(t), delta, self.covariance(delta), float(response))
 
@@ -363,7 +393,7 @@ class FloorOdometry:
         if not (cfg.max_rotation > 0 and cfg.rotation_step > 0):
             return []
         k = int(round(cfg.max_rotation / cfg.rotation_step))
-        return [j * cfg.rotation_step for j in range(-k, k + 1) if abs(j * cfg.rotation_step - skip) > 1e-9]
+        return [j * cfg.rotation_step for j in range(-k, k + 1) if abs(j * cfg.rotation_step - skip) > _SAME_TURN_RAD]
 
     def _initial_alignment(
         self, psmall: np.ndarray, small: np.ndarray, guesses: list[float]
@@ -384,7 +414,7 @@ class FloorOdometry:
         m = small.shape[0]
         A = self.patch.A
         c = np.full(2, (m - 1) / 2.0)
-        lo, hi = m // 6, m - m // 6
+        lo, hi = m // _ZNCC_INSET, m - m // _ZNCC_INSET
         best: tuple[float, float, np.ndarray] | None = None
         for g in guesses:
             # Body turn g in patch pixels (the scale of A cancels), about the patch centre: the
@@ -422,7 +452,7 @@ class FloorOdometry:
         M = self.patch.A @ Wl @ self._A_inv
         return math.atan2(M[1, 0] - M[0, 1], M[0, 0] + M[1, 1])
 
-    def _body_motion(self, Wl: np.ndarray, wt: np.ndarray) -> np.ndarray:
+    def body_motion(self, Wl: np.ndarray, wt: np.ndarray) -> np.ndarray:
         """(dx, dy, dyaw) of body1 in body0 from the patch-pixel map q0 = Wl q1 + wt."""
         A, b = self.patch.A, self.patch.origin
         # Floor points p = A q + b; p0 = R p1 + t (T_body0_body1). Hence R = A Wl A^-1 and

@@ -24,6 +24,7 @@ from tagloc.core.camera import Camera
 from tagloc.core.errors import InputError
 from tagloc.core.sticker import FRAME_M, SIZE_M
 from tagloc.core.types import Detection
+from tagloc.vision.image import require_gray
 
 #: Default raster side: 200 px puts the sticker's 0.5 mm design grid on whole pixels
 #: (module = 7 px, frame = 16 px, quadrant = 84 px).
@@ -66,7 +67,7 @@ def ideal_homography(detection: Detection, camera: Camera, size_px: int) -> np.n
     return H
 
 
-def _distort(ideal: np.ndarray, camera: Camera) -> np.ndarray:
+def distort_points(ideal: np.ndarray, camera: Camera) -> np.ndarray:
     """Undistorted pixels (N, 2) -> distorted pixels (N, 2) of the same camera."""
     rays = cv2.undistortPoints(ideal.reshape(-1, 1, 2), camera.K, None)  # K^-1 only: no distortion
     pts3 = cv2.convertPointsToHomogeneous(rays).reshape(-1, 3)
@@ -106,7 +107,7 @@ def distorted_mapping(
         return H, None, 0.0
     g = np.linspace(-0.5, size_px - 0.5, 5)
     grid = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
-    dist_pts = _distort(cv2.perspectiveTransform(grid.reshape(-1, 1, 2), H).reshape(-1, 2), camera)
+    dist_pts = distort_points(cv2.perspectiveTransform(grid.reshape(-1, 1, 2), H).reshape(-1, 2), camera)
     Hd, _ = cv2.findHomography(grid, dist_pts, 0)
     if Hd is not None:
         resid = cv2.perspectiveTransform(grid.reshape(-1, 1, 2), Hd).reshape(-1, 2) - dist_pts
@@ -121,7 +122,7 @@ def distorted_mapping(
     n = int(np.ceil(size_px / _STEP)) + 1
     g = -0.5 + _STEP * np.arange(n, dtype=float)
     coarse = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
-    dist_c = _distort(cv2.perspectiveTransform(coarse.reshape(-1, 1, 2), H).reshape(-1, 2), camera)
+    dist_c = distort_points(cv2.perspectiveTransform(coarse.reshape(-1, 1, 2), H).reshape(-1, 2), camera)
     dist_c = dist_c.reshape(n, n, 2)
     j, f = _coarse_index(size_px)
     rows = dist_c[j] * (1 - f)[:, None, None] + dist_c[j + 1] * f[:, None, None]  # (size, n, 2)
@@ -147,8 +148,7 @@ def rectify(
         The raster with ``detection.outer[0]`` at its top-left, going clockwise.
     """
     config = config or RectifyConfig()
-    if gray.ndim != 2:
-        raise InputError(f"rectify: expected a greyscale image, got shape {gray.shape}")
+    require_gray(gray, "rectify")
     H, maps, _ = distorted_mapping(detection, camera, size_px, config)
     if H is not None:
         return cv2.warpPerspective(

@@ -1,0 +1,597 @@
+"""ROS bags in and out, without a ROS install (``rosbags``: pure Python rosbag2 MCAP/SQLite and ROS 1).
+
+Writing (:class:`BagWriter`, a sink like those of :mod:`tagloc.io.sinks`) makes a rosbag2 directory in
+MCAP storage. Topic names use the vest ID made into a valid ROS name (:func:`ros_name`: ``vest-1`` ->
+``vest_1``); ``CAM`` is the rig camera's name::
+
+    /tagloc/VEST/pose             geometry_msgs/msg/PoseWithCovarianceStamped   frame "map", once posed
+    /tagloc/VEST/pose_json        std_msgs/msg/String   the tagloc pose message (JSON), every frame
+    /tf                           tf2_msgs/msg/TFMessage   map -> VEST/body, once posed
+    /tf_static                    tf2_msgs/msg/TFMessage   VEST/body -> VEST/CAM (once, transient local)
+    /tagloc/VEST/CAM/detections   tagloc_msgs/msg/StickerDetections   every frame (see DETECTIONS_MSGDEF)
+    /tagloc/VEST/CAM/image/compressed   sensor_msgs/msg/CompressedImage (JPEG), only with images=True
+    /tagloc/VEST/CAM/camera_info  sensor_msgs/msg/CameraInfo, only with images=True
+
+The pose's 6x6 covariance (x, y, z, roll, pitch, yaw; row-major, as ROS orders it) holds the
+tracker's 3x3 over (x, y, yaw); z, roll and pitch are not estimated and get ``UNESTIMATED_VARIANCE``
+(the ROS convention for "not measured": a variance so large that any fusion ignores it).
+Header stamps and bag times are the frame timestamps (the session clock in replay, the epoch in live).
+
+Reading (:class:`BagSession`): a rosbag2 (MCAP or SQLite) or ROS 1 bag with a camera topic
+(``sensor_msgs/Image`` or ``CompressedImage``) is a session: same interface as
+:class:`tagloc.io.session.SessionReader`, frames streamed one at a time, corrupt ones skipped and
+counted. :func:`bag_to_session` converts it to the session layout, :func:`read_pose_messages`
+reads back the pose messages for the fleet monitor.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from tagloc.core.camera import Camera, load_calibration
+from tagloc.core.errors import BackendUnavailable, InputError, SessionError
+from tagloc.core.geometry import planar_T
+from tagloc.core.rig import Rig, default_rig, load_rig
+from tagloc.core.stickermap import StickerMap, load_map
+from tagloc.core.types import Frame, FrameResult, TrackState
+from tagloc.io.session import SessionInfo, SessionWriter
+from tagloc.io.sinks import SCHEMA, PoseMessage, Sink
+
+# ROS asks for a huge variance on axes that are not measured (z, roll, pitch of a planar pose), so that
+# a downstream filter (robot_localization, nav2's AMCL consumers) gives them no weight. m^2 and rad^2.
+UNESTIMATED_VARIANCE = 1e6
+WORLD_FRAME = "map"  # REP 105's name for the fixed world frame the sticker map lives in
+IMAGE_JPEG_QUALITY = 90  # when a frame has to be encoded for the bag (no original JPEG at hand)
+
+DETECTION_MSGDEF = """\
+int32 sticker_id
+string source
+float64[8] corners_px
+bool accepted
+string gate_reason
+"""
+DETECTIONS_MSGDEF = """\
+std_msgs/Header header
+tagloc_msgs/StickerDetection[] detections
+"""
+DETECTION_TYPE = "tagloc_msgs/msg/StickerDetection"
+DETECTIONS_TYPE = "tagloc_msgs/msg/StickerDetections"
+POSE_TYPE = "geometry_msgs/msg/PoseWithCovarianceStamped"
+STRING_TYPE = "std_msgs/msg/String"
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
+IMAGE_TYPE = "sensor_msgs/msg/Image"
+INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+IMAGE_TYPES = (COMPRESSED_TYPE, IMAGE_TYPE, "sensor_msgs/Image", "sensor_msgs/CompressedImage")
+
+
+def _typestore():
+    """The ROS 2 Humble typestore with tagloc's detection messages registered."""
+    try:
+        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    except ImportError as exc:  # pragma: no cover - rosbags is a dependency
+        raise BackendUnavailable("rosbags is not installed; pip install rosbags") from exc
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    types = get_types_from_msg(DETECTION_MSGDEF, DETECTION_TYPE)
+    types.update(get_types_from_msg(DETECTIONS_MSGDEF, DETECTIONS_TYPE))
+    store.register(types)
+    return store
+
+
+def ros_name(name: str) -> str:
+    """``name`` as one valid ROS graph-name token: [A-Za-z0-9_], not starting with a digit."""
+    token = re.sub(r"[^A-Za-z0-9_]", "_", name) or "_"
+    return f"v{token}" if token[0].isdigit() else token
+
+
+def covariance_6x6(cov3: np.ndarray) -> np.ndarray:
+    """ROS 6x6 pose covariance (x, y, z, roll, pitch, yaw) from the (3, 3) one over (x, y, yaw)."""
+    cov = np.zeros((6, 6))
+    idx = [0, 1, 5]
+    cov[np.ix_(idx, idx)] = cov3
+    for k in (2, 3, 4):
+        cov[k, k] = UNESTIMATED_VARIANCE
+    return cov
+
+
+def covariance_3x3(cov6: np.ndarray) -> np.ndarray:
+    """The (3, 3) covariance over (x, y, yaw) inside a ROS 6x6 one."""
+    idx = [0, 1, 5]
+    return np.asarray(cov6, float).reshape(6, 6)[np.ix_(idx, idx)]
+
+
+def _ns(t: float) -> int:
+    return int(round(t * 1e9))
+
+
+def _stamp_s(stamp: object) -> float:
+    """Seconds of a ROS time (ROS 2 ``sec``/``nanosec``; ROS 1 ``secs``/``nsecs`` after rosbags' mapping)."""
+    sec = getattr(stamp, "sec", getattr(stamp, "secs", 0))
+    nsec = getattr(stamp, "nanosec", getattr(stamp, "nsecs", 0))
+    # One correctly rounded division: a stamp made by _ns from a time with at most 9 decimals gives it back exactly.
+    return (int(sec) * 1_000_000_000 + int(nsec)) / 1e9
+
+
+class BagWriter(Sink):
+    """Write poses (and, per frame, detections and optionally images) to a rosbag2 in MCAP storage.
+
+    Use like a pose sink (:meth:`publish`); :meth:`write_frame` adds a frame's detections and, with
+    ``images``, its image and calibration. The bag is complete once :meth:`close` has run (rosbag2
+    writes its ``metadata.yaml`` then).
+
+    Args:
+        path: bag directory to create (must not exist).
+        vest: vest ID (topics are ``/tagloc/<ros_name(vest)>/...``).
+        rig: the rig (camera frames for /tf_static, calibration for CameraInfo).
+        images: also write camera images (CompressedImage) and CameraInfo; off by default for size.
+        storage: "mcap" (default) or "sqlite3".
+    """
+
+    def __init__(self, path: str | Path, vest: str, rig: Rig, images: bool = False, storage: str = "mcap"):
+        super().__init__()
+        from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        self.path = Path(path)
+        self.name = f"bag {self.path}"
+        if self.path.exists():
+            raise InputError(f"{self.path}: already exists; rosbag2 writes a new directory")
+        if storage not in ("mcap", "sqlite3"):
+            raise InputError(f"bag storage must be mcap or sqlite3, not {storage!r}")
+        self.vest = ros_name(vest)
+        self.rig = rig
+        self.images = bool(images)
+        self._store = _typestore()
+        self._types = self._store.types
+        plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._writer = Writer(self.path, version=Writer.VERSION_LATEST, storage_plugin=plugin)
+        self._writer.open()
+        base = f"/tagloc/{self.vest}"
+        add = self._writer.add_connection
+        self._pose = add(f"{base}/pose", POSE_TYPE, typestore=self._store)
+        self._json = add(f"{base}/pose_json", STRING_TYPE, typestore=self._store)
+        self._tf = add("/tf", TF_TYPE, typestore=self._store)
+        # /tf_static is latched in ROS 2 (transient local): players re-send it to late subscribers.
+        latched = Qos(
+            QosHistory.KEEP_LAST,
+            1,
+            QosReliability.RELIABLE,
+            QosDurability.TRANSIENT_LOCAL,
+            QosTime(0, 0),
+            QosTime(0, 0),
+            QosLiveliness.AUTOMATIC,
+            QosTime(0, 0),
+            False,
+        )
+        self._tf_static = add("/tf_static", TF_TYPE, typestore=self._store, offered_qos_profiles=[latched])
+        self._det, self._img, self._info = {}, {}, {}
+        for k, rc in enumerate(rig.cameras):
+            cam = f"{base}/{ros_name(rc.name)}"
+            self._det[k] = add(f"{cam}/detections", DETECTIONS_TYPE, typestore=self._store)
+            if self.images:
+                self._img[k] = add(f"{cam}/image/compressed", COMPRESSED_TYPE, typestore=self._store)
+                self._info[k] = add(f"{cam}/camera_info", INFO_TYPE, typestore=self._store)
+        self._static_written = False
+        self.frames = 0
+
+    # --- message builders -------------------------------------------------------------------
+    def _header(self, t: float, frame_id: str):
+        T = self._types
+        ns = _ns(t)
+        return T["std_msgs/msg/Header"](
+            stamp=T["builtin_interfaces/msg/Time"](sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000),
+            frame_id=frame_id,
+        )
+
+    def _transform(self, t: float, parent: str, child: str, T_parent_child: np.ndarray):
+        T = self._types
+        q = _quaternion(T_parent_child[:3, :3])
+        return T["geometry_msgs/msg/TransformStamped"](
+            header=self._header(t, parent),
+            child_frame_id=child,
+            transform=T["geometry_msgs/msg/Transform"](
+                translation=T["geometry_msgs/msg/Vector3"](*(float(v) for v in T_parent_child[:3, 3])),
+                rotation=T["geometry_msgs/msg/Quaternion"](*q),
+            ),
+        )
+
+    def _write(self, connection, t: float, msg: object) -> None:
+        self._writer.write(connection, _ns(t), self._store.serialize_cdr(msg, connection.msgtype))
+
+    def body_frame(self) -> str:
+        """TF name of the vest's body frame."""
+        return f"{self.vest}/body"
+
+    def camera_frame(self, camera: int) -> str:
+        """TF name of rig camera ``camera``."""
+        return f"{self.vest}/{ros_name(self.rig[camera].name)}"
+
+    # --- sink interface ---------------------------------------------------------------------
+    def publish(self, message: PoseMessage) -> bool:
+        """Write the pose (PoseWithCovarianceStamped, /tf) and the JSON message; no pose while initialising."""
+        T = self._types
+        out = message.output
+        t = float(out.t)
+        if not self._static_written:
+            tfs = [
+                self._transform(t, self.body_frame(), self.camera_frame(k), rc.T_body_camera)
+                for k, rc in enumerate(self.rig.cameras)
+            ]
+            self._write(self._tf_static, t, T[TF_TYPE](transforms=tfs))
+            self._static_written = True
+        self._write(self._json, t, T[STRING_TYPE](data=message.encode().decode()))
+        if out.state == TrackState.INITIALISING:
+            self.dropped += 1
+            return False
+        x, y, yaw = (float(v) for v in out.pose)
+        Tw = planar_T(x, y, yaw)
+        pose = T["geometry_msgs/msg/Pose"](
+            position=T["geometry_msgs/msg/Point"](x, y, 0.0),
+            orientation=T["geometry_msgs/msg/Quaternion"](*_quaternion(Tw[:3, :3])),
+        )
+        msg = T[POSE_TYPE](
+            header=self._header(t, WORLD_FRAME),
+            pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=covariance_6x6(out.cov).ravel()),
+        )
+        self._write(self._pose, t, msg)
+        self._write(self._tf, t, T[TF_TYPE](transforms=[self._transform(t, WORLD_FRAME, self.body_frame(), Tw)]))
+        self.sent += 1
+        return True
+
+    def write_frame(self, frame: Frame, result: FrameResult, encoded: bytes | None = None) -> None:
+        """Write a frame's sticker detections and, with ``images``, its image (``encoded`` JPEG bytes if given)."""
+        T = self._types
+        t = float(result.timestamp)
+        k = frame.camera
+        dets = []
+        for o in result.observations:
+            if o.camera != k:
+                continue
+            dets.append(
+                T[DETECTION_TYPE](
+                    sticker_id=-1 if o.sticker_id is None else int(o.sticker_id),
+                    source=o.source.value,
+                    corners_px=np.asarray(o.detection.outer, float).ravel(),
+                    accepted=bool(o.accepted),
+                    gate_reason=o.gate_reason or "",
+                )
+            )
+        header = self._header(t, self.camera_frame(k))
+        self._write(self._det[k], t, T[DETECTIONS_TYPE](header=header, detections=dets))
+        if self.images and (encoded is not None or frame.image is not None):
+            if encoded is None:
+                ok, buf = cv2.imencode(".jpg", frame.image, [cv2.IMWRITE_JPEG_QUALITY, IMAGE_JPEG_QUALITY])
+                encoded = buf.tobytes() if ok else b""
+            data = np.frombuffer(encoded, np.uint8)
+            self._write(self._img[k], t, T[COMPRESSED_TYPE](header=header, format="jpeg", data=data))
+            self._write(self._info[k], t, camera_info(self._types, header, self.rig[k].camera))
+        self.frames += 1
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+
+
+def camera_info(types: dict, header: object, cam: Camera) -> object:
+    """A ``sensor_msgs/msg/CameraInfo`` for an OpenCV calibration (plumb_bob or rational_polynomial)."""
+    d = np.asarray(cam.dist, float)
+    model = "plumb_bob" if len(d) <= 5 else "rational_polynomial"
+    if len(d) < 5:
+        d = np.r_[d, np.zeros(5 - len(d))]
+    P = np.c_[cam.K, np.zeros(3)]
+    return types[INFO_TYPE](
+        header=header,
+        height=int(cam.height),
+        width=int(cam.width),
+        distortion_model=model,
+        d=d,
+        k=np.asarray(cam.K, float).ravel(),
+        r=np.eye(3).ravel(),
+        p=P.ravel(),
+        binning_x=0,
+        binning_y=0,
+        roi=types["sensor_msgs/msg/RegionOfInterest"](0, 0, 0, 0, False),
+    )
+
+
+def camera_from_info(msg: object) -> Camera:
+    """The calibration in a CameraInfo message (ROS 2 ``k``/``d`` or ROS 1 ``K``/``D``)."""
+    K = np.asarray(getattr(msg, "k", None) if hasattr(msg, "k") else msg.K, float)
+    D = np.asarray(getattr(msg, "d", None) if hasattr(msg, "d") else msg.D, float)
+    if K.size != 9 or not np.all(np.isfinite(K)) or K[0] <= 0:
+        raise InputError("CameraInfo holds no calibration (K is empty or zero)")
+    return Camera(K.reshape(3, 3), D if D.size else np.zeros(5), int(msg.width), int(msg.height))
+
+
+def _quaternion(R: np.ndarray) -> tuple[float, float, float, float]:
+    """(x, y, z, w) of a rotation matrix (scipy's conversion)."""
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    return float(x), float(y), float(z), float(w)
+
+
+# --- reading --------------------------------------------------------------------------------------
+
+
+def _open_reader(path: Path):
+    try:
+        from rosbags.highlevel import AnyReader
+    except ImportError as exc:  # pragma: no cover - rosbags is a dependency
+        raise BackendUnavailable("rosbags is not installed; pip install rosbags") from exc
+    if not path.exists():
+        raise SessionError(f"{path}: no such bag")
+    if path.is_dir() and not (path / "metadata.yaml").exists():
+        raise SessionError(f"{path}: not a rosbag2 directory (no metadata.yaml)")
+    if path.is_file() and path.suffix != ".bag":
+        raise SessionError(f"{path}: want a rosbag2 directory or a ROS 1 .bag file")
+    try:
+        reader = AnyReader([path], default_typestore=_typestore())
+        reader.open()
+    except Exception as exc:  # noqa: BLE001 - rosbags raises many error types for a damaged bag
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise SessionError(f"{path}: cannot read bag ({reason})") from exc
+    return reader
+
+
+def is_bag(path: str | Path) -> bool:
+    """Whether ``path`` looks like a bag (a rosbag2 directory or a ROS 1 .bag file) rather than a session."""
+    p = Path(path)
+    return (p.is_dir() and (p / "metadata.yaml").exists()) or (p.is_file() and p.suffix == ".bag")
+
+
+def _image_to_grey(msg: object, msgtype: str) -> np.ndarray | None:
+    """(H, W) uint8 from a CompressedImage or Image message, None if it cannot be decoded."""
+    if msgtype.endswith("CompressedImage"):
+        return cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_GRAYSCALE)
+    enc = msg.encoding.lower()
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    data = np.frombuffer(bytes(msg.data), np.uint8)
+    channels = {"mono8": 1, "8uc1": 1, "bgr8": 3, "rgb8": 3, "8uc3": 3, "bgra8": 4, "rgba8": 4, "mono16": 2, "16uc1": 2}
+    if enc not in channels or h <= 0 or w <= 0 or data.size < h * step:
+        return None
+    rows = data[: h * step].reshape(h, step)
+    if enc in ("mono16", "16uc1"):
+        big = bool(getattr(msg, "is_bigendian", 0))
+        img16 = rows[:, : 2 * w].copy().view(">u2" if big else "<u2").reshape(h, w)
+        return (img16 >> 8).astype(np.uint8)
+    n = channels[enc]
+    img = rows[:, : n * w].reshape(h, w, n) if n > 1 else rows[:, :w]
+    if n == 1:
+        return np.ascontiguousarray(img)
+    code = {
+        "bgr8": cv2.COLOR_BGR2GRAY,
+        "8uc3": cv2.COLOR_BGR2GRAY,
+        "rgb8": cv2.COLOR_RGB2GRAY,
+        "bgra8": cv2.COLOR_BGRA2GRAY,
+        "rgba8": cv2.COLOR_RGBA2GRAY,
+    }[enc]
+    return cv2.cvtColor(np.ascontiguousarray(img), code)
+
+
+def _info_topic_for(topic: str) -> str:
+    """The CameraInfo topic a ROS camera driver publishes beside ``topic`` (image_transport's convention)."""
+    parts = topic.rstrip("/").split("/")
+    if parts[-1] in ("compressed", "theora", "compressedDepth"):
+        parts = parts[:-1]
+    return "/".join(parts[:-1] + ["camera_info"])
+
+
+class BagSession:
+    """A bag's camera topic as a session (the interface of :class:`tagloc.io.session.SessionReader`).
+
+    Args:
+        path: rosbag2 directory (MCAP or SQLite) or ROS 1 ``.bag`` file.
+        topic: image topic (``sensor_msgs/Image`` or ``CompressedImage``).
+        map_path: sticker map CSV.
+        rig_path: rig JSON (camera pose in the body frame); default rig without it.
+        calibration: calibration file; overrides the bag's CameraInfo, which overrides the rig's.
+        info_topic: CameraInfo topic; default: beside ``topic`` (``.../camera_info``), else the only one.
+
+    Frame timestamps are the image headers' stamps (the bag's receive time when a stamp is zero);
+    frames are numbered 0, 1, ... in bag order.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        topic: str,
+        map_path: str | Path,
+        rig_path: str | Path | None = None,
+        calibration: str | Path | None = None,
+        info_topic: str | None = None,
+    ):
+        self.path = Path(path)
+        self.map_path = Path(map_path)
+        self.topic = topic
+        self.map: StickerMap = load_map(self.map_path)
+        reader = _open_reader(self.path)
+        try:
+            conns = [c for c in reader.connections if c.topic == topic]
+            if not conns:
+                cams = sorted({c.topic for c in reader.connections if c.msgtype in IMAGE_TYPES})
+                raise SessionError(
+                    f"{self.path}: no topic {topic!r}; image topics in the bag: {', '.join(cams) or 'none'}"
+                )
+            if conns[0].msgtype not in IMAGE_TYPES:
+                raise SessionError(f"{self.path}: {topic} is {conns[0].msgtype}, not an Image or CompressedImage")
+            self.msgtype = conns[0].msgtype
+            self.count = sum(c.msgcount for c in conns)
+            bag_camera = self._bag_calibration(reader, info_topic or _info_topic_for(topic), info_topic is not None)
+        finally:
+            reader.close()
+        camera = load_calibration(calibration) if calibration else bag_camera
+        if rig_path is not None:
+            self.rig: Rig = load_rig(rig_path, camera)
+        elif camera is not None:
+            self.rig = default_rig(camera=camera)
+        else:
+            raise SessionError(f"{self.path}: no CameraInfo for {topic}; give --calibration or --rig")
+        self.index = np.arange(self.count)
+        self.skipped: list[tuple[int, str]] = []
+        self.warnings: list[str] = []  # as SessionReader's: odd but usable (none known for bags yet)
+        self.info = SessionInfo(source=f"rosbag {self.path.name} {topic}", fps=0.0)
+
+    def _bag_calibration(self, reader, info_topic: str, explicit: bool) -> Camera | None:
+        infos = [c for c in reader.connections if c.msgtype in (INFO_TYPE, "sensor_msgs/CameraInfo")]
+        chosen = [c for c in infos if c.topic == info_topic]
+        if not chosen:
+            if explicit:
+                raise SessionError(f"{self.path}: no CameraInfo topic {info_topic!r}")
+            if len({c.topic for c in infos}) != 1:
+                return None
+            chosen = infos
+        for conn, _, raw in reader.messages(connections=chosen):
+            try:
+                return camera_from_info(reader.deserialize(raw, conn.msgtype))
+            except InputError as exc:
+                raise SessionError(f"{self.path}: {conn.topic}: {exc}") from None
+        return None
+
+    def __len__(self) -> int:
+        return self.count
+
+    @property
+    def camera(self) -> Camera:
+        """The first camera's calibration."""
+        return self.rig.cameras[0].camera
+
+    def frame_path(self, index: int, camera: int = 0) -> Path | None:
+        """Bags hold no image files."""
+        return None
+
+    def groundtruth(self) -> None:
+        """Bags carry no ground truth tagloc can read."""
+        return None
+
+    def encoded_frames(self) -> Iterator[tuple[int, float, object, str]]:
+        """Yield (index, timestamp_s, message, msgtype) for every image message, in bag order."""
+        reader = _open_reader(self.path)
+        try:
+            conns = [c for c in reader.connections if c.topic == self.topic]
+            for i, (conn, bag_ns, raw) in enumerate(reader.messages(connections=conns)):
+                try:
+                    msg = reader.deserialize(raw, conn.msgtype)
+                except Exception:  # noqa: BLE001 - a corrupt message is one skipped frame
+                    yield i, bag_ns / 1e9, None, conn.msgtype
+                    continue
+                t = _stamp_s(msg.header.stamp)
+                yield i, (t if t > 0 else bag_ns / 1e9), msg, conn.msgtype
+        finally:
+            reader.close()
+
+    def frames(self, with_images: bool = True) -> Iterator[Frame]:
+        """Yield every frame in order; undecodable ones come with ``image=None`` and ``error`` set."""
+        for i, t, msg, msgtype in self.encoded_frames():
+            if not with_images:
+                yield Frame(i, t, None)
+                continue
+            img = None if msg is None else _image_to_grey(msg, msgtype)
+            err = None
+            if img is None:
+                err = f"frame {i}: {self.topic} message at t={t:.6f} is corrupt or in an unsupported encoding"
+                self.skipped.append((i, err))
+            yield Frame(i, t, img, 0, err)
+
+
+def bag_to_session(
+    bag: str | Path,
+    topic: str,
+    out: str | Path,
+    map_path: str | Path,
+    rig_path: str | Path | None = None,
+    calibration: str | Path | None = None,
+    info_topic: str | None = None,
+    progress: bool = False,
+) -> tuple[int, int]:
+    """Convert a bag's camera topic to a session directory; returns (frames written, frames skipped).
+
+    JPEG images are copied byte for byte; other images are written as PNG (lossless).
+    """
+    from tqdm import tqdm
+
+    src = BagSession(bag, topic, map_path, rig_path, calibration, info_topic)
+    written = skipped = 0
+    with SessionWriter(out, src.map, src.rig, SessionInfo(source=src.info.source, fps=0.0), image_ext=".png") as w:
+        for i, t, msg, msgtype in tqdm(src.encoded_frames(), total=len(src), disable=not progress, unit="frame"):
+            if msg is not None and msgtype.endswith("CompressedImage") and "jpeg" in msg.format.lower():
+                data = bytes(msg.data)
+                if cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE) is not None:
+                    w.write_encoded(i, t, data, ".jpg")
+                    written += 1
+                    continue
+            img = None if msg is None else _image_to_grey(msg, msgtype)
+            if img is None:
+                skipped += 1
+                continue
+            w.write(i, t, img)
+            written += 1
+    return written, skipped
+
+
+@dataclass
+class BagPose:
+    """A pose message read back from a bag: receive time (bag clock, s), topic and the JSON document."""
+
+    t_bag: float
+    topic: str
+    doc: dict
+
+
+def read_pose_messages(path: str | Path) -> Iterator[BagPose]:
+    """The tagloc pose messages in a bag, in time order.
+
+    From ``/tagloc/*/pose_json`` when present (the full message, state included); otherwise rebuilt
+    from ``/tagloc/*/pose`` PoseWithCovarianceStamped with state ``unknown``.
+    """
+    reader = _open_reader(Path(path))
+    try:
+        json_conns = [c for c in reader.connections if c.topic.endswith("/pose_json") and c.msgtype == STRING_TYPE]
+        have_json = {c.topic.rsplit("/", 1)[0] for c in json_conns}
+        pose_conns = [
+            c
+            for c in reader.connections
+            if c.topic.startswith("/tagloc/") and c.msgtype == POSE_TYPE and c.topic.rsplit("/", 1)[0] not in have_json
+        ]
+        for conn, ns, raw in reader.messages(connections=json_conns + pose_conns):
+            msg = reader.deserialize(raw, conn.msgtype)
+            if conn.msgtype == STRING_TYPE:
+                try:
+                    doc = json.loads(msg.data)
+                except json.JSONDecodeError:
+                    continue
+            else:
+                doc = _doc_from_pose(conn.topic, msg)
+            yield BagPose(ns / 1e9, conn.topic, doc)
+    finally:
+        reader.close()
+
+
+def _doc_from_pose(topic: str, msg: object) -> dict:
+    from scipy.spatial.transform import Rotation
+
+    q = msg.pose.pose.orientation
+    yaw = float(Rotation.from_quat([q.x, q.y, q.z, q.w]).as_euler("xyz")[2])
+    p = msg.pose.pose.position
+    return {
+        "schema": SCHEMA,
+        "vest": topic.split("/")[2],
+        "frame": msg.header.frame_id,
+        "t": _stamp_s(msg.header.stamp),
+        "x": float(p.x),
+        "y": float(p.y),
+        "yaw": yaw,
+        "yaw_deg": math.degrees(yaw),
+        "cov": covariance_3x3(msg.pose.covariance).tolist(),
+        "state": "unknown",
+    }

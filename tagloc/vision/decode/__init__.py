@@ -1,0 +1,152 @@
+"""Read a sticker's four Data Matrix symbols and turn them into (ID, in-plane rotation).
+
+Pipeline on the rectified raster (:mod:`tagloc.vision.rectify`, 200 px, 7 px per module), cheapest first,
+stopping as soon as the read is decided:
+
+1. zxing-cpp on the whole raster (finds each symbol on its own; ~1 ms).
+2. Grid sampling (when 1 read fewer than two symbols): the module geometry is known exactly, so
+   each quadrant's 10x10 module centres are sampled, on a grid shifted by up to 4 raster px to
+   where the symbol's fixed finder/timing border fits best (absorbing detector corner error); the
+   symbols' common orientation comes from that border too. The modules are thresholded at levels
+   learnt from the border and the clean, upright symbol is handed to zxing-cpp in pure mode. zxing
+   still does the Reed-Solomon decoding: the payload always comes from a real Data Matrix decoder.
+3. Module least squares (when 1-2 found nothing; :func:`module_estimates`): the raster, in linear
+   light, is modelled as black level + contrast * (PSF * sticker), where the sticker is known
+   except for its 256 data modules and the PSF is the lens + pixel spread mapped into the raster
+   plus the motion blur fitted to the black frame's four edge profiles (:func:`blur_estimate`).
+   One ridge-regularised solve per quadrant estimates every data module from all of its pixels,
+   undoing the blur's cross-talk; each symbol is thresholded and handed to zxing (pure mode), also
+   with its least certain modules flipped (Reed-Solomon still decides). On the physical simulator
+   this lifts the read rate from 40 % to ~90 % at 4 px of motion blur and to 100 % up to 2 px.
+libdmtx (pylibdmtx) is an alternative backend, imported only when asked for, run per quadrant with
+a time bound. libdmtx has been seen returning wrong payloads that look valid, so a single libdmtx
+symbol is never accepted unless corroborated (a second agreeing symbol, zxing, or a tracker
+candidate).
+
+Every accepted read is finally verified: the decoded ID is re-rendered in the decoded rotation and
+the raster's 256 data-module samples (the 8x8 interior of the four symbols; for stage 3 its own
+module estimates) must correlate with it (:func:`verify_id`, accepted from 0.5). Wrong IDs differ
+from the true one in most Reed-Solomon codewords, hence in many modules: measured, they score
+<= 0.44 while true IDs score >= 0.9 up to 2 px of motion blur (stage 3 estimates on simulator
+frames: wrong IDs and wrong rotations <= 0.45, true median 0.95).
+
+Modules: :mod:`~tagloc.vision.decode.grid` (the raster's module grid), :mod:`~tagloc.vision.decode.backends`
+(zxing, grid sampling, libdmtx), :mod:`~tagloc.vision.decode.blur` (blur measured on the frame edges),
+:mod:`~tagloc.vision.decode.lsq` (blur-aware module estimation), :mod:`~tagloc.vision.decode.verify`
+(combining symbols, verifying IDs); this module runs them in order.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import numpy as np
+
+from tagloc.core.camera import Camera
+from tagloc.core.errors import InputError
+from tagloc.core.types import Detection
+from tagloc.vision.decode.backends import read_grid, read_libdmtx, read_zxing_whole
+from tagloc.vision.decode.blur import blur_estimate, blur_extent
+from tagloc.vision.decode.config import DecodeConfig, DecodeResult
+from tagloc.vision.decode.grid import LONE_LIBDMTX, RASTER_PX, Symbol, module_samples
+from tagloc.vision.decode.lsq import module_estimates, read_lsq
+from tagloc.vision.decode.verify import combine_reads, verify_id
+from tagloc.vision.image import require_gray
+from tagloc.vision.rectify import rectify
+
+__all__ = [
+    "BACKENDS",
+    "DecodeConfig",
+    "DecodeResult",
+    "Symbol",
+    "blur_estimate",
+    "blur_extent",
+    "combine_reads",
+    "decode",
+    "module_estimates",
+    "module_samples",
+    "verify_id",
+]
+
+BACKENDS = ("zxing", "libdmtx", "both")
+
+
+def _decide(
+    rect: np.ndarray,
+    symbols: list[Symbol],
+    config: DecodeConfig,
+    candidates,
+    stage: str,
+    result: DecodeResult,
+    samples: np.ndarray | None = None,
+) -> bool:
+    """Fill ``result`` from ``symbols``; True when the read is settled (accepted or rejected).
+
+    ``rect`` is the raster the symbols were read from; ``samples`` (4, 10, 10), when given, are the
+    module values to verify instead (the least-squares estimates).
+    """
+    sid, rot, why = combine_reads(symbols, config, candidates)
+    result.symbols = list(symbols)
+    if sid is None:
+        result.rejected = why
+        return why is not None and not why.startswith(LONE_LIBDMTX)
+    if config.verify:
+        score = verify_id(rect, sid, rot, samples=samples, search_px=config.align_search_px)
+        result.verify_score = score
+        if score < config.min_verify:
+            result.rejected = f"decoded {sid} (rotation {rot}) fails module verification ({score:.2f})"
+            return True
+    result.sticker_id, result.rotation, result.rejected, result.stage = sid, rot, None, stage
+    return True
+
+
+def decode(
+    gray: np.ndarray,
+    detection: Detection,
+    camera: Camera,
+    backend: str = "zxing",
+    config: DecodeConfig | None = None,
+    candidates: Iterable[int] | None = None,
+) -> DecodeResult:
+    """Decode the sticker at ``detection`` in ``gray``, the (H, W) uint8 frame of ``camera``.
+
+    Args:
+        backend: "zxing" (default: best measured read rate and speed), "libdmtx", or "both"
+            (zxing first, libdmtx when zxing read nothing).
+        candidates: IDs the tracker expects here; they may corroborate a lone libdmtx symbol.
+    Returns:
+        A :class:`DecodeResult`; ``sticker_id`` is None unless the symbols agree and verify.
+    """
+    if backend not in BACKENDS:
+        raise InputError(f"decode: unknown backend {backend!r} (choose from {', '.join(BACKENDS)})")
+    require_gray(gray, "decode")
+    config = config or DecodeConfig()
+    candidates = list(candidates) if candidates is not None else None
+    result = DecodeResult()
+    rect = rectify(gray, detection, camera, RASTER_PX)
+    if backend in ("zxing", "both"):
+        if _read_raster(rect, config, candidates, "zxing", result):
+            return result
+        if config.lsq:
+            blur = blur_estimate(gray, detection, camera)
+            symbols, est = read_lsq(rect, detection, camera, config, blur)
+            if symbols and _decide(rect, symbols, config, candidates, "lsq", result, samples=est):
+                return result
+    if backend in ("libdmtx", "both"):
+        symbols = read_libdmtx(rect, config)
+        if backend == "both":
+            symbols = result.symbols + symbols
+        if symbols:
+            _decide(rect, symbols, config, candidates, "libdmtx", result)
+    return result
+
+
+def _read_raster(img: np.ndarray, config: DecodeConfig, candidates, stage: str, result: DecodeResult) -> bool:
+    """Stages 1-2 on one raster; True when the read is settled."""
+    symbols = read_zxing_whole(img)
+    # Two agreeing symbols already decide; fewer: sample the grid of the quadrants left.
+    if config.grid_sampling and len(symbols) < 2:
+        symbols += read_grid(img, config, skip={p for _, p, _ in symbols})
+    if stage == "zxing" and symbols and all(b == "zxing-grid" for _, _, b in symbols):
+        stage = "grid"
+    return bool(symbols) and _decide(img, symbols, config, candidates, stage, result)

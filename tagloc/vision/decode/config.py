@@ -1,0 +1,62 @@
+"""Options and outcome of :func:`tagloc.vision.decode.decode`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from tagloc.vision.decode.grid import Symbol
+
+
+@dataclass
+class DecodeConfig:
+    """Options of :func:`decode`.
+
+    Attributes:
+        grid_sampling: run stage 2 (module grid sampling + zxing pure mode) when stage 1 fails.
+        align_search_px: how far (raster px) each quadrant's module grid may shift to fit its
+            finder/timing border (absorbs detector corner error); 0 disables the search.
+        thresholds: where to cut between the finder's dark and light levels (0 dark, 1 light).
+        verify: check accepted IDs against the re-rendered modules.
+        min_verify: smallest :func:`verify_id` score accepted.
+        libdmtx_timeout_ms: time bound of one libdmtx call (one quadrant).
+        libdmtx_shrink: libdmtx's own down-sampling (2: 3.5 px per module).
+        lsq: run the module least-squares stage (:func:`module_estimates`) when 1-2 fail.
+        lsq_gamma: tone curve of the camera's 8-bit output, undone before the linear blur model.
+        lsq_ridge: regularisation of the module estimates (see :func:`module_estimates`).
+        lsq_flips: how many of a symbol's least certain modules may be flipped (2**n zxing attempts,
+            each ~10 us; Reed-Solomon still decides, and symbols must agree and verify).
+    """
+
+    grid_sampling: bool = True
+    align_search_px: int = 4
+    thresholds: tuple[float, ...] = (0.5, 0.4, 0.6)
+    verify: bool = True
+    min_verify: float = 0.5
+    libdmtx_timeout_ms: int = 30
+    libdmtx_shrink: int = 2
+    lsq: bool = True
+    lsq_gamma: float = 2.2
+    lsq_ridge: float = 0.02
+    lsq_flips: int = 6
+
+
+@dataclass
+class DecodeResult:
+    """Outcome of :func:`decode`.
+
+    Attributes:
+        sticker_id: decoded ID, or None.
+        rotation: r (0-3): the canonical top-left corner is ``detection.outer[r]``; None if no ID.
+        symbols: every symbol read: (payload, raster quadrant 0 TL..3 BL, backend), including the
+            ones of a rejected read (so a caller can corroborate them itself).
+        rejected: why symbols that were read did not give an ID (None if accepted or nothing read).
+        verify_score: :func:`verify_id` of the accepted (or rejected-by-verification) ID, else None.
+        stage: which stage decided ("zxing", "grid", "lsq", "libdmtx"), or None.
+    """
+
+    sticker_id: int | None = None
+    rotation: int | None = None
+    symbols: list[Symbol] = field(default_factory=list)
+    rejected: str | None = None
+    verify_score: float | None = None
+    stage: str | None = None

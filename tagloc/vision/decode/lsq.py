@@ -1,0 +1,230 @@
+"""Blur-aware module estimation: every data module of a blurred sticker estimated by least squares.
+
+The module grid is known exactly, so instead of sampling a blurred, noisy raster at module centres,
+each quadrant's 64 data modules are estimated jointly: the raster (in linear light) is modelled as
+black level + contrast * (PSF * sharp sticker), where the sharp sticker is known everywhere except
+at the data modules (frame, quiet zones and every symbol's finder/timing border are fixed), and
+the PSF is the lens + pixel spread mapped into the raster plus the motion measured on the frame
+edges (:mod:`tagloc.vision.decode.blur`). That is linear in (black level, contrast, data modules),
+so one small ridge-regularised least-squares solve per quadrant uses every pixel of every module
+and undoes the blur's cross-talk between neighbouring modules.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+from tagloc.core.camera import Camera
+from tagloc.core.sticker import parse_payload
+from tagloc.core.types import Detection
+from tagloc.vision.decode.backends import zxing_read
+from tagloc.vision.decode.config import DecodeConfig
+from tagloc.vision.decode.grid import (
+    FRAME_PX,
+    MODULE_PX,
+    QUAD_ORIGIN,
+    QUAD_PX,
+    RASTER_PX,
+    Symbol,
+    border_template,
+    clean_symbol,
+    module_samples,
+)
+from tagloc.vision.psf import motion_kernel
+from tagloc.vision.rectify import ideal_homography
+
+
+def blur_psf(cov: np.ndarray, motion: tuple[float, float]) -> np.ndarray:
+    """Normalised raster-space PSF (odd square): Gaussian of covariance ``cov`` (2, 2) (raster px^2,
+    (x, y) order) convolved with a line of extent ``motion`` (dx, dy) raster px."""
+    r = int(np.ceil(3.0 * np.sqrt(np.linalg.eigvalsh(cov).max())))
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1].astype(np.float64)
+    inv = np.linalg.inv(cov)
+    g = np.exp(-0.5 * (inv[0, 0] * xx * xx + 2 * inv[0, 1] * xx * yy + inv[1, 1] * yy * yy))
+    if np.hypot(*motion) > 1.0:
+        line = motion_kernel(np.asarray(motion, float))  # point-symmetric, so correlation = convolution
+        h = line.shape[0] // 2
+        g = cv2.filter2D(np.pad(g, h).astype(np.float32), -1, line, borderType=cv2.BORDER_CONSTANT)
+    return (g / g.sum()).astype(np.float32)
+
+
+def _raster_cov(detection: Detection, camera: Camera, sigma_px: float) -> np.ndarray:
+    """(2, 2) raster-space covariance of an isotropic image-space spread of ``sigma_px`` (image px),
+    through the raster -> image mapping's Jacobian at the sticker centre."""
+    H = ideal_homography(detection, camera, RASTER_PX)
+    c = RASTER_PX / 2
+    p = cv2.perspectiveTransform(np.array([[[c, c], [c + 1, c], [c, c + 1]]]), H)[0]
+    A = np.column_stack([p[1] - p[0], p[2] - p[0]])  # d(image)/d(raster)
+    Ai = np.linalg.inv(A)
+    return sigma_px**2 * Ai @ Ai.T
+
+
+_CANVAS = 2 * QUAD_PX + 1  # module-centred canvas covering every offset inside a quadrant
+
+
+@lru_cache(maxsize=4)
+def _design_index(step: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixels used in a quadrant and where they fall relative to each data module's centre.
+
+    Returns rows (P,), cols (P,) relative to the quadrant's origin and (P, 64) flat indices of the
+    pixel-minus-module-centre offsets in a module-centred ``_CANVAS``-square image. The same for
+    every quadrant, so the blurred module design is built once per PSF.
+    """
+    i, j = np.mgrid[1:9, 1:9]
+    mr, mc = (MODULE_PX + MODULE_PX * i + MODULE_PX // 2).ravel(), (MODULE_PX + MODULE_PX * j + MODULE_PX // 2).ravel()
+    g = np.arange(step // 2, QUAD_PX, step)
+    rr, cc = (a.ravel() for a in np.meshgrid(g, g, indexing="ij"))
+    # Flat index into a (_CANVAS, _CANVAS) image centred on the module: offsets never leave it.
+    flat = (rr[:, None] - mr[None] + QUAD_PX) * _CANVAS + (cc[:, None] - mc[None] + QUAD_PX)
+    return rr, cc, flat
+
+
+def _known_sticker(k: int, shifts: np.ndarray) -> np.ndarray:
+    """Sharp sticker reflectance (200, 200) float32 in raster orientation: 0 ink, 1 paper, 0.5 on
+    every data module (unknown); symbol borders turned by ``k`` and moved by ``shifts`` (4, 2)."""
+    mask, dark = border_template()
+    sym = np.where(mask, np.where(dark, 0.0, 1.0), 0.5)
+    sym = np.kron(np.rot90(sym, -k), np.ones((MODULE_PX, MODULE_PX)))
+    s = np.zeros((RASTER_PX, RASTER_PX), np.float32)
+    s[FRAME_PX : RASTER_PX - FRAME_PX, FRAME_PX : RASTER_PX - FRAME_PX] = 1.0
+    for (r0, c0), (dy, dx) in zip(QUAD_ORIGIN, shifts):
+        r, c = r0 + MODULE_PX + dy, c0 + MODULE_PX + dx
+        s[r : r + 10 * MODULE_PX, c : c + 10 * MODULE_PX] = sym
+    return s
+
+
+def module_estimates(
+    rect: np.ndarray,
+    psf: np.ndarray,
+    k: int,
+    shifts: np.ndarray,
+    gamma: float = 2.2,
+    ridge: float = 0.05,
+    step: int = 2,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares reflectance of every data module, in raster orientation.
+
+    Args:
+        rect: (200, 200) uint8 raster.
+        psf: raster-space PSF (odd square, sums to 1).
+        k, shifts: symbol turn and per-quadrant grid shifts from :func:`module_samples`.
+        gamma: the image's tone curve, undone first so that the blur model is linear.
+        ridge: Tikhonov weight pulling modules towards grey, relative to the PSF-blurred module's
+            energy (keeps noise from exploding where the blur removes a module pattern).
+        step: raster px between the pixels used (the raster oversamples the image ~4x).
+    Returns:
+        (4, 10, 10) float32 reflectance (0 ink .. 1 paper; the fixed border is filled in from the
+        template, data modules estimated) and (4,) rms fit residual per quadrant.
+    """
+    lin = _linearise(rect, gamma)
+    known = cv2.filter2D(_known_sticker(k, shifts), -1, psf, borderType=cv2.BORDER_REPLICATE)
+    # One module blurred by the PSF, on a canvas centred on the module's centre pixel.
+    canvas = np.zeros((_CANVAS, _CANVAS), np.float32)
+    c = QUAD_PX - MODULE_PX // 2
+    canvas[c : c + MODULE_PX, c : c + MODULE_PX] = 1.0
+    canvas = cv2.filter2D(canvas, -1, psf, borderType=cv2.BORDER_CONSTANT)
+    rr, cc, flat = _design_index(step)
+    D = canvas.ravel()[flat]  # (P, 64) blurred data-module indicators at the pixels used
+    DtD = (D.T @ D).astype(np.float64) + ridge * float(np.sum(canvas * canvas)) * np.eye(64)
+    Dt1 = D.sum(0, dtype=np.float64)
+    n = len(rr)
+    mask, dark = border_template()
+    border = np.rot90(np.where(dark, 0.0, 1.0), -k).astype(np.float32)
+    out = np.empty((4, 10, 10), np.float32)
+    resid = np.empty(4)
+    for p, ((r0, c0), (dy, dx)) in enumerate(zip(QUAD_ORIGIN, shifts)):
+        r, cl = rr + r0 + dy, cc + c0 + dx
+        kq = known[r, cl]
+        y = lin[r, cl]
+        N = np.empty((66, 66))
+        N[0, 0], N[0, 1], N[1, 1] = n, kq.sum(dtype=np.float64), float(kq @ kq)
+        N[1, 0] = N[0, 1]
+        N[0, 2:] = N[2:, 0] = Dt1
+        N[1, 2:] = N[2:, 1] = kq @ D
+        N[2:, 2:] = DtD
+        rhs = np.concatenate([[y.sum(dtype=np.float64), float(kq @ y)], y @ D])
+        sol = np.linalg.solve(N, rhs)
+        fit = sol[0] + sol[1] * kq + D @ sol[2:].astype(np.float32)
+        resid[p] = float(np.sqrt(np.mean((fit - y) ** 2)))
+        contrast = sol[1] if abs(sol[1]) > 1e-6 else 1e-6
+        sym = border.copy()
+        # Data modules are the symbol's interior 8x8 (raster-oriented); the border is the template.
+        sym[1:9, 1:9] = (sol[2:] / contrast + 0.5).reshape(8, 8)
+        out[p] = sym
+    return out, resid
+
+
+@lru_cache(maxsize=4)
+def _gamma_lut(gamma: float) -> np.ndarray:
+    """(256,) float32: 8-bit code -> linear light (0..1) for a pure power-law tone curve."""
+    return ((np.arange(256) / 255.0) ** gamma).astype(np.float32)
+
+
+def _linearise(rect: np.ndarray, gamma: float) -> np.ndarray:
+    """Raster in linear light (float32, 0..1)."""
+    return _gamma_lut(float(gamma))[rect]
+
+
+@lru_cache(maxsize=8)
+def _flip_masks(n: int) -> np.ndarray:
+    """(2**n, n) bool: every subset of n bits."""
+    return (np.arange(2**n)[:, None] >> np.arange(n)[None] & 1).astype(bool)
+
+
+def _decode_estimates(est: np.ndarray, k: int, flips: int, tag: str) -> list[Symbol]:
+    """zxing (pure mode) on each quadrant's thresholded estimates, flipping up to the ``flips``
+    least certain data modules (every subset, the least confidence overturned first); zxing's
+    Reed-Solomon decoding decides. Stops once two symbols agree on ID and rotation."""
+    out: list[Symbol] = []
+    agree: dict[tuple[int, int], int] = {}
+    for p in range(4):
+        s = np.rot90(est[p], k)
+        dark = s < 0.5
+        conf = np.abs(s[1:9, 1:9] - 0.5).ravel()
+        order = np.argsort(conf)[:flips]
+        masks = _flip_masks(len(order))
+        masks = masks[np.argsort(masks @ conf[order], kind="stable")]
+        rows, cols = 1 + order // 8, 1 + order % 8
+        for m in masks:
+            bits = dark.copy()
+            bits[rows[m], cols[m]] ^= True
+            res = zxing_read(clean_symbol(bits), pure=True)
+            if res and res[0].text:
+                out.append((res[0].text, p, tag))
+                parsed = parse_payload(res[0].text)
+                if parsed is not None:
+                    key = (parsed[0], (p - parsed[1]) % 4)
+                    agree[key] = agree.get(key, 0) + 1
+                    if agree[key] >= 2:
+                        return out
+                break
+    return out
+
+
+def read_lsq(
+    rect: np.ndarray, detection: Detection, camera: Camera, config: DecodeConfig, blur: tuple[float, float, float]
+) -> tuple[list[Symbol], np.ndarray | None]:
+    """Module least-squares stage: symbols read from :func:`module_estimates` and those estimates.
+
+    ``blur`` is :func:`blur_estimate`'s (x extent, y extent, optics sigma). The image-space spread
+    is the optics plus one pixel's integration (variance 1/12) plus the raster's bilinear
+    resampling (1/6). Edge profiles cannot tell the motion's diagonal sign, so a diagonal blur is
+    tried both ways, the better-fitting first.
+    """
+    lx, ly, sigma = blur
+    samples, k, shifts = module_samples(rect, config.align_search_px)
+    cov = _raster_cov(detection, camera, float(np.sqrt(sigma**2 + 1 / 12 + 1 / 6)))
+    signs = (1.0,) if min(lx, ly) < 2.0 else (1.0, -1.0)
+    fits = [
+        module_estimates(rect, blur_psf(cov, (lx, s * ly)), k, shifts, config.lsq_gamma, config.lsq_ridge)
+        for s in signs
+    ]
+    fits.sort(key=lambda f: float(f[1].sum()))
+    for est, _ in fits:
+        symbols = _decode_estimates(est, k, config.lsq_flips, "zxing-lsq")
+        if symbols:
+            return symbols, est
+    return [], None

@@ -1,0 +1,273 @@
+"""ROS bags: write a bag from a simulated session, read it back with rosbags, replay it, convert it."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from tagloc.core.errors import InputError, SessionError
+from tagloc.core.types import Frame, TrackerOutput, TrackState
+from tagloc.io.rosbag import (
+    UNESTIMATED_VARIANCE,
+    BagSession,
+    BagWriter,
+    bag_to_session,
+    covariance_3x3,
+    covariance_6x6,
+    read_pose_messages,
+    ros_name,
+)
+from tagloc.io.session import SessionReader
+from tagloc.io.sinks import PoseMessage, TumSink
+from tagloc.pipeline.run import run_session
+
+REPO = Path(__file__).resolve().parent.parent
+WALK = REPO / "logs" / "walk2s"  # a 2 s session made by `tagloc simulate`
+IMAGE_TOPIC = "/tagloc/vest_1/front/image/compressed"
+
+
+def _read_all(bag: Path) -> dict[str, list[tuple[int, object]]]:
+    from rosbags.highlevel import AnyReader
+
+    out: dict[str, list[tuple[int, object]]] = {}
+    with AnyReader([bag]) as r:
+        for conn, ns, raw in r.messages():
+            out.setdefault(conn.topic, []).append((ns, r.deserialize(raw, conn.msgtype)))
+    return out
+
+
+@pytest.fixture(scope="module")
+def written(tmp_path_factory) -> dict:
+    """walk2s replayed once, written to a bag with images, and its TUM and outputs kept for comparison."""
+    tmp = tmp_path_factory.mktemp("bag")
+    session = SessionReader(WALK)
+    bag = tmp / "walk.bag2"
+    writer = BagWriter(bag, "vest-1", session.rig, images=True)
+    tum = TumSink(tmp / "session.tum")
+    results = []
+
+    def on_result(res):
+        writer.publish(PoseMessage("vest-1", res.index, res.output))
+        writer.write_frame(Frame(res.index, res.timestamp, None), res, session.frame_path(res.index).read_bytes())
+        tum.write(res.output)
+        results.append(res)
+
+    run_session(session, on_result=on_result)
+    writer.close()
+    tum.close()
+    return {"tmp": tmp, "bag": bag, "session": session, "results": results, "tum": tmp / "session.tum"}
+
+
+def test_bag_counts_timestamps_and_covariance(written):
+    msgs = _read_all(written["bag"])
+    results = written["results"]
+    posed = [r for r in results if r.output.state != TrackState.INITIALISING]
+    n = len(results)
+    assert n == len(written["session"]) == 60 and len(posed) > 50
+    assert len(msgs["/tagloc/vest_1/pose_json"]) == n
+    assert len(msgs["/tagloc/vest_1/pose"]) == len(posed) == len(msgs["/tf"])
+    assert len(msgs["/tf_static"]) == 1
+    assert len(msgs["/tagloc/vest_1/front/detections"]) == n
+    assert len(msgs[IMAGE_TOPIC]) == len(msgs["/tagloc/vest_1/front/camera_info"]) == n
+    for (ns, msg), res in zip(msgs["/tagloc/vest_1/pose"], posed):
+        t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+        assert t == pytest.approx(res.timestamp, abs=1e-9) and ns == round(res.timestamp * 1e9)
+        assert msg.header.frame_id == "map"
+        cov = msg.pose.covariance.reshape(6, 6)
+        assert np.allclose(covariance_3x3(cov), res.output.cov, rtol=0, atol=1e-15)
+        assert np.allclose(np.diag(cov)[2:5], UNESTIMATED_VARIANCE)
+        assert np.allclose(cov, cov.T)
+        p, q = msg.pose.pose.position, msg.pose.pose.orientation
+        assert (p.x, p.y, p.z) == pytest.approx((res.output.pose[0], res.output.pose[1], 0.0))
+        dyaw = 2 * np.arctan2(q.z, q.w) - res.output.pose[2]
+        assert abs((dyaw + np.pi) % (2 * np.pi) - np.pi) < 1e-9 and abs(q.x) + abs(q.y) < 1e-12
+    tf = msgs["/tf"][0][1].transforms[0]
+    assert (tf.header.frame_id, tf.child_frame_id) == ("map", "vest_1/body")
+    static = msgs["/tf_static"][0][1].transforms[0]
+    assert (static.header.frame_id, static.child_frame_id) == ("vest_1/body", "vest_1/front")
+    assert static.transform.translation.z == pytest.approx(written["session"].rig[0].T_body_camera[2, 3])
+    # Detections: one entry per observation, corners and IDs as the localiser saw them.
+    for (_, det), res in zip(msgs["/tagloc/vest_1/front/detections"], results):
+        assert len(det.detections) == len(res.observations)
+        for d, o in zip(det.detections, res.observations):
+            assert d.sticker_id == (-1 if o.sticker_id is None else o.sticker_id)
+            assert d.source == o.source.value and d.accepted == bool(o.accepted)
+            assert np.allclose(d.corners_px.reshape(4, 2), o.detection.outer)
+    # The JSON twin carries the full tagloc message.
+    doc = json.loads(msgs["/tagloc/vest_1/pose_json"][-1][1].data)
+    assert doc["vest"] == "vest-1" and doc["state"] == results[-1].output.state.value
+
+
+def test_replaying_the_bag_gives_the_sessions_trajectory(written):
+    bag = BagSession(written["bag"], IMAGE_TOPIC, WALK / "map.csv", WALK / "rig.json")
+    assert len(bag) == 60
+    assert np.array_equal(bag.camera.K, written["session"].camera.K)
+    assert np.array_equal(bag.camera.dist, written["session"].camera.dist)
+    tum = TumSink(written["tmp"] / "bag.tum")
+    run_session(bag, on_result=lambda r: tum.write(r.output))
+    tum.close()
+    assert (written["tmp"] / "bag.tum").read_bytes() == written["tum"].read_bytes()
+
+
+def test_bag_to_session_keeps_jpeg_bytes_and_stamps(written):
+    out = written["tmp"] / "converted"
+    n, skipped = bag_to_session(written["bag"], IMAGE_TOPIC, out, WALK / "map.csv", WALK / "rig.json")
+    assert (n, skipped) == (60, 0)
+    conv = SessionReader(out)
+    assert np.array_equal(conv.timestamps, written["session"].timestamps)
+    for i in (0, 31, 59):
+        assert conv.frame_path(i).read_bytes() == written["session"].frame_path(i).read_bytes()
+
+
+def test_read_pose_messages_for_the_monitor(written):
+    poses = list(read_pose_messages(written["bag"]))
+    assert len(poses) == 60 and all(p.doc["vest"] == "vest-1" for p in poses)
+    assert [p.t_bag for p in poses] == sorted(p.t_bag for p in poses)
+
+
+def test_ros1_bag_with_raw_images(tmp_path):
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    T = store.types
+    session = SessionReader(WALK)
+    cam = session.camera
+    path = tmp_path / "cam.bag"
+    frames = list(session.frames())[:5]
+    with Writer(path) as w:
+        img_c = w.add_connection("/cam/image_raw", "sensor_msgs/msg/Image", typestore=store)
+        info_c = w.add_connection("/cam/camera_info", "sensor_msgs/msg/CameraInfo", typestore=store)
+        for f in frames:
+            sec, nsec = divmod(round((f.timestamp + 100.0) * 1e9), 10**9)  # a zero stamp means unset
+            header = T["std_msgs/msg/Header"](
+                seq=f.index, stamp=T["builtin_interfaces/msg/Time"](sec, nsec), frame_id="cam"
+            )
+            rgb = cv2.cvtColor(f.image, cv2.COLOR_GRAY2RGB)
+            h, wd = f.image.shape
+            msg = T["sensor_msgs/msg/Image"](header, h, wd, "rgb8", 0, 3 * wd, rgb.ravel())
+            ns = round((f.timestamp + 100.0) * 1e9) + 1000  # received a microsecond after capture
+            w.write(img_c, ns, store.serialize_ros1(msg, "sensor_msgs/msg/Image"))
+            info = T["sensor_msgs/msg/CameraInfo"](
+                header, cam.height, cam.width, "plumb_bob", cam.dist, cam.K.ravel(), np.eye(3).ravel(),
+                np.c_[cam.K, np.zeros(3)].ravel(), 0, 0, T["sensor_msgs/msg/RegionOfInterest"](0, 0, 0, 0, False),
+            )  # fmt: skip
+            w.write(info_c, ns, store.serialize_ros1(info, "sensor_msgs/msg/CameraInfo"))
+    bag = BagSession(path, "/cam/image_raw", WALK / "map.csv")  # no rig: default rig with the bag's CameraInfo
+    assert np.array_equal(bag.camera.K, cam.K) and len(bag) == 5
+    got = list(bag.frames())
+    assert [f.timestamp for f in got] == pytest.approx([f.timestamp + 100.0 for f in frames], abs=1e-9)
+    for a, b in zip(got, frames):
+        # rgb8 -> grey round trip of a grey image is exact up to OpenCV's fixed-point weights.
+        assert np.abs(a.image.astype(int) - b.image.astype(int)).max() <= 1
+
+
+def test_bad_bags_give_one_line_errors(tmp_path, written):
+    with pytest.raises(SessionError, match="no such bag"):
+        BagSession(tmp_path / "nothing", "/x", WALK / "map.csv")
+    with pytest.raises(SessionError, match="image topics in the bag: /tagloc/vest_1/front/image/compressed"):
+        BagSession(written["bag"], "/cam/image", WALK / "map.csv")
+    with pytest.raises(SessionError, match="not an Image"):
+        BagSession(written["bag"], "/tf", WALK / "map.csv")
+    (tmp_path / "notabag").mkdir()
+    with pytest.raises(SessionError, match="no metadata.yaml"):
+        BagSession(tmp_path / "notabag", "/x", WALK / "map.csv")
+    with pytest.raises(InputError, match="already exists"):
+        BagWriter(written["bag"], "v", SessionReader(WALK).rig)
+
+
+def test_covariance_and_names():
+    cov3 = np.array([[4e-4, 1e-5, 2e-6], [1e-5, 9e-4, 3e-6], [2e-6, 3e-6, 1e-3]])
+    cov6 = covariance_6x6(cov3)
+    assert cov6[0, 5] == 2e-6 and cov6[1, 5] == 3e-6 and cov6[5, 5] == 1e-3
+    assert np.array_equal(covariance_3x3(cov6), cov3)
+    assert np.all(np.linalg.eigvalsh(cov6) > 0)
+    assert (ros_name("vest-1"), ros_name("07"), ros_name("a.b/c")) == ("vest_1", "v07", "a_b_c")
+
+
+def test_initialising_writes_no_pose(tmp_path):
+    rig = SessionReader(WALK).rig
+    w = BagWriter(tmp_path / "b", "v", rig)
+    out = TrackerOutput(0.5, np.zeros(3), np.eye(3), TrackState.INITIALISING, np.inf)
+    assert w.publish(PoseMessage("v", 0, out)) is False
+    w.close()
+    msgs = _read_all(tmp_path / "b")
+    assert "/tagloc/v/pose" not in msgs and len(msgs["/tagloc/v/pose_json"]) == 1 and w.dropped == 1
+
+
+def test_cli_session_from_bag(written, capsys):
+    from tagloc.cli import main
+
+    out = written["tmp"] / "cli_session"
+    args = ["session", "from-bag", str(written["bag"]), "--topic", IMAGE_TOPIC, "--map", str(WALK / "map.csv")]
+    assert main([*args, "--rig", str(WALK / "rig.json"), "-o", str(out), "--quiet"]) == 0
+    assert "60 frames written, 0 skipped" in capsys.readouterr().out
+    assert len(SessionReader(out)) == 60
+    assert main(["session", "from-bag", str(written["bag"]), "--topic", "/nope", "--map", str(WALK / "map.csv"),
+                 "-o", str(written["tmp"] / "x")]) != 0  # fmt: skip
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no topic '/nope'" in err[0]
+
+
+def test_cli_replay_to_a_bag_and_back(tmp_path, capsys):
+    from tagloc.cli import main
+
+    bag = tmp_path / "walk.bag2"
+    png = tmp_path / "walk.png"
+    args = ["replay", str(WALK), "--quiet", "--out", str(tmp_path / "a.tum"), "--png", str(png)]
+    assert main([*args, "--bag", str(bag), "--bag-images"]) == 0
+    assert png.stat().st_size > 10_000  # the floor plan (matplotlib)
+    topics = {k: len(v) for k, v in _read_all(bag).items()}
+    assert topics["/tagloc/replay/pose_json"] == topics[IMAGE_TOPIC.replace("vest_1", "replay")] == 60
+    img_topic = "/tagloc/replay/front/image/compressed"
+    args = ["replay", str(bag), "--quiet", "--topic", img_topic, "--map", str(WALK / "map.csv")]
+    rrd = tmp_path / "bag.rrd"
+    assert main([*args, "--rig", str(WALK / "rig.json"), "--out", str(tmp_path / "b.tum"), "--rerun", str(rrd)]) == 0
+    assert (tmp_path / "a.tum").read_bytes() == (tmp_path / "b.tum").read_bytes()
+    from tagloc.io.rerun_view import read_rrd
+
+    assert len(read_rrd(rrd)["world/body/front/image"].frames) == 60  # the bag's images reach the viewer
+    capsys.readouterr()
+    assert main(["replay", str(bag), "--quiet"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "needs --topic" in err[0]
+
+
+def test_cli_live_records_a_bag(tmp_path):
+    from tagloc.cli import main
+
+    bag = tmp_path / "live.bag2"
+    args = ["live", "--camera", str(WALK), "--config", str(WALK), "--no-pace", "--max-frames", "10"]
+    assert main([*args, "--vest", "v07", "--record-bag", str(bag)]) == 0
+    msgs = _read_all(bag)
+    assert len(msgs["/tagloc/v07/pose_json"]) == 10 and len(msgs["/tagloc/v07/front/detections"]) == 10
+    assert not any("image" in t for t in msgs)  # images only on request
+
+
+def test_corrupt_image_messages_are_skipped_and_counted(tmp_path):
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    T = store.types
+    session = SessionReader(WALK)
+    frames = list(session.frames())[:3]
+    path = tmp_path / "cam"
+    with Writer(path, version=9, storage_plugin=StoragePlugin.SQLITE3) as w:  # SQLite storage read too
+        conn = w.add_connection("/cam/image/compressed", "sensor_msgs/msg/CompressedImage", typestore=store)
+        for f in frames:
+            ns = round((f.timestamp + 100.0) * 1e9)
+            header = T["std_msgs/msg/Header"](T["builtin_interfaces/msg/Time"](*divmod(ns, 10**9)), "cam")
+            data = cv2.imencode(".jpg", f.image)[1].ravel() if f.index != 1 else np.frombuffer(b"not a jpeg", np.uint8)
+            msg = T["sensor_msgs/msg/CompressedImage"](header, "jpeg", data)
+            w.write(conn, ns, store.serialize_cdr(msg, "sensor_msgs/msg/CompressedImage"))
+    bag = BagSession(path, "/cam/image/compressed", WALK / "map.csv", WALK / "rig.json")  # no CameraInfo: the rig's
+    got = list(bag.frames())
+    assert [f.image is None for f in got] == [False, True, False]
+    assert len(bag.skipped) == 1 and "frame 1" in bag.skipped[0][1] and "corrupt" in got[1].error
+    n, skipped = bag_to_session(path, "/cam/image/compressed", tmp_path / "s", WALK / "map.csv", WALK / "rig.json")
+    assert (n, skipped) == (2, 1)
