@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from tagloc.core.errors import InputError
-from tagloc.io.capture import CaptureStats, CaptureThread, FrameSource, open_source
+from tagloc.io.capture import CameraSettings, CaptureStats, CaptureThread, FrameSource, MultiCapture, open_source
 from tagloc.io.session import MAP_FILE, SessionInfo, SessionWriter
 from tagloc.pipeline.output import OutputConfig, Outputs, OutputSummary
 
@@ -44,6 +44,10 @@ class LiveConfig:
         buffer: frames the capture thread keeps (the oldest is dropped when full).
         mode: localiser mode (see :class:`tagloc.pipeline.localiser.LocaliserConfig`).
         max_age_s: network sinks never send a pose older than this, s (see OutputConfig).
+        camera_settings: exposure, gain, frame rate and resolution asked of a camera; what the
+            driver accepted is printed and written into the recording's session.json.
+        more_cameras: further sources, rig cameras 1, 2, ... (``source`` is camera 0): one capture
+            thread each, frames merged in timestamp order for the one tracker.
         record_bag: rosbag2 directory to write (poses, /tf, detections; images too with ``bag_images``).
     """
 
@@ -65,6 +69,8 @@ class LiveConfig:
     buffer: int = 1
     mode: str = "full"
     max_age_s: float = 0.5
+    camera_settings: CameraSettings = field(default_factory=CameraSettings)
+    more_cameras: list[str] = field(default_factory=list)
     record_bag: Path | None = None
     bag_images: bool = False
 
@@ -81,6 +87,7 @@ class LiveSummary:
         sinks: per sink description: (sent, dropped).
         final_state: tracker state after the last frame.
         recorded: frames written to the recording.
+        per_camera: with several cameras, each one's grabbed / dropped / late / skipped counts.
         outputs: the output path's counts (per-sink counters, warnings, refused stamps).
     """
 
@@ -93,6 +100,7 @@ class LiveSummary:
     final_state: str
     recorded: int = 0
     outputs: OutputSummary = field(default_factory=OutputSummary)
+    per_camera: list[dict] = field(default_factory=list)
 
     def latency(self, q: float) -> float:
         """Latency percentile ``q`` (0-100), ms; NaN without frames."""
@@ -108,6 +116,11 @@ class LiveSummary:
             f"fixes: {self.fixes}; final state: {self.final_state}; capture ended: {c.ended or 'stopped'}",
             f"latency: median {self.latency(50):.1f} ms, p95 {self.latency(95):.1f} ms (grab to publication)",
         ]
+        for k, pc in enumerate(self.per_camera):
+            lines.append(
+                f"camera {k}: grabbed {pc['grabbed']}, dropped {pc['dropped']} (processing behind), "
+                f"{pc['late']} late (out of time order), skipped {pc['skipped']}"
+            )
         lines += self.outputs.format()
         if self.recorded:
             lines.append(f"recorded: {self.recorded} frames")
@@ -127,8 +140,19 @@ def run_live(
     if localiser is None:
         localiser = _make_localiser(cfg)
     stop = stop or threading.Event()
-    source = source or open_source(cfg.source)
-    cap = CaptureThread(source, buffer=cfg.buffer, pace=cfg.pace)
+    # A source handed in (tests, benchmarks) is the one camera; otherwise one per --camera.
+    sources = [source] if source is not None else _open_sources(cfg, len(localiser.rig))
+    source = sources[0]
+    reports = [s.settings_report() if hasattr(s, "settings_report") else {} for s in sources]
+    for c, (s, rep) in enumerate(zip(sources, reports)):
+        if s.live:
+            print(f"tagloc live: camera {c}: {format_camera_report(rep)}", file=sys.stderr)
+    camera_report = reports[0] if len(reports) == 1 else reports
+    cap = (
+        CaptureThread(source, buffer=cfg.buffer, pace=cfg.pace)
+        if len(sources) == 1
+        else MultiCapture(sources, buffer=cfg.buffer, pace=cfg.pace)
+    )
     run = _LiveRun(cfg, localiser, cap, stop)
     restore = _stop_on_signals(stop)
     outputs = writer = None
@@ -145,7 +169,12 @@ def run_live(
                 cfg.record,
                 localiser.map,
                 localiser.rig,
-                SessionInfo(source=f"tagloc live {cfg.source}", fps=source.fps, notes=f"vest {cfg.vest}"),
+                SessionInfo(
+                    source=f"tagloc live {cfg.source}",
+                    fps=source.fps,
+                    notes=f"vest {cfg.vest}",
+                    extra={"camera": camera_report},
+                ),
             )
         run.loop(outputs, writer)
     except KeyboardInterrupt:
@@ -167,7 +196,38 @@ def run_live(
         run.state,
         writer.count if writer else 0,
         out_summary,
+        cap.per_camera() if isinstance(cap, MultiCapture) else [],
     )
+
+
+def _open_sources(cfg: LiveConfig, rig_cameras: int) -> list:
+    """One source per ``--camera``, in rig-camera order; each is closed again if a later one fails."""
+    specs = [cfg.source, *cfg.more_cameras]
+    if len(specs) > rig_cameras:
+        raise InputError(f"{len(specs)} cameras given but the rig has {rig_cameras} (one rig camera per --camera)")
+    sources = []
+    try:
+        for spec in specs:
+            sources.append(open_source(spec, cfg.camera_settings))
+    except BaseException:
+        for s in sources:
+            s.close()
+        raise
+    return sources
+
+
+def format_camera_report(report: dict) -> str:
+    """One line: what the camera runs at as read back, and the requested values it differs from."""
+    parts = []
+    if report.get("resolution"):
+        parts.append("x".join(str(v) for v in report["resolution"]))
+    for key, unit in (("fps", " fps"), ("exposure_ms", " ms exposure"), ("gain", " gain")):
+        if report.get(key) is not None:
+            parts.append(f"{report[key]:g}{unit}")
+    req = report.get("requested") or {}
+    asked = [f"{k} {v}" for k, v in req.items() if v is not None]
+    text = ", ".join(parts) + f" (timestamps: {report.get('clock', '?')} clock)"
+    return text + (f"; requested {', '.join(asked)}" if asked else "")
 
 
 def _check_limits(cfg: LiveConfig) -> None:
@@ -250,7 +310,7 @@ class _LiveRun:
             frame = item.frame
             if writer is not None:
                 # Before processing: a crash inside the localiser must still leave this frame recorded.
-                writer.write(frame.index, frame.timestamp, frame.image)
+                writer.write(frame.index, frame.timestamp, frame.image, frame.camera)
             result = self.localiser.process(frame)
             self.latencies.append(outputs.emit(result, frame, grabbed=item.grabbed))
             self.frames += 1

@@ -159,7 +159,11 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
             outputs.emit(res, res.frame)
             if bag is not None:
                 # A session's JPEG goes into the bag byte for byte; a bag source's frame is re-encoded.
-                p = session.frame_path(res.index) if cfg.bag_images else None
+                p = (
+                    session.frame_path(res.index, res.frame.camera if res.frame is not None else 0)
+                    if cfg.bag_images
+                    else None
+                )
                 bag.write_frame(res.frame, res, p.read_bytes() if p is not None else None)
 
         t0 = time.monotonic()

@@ -13,8 +13,14 @@ JSON pose (schema tagloc.vision.pose/1) per frame to stdout, UDP and/or MQTT. Fi
 at their own rate, dropping frames when processing falls behind, as a camera would (--no-pace: every
 frame, as fast as possible). A summary (frames, fixes, drops, latency) goes to stderr at the end.
 
+Camera control (a camera index through V4L2, or picam[:N] through picamera2 on a Raspberry Pi):
+--exposure-ms, --gain, --fps, --resolution; what the driver accepted is printed and written into
+--record's session.json.
+
 examples:
   tagloc live --camera 0 --config site/ --publish udp://10.0.0.5:9000 --vest v07
+  tagloc live --camera 0 --camera 2 --rig front_rear/rig.json --map map.csv --publish stdout
+  tagloc live --camera picam --exposure-ms 2 --gain 8 --fps 30 --resolution 1296x972 --config site/ --record rec/
   tagloc live --camera walk.avi --map map.csv --calibration cam.yaml --rig rig.json \\
       --publish stdout --publish mqtt://broker:1883/tagloc/v07/pose --record rec/ --rerun-save live.rrd
   tagloc live --camera 0 --config site/ --record-bag out/v07.bag2 --vest v07"""
@@ -22,7 +28,12 @@ examples:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
-        "--camera", required=True, metavar="SRC", help="camera index (0), video file, stream URL or session directory"
+        "--camera",
+        required=True,
+        action="append",
+        metavar="SRC",
+        help="camera index (0), picam[:N], video file, stream URL or session directory; "
+        "repeat for rig cameras 1, 2, ... (one capture thread each)",
     )
     p.add_argument("--config", type=Path, metavar="DIR", help="directory with camera.yaml, rig.json, map.csv")
     p.add_argument("--map", type=Path, help="sticker map CSV (overrides --config's)")
@@ -52,6 +63,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="S",
         help="never send a pose older than S seconds over UDP/MQTT (default 0.5; see the README's Reliability)",
     )
+    p.add_argument("--exposure-ms", type=float, metavar="MS", help="manual exposure, ms (see tagloc advise)")
+    p.add_argument("--gain", type=float, help="sensor gain (picam: analogue gain; V4L2: the driver's units)")
+    p.add_argument("--fps", type=float, help="camera frame rate")
+    p.add_argument("--resolution", metavar="WxH", help="camera resolution, e.g. 1296x972")
     p.add_argument("--mode", default="full", choices=("full", "decoded-only", "orb-all"), help="localiser mode")
     p.add_argument("--record-bag", type=Path, metavar="DIR", help="write a rosbag2 (MCAP): pose, /tf, detections")
     p.add_argument("--bag-images", action="store_true", help="also put the camera images and CameraInfo in the bag")
@@ -64,10 +79,19 @@ def run(args: argparse.Namespace) -> int:
     for option, path in (("--log", args.log), ("--rerun-save", args.rerun_save)):
         checks.output_file(path, option)
     checks.output_dir(args.record, "--record")
+    from tagloc.io.capture import CameraSettings, parse_resolution
+
+    settings = CameraSettings(
+        exposure_ms=args.exposure_ms,
+        gain=args.gain,
+        fps=args.fps,
+        resolution=parse_resolution(args.resolution) if args.resolution else None,
+    )
 
     summary = run_live(
         LiveConfig(
-            source=args.camera,
+            source=args.camera[0],
+            more_cameras=args.camera[1:],
             config_dir=args.config,
             map=args.map,
             calibration=args.calibration,
@@ -87,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
             record_bag=args.record_bag,
             bag_images=args.bag_images,
             max_age_s=args.max_age,
+            camera_settings=settings,
         )
     )
     print(summary.format(), file=sys.stderr)

@@ -69,7 +69,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--jpeg-quality", type=int, default=85, help="JPEG quality of the frames (default 85)")
     p.add_argument("--scale", type=float, default=1.0, help="image resolution factor (default 1: 1296x972)")
     p.add_argument("--calibration", type=Path, help="true camera calibration (OpenCV or ROS YAML); default Pi v1")
-    p.add_argument("--rig", type=Path, help="rig.json to use instead of --height/--pitch (first camera simulated)")
+    p.add_argument("--rig", type=Path, help="rig.json to use instead of --height/--pitch (every camera rendered)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 

@@ -5,11 +5,22 @@ Sources (:func:`open_source`):
 - a camera index (``0``): ``cv2.VideoCapture(0)``;
 - a stream URL (``rtsp://...``, ``http://...``; anything ``cv2.VideoCapture`` opens);
 - a video file;
-- a session directory: its frames at their recorded timestamps.
+- a session directory: its frames at their recorded timestamps;
+- ``picam`` or ``picam:N``: a Raspberry Pi camera through ``picamera2`` (optional; only where it
+  is installed), stamped with the sensor's own start-of-exposure timestamp.
+
+Camera control (:class:`CameraSettings`: exposure, gain, frame rate, resolution) is applied to a
+camera index through OpenCV's capture properties (V4L2 on Linux: manual exposure in units of
+100 us, the driver's own gain units) and to ``picam`` through picamera2's controls (exposure in
+us, analogue gain); what the driver accepted is read back (:meth:`FrameSource.settings_report`),
+because drivers round, clamp or ignore requests without an error.
 
 Timestamps: a live camera or stream is stamped at grab time with a monotonic clock shifted once to
-the epoch (so steps never jump with NTP, yet other machines can read the time). A video file or a
-session uses its own clock (frame number / fps, or the recorded timestamps).
+the epoch (so steps never jump with NTP, yet other machines can read the time). When the driver
+gives each buffer its own timestamp (V4L2 through ``CAP_PROP_POS_MSEC``, picamera2's
+``SensorTimestamp``), that clock is used instead, shifted once to the epoch at the first frame: it
+does not carry the jitter of when Python got round to the frame. A video file or a session uses its
+own clock (frame number / fps, or the recorded timestamps).
 
 Pacing: by default a file or session is played *as if live*, at its own rate: the capture thread
 runs ahead of nothing, and when processing falls behind the oldest buffered frames are dropped,
@@ -20,6 +31,7 @@ capture thread then waits for the consumer instead of dropping.
 from __future__ import annotations
 
 import collections
+import math
 import threading
 import time
 from dataclasses import dataclass
@@ -28,9 +40,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from tagloc.core.errors import InputError
+from tagloc.core.errors import BackendUnavailable, InputError
 from tagloc.core.types import Frame
 from tagloc.io.session import CLOCK_JUMP_S, SessionReader
+
+#: OpenCV's V4L2 backend passes CAP_PROP_AUTO_EXPOSURE through to V4L2's exposure_auto menu: 1 = manual.
+V4L2_MANUAL_EXPOSURE = 1
 
 
 @dataclass
@@ -60,18 +75,80 @@ class CaptureStats:
     ended: str = ""
 
 
+@dataclass(frozen=True)
+class CameraSettings:
+    """What ``tagloc live`` asks of a camera; None leaves the driver's value.
+
+    Attributes:
+        exposure_ms: manual exposure time, ms (turns auto exposure off).
+        gain: sensor gain (picamera2: analogue gain, 1 = unity; V4L2: the driver's own units).
+        fps: frame rate.
+        resolution: (width, height), pixels.
+    """
+
+    exposure_ms: float | None = None
+    gain: float | None = None
+    fps: float | None = None
+    resolution: tuple[int, int] | None = None
+
+    def __post_init__(self) -> None:
+        if self.exposure_ms is not None and not 0 < self.exposure_ms < 10000:
+            raise InputError(f"--exposure-ms {self.exposure_ms} must be between 0 and 10000 ms")
+        if self.gain is not None and not self.gain >= 0:
+            raise InputError(f"--gain {self.gain} must not be negative")
+        if self.fps is not None and not 0 < self.fps <= 1000:
+            raise InputError(f"--fps {self.fps} must be in (0, 1000]")
+        if self.resolution is not None and (min(self.resolution) < 1 or len(self.resolution) != 2):
+            raise InputError(f"--resolution {self.resolution} must be two positive numbers, WxH")
+
+    @property
+    def empty(self) -> bool:
+        """True when nothing is requested."""
+        return all(v is None for v in (self.exposure_ms, self.gain, self.fps, self.resolution))
+
+    def to_json(self) -> dict:
+        """Plain data (requested values; None: driver default)."""
+        return {
+            "exposure_ms": self.exposure_ms,
+            "gain": self.gain,
+            "fps": self.fps,
+            "resolution": list(self.resolution) if self.resolution else None,
+        }
+
+
+def parse_resolution(text: str) -> tuple[int, int]:
+    """``"1296x972"`` -> (1296, 972); InputError otherwise."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise InputError(f"--resolution {text!r} is not WIDTHxHEIGHT such as 1296x972") from None
+    if w < 1 or h < 1:
+        raise InputError(f"--resolution {text!r} must be positive")
+    return w, h
+
+
 class FrameSource:
     """A source of greyscale frames. ``read()`` returns a frame (image None if corrupt) or None at the end."""
 
     live = False  # True: the source runs on its own clock (camera), so pacing is meaningless
     fps = 0.0
     end_reason = "end of source"  # set by read() before it returns None
+    clock = "file"  # where timestamps come from: "file", "grab" (monotonic at read) or "driver"
 
     def read(self) -> Frame | None:
         raise NotImplementedError
 
     def close(self) -> None:
         """Release the device or file."""
+
+    def apply_settings(self, settings: CameraSettings) -> None:
+        """Ask the camera for ``settings``; a source that cannot be controlled refuses any request."""
+        if not settings.empty:
+            raise InputError(f"{type(self).__name__}: camera settings apply only to a camera, not to this source")
+
+    def settings_report(self) -> dict:
+        """What the source runs at (as read back from the driver) and its timestamp clock."""
+        return {"clock": self.clock, "fps": self.fps}
 
 
 def _grey(image: np.ndarray | None) -> np.ndarray | None:
@@ -105,11 +182,83 @@ class VideoSource(FrameSource):
         self._n_frames = int(self._cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0) if not live else 0
         # Epoch time of monotonic zero, fixed once: stamps are monotonic but readable elsewhere.
         self._epoch_offset = time.time() - time.monotonic()
+        self.clock = "grab" if live else "file"
+        self._requested: CameraSettings | None = None
+        self._driver_offset = 0.0  # epoch - driver clock, fixed at the first frame
+        self._last_driver = -math.inf
+        self._last_stamp = -math.inf
+
+    def apply_settings(self, settings: CameraSettings) -> None:
+        """Set resolution, frame rate, manual exposure and gain through OpenCV's capture properties."""
+        if settings.empty:
+            return
+        if not self.live:
+            raise InputError(f"{self.spec}: camera settings apply only to a camera, not to a file")
+        self._requested = settings
+        cap = self._cap
+        if settings.resolution is not None:
+            cap.set(cv2.CAP_PROP_FRAME_WIDTH, settings.resolution[0])
+            cap.set(cv2.CAP_PROP_FRAME_HEIGHT, settings.resolution[1])
+        if settings.fps is not None:
+            cap.set(cv2.CAP_PROP_FPS, settings.fps)
+        if settings.exposure_ms is not None:
+            # V4L2 backend: auto-exposure menu 1 = manual; exposure_time_absolute in 100 us units.
+            cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, V4L2_MANUAL_EXPOSURE)
+            cap.set(cv2.CAP_PROP_EXPOSURE, settings.exposure_ms * 10.0)
+        if settings.gain is not None:
+            cap.set(cv2.CAP_PROP_GAIN, settings.gain)
+        fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        if 0.0 < fps < 1000.0:
+            self.fps = fps
+
+    def settings_report(self) -> dict:
+        """Requested and read-back values (exposure in ms, assuming V4L2's 100 us units)."""
+        cap = self._cap
+        out = {
+            "clock": self.clock,
+            "fps": self.fps,
+            "resolution": [int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))],
+            "backend": cap.getBackendName() if hasattr(cap, "getBackendName") else "",
+        }
+        if self.live:
+            out["exposure_ms"] = float(cap.get(cv2.CAP_PROP_EXPOSURE)) / 10.0
+            out["auto_exposure"] = float(cap.get(cv2.CAP_PROP_AUTO_EXPOSURE))
+            out["gain"] = float(cap.get(cv2.CAP_PROP_GAIN))
+        if self._requested is not None:
+            out["requested"] = self._requested.to_json()
+        return out
+
+    def _stamp(self) -> float:
+        """This frame's time: the driver's buffer timestamp while it gives rising ones, else grab time.
+
+        A driver clock that stops rising is abandoned for good (never mixed back in), and stamps
+        never go backwards across the switch.
+        """
+        if not self.live:
+            return self._index / self.fps
+        grab = time.monotonic() + self._epoch_offset
+        stamp = grab
+        if self.clock == "driver":
+            driver_s = float(self._cap.get(cv2.CAP_PROP_POS_MSEC) or 0.0) * 1e-3
+            if driver_s > self._last_driver:
+                self._last_driver = driver_s
+                stamp = driver_s + self._driver_offset
+            else:
+                self.clock = "grab (driver clock stopped rising)"
+        elif self.clock == "grab" and self._index == 0:
+            driver_s = float(self._cap.get(cv2.CAP_PROP_POS_MSEC) or 0.0) * 1e-3
+            if driver_s > 0:  # the driver stamps its buffers: use that clock from now on
+                self._driver_offset = grab - driver_s
+                self._last_driver = driver_s
+                self.clock = "driver"
+        stamp = max(stamp, self._last_stamp + 1e-6)
+        self._last_stamp = stamp
+        return stamp
 
     def read(self) -> Frame | None:
         while True:
             ok, image = self._cap.read()
-            stamp = time.monotonic() + self._epoch_offset if self.live else self._index / self.fps
+            stamp = self._stamp()
             index = self._index
             if ok and image is not None and image.size:
                 self._failures = 0
@@ -141,18 +290,108 @@ class SessionSource(FrameSource):
         return next(self._frames, None)
 
 
-def open_source(spec: str) -> FrameSource:
-    """Open ``spec``: a camera index, a session directory, a video file or a stream URL."""
+class PiCamera2Source(FrameSource):
+    """A Raspberry Pi camera through ``picamera2`` (optional dependency, present on Raspberry Pi OS).
+
+    The Y plane of a YUV420 stream is the greyscale frame. Exposure (us) and analogue gain are set as
+    controls with auto exposure off; the frame duration limits fix the frame rate. Each frame is
+    stamped with the request's ``SensorTimestamp`` (ns, start of exposure on the kernel's clock),
+    shifted once to the epoch.
+    """
+
+    live = True
+    clock = "driver"
+
+    def __init__(self, camera_num: int = 0, settings: CameraSettings | None = None):
+        try:
+            from picamera2 import Picamera2
+        except ImportError as exc:
+            raise BackendUnavailable("picam: the picamera2 package is not installed (Raspberry Pi OS only)") from exc
+        settings = settings or CameraSettings()
+        self._requested = settings
+        self._cam = Picamera2(camera_num)
+        size = settings.resolution or (1296, 972)
+        controls: dict = {}
+        if settings.exposure_ms is not None or settings.gain is not None:
+            controls["AeEnable"] = False
+        if settings.exposure_ms is not None:
+            controls["ExposureTime"] = int(round(settings.exposure_ms * 1000.0))
+        if settings.gain is not None:
+            controls["AnalogueGain"] = float(settings.gain)
+        if settings.fps is not None:
+            period_us = int(round(1e6 / settings.fps))
+            controls["FrameDurationLimits"] = (period_us, period_us)
+        config = self._cam.create_video_configuration(main={"size": tuple(size), "format": "YUV420"}, controls=controls)
+        self._cam.configure(config)
+        self._size = tuple(config["main"]["size"]) if isinstance(config, dict) and "main" in config else size
+        self._cam.start()
+        self.fps = float(settings.fps or 30.0)
+        self._index = 0
+        self._offset: float | None = None
+        self._metadata: dict = {}
+
+    def apply_settings(self, settings: CameraSettings) -> None:
+        """Settings are given at construction (picamera2 configures before starting)."""
+
+    def read(self) -> Frame | None:
+        request = self._cam.capture_request()
+        try:
+            yuv = request.make_array("main")
+            md = request.get_metadata()
+        finally:
+            request.release()
+        self._metadata = md
+        h = self._size[1]
+        image = np.ascontiguousarray(yuv[:h]) if yuv is not None and yuv.size else None
+        sensor_s = float(md.get("SensorTimestamp", 0)) * 1e-9
+        if self._offset is None:
+            self._offset = time.time() - sensor_s
+        frame = Frame(self._index, sensor_s + self._offset, image, error=None if image is not None else "empty frame")
+        self._index += 1
+        return frame
+
+    def settings_report(self) -> dict:
+        md = self._metadata
+        out: dict = {"clock": self.clock, "fps": self.fps, "resolution": list(self._size), "backend": "picamera2"}
+        if "ExposureTime" in md:
+            out["exposure_ms"] = float(md["ExposureTime"]) / 1000.0
+        if "AnalogueGain" in md:
+            out["gain"] = float(md["AnalogueGain"])
+        if md.get("FrameDuration"):
+            out["fps"] = 1e6 / float(md["FrameDuration"])
+        out["requested"] = self._requested.to_json()
+        return out
+
+    def close(self) -> None:
+        self._cam.stop()
+        self._cam.close()
+
+
+def open_source(spec: str, settings: CameraSettings | None = None) -> FrameSource:
+    """Open ``spec``: a camera index, ``picam[:N]``, a session directory, a video file or a stream URL,
+    and apply camera ``settings`` (a camera only)."""
+    settings = settings or CameraSettings()
+    if spec == "picam" or spec.startswith("picam:"):
+        num = spec.partition(":")[2] or "0"
+        if not num.isdigit():
+            raise InputError(f"{spec}: want picam or picam:N")
+        return PiCamera2Source(int(num), settings)
     if spec.isdigit():
-        return VideoSource(int(spec), live=True)
-    p = Path(spec)
-    if p.is_dir():
-        return SessionSource(p)
-    if p.is_file():
-        return VideoSource(str(p), live=False)
-    if "://" in spec:
-        return VideoSource(spec, live=True)
-    raise InputError(f"{spec}: no such camera index, file, session directory or stream URL")
+        src: FrameSource = VideoSource(int(spec), live=True)
+    elif Path(spec).is_dir():
+        src = SessionSource(Path(spec))
+    elif Path(spec).is_file():
+        src = VideoSource(spec, live=False)
+    elif "://" in spec:
+        src = VideoSource(spec, live=True)
+    else:
+        raise InputError(f"{spec}: no such camera index, file, session directory or stream URL")
+    try:
+        src.apply_settings(settings)
+    except BaseException:
+        src.close()
+        raise
+    return src
 
 
 class CaptureThread:
@@ -261,3 +500,107 @@ class CaptureThread:
         if self._thread.ident is not None:  # started
             self._thread.join(timeout=5.0)
         self.source.close()
+
+
+class MultiCapture:
+    """Several cameras, one capture thread each, merged into one stream in timestamp order.
+
+    Each frame is tagged with its camera's position in ``sources`` (its rig camera) and renumbered
+    in delivery order (indices unique over all cameras, as a session needs). ``get`` waits
+    until every running camera has a frame buffered, or ``merge_wait_s`` has passed, then hands
+    over the oldest; a frame older than one already handed over (a camera that lagged past the
+    wait) would make the tracker go back in time, so it is dropped and counted as late.
+    Presents the interface of :class:`CaptureThread` that the live loop uses.
+    """
+
+    def __init__(
+        self, sources: list[FrameSource], buffer: int = 1, pace: bool = True, merge_wait_s: float | None = None
+    ):
+        if len(sources) < 2:
+            raise InputError("MultiCapture needs at least two sources")
+        self.threads = [CaptureThread(s, buffer=buffer, pace=pace) for s in sources]
+        self.source = sources[0]
+        self.drop_oldest = any(t.drop_oldest for t in self.threads)
+        fps = max(s.fps for s in sources) or 30.0
+        # Cameras: one frame period, long enough for the other camera's frame of the same instant to
+        # arrive. Files and sessions always deliver their next frame: wait for it (exact order).
+        live = any(s.live for s in sources)
+        default_wait = 1.0 / fps if live else math.inf
+        self.merge_wait_s = merge_wait_s if merge_wait_s is not None else default_wait
+        self.late = [0] * len(sources)
+        self._pending: list[CapturedFrame | None] = [None] * len(sources)
+        self._last_t = -math.inf
+        self._next_index = 0
+
+    def start(self) -> MultiCapture:
+        for t in self.threads:
+            t.start()
+        return self
+
+    def _fill(self) -> None:
+        for c, t in enumerate(self.threads):
+            if self._pending[c] is None and not t.finished:
+                item = t.get(timeout=0.0)
+                if item is not None:
+                    item.frame.camera = c
+                    self._pending[c] = item
+
+    def get(self, timeout: float | None = None) -> CapturedFrame | None:
+        """The oldest frame over all cameras; None when all have ended (or on ``timeout``, s)."""
+        start = time.monotonic()
+        while True:
+            self._fill()
+            waiting = [c for c, t in enumerate(self.threads) if self._pending[c] is None and not t.finished]
+            ready = [c for c in range(len(self.threads)) if self._pending[c] is not None]
+            waited = time.monotonic() - start
+            if ready and (not waiting or waited >= self.merge_wait_s):
+                c = min(ready, key=lambda k: self._pending[k].frame.timestamp)
+                item, self._pending[c] = self._pending[c], None
+                if item.frame.timestamp <= self._last_t:
+                    self.late[c] += 1
+                    continue
+                self._last_t = item.frame.timestamp
+                # One index over all cameras, in delivery order: a recording needs unique indices.
+                item.frame.index = self._next_index
+                self._next_index += 1
+                return item
+            if not ready and not waiting:
+                for t in self.threads:
+                    if t.error is not None:
+                        raise t.error
+                return None
+            if timeout is not None and waited >= timeout:
+                return None
+            time.sleep(0.001)
+
+    @property
+    def finished(self) -> bool:
+        """True once every camera has ended and nothing is left to hand over."""
+        return all(t.finished for t in self.threads) and all(p is None for p in self._pending)
+
+    @property
+    def stats(self) -> CaptureStats:
+        """All cameras' counters summed; late frames count as dropped."""
+        s = CaptureStats()
+        for t, late in zip(self.threads, self.late):
+            s.grabbed += t.stats.grabbed
+            s.delivered += t.stats.delivered - late
+            s.dropped += t.stats.dropped + late
+            s.skipped += t.stats.skipped
+        s.ended = "; ".join(f"camera {c}: {t.stats.ended or 'running'}" for c, t in enumerate(self.threads))
+        return s
+
+    def per_camera(self) -> list[dict]:
+        """Each camera's counters (dropped: processing behind; late: out of time order)."""
+        return [
+            {"grabbed": t.stats.grabbed, "dropped": t.stats.dropped, "late": late, "skipped": t.stats.skipped}
+            for t, late in zip(self.threads, self.late)
+        ]
+
+    def join(self, timeout: float | None = None) -> None:
+        for t in self.threads:
+            t.join(timeout)
+
+    def stop(self) -> None:
+        for t in self.threads:
+            t.stop()

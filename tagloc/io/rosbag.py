@@ -466,7 +466,7 @@ class BagSession:
         """The first camera's calibration."""
         return self.rig.cameras[0].camera
 
-    def frame_path(self, index: int) -> Path | None:
+    def frame_path(self, index: int, camera: int = 0) -> Path | None:
         """Bags hold no image files."""
         return None
 

@@ -138,6 +138,11 @@ def read_image(path: Path) -> tuple[np.ndarray | None, str | None]:
     return img, None
 
 
+def frame_stem(index: int, camera: int = 0) -> str:
+    """File name (no extension) of a frame: ``000123`` for camera 0, ``000123_cam1`` for camera 1."""
+    return f"{index:06d}" if camera == 0 else f"{index:06d}_cam{camera}"
+
+
 class SessionReader:
     """Read a session directory lazily (frames are loaded one at a time)."""
 
@@ -154,6 +159,7 @@ class SessionReader:
             if (self.path / RIG_FILE).exists()
             else self._rig_from_camera(calibration)
         )
+        self.cameras = np.zeros(0, np.int64)  # rig camera of each frame (frames.csv's camera column)
         self.index, self.timestamps = self._read_frames_csv()
         self._check_clock()
         self.skipped: list[tuple[int, str]] = []
@@ -224,8 +230,9 @@ class SessionReader:
                 raise SessionError(f"{self.path}: missing frames.csv and no images in frames/")
             fps = self.info.fps or 30.0
             idx = np.array([int(f.stem) for f in files if f.stem.isdigit()])
+            self.cameras = np.zeros(len(idx), np.int64)
             return idx, idx / fps
-        index, stamps = [], []
+        index, stamps, cams = [], [], []
         try:
             lines = p.read_text(encoding="utf-8", errors="replace").splitlines(keepends=True)
         except OSError as exc:
@@ -247,8 +254,13 @@ class SessionReader:
                 raise SessionError(f"{p}:{n}: want 'index,timestamp_s', got {','.join(row)!r}") from None
             if not np.isfinite(t):
                 raise SessionError(f"{p}:{n}: timestamp is not finite")
+            cam = row[2].strip() if len(row) > 2 else "0"
+            if not cam.isdigit() or int(cam) >= len(self.rig):
+                raise SessionError(f"{p}:{n}: camera {cam!r} is not a camera of the rig (0-{len(self.rig) - 1})")
             index.append(i)
             stamps.append(t)
+            cams.append(int(cam))
+        self.cameras = np.array(cams, np.int64)
         return np.array(index, np.int64), np.array(stamps, float)
 
     def __len__(self) -> int:
@@ -259,9 +271,9 @@ class SessionReader:
         """The first camera's calibration."""
         return self.rig.cameras[0].camera
 
-    def frame_path(self, index: int) -> Path | None:
-        """Path of frame ``index``'s image, whatever its extension, or None."""
-        stem = self.path / FRAMES_DIR / f"{index:06d}"
+    def frame_path(self, index: int, camera: int = 0) -> Path | None:
+        """Path of frame ``index``'s image (of rig camera ``camera``), whatever its extension, or None."""
+        stem = self.path / FRAMES_DIR / frame_stem(index, camera)
         for ext in IMAGE_EXTENSIONS:
             p = stem.with_suffix(ext)
             if p.exists():
@@ -270,11 +282,12 @@ class SessionReader:
 
     def frames(self, with_images: bool = True) -> Iterator[Frame]:
         """Yield every frame in order; unreadable frames come with ``image=None`` and ``error`` set."""
-        for i, t in zip(self.index, self.timestamps):
+        for i, t, c in zip(self.index, self.timestamps, self.cameras):
+            c = int(c)
             if not with_images:
-                yield Frame(int(i), float(t), None)
+                yield Frame(int(i), float(t), None, c)
                 continue
-            p = self.frame_path(int(i))
+            p = self.frame_path(int(i), c)
             if p is None:
                 err = f"frame {i}: image file missing"
                 img = None
@@ -283,7 +296,7 @@ class SessionReader:
                 err = None if err is None else f"frame {i}: {err}"
             if err:
                 self.skipped.append((int(i), err))
-            yield Frame(int(i), float(t), img, 0, err)
+            yield Frame(int(i), float(t), img, c, err)
 
     def groundtruth(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(timestamps (N,), T_world_body (N, 4, 4)) when the session has ground truth, else None."""
@@ -319,29 +332,36 @@ class SessionWriter:
             raise SessionError(f"{exc.filename or self.path}: cannot write ({exc.strerror})") from None
         self.jpeg_quality = int(jpeg_quality)
         self.image_ext = image_ext
-        self._csv.write("index,timestamp_s\n")
+        # One camera: the original two columns, so such sessions stay byte-identical.
+        self.multi_camera = len(rig) > 1
+        self._csv.write("index,timestamp_s,camera\n" if self.multi_camera else "index,timestamp_s\n")
         self._csv.flush()
         self.count = 0
 
-    def write(self, index: int, timestamp: float, image: np.ndarray) -> None:
-        """Write one frame: image first (atomic rename), then its frames.csv line, flushed."""
-        final = self.path / FRAMES_DIR / f"{index:06d}{self.image_ext}"
+    def write(self, index: int, timestamp: float, image: np.ndarray, camera: int = 0) -> None:
+        """Write one frame of rig camera ``camera``: image first (atomic rename), then its frames.csv
+        line, flushed. ``index`` is unique over the session (all cameras)."""
+        if camera and not self.multi_camera:
+            raise SessionError(f"{self.path}: frame {index} from camera {camera}, but the rig has one camera")
+        final = self.path / FRAMES_DIR / f"{frame_stem(index, camera)}{self.image_ext}"
         tmp = final.with_name(final.stem + ".tmp" + self.image_ext)
         params = [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality] if self.image_ext == ".jpg" else []
         if not cv2.imwrite(str(tmp), image, params):
             raise SessionError(f"{tmp}: cannot write frame")
         os.replace(tmp, final)
-        self._csv.write(f"{index},{timestamp:.6f}\n")
+        self._csv.write(f"{index},{timestamp:.6f},{camera}\n" if self.multi_camera else f"{index},{timestamp:.6f}\n")
         self._csv.flush()
         self.count += 1
 
-    def write_encoded(self, index: int, timestamp: float, data: bytes, ext: str = ".jpg") -> None:
+    def write_encoded(self, index: int, timestamp: float, data: bytes, ext: str = ".jpg", camera: int = 0) -> None:
         """Write one frame already encoded (e.g. a camera's JPEG, kept byte for byte), crash-safe like :meth:`write`."""
-        final = self.path / "frames" / f"{index:06d}{ext}"
+        if camera and not self.multi_camera:
+            raise SessionError(f"{self.path}: frame {index} from camera {camera}, but the rig has one camera")
+        final = self.path / FRAMES_DIR / f"{frame_stem(index, camera)}{ext}"
         tmp = final.with_name(final.stem + ".tmp" + ext)
         tmp.write_bytes(data)
         os.replace(tmp, final)
-        self._csv.write(f"{index},{timestamp:.6f}\n")
+        self._csv.write(f"{index},{timestamp:.6f},{camera}\n" if self.multi_camera else f"{index},{timestamp:.6f}\n")
         self._csv.flush()
         self.count += 1
 

@@ -320,6 +320,8 @@ class Localiser:
         self._refs = refs
         self._map_path = map_path
         self._odometry: dict[int, FloorOdometry | None] = {}  # per rig camera; None: camera sees too little floor
+        self._passes = SurveyPasses()  # repeated fixes of a sticker share its survey error
+        self._step = None  # this frame's odometry step, for the rolling-shutter correction
         self.counts = new_counts()
         self.counts["tracked"] = 0
         self._tracked: list[Tracked] = []  # decoded stickers of the previous frame whose fixes were accepted

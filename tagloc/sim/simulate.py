@@ -59,6 +59,9 @@ from tagloc.sim.survey import SurveyConfig, surveyed_map
 from tagloc.sim.timing import TimingConfig, frame_schedule
 from tagloc.sim.walk import Walk, WalkConfig, plan_walk
 
+#: Renderer seed offset of each further camera of the rig (its own sensor's fixed pattern).
+CAMERA_SEED_STEP = 7919
+
 # Bumped whenever the simulated physics change, so that sessions cached by ``tagloc eval`` are made
 # again (2: slow roll drift of the vest; 3: lean into turns and with acceleration, torso rotations
 # about the centre of mass, ground truth at the vest point's vertical projection).
@@ -83,7 +86,7 @@ class SimConfig:
         scale: image resolution factor (0.5: half-size frames and intrinsics, for fast tests).
         calibration: true camera (Camera or a calibration file); default: Pi camera v1.
         rig: rig (Rig or rig.json); default: one camera at ``height_m`` pitched ``pitch_deg``.
-            Only its first camera is simulated.
+            Every camera is rendered (see :func:`simulate_session`).
         walk, floor, optics, sensor, exposure: detailed models; the fields above override their
             seconds/speed/seed, distractors/missing/unmapped and rolling_shutter.
         sensor_preset: a named sensor model (:func:`tagloc.sim.render.sensor_preset`) instead of
@@ -150,7 +153,7 @@ class SimConfig:
         return exposure_for_sensor(replace(self.exposure, rolling_shutter=self.rolling_shutter), self.sensor_config())
 
     def build_rig(self) -> Rig:
-        """The rig to simulate (first camera used), with the camera scaled by ``scale``."""
+        """The rig to simulate (every camera), each camera scaled by ``scale``."""
         cam = self.calibration
         if isinstance(cam, (str, Path)):
             cam = load_calibration(cam)
@@ -158,20 +161,19 @@ class SimConfig:
             rig = default_rig(self.height_m, self.pitch_deg, cam or default_camera())
         else:
             rig = self.rig if isinstance(self.rig, Rig) else load_rig(self.rig, cam)
-        rc = rig.cameras[0]
-        camera = rc.camera.scaled(self.scale) if self.scale != 1 else rc.camera
         # A rolling-shutter camera says so in the session's rig.json (its read-out), as a real one would.
         readout = self.exposure.readout_s if self.rolling_shutter else 0.0
         return Rig(
             [
                 RigCamera(
                     rc.name,
-                    camera,
+                    rc.camera.scaled(self.scale) if self.scale != 1 else rc.camera,
                     rc.T_body_camera.copy(),
                     rc.calibration_file,
                     readout,
                     vest_height_m=rc.vest_height_m,
                 )
+                for rc in rig.cameras
             ]
         )
 
@@ -285,16 +287,25 @@ def simulate_session(
     config = config or SimConfig()
     smap = _resolve_map(smap)
     rig = config.build_rig()
-    rc = rig.cameras[0]
+    n_cams = len(rig)
     walk = simulate_walk(smap, config)
     floor = Floor(smap, config.floor_config(), seed=config.seed)
     exp_cfg = config.exposure_config()
-    renderer = Renderer(floor, rc.camera, config.optics, config.sensor_config(), exp_cfg, seed=config.seed)
+    # Each camera has its own sensor (fixed-pattern noise seed) and its own auto exposure.
+    renderers = [
+        Renderer(
+            floor, rc.camera, config.optics, config.sensor_config(), exp_cfg, seed=config.seed + CAMERA_SEED_STEP * c
+        )
+        for c, rc in enumerate(rig.cameras)
+    ]
     n_all = int(math.floor(config.seconds * config.fps + 1e-9))
     schedule = frame_schedule(n_all, config.fps, config.timing, config.seed)
     n = len(schedule.index)
+    # Free-running cameras are never simultaneous: camera c is exposed c / (n_cams * fps) after camera 0.
+    stagger = 1.0 / (n_cams * config.fps)
     # Ground truth at the frames' true times; frames.csv gets the driver's jittered stamps.
     stamps = schedule.true_t
+    gt_stamps = (stamps[:, None] + stagger * np.arange(n_cams)).ravel()
     given_map = surveyed_map(smap, config.survey, config.seed)
     out = Path(out_dir)
     unmapped = [int(i) for i in floor.stickers.ids[~floor.in_map]]
@@ -325,47 +336,41 @@ def simulate_session(
     )
     readout = exp_cfg.readout_s if exp_cfg.rolling_shutter else 0.0
 
-    def pose_at(ts: np.ndarray) -> np.ndarray:
-        return walk.T_world_camera(np.asarray(ts, float), rc.T_body_camera)
+    def pose_fn(T_body_camera: np.ndarray):
+        return lambda ts: walk.T_world_camera(np.asarray(ts, float), T_body_camera)
 
+    poses = [pose_fn(rc.T_body_camera) for rc in rig.cameras]
     t_wall = time.perf_counter()
     stats = []
     with SessionWriter(out, given_map, rig, info, jpeg_quality=config.jpeg_quality) as writer:
         if given_map is not smap:
             save_map(smap, out / "map_true.csv")
-        write_tum(out / GROUNDTRUTH_FILE, stamps, walk.T_world_body(stamps, rc.vest_point))
+        write_tum(out / GROUNDTRUTH_FILE, gt_stamps, walk.T_world_body(gt_stamps, rig.vest_point))
         with (out / "groundtruth_frames.jsonl").open("w", encoding="utf-8") as gt:
             for j in tqdm(range(n), desc="simulate", unit="frame", disable=not progress):
-                k = int(schedule.index[j])
-                t = float(stamps[j])
-                res = renderer.render(
-                    pose_at,
-                    t,
-                    config.lux,
-                    np.random.default_rng([config.seed, 23, k]),
-                    frame_interval_s=1.0 / config.fps,
-                )
-                writer.write(k, float(schedule.stamp[j]), res.image)
-                rec = {
-                    "index": k,
-                    "t": round(t, 6),
-                    "stamp": round(float(schedule.stamp[j]), 6),
-                    "T_world_body": np.round(walk.T_world_body(t, rc.vest_point), 6).tolist(),
-                    "T_world_camera": np.round(pose_at(np.array([t]))[0], 6).tolist(),
-                    "exposure_s": round(res.exposure_s, 7),
-                    "gain": round(res.gain, 4),
-                    "blur_px": round(res.blur_px, 3),
-                    "subframes": res.subframes,
-                    "mean_signal_e": round(res.mean_signal_e, 2),
-                    "visible": visible_stickers(floor, renderer, pose_at, t, readout),
-                }
-                gt.write(json.dumps(rec) + "\n")
-                gt.flush()
-                stats.append((res.exposure_s, res.gain, res.blur_px, res.subframes))
+                for c, (renderer, pose_at) in enumerate(zip(renderers, poses)):
+                    rec, stat = _simulate_frame(
+                        writer,
+                        renderer,
+                        pose_at,
+                        walk,
+                        floor,
+                        config,
+                        schedule,
+                        j,
+                        c,
+                        n_cams,
+                        stagger,
+                        readout,
+                        rig.vest_point,
+                    )
+                    gt.write(json.dumps(rec) + "\n")
+                    gt.flush()
+                    stats.append(stat)
     s = np.array(stats).reshape(-1, 4)
     return SimSummary(
         out,
-        n,
+        n * n_cams,
         time.perf_counter() - t_wall,
         float(s[:, 0].mean()) if n else 0.0,
         float(s[:, 1].mean()) if n else 0.0,
@@ -374,6 +379,49 @@ def simulate_session(
         [int(i) for i in floor.missing_ids],
         unmapped,
     )
+
+
+def _simulate_frame(
+    writer: SessionWriter,
+    renderer: Renderer,
+    pose_at,
+    walk: Walk,
+    floor: Floor,
+    config: SimConfig,
+    schedule,
+    j: int,
+    camera: int,
+    n_cams: int,
+    stagger: float,
+    readout: float,
+    vest_point: np.ndarray,
+) -> tuple[dict, tuple]:
+    """Render and write frame ``j`` of the schedule for rig camera ``camera``; its ground-truth record.
+
+    One camera: index = the schedule's frame number (sessions as before). Several: index = frame
+    number * cameras + camera, unique over the session, and each record names its camera.
+    """
+    k = int(schedule.index[j])
+    t = float(schedule.true_t[j]) + camera * stagger
+    index = k if n_cams == 1 else k * n_cams + camera
+    seed = [config.seed, 23, k] if camera == 0 else [config.seed, 23, k, camera]
+    res = renderer.render(pose_at, t, config.lux, np.random.default_rng(seed), frame_interval_s=1.0 / config.fps)
+    stamp = float(schedule.stamp[j]) + camera * stagger
+    writer.write(index, stamp, res.image, camera)
+    rec = {"index": index} | ({"camera": camera} if n_cams > 1 else {})
+    rec |= {
+        "t": round(t, 6),
+        "stamp": round(stamp, 6),
+        "T_world_body": np.round(walk.T_world_body(t, vest_point), 6).tolist(),
+        "T_world_camera": np.round(pose_at(np.array([t]))[0], 6).tolist(),
+        "exposure_s": round(res.exposure_s, 7),
+        "gain": round(res.gain, 4),
+        "blur_px": round(res.blur_px, 3),
+        "subframes": res.subframes,
+        "mean_signal_e": round(res.mean_signal_e, 2),
+        "visible": visible_stickers(floor, renderer, pose_at, t, readout),
+    }
+    return rec, (res.exposure_s, res.gain, res.blur_px, res.subframes)
 
 
 def read_groundtruth_frames(session_dir: str | Path) -> list[dict]:

@@ -1,0 +1,276 @@
+"""Camera control in tagloc live: V4L2 properties through OpenCV, the picamera2 backend, driver timestamps."""
+
+from __future__ import annotations
+
+import json
+import sys
+import types
+
+import cv2
+import numpy as np
+import pytest
+from conftest_io import make_session
+
+from tagloc.apps.live import LiveConfig, format_camera_report, run_live
+from tagloc.core.errors import BackendUnavailable, InputError
+from tagloc.core.types import Frame, FrameResult, IdSource, TrackerOutput, TrackState
+from tagloc.io import capture
+from tagloc.io.capture import CameraSettings, open_source, parse_resolution
+from tagloc.io.session import SessionReader
+
+W, H = 64, 48
+
+
+class FakeV4L2:
+    """cv2.VideoCapture of a V4L2 camera: clamps exposure to 5-10000 (100 us units), rounds the
+    frame rate to what the sensor mode offers, and stamps buffers 33.3 ms apart (plus jitter) on
+    its own clock."""
+
+    instances: list = []
+
+    def __init__(self, spec):
+        self.props = {
+            cv2.CAP_PROP_FPS: 30.0,
+            cv2.CAP_PROP_FRAME_WIDTH: 640.0,
+            cv2.CAP_PROP_FRAME_HEIGHT: 480.0,
+            cv2.CAP_PROP_EXPOSURE: 156.0,
+            cv2.CAP_PROP_AUTO_EXPOSURE: 3.0,
+            cv2.CAP_PROP_GAIN: 0.0,
+            cv2.CAP_PROP_POS_MSEC: 0.0,
+        }
+        self.calls = []
+        self.n = 0
+        self.stall_after = None
+        self.released = False
+        FakeV4L2.instances.append(self)
+
+    def isOpened(self):  # noqa: N802 - OpenCV's name
+        return True
+
+    def set(self, prop, value):
+        self.calls.append((prop, value))
+        if prop == cv2.CAP_PROP_EXPOSURE:
+            value = float(np.clip(round(value), 5, 10000))
+        if prop == cv2.CAP_PROP_FPS:
+            value = 30.0 if value > 20 else 15.0
+        self.props[prop] = float(value)
+        return True
+
+    def get(self, prop):
+        return self.props.get(prop, 0.0)
+
+    def getBackendName(self):  # noqa: N802
+        return "V4L2"
+
+    def read(self):
+        self.n += 1
+        stalled = self.stall_after is not None and self.n > self.stall_after
+        if not stalled:
+            self.props[cv2.CAP_PROP_POS_MSEC] = 5e6 + self.n * 33.3 + (0.4 if self.n % 2 else -0.4)
+        w, h = int(self.props[cv2.CAP_PROP_FRAME_WIDTH]), int(self.props[cv2.CAP_PROP_FRAME_HEIGHT])
+        return True, np.full((h, w, 3), self.n % 256, np.uint8)
+
+    def release(self):
+        self.released = True
+
+
+@pytest.fixture
+def v4l2(monkeypatch):
+    FakeV4L2.instances = []
+    monkeypatch.setattr(capture.cv2, "VideoCapture", FakeV4L2)
+    return FakeV4L2
+
+
+def test_v4l2_settings_applied_and_read_back(v4l2):
+    src = open_source("0", CameraSettings(exposure_ms=2.04, gain=12, fps=25, resolution=(W, H)))
+    cap = v4l2.instances[0]
+    calls = dict(cap.calls)
+    assert calls[cv2.CAP_PROP_AUTO_EXPOSURE] == capture.V4L2_MANUAL_EXPOSURE
+    assert calls[cv2.CAP_PROP_EXPOSURE] == pytest.approx(20.4)  # V4L2 units of 100 us
+    assert calls[cv2.CAP_PROP_GAIN] == 12 and calls[cv2.CAP_PROP_FRAME_WIDTH] == W
+    rep = src.settings_report()
+    # What the driver accepted, not what was asked: exposure rounded to 2.0 ms, 30 fps instead of 25.
+    assert rep["exposure_ms"] == pytest.approx(2.0) and rep["fps"] == 30.0 and src.fps == 30.0
+    assert rep["gain"] == 12 and rep["resolution"] == [W, H] and rep["requested"]["fps"] == 25
+    assert "requested" in format_camera_report(rep) and "2 ms exposure" in format_camera_report(rep)
+    src.close()
+
+
+def test_driver_timestamps_and_a_clock_that_stops(v4l2):
+    src = open_source("0")
+    cap = v4l2.instances[0]
+    cap.stall_after = 6
+    frames = [src.read() for _ in range(10)]
+    t = np.array([f.timestamp for f in frames])
+    driver = 5e6 + np.arange(1, 7) * 33.3 + np.where(np.arange(1, 7) % 2, 0.4, -0.4)
+    # While the driver clock rises, the stamps are exactly its intervals (its jitter, not Python's).
+    assert np.diff(t[:6]) == pytest.approx(np.diff(driver) * 1e-3, abs=1e-6)
+    assert abs(t[0] - __import__("time").time()) < 5.0  # on the epoch
+    assert src.clock.startswith("grab") and np.all(np.diff(t) > 0)  # abandoned, never backwards
+    assert frames[0].image.shape == (480, 640)
+    src.close()
+
+
+def test_settings_refused_for_files_and_sessions(tmp_path, v4l2):
+    sess = make_session(tmp_path / "s", 3, 10.0)
+    with pytest.raises(InputError, match="camera settings"):
+        open_source(str(sess), CameraSettings(exposure_ms=2.0))
+    with pytest.raises(InputError, match="exposure"):
+        CameraSettings(exposure_ms=0.0)
+    assert parse_resolution("1296x972") == (1296, 972)
+    with pytest.raises(InputError, match="WIDTHxHEIGHT"):
+        parse_resolution("1296")
+
+
+class FakeRequest:
+    def __init__(self, cam, n):
+        self.cam, self.n = cam, n
+
+    def make_array(self, name):
+        assert name == "main"
+        w, h = self.cam.config["main"]["size"]
+        yuv = np.zeros((h * 3 // 2, w), np.uint8)
+        yuv[:h] = self.n  # the Y plane
+        yuv[h:] = 128
+        return yuv
+
+    def get_metadata(self):
+        c = self.cam.controls
+        return {
+            "SensorTimestamp": 10**12 + self.n * 33_333_000 + (500_000 if self.n == 3 else 0),
+            "ExposureTime": int(round(c.get("ExposureTime", 10000) / 10) * 10),  # the sensor's line time
+            "AnalogueGain": min(c.get("AnalogueGain", 1.0), 16.0),
+            "FrameDuration": c.get("FrameDurationLimits", (33333, 33333))[0],
+        }
+
+    def release(self):
+        self.cam.released += 1
+
+
+class FakePicamera2:
+    last = None
+
+    def __init__(self, camera_num=0):
+        self.num, self.n, self.released, self.state = camera_num, 0, 0, "open"
+        FakePicamera2.last = self
+
+    def create_video_configuration(self, main, controls):
+        return {"main": dict(main), "controls": dict(controls)}
+
+    def configure(self, config):
+        self.config, self.controls = config, config["controls"]
+
+    def start(self):
+        self.state = "started"
+
+    def capture_request(self):
+        self.n += 1
+        return FakeRequest(self, self.n)
+
+    def stop(self):
+        self.state = "stopped"
+
+    def close(self):
+        self.state = "closed"
+
+
+def test_picamera2_backend_with_a_fake_module(monkeypatch):
+    monkeypatch.setitem(sys.modules, "picamera2", types.SimpleNamespace(Picamera2=FakePicamera2))
+    src = open_source("picam:1", CameraSettings(exposure_ms=2.004, gain=20.0, fps=30.0, resolution=(W, H)))
+    cam = FakePicamera2.last
+    assert cam.num == 1 and cam.state == "started"
+    assert cam.controls == {
+        "AeEnable": False,
+        "ExposureTime": 2004,
+        "AnalogueGain": 20.0,
+        "FrameDurationLimits": (33333, 33333),
+    }
+    assert cam.config["main"] == {"size": (W, H), "format": "YUV420"}
+    frames = [src.read() for _ in range(4)]
+    assert all(f.image.shape == (H, W) for f in frames) and [int(f.image[0, 0]) for f in frames] == [1, 2, 3, 4]
+    assert cam.released == 4
+    # Sensor timestamps: their intervals exactly, jitter included.
+    assert np.diff([f.timestamp for f in frames]) == pytest.approx([0.033333, 0.033833, 0.032833], abs=1e-6)
+    rep = src.settings_report()
+    assert rep["exposure_ms"] == pytest.approx(2.0) and rep["gain"] == 16.0  # what the sensor did
+    assert rep["fps"] == pytest.approx(1e6 / 33333) and rep["clock"] == "driver"
+    src.close()
+    assert cam.state == "closed"
+
+
+def test_picamera2_missing_is_a_clear_error(monkeypatch):
+    monkeypatch.setitem(sys.modules, "picamera2", None)  # import raises ImportError
+    with pytest.raises(BackendUnavailable, match="picamera2"):
+        open_source("picam")
+    with pytest.raises(InputError, match="picam:N"):
+        open_source("picam:x")
+
+
+class Echo:
+    def __init__(self, session):
+        r = SessionReader(session)
+        self.map, self.rig = r.map, r.rig
+
+    def process(self, frame: Frame) -> FrameResult:
+        out = TrackerOutput(frame.timestamp, np.zeros(3), np.eye(3), TrackState.TRACKING, 0.0, 1, IdSource.DECODED)
+        return FrameResult(frame.index, frame.timestamp, [], out, {"total": 1.0})
+
+
+def test_live_records_the_camera_settings_and_driver_stamps(tmp_path, v4l2, capsys):
+    sess = make_session(tmp_path / "s", 3, 10.0)
+    cfg = LiveConfig(source="0", record=tmp_path / "rec", max_frames=5, camera_settings=CameraSettings(exposure_ms=3.0))
+    summary = run_live(cfg, localiser=Echo(sess))
+    assert summary.frames >= 1
+    assert "3 ms exposure" in capsys.readouterr().err
+    info = json.loads((tmp_path / "rec" / "session.json").read_text())
+    assert info["camera"]["exposure_ms"] == pytest.approx(3.0) and info["camera"]["requested"]["exposure_ms"] == 3.0
+    rec = SessionReader(tmp_path / "rec")
+    assert np.all(np.diff(rec.timestamps) > 0.03)  # the driver's 33 ms intervals, not grab times
+
+
+class Stamped(capture.FrameSource):
+    """A file-like source with given timestamps (one grey level per frame)."""
+
+    def __init__(self, stamps, level0=0):
+        self.stamps, self.k, self.level0 = list(stamps), 0, level0
+        self.fps = 10.0
+
+    def read(self):
+        if self.k >= len(self.stamps):
+            return None
+        f = Frame(self.k, self.stamps[self.k], np.full((H, W), self.level0 + self.k, np.uint8))
+        self.k += 1
+        return f
+
+
+def test_multi_capture_merges_cameras_in_time_order():
+    front = Stamped([0.0, 0.1, 0.2, 0.3])
+    rear = Stamped([0.05, 0.15, 0.1, 0.35], level0=100)  # its third frame is out of order: late
+    cap = capture.MultiCapture([front, rear], buffer=8, pace=False).start()
+    got = []
+    while (item := cap.get(timeout=5.0)) is not None:
+        got.append(item.frame)
+    t = [f.timestamp for f in got]
+    assert t == [0.0, 0.05, 0.1, 0.15, 0.2, 0.3, 0.35] and [f.index for f in got] == list(range(7))
+    assert [f.camera for f in got] == [0, 1, 0, 1, 0, 0, 1]
+    assert cap.late == [0, 1] and cap.stats.dropped == 1 and cap.stats.grabbed == 8 and cap.finished
+    assert cap.per_camera()[1]["late"] == 1
+    cap.stop()
+
+
+def test_live_with_two_cameras_records_both(tmp_path):
+    from tagloc.eval.multicam import front_rear_rig
+
+    a = make_session(tmp_path / "a", 6, 10.0)
+    b = make_session(tmp_path / "b", 6, 7.0)  # its own clock: frames between the other camera's
+    loc = Echo(a)
+    loc.rig = front_rear_rig()
+    cfg = LiveConfig(source=str(a), more_cameras=[str(b)], record=tmp_path / "rec", pace=False, buffer=16)
+    summary = run_live(cfg, localiser=loc)
+    assert len(summary.per_camera) == 2 and summary.per_camera[1]["grabbed"] == 6
+    assert summary.frames == 11  # 12 frames, the second camera's first is as old as the first's: late
+    assert "camera 1: grabbed 6" in summary.format()
+    rec = SessionReader(tmp_path / "rec")
+    assert set(rec.cameras) == {0, 1} and np.all(np.diff(rec.timestamps) > 0)
+    with pytest.raises(InputError, match="rig has 2"):
+        run_live(LiveConfig(source=str(a), more_cameras=[str(b), str(b)]), localiser=loc)

@@ -1,0 +1,64 @@
+"""Several cameras: the simulator renders every rig camera into one session; sessions carry a camera column."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tagloc.core.errors import SessionError
+from tagloc.core.rig import default_rig
+from tagloc.core.stickermap import load_map
+from tagloc.eval.multicam import front_rear_rig, sticker_in_view
+from tagloc.io.session import SessionInfo, SessionReader, SessionWriter
+from tagloc.pipeline.run import run_session
+from tagloc.sim.simulate import SimConfig, read_groundtruth_frames, simulate_session
+
+MAP = Path(__file__).resolve().parents[1] / "maps" / "demo.csv"
+
+
+@pytest.fixture(scope="module")
+def two_cam(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("multicam") / "walk"
+    simulate_session(
+        MAP, path, SimConfig(seconds=1.0, fps=10.0, seed=1, scale=0.5, rig=front_rear_rig()), progress=False
+    )
+    return path
+
+
+def test_every_camera_is_rendered_into_one_session(two_cam):
+    lines = (two_cam / "frames.csv").read_text().splitlines()
+    assert lines[0] == "index,timestamp_s,camera" and len(lines) == 21
+    session = SessionReader(two_cam)
+    assert len(session.rig) == 2 and list(session.cameras) == [0, 1] * 10
+    assert np.all(np.diff(session.timestamps) > 0)  # the rear camera exposes half a frame later
+    assert (two_cam / "frames" / "000001_cam1.jpg").exists() and (two_cam / "frames" / "000000.jpg").exists()
+    frames = list(session.frames())
+    assert [f.camera for f in frames] == [0, 1] * 10 and all(f.image is not None for f in frames)
+    gt = read_groundtruth_frames(two_cam)
+    assert [r["camera"] for r in gt] == [0, 1] * 10
+    # The two cameras look opposite ways: their optical axes point apart horizontally.
+    ax0, ax1 = (np.array(gt[k]["T_world_camera"])[:2, 2] for k in (0, 1))
+    assert ax0 @ ax1 < 0
+    assert 0.0 <= sticker_in_view(two_cam, 2) <= 1.0
+    info = json.loads((two_cam / "session.json").read_text())
+    assert info["simulation"]["config"]["rig"] == "given"
+
+
+def test_the_localiser_takes_both_cameras(two_cam):
+    log = run_session(SessionReader(two_cam))
+    assert len(log.stamps) == 20 and np.all(np.diff(log.stamps) > 0)
+
+
+def test_camera_column_checked_and_single_camera_layout_kept(tmp_path):
+    smap = load_map(MAP)
+    with SessionWriter(tmp_path / "one", smap, default_rig(), SessionInfo("test", 10.0)) as w:
+        w.write(0, 0.0, np.zeros((972, 1296), np.uint8))
+        with pytest.raises(SessionError, match="one camera"):
+            w.write(1, 0.1, np.zeros((972, 1296), np.uint8), camera=1)
+    assert (tmp_path / "one" / "frames.csv").read_text() == "index,timestamp_s\n0,0.000000\n"
+    (tmp_path / "one" / "frames.csv").write_text("index,timestamp_s,camera\n0,0.000000,1\n")
+    with pytest.raises(SessionError, match=r"frames.csv:2: camera '1' is not a camera of the rig"):
+        SessionReader(tmp_path / "one")
