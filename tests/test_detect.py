@@ -281,40 +281,40 @@ def test_blurred_distractors_and_lines_give_nothing():
 
 
 def test_cut_corners_back_restores_a_clipped_square():
-    from tagloc.vision.detect import _cut_corners_back
+    from tagloc.vision.detect import cut_corners_back
 
     square = np.array([[0, 0], [40, 0], [40, 40], [0, 40]], float)
     clipped = np.array([[0, 0], [36, 0], [40, 4], [40, 40], [0, 40]], float)  # top-right cut off
-    np.testing.assert_allclose(_cut_corners_back(clipped), square, atol=1e-9)
-    np.testing.assert_allclose(_cut_corners_back(square), square)
+    np.testing.assert_allclose(cut_corners_back(clipped), square, atol=1e-9)
+    np.testing.assert_allclose(cut_corners_back(square), square)
     # A pentagon with no short cut (a "house") is no clipped square.
-    assert _cut_corners_back(np.array([[0, 10], [20, 0], [40, 10], [40, 40], [0, 40]], float)) is None
+    assert cut_corners_back(np.array([[0, 10], [20, 0], [40, 10], [40, 40], [0, 40]], float)) is None
 
 
 def test_robust_line_drops_a_gross_outlier():
-    from tagloc.vision.detect import _robust_line
+    from tagloc.vision.detect import robust_line
 
     rng = np.random.default_rng(0)
     x = np.linspace(0, 60, 20)
     pts = np.c_[x, 0.5 * x + 3 + rng.normal(0, 0.1, 20)]
     pts[7, 1] += 6.0  # a crossing locked onto a module
-    line, rms, keep = _robust_line(pts, 6)
+    line, rms, keep = robust_line(pts, 6)
     assert not keep[7] and keep.sum() == 19
     assert rms < 0.2
     # y = 0.5 x + 3  <=>  0.5 x - y + 3 = 0; the line has a unit normal
     ref = np.array([0.5, -1.0, 3.0]) / np.hypot(0.5, 1.0)
     assert np.allclose(line * np.sign(line[1]) * -1, ref, atol=0.02) or np.allclose(line, ref, atol=0.02)
-    assert _robust_line(pts[:5], 6) is None
+    assert robust_line(pts[:5], 6) is None
 
 
 def test_batched_huber_lines_minimise_the_huber_loss_as_well_as_opencv():
     import cv2
 
-    from tagloc.vision.detect import _HUBER_C, _huber_lines
+    from tagloc.vision.detect import HUBER_C, huber_lines
 
     def huber_loss(pts, line):
         r = np.abs(pts @ line[:2] + line[2]) / np.hypot(*line[:2])
-        return float(np.where(r < _HUBER_C, r * r / 2, _HUBER_C * (r - _HUBER_C / 2)).sum())
+        return float(np.where(r < HUBER_C, r * r / 2, HUBER_C * (r - HUBER_C / 2)).sum())
 
     rng = np.random.default_rng(3)
     sets, masks, truth, ref = [], [], [], []
@@ -332,7 +332,7 @@ def test_batched_huber_lines_minimise_the_huber_loss_as_well_as_opencv():
         truth.append(centre + t[:, None] * d)
         vx, vy, x0, y0 = cv2.fitLine(pts[mask].astype(np.float32), cv2.DIST_HUBER, 0, 0.01, 0.01).ravel()
         ref.append(np.array([-vy, vx, vy * x0 - vx * y0], float))
-    lines = _huber_lines(np.array(sets), np.array(masks))
+    lines = huber_lines(np.array(sets), np.array(masks))
     for line, r, pts, mask, true_pts in zip(lines, ref, sets, masks, truth):
         assert np.hypot(*line[:2]) == pytest.approx(1.0)
         # The same objective as cv2.fitLine's DIST_HUBER, minimised at least as well (OpenCV's

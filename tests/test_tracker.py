@@ -421,7 +421,7 @@ def test_late_fix_fused_like_an_in_order_one(rng):
     # Retrodiction ignores the correlation of the lag's process noise (body and vest offset) with the
     # state: close, not equal, and on the wide side.
     # (the walking body's part, as the retrodiction treats it; the offset's yaw decays within the lag)
-    np.testing.assert_allclose(np.diag(b._ekf.P)[:3], np.diag(a._ekf.P)[:3], rtol=0.5)
+    np.testing.assert_allclose(np.diag(b.filter.P)[:3], np.diag(a.filter.P)[:3], rtol=0.5)
     # Without the late fix the covariance would be far larger.
     c = _track(np.random.default_rng(seed), cfg, t_end=6.0, gap=1.0)
     c.predict(6.4)
@@ -441,7 +441,7 @@ def test_same_frame_fixes_share_the_vest_floor():
         tr.predict(0.5)
         for k in range(n):
             assert tr.update([make_fix([0.7, 0.0, 0.0], tiny)], 2 + k, IdSource.DECODED, 0.5).accepted
-        return tr._ekf.P[:3, :3]
+        return tr.filter.P[:3, :3]
 
     one, three = fused(1), fused(3)
     # Independent treatment would divide the variance by ~3; shared floor keeps it within 10%.
@@ -469,7 +469,7 @@ def test_consecutive_frames_share_the_vest_floor():
             t = k / 30.0
             tr.predict(t)
             assert tr.update([make_fix([0.0, 0.0, 0.0], tiny)], 1, IdSource.DECODED, t).accepted
-        return math.sqrt(tr._ekf.P[0, 0])
+        return math.sqrt(tr.filter.P[0, 0])
 
     # The walker stands here, so the floor is the standing one; make it as large as a walking one.
     still = dict(floor_still_sigma_xy=0.02, floor_still_sigma_yaw=math.radians(1.8))
@@ -644,9 +644,9 @@ def test_same_frame_fixes_at_initialisation_share_the_floor():
     tr = Tracker(cfg)
     tr.predict(0.0)
     assert tr.update([make_fix([1.0, 2.0, 0.1], tiny)], 1, IdSource.DECODED, 0.0).reason == "initialised"
-    one = tr._ekf.P[:3, :3].copy()  # the walking body's
+    one = tr.filter.P[:3, :3].copy()  # the walking body's
     assert tr.update([make_fix([1.0, 2.0, 0.1], tiny)], 2, IdSource.DECODED, 0.0).accepted
-    two = tr._ekf.P[:3, :3]
+    two = tr.filter.P[:3, :3]
     np.testing.assert_allclose(np.diag(two), np.diag(one), rtol=0.05)
     np.testing.assert_allclose(tr.output().pose, [1.0, 2.0, 0.1], atol=1e-6)
 
@@ -661,9 +661,9 @@ def test_same_frame_fixes_after_hours_lost_stay_precise(rng):
     assert tr.output().cov[0, 0] > 1e5
     here = np.array([3.0, 4.0, -2.0])
     assert tr.update([make_fix(here, tiny)], 1, IdSource.DECODED, t).accepted
-    one = tr._ekf.P[:3, :3].copy()  # the walking body's
+    one = tr.filter.P[:3, :3].copy()  # the walking body's
     assert tr.update([make_fix(here, tiny)], 2, IdSource.DECODED, t).accepted
-    two = tr._ekf.P[:3, :3]
+    two = tr.filter.P[:3, :3]
     # The fix's own variance plus the full-gait floor (its axes follow the heading the track had).
     floor = cfg.floor_cov(0.0)
     assert np.trace(one[:2, :2]) == pytest.approx(floor[0, 0] + floor[1, 1] + 2e-6, rel=0.01)
@@ -681,9 +681,9 @@ def test_candidates_see_the_camera_rolled_by_the_turns_lean():
     tr = Tracker()
     tr.predict(0.0)
     assert tr.update([make_fix([0.0, 0.0, 0.0])], 1, IdSource.DECODED, 0.0).accepted
-    x = tr._ekf.mean
+    x = tr.filter.mean
     x[motion.V], x[motion.W] = 1.3, 1.0
-    tr._ekf.set(x, tr._ekf.cov)
+    tr.filter.set(x, tr.filter.cov)
     leaned = tr.leaned_camera(rc)
     R = leaned.T_body_camera[:3, :3] @ rc.T_body_camera[:3, :3].T  # the lean, in the body frame
     up = R[:, 2]
@@ -692,5 +692,5 @@ def test_candidates_see_the_camera_rolled_by_the_turns_lean():
     p = rc.vest_point
     assert np.allclose(R @ p + (leaned.T_body_camera[:3, 3] - R @ rc.T_body_camera[:3, 3]), p)
     x[motion.W] = 0.0
-    tr._ekf.set(x, tr._ekf.cov)
+    tr.filter.set(x, tr.filter.cov)
     assert tr.leaned_camera(rc) is rc

@@ -178,6 +178,11 @@ class Tracker:
         return self._state
 
     @property
+    def filter(self) -> WalkingEKF:
+        """The underlying filter (state ``x`` (DIM, 1), covariance ``P`` (DIM, DIM)), for inspection."""
+        return self._ekf
+
+    @property
     def time(self) -> float | None:
         """Timestamp (s) the filter stands at, None before the first frame."""
         return self._t

@@ -48,7 +48,7 @@ _MAD_TO_SIGMA = 1.4826  # a normal distribution's sigma over its median absolute
 _NEXT = np.array([1, 2, 3, 0])  # side i runs from corner i to corner _NEXT[i]
 _PREV = np.array([3, 0, 1, 2])
 _UNIT_SQUARE = np.array([[-1, 1], [1, 1], [1, -1], [-1, -1]], np.float32)
-_HUBER_C = 1.345  # px: cv2.fitLine's Huber constant (95 % efficiency under Gaussian noise of 1 px)
+HUBER_C = 1.345  # px: cv2.fitLine's Huber constant (95 % efficiency under Gaussian noise of 1 px)
 _HUBER_ITERATIONS = 10  # reweighting passes; edge points converge in 3-5
 _UNIT_INNER = (_UNIT_SQUARE.astype(float) * _INNER_RATIO).reshape(-1, 1, 2)
 
@@ -221,13 +221,13 @@ def _fit_sides(contour: np.ndarray, quad: np.ndarray) -> np.ndarray:
     near = (u > 0.15) & (u < 0.85) & (off < np.maximum(1.5, 0.06 * length)[:, None])
     if near.sum(axis=1).min() < 4:
         return quad
-    corners = _intersect(_huber_lines(np.broadcast_to(contour, (4, *contour.shape)), near))
+    corners = _intersect(huber_lines(np.broadcast_to(contour, (4, *contour.shape)), near))
     if not np.all(np.isfinite(corners)) or np.abs(corners - quad).max() > 0.25 * float(length.min()):
         return quad
     return corners
 
 
-def _cut_corners_back(poly: np.ndarray) -> np.ndarray | None:
+def cut_corners_back(poly: np.ndarray) -> np.ndarray | None:
     """Reduce a convex polygon (K, 2), K = 4-6, to a quad by extending the neighbours of its
     shortest edge until they meet, as often as needed: blur and small foreshortened stickers round
     corners off, and the outline's polygon then has a short edge across each. None if that fails."""
@@ -298,7 +298,7 @@ def _outline_quads(
         for eps in (0.03, 0.05, 0.08):
             approx = cv2.approxPolyDP(hull, eps * peri, True)
             if 4 <= len(approx) <= 6:
-                quad = _cut_corners_back(approx.reshape(-1, 2).astype(float))
+                quad = cut_corners_back(approx.reshape(-1, 2).astype(float))
                 if quad is not None:
                     break
         if quad is None:
@@ -354,7 +354,7 @@ def _candidates(gray: np.ndarray, cfg: DetectConfig) -> list[np.ndarray]:
     return quads
 
 
-def _huber_lines(points: np.ndarray, mask: np.ndarray, iterations: int = _HUBER_ITERATIONS) -> np.ndarray:
+def huber_lines(points: np.ndarray, mask: np.ndarray, iterations: int = _HUBER_ITERATIONS) -> np.ndarray:
     """Huber line fits of L point sets at once: points (L, N, 2), mask (L, N) of the points that count.
 
     Iteratively reweighted total least squares (what cv2.fitLine's DIST_HUBER does, one set per
@@ -375,7 +375,7 @@ def _huber_lines(points: np.ndarray, mask: np.ndarray, iterations: int = _HUBER_
         nx, ny = -np.sin(theta), np.cos(theta)
         line = np.stack([nx, ny, -(nx * mx + ny * my)], axis=1)
         r = np.abs(x * nx[:, None] + y * ny[:, None] + line[:, 2:3])
-        w_new = np.where(mask, np.where(r > _HUBER_C, _HUBER_C / np.maximum(r, 1e-12), 1.0), 0.0)
+        w_new = np.where(mask, np.where(r > HUBER_C, HUBER_C / np.maximum(r, 1e-12), 1.0), 0.0)
         if float(np.abs(w_new - w).max()) < 1e-3:
             break
         w = w_new
@@ -390,9 +390,9 @@ def _line_residuals(points: np.ndarray, lines: np.ndarray) -> np.ndarray:
 def _robust_lines(
     points: np.ndarray, mask: np.ndarray, min_points: int, sigmas: float, floor_px: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """:func:`_robust_line` for L point sets at once (points (L, N, 2), mask (L, N)): lines (L, 3),
+    """:func:`robust_line` for L point sets at once (points (L, N, 2), mask (L, N)): lines (L, 3),
     inlier RMS (L,) and inlier mask (L, N); None if any set keeps fewer than ``min_points``."""
-    lines = _huber_lines(points, mask)
+    lines = huber_lines(points, mask)
     res = _line_residuals(points, lines)
     counts = mask.sum(axis=1)
     # Median of each set's residuals: the masked-out ones sort last.
@@ -402,13 +402,13 @@ def _robust_lines(
     keep = mask & (res <= np.maximum(floor_px, sigmas * _MAD_TO_SIGMA * med)[:, None])
     if keep.sum(axis=1).min() < min_points:
         return None
-    lines = _huber_lines(points, keep)
+    lines = huber_lines(points, keep)
     res = _line_residuals(points, lines)
     rms = np.sqrt((np.where(keep, res, 0.0) ** 2).sum(axis=1) / keep.sum(axis=1))
     return lines, rms, keep
 
 
-def _robust_line(
+def robust_line(
     points: np.ndarray, min_points: int, sigmas: float = 3.0, floor_px: float = 1.0
 ) -> tuple[np.ndarray, float, np.ndarray] | None:
     """Line through (N, 2) edge points after dropping gross outliers; None if too few remain.
@@ -642,7 +642,7 @@ def _refine(
     inner_ideal = None
     ok = np.isfinite(inner_s)
     if ok.sum(axis=1).min() >= min_points:
-        inner_ideal = _intersect(_huber_lines(edge[1], ok))
+        inner_ideal = _intersect(huber_lines(edge[1], ok))
         dev = np.linalg.norm(inner_ideal - _implied_inner(outer_ideal), axis=1)
         if not (np.all(np.isfinite(dev)) and dev.max() <= cfg.inner_max_dev_px):
             inner_ideal = None
