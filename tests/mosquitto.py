@@ -72,7 +72,7 @@ class Subscriber:
 
     def _on_message(self, client, userdata, message) -> None:
         doc = json.loads(message.payload)
-        assert doc["schema"] == "tagloc.vision.pose/1"
+        assert doc["schema"] == "tagloc.pose/1"
         with self.lock:
             self.indices.append(doc["index"])
 

@@ -52,7 +52,7 @@ def result(index: int, t: float) -> FrameResult:
 
 def test_message_schema_fields_and_units():
     msg = PoseMessage("v07", 12, output(), latency_ms=23.456).to_json()
-    assert msg["schema"] == SCHEMA == "tagloc.vision.pose/1"
+    assert msg["schema"] == SCHEMA == "tagloc.pose/1"
     assert (msg["vest"], msg["frame"], msg["index"], msg["t"]) == ("v07", "world", 12, 1.25)
     assert (msg["x"], msg["y"]) == pytest.approx((3.5, -1.25))
     assert msg["yaw"] == pytest.approx(0.5) and msg["yaw_deg"] == pytest.approx(math.degrees(0.5), abs=1e-4)

@@ -9,7 +9,7 @@ from pathlib import Path
 NAME = "live"
 HELP = "localise live from a camera (or a video/stream/session played as one) and publish poses"
 DESCRIPTION = """Localise from a camera, a stream URL, a video file or a session directory, and publish one
-JSON pose (schema tagloc.vision.pose/1) per frame to stdout, UDP and/or MQTT. Files and sessions are played
+JSON pose (schema tagloc.pose/1) per frame to stdout, UDP and/or MQTT. Files and sessions are played
 at their own rate, dropping frames when processing falls behind, as a camera would (--no-pace: every
 frame, as fast as possible). A summary (frames, fixes, drops, latency) goes to stderr at the end.
 

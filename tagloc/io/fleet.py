@@ -1,6 +1,6 @@
 """The robot manager's side: every vest's latest pose from its messages, and which vests need attention.
 
-:class:`FleetState` takes ``tagloc.vision.pose/1`` messages (bytes from MQTT, or documents read back
+:class:`FleetState` takes ``tagloc.pose/1`` messages (bytes from MQTT, or documents read back
 from a bag) with the time they were received, keeps each vest's last pose and a trail, and says which
 vests to warn about (:meth:`FleetState.warnings`). It knows nothing of MQTT or viewers, so its logic is
 tested directly; :mod:`tagloc.apps.monitor` feeds it and draws it (:mod:`tagloc.io.fleet_view`).

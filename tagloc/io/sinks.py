@@ -1,8 +1,8 @@
 """Where poses go: JSON lines (stdout or file), UDP datagrams, MQTT, TUM trajectories, frame logs.
 
-Every published pose is one JSON object of schema ``tagloc.vision.pose/1``::
+Every published pose is one JSON object of schema ``tagloc.pose/1``::
 
-    {"schema": "tagloc.vision.pose/1", "vest": "vest-07", "frame": "world", "index": 1234, "t": 41.133333,
+    {"schema": "tagloc.pose/1", "vest": "vest-07", "frame": "world", "index": 1234, "t": 41.133333,
      "x": 12.3456, "y": 3.21, "yaw": 1.570796, "yaw_deg": 90.0,
      "cov": [[sxx, sxy, sxyaw], [syx, syy, syyaw], [syawx, syawy, syawyaw]],
      "state": "tracking", "since_fix": 0.2667, "last_id": 42, "last_source": "decoded",
@@ -49,7 +49,7 @@ from tagloc.io.session import tum_line
 if TYPE_CHECKING:
     import paho.mqtt.client as mqtt
 
-SCHEMA = "tagloc.vision.pose/1"
+SCHEMA = "tagloc.pose/1"
 
 
 @dataclass
@@ -81,7 +81,7 @@ class PoseMessage:
         return (time.monotonic() if now is None else now) - self.grabbed
 
     def to_json(self) -> dict:
-        """The ``tagloc.vision.pose/1`` object."""
+        """The ``tagloc.pose/1`` object."""
         o = self.output.to_json()
         return {
             "schema": SCHEMA,
@@ -141,7 +141,7 @@ class Sink:
 
 
 class JsonLinesSink(Sink):
-    """One ``tagloc.vision.pose/1`` object per line, to a stream or a file (flushed per line)."""
+    """One ``tagloc.pose/1`` object per line, to a stream or a file (flushed per line)."""
 
     def __init__(self, target: str | Path | IO[str]):
         super().__init__()
