@@ -112,7 +112,7 @@ def blueprint(
         rrb.TimeSeriesView(origin="plots/timing", name="stage timing (ms)"),
     ]
     plan = (
-        top_down_view(smap, "world", "floor plan (top-down)")
+        top_down_view(smap, "world", "floor plan (top-down)", box)
         if smap is not None
         else rrb.Spatial3DView(origin="world", name="map")
     )
