@@ -22,7 +22,7 @@ examples:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from tagloc.io.fleet import FleetConfig
+    from tagloc.io.fleet_config import FleetConfig
 
     d = FleetConfig()
     p.add_argument("url", nargs="?", help="mqtt://HOST[:PORT][/TOPIC] (topic filter default tagloc/+/pose)")
@@ -51,7 +51,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from tagloc.apps.monitor import MonitorConfig, run_monitor
-    from tagloc.io.fleet import FleetConfig
+    from tagloc.io.fleet_config import FleetConfig
 
     summary = run_monitor(
         MonitorConfig(
