@@ -34,6 +34,7 @@ import numpy as np
 from tagloc.core.camera import Camera, default_camera, load_calibration, save_calibration
 from tagloc.core.errors import CalibrationError
 from tagloc.core.geometry import make_T
+from tagloc.core.jsonfile import read_json
 
 
 @dataclass
@@ -145,16 +146,7 @@ def load_rig(path: str | Path, calibration: Camera | None = None) -> Rig:
     ``calibration`` overrides the file named in the rig (for ``--calibration`` on the CLI).
     """
     path = Path(path)
-    try:
-        doc = json.loads(path.read_bytes().decode("utf-8"))
-    except OSError as exc:
-        raise CalibrationError(f"{path}: cannot read rig ({exc.strerror})") from None
-    except UnicodeDecodeError as exc:
-        raise CalibrationError(f"{path}: not a text file (byte {exc.start} is not UTF-8)") from None
-    except json.JSONDecodeError as exc:
-        raise CalibrationError(f"{path}: line {exc.lineno}: not valid JSON ({exc.msg})") from None
-    except RecursionError:
-        raise CalibrationError(f"{path}: JSON nested too deeply") from None
+    doc = read_json(path, CalibrationError, "rig")
     cams = doc.get("cameras") if isinstance(doc, dict) else None
     if not isinstance(cams, list) or not cams:
         raise CalibrationError(f'{path}: needs a non-empty "cameras" list')

@@ -31,6 +31,7 @@ import numpy as np
 from tagloc.core.camera import Camera
 from tagloc.core.errors import SessionError
 from tagloc.core.geometry import T_from_tum, T_to_tum
+from tagloc.core.jsonfile import read_json
 from tagloc.core.rig import Rig, load_rig, save_rig
 from tagloc.core.stickermap import StickerMap, load_map, save_map
 from tagloc.core.types import Frame
@@ -180,16 +181,7 @@ class SessionReader:
         p = self.path / SESSION_JSON
         if not p.exists():
             return SessionInfo(source="unknown", fps=0.0)
-        try:
-            doc = json.loads(p.read_bytes().decode("utf-8"))
-        except OSError as exc:
-            raise SessionError(f"{p}: cannot read ({exc.strerror})") from exc
-        except UnicodeDecodeError as exc:
-            raise SessionError(f"{p}: not a text file (byte {exc.start} is not UTF-8)") from None
-        except json.JSONDecodeError as exc:
-            raise SessionError(f"{p}: line {exc.lineno}: not valid JSON ({exc.msg})") from None
-        except RecursionError:
-            raise SessionError(f"{p}: JSON nested too deeply") from None
+        doc = read_json(p, SessionError)
         if not isinstance(doc, dict):
             raise SessionError(f"{p}: not a JSON object")
         fps = doc.get("fps", 0.0)

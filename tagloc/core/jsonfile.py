@@ -1,0 +1,24 @@
+"""Reading a JSON file the user gave, every way it can be wrong turned into one line naming the file."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from tagloc.core.errors import InputError
+
+
+def read_json(path: Path, error: type[InputError], what: str = "") -> object:
+    """The parsed contents of ``path``; ``error`` (naming the file, and the line for bad JSON) if it
+    cannot be read, is not UTF-8 text, is not valid JSON or is nested too deeply to parse.
+    ``what`` names the file's kind in the "cannot read" message (e.g. "rig")."""
+    try:
+        return json.loads(path.read_bytes().decode("utf-8"))
+    except OSError as exc:
+        raise error(f"{path}: cannot read{' ' + what if what else ''} ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:
+        raise error(f"{path}: not a text file (byte {exc.start} is not UTF-8)") from None
+    except json.JSONDecodeError as exc:
+        raise error(f"{path}: line {exc.lineno}: not valid JSON ({exc.msg})") from None
+    except RecursionError:
+        raise error(f"{path}: JSON nested too deeply") from None
