@@ -16,8 +16,9 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from tagloc.core.camera import save_calibration
 from tagloc.core.charuco import DEFAULT_BOARD, BoardSpec
-from tagloc.core.errors import CalibrationError, InputError
+from tagloc.core.errors import InputError
 from tagloc.vision.calibration import BoardDetector, CalibrationConfig, CalibrationResult, calibrate_views
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm")
@@ -116,20 +117,14 @@ def write_coverage_png(result: CalibrationResult, path: str | Path) -> Path:
 
 def save_result(result: CalibrationResult, path: str | Path, spec: BoardSpec) -> None:
     """Write the calibration as OpenCV FileStorage YAML, with the fit's quality as extra keys."""
-    cam = result.camera
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
-    if not fs.isOpened():
-        raise CalibrationError(f"{path}: cannot write calibration")
-    fs.write("image_width", cam.width)
-    fs.write("image_height", cam.height)
-    fs.write("camera_matrix", cam.K)
-    fs.write("distortion_coefficients", cam.dist.reshape(1, -1))
-    fs.write("avg_reprojection_error", result.rms_px)
-    fs.write("std_deviations", np.array([result.std[k] for k in result.std], float).reshape(1, -1))
-    fs.write("std_deviation_names", " ".join(result.std))
-    fs.write("views_used", len(result.views))
-    fs.write("board", spec.describe())
-    fs.release()
+    extra = {
+        "avg_reprojection_error": result.rms_px,
+        "std_deviations": np.array([result.std[k] for k in result.std], float).reshape(1, -1),
+        "std_deviation_names": " ".join(result.std),
+        "views_used": len(result.views),
+        "board": spec.describe(),
+    }
+    save_calibration(result.camera, path, extra)
 
 
 def calibrate_camera(

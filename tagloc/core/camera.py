@@ -90,8 +90,9 @@ def default_camera() -> Camera:
     return Camera(K, np.array([0.10, -0.20, 0.0, 0.0, 0.0]), 1296, 972)
 
 
-def save_calibration(camera: Camera, path: str | Path) -> None:
-    """Write ``camera`` as OpenCV FileStorage YAML."""
+def save_calibration(camera: Camera, path: str | Path, extra: dict | None = None) -> None:
+    """Write ``camera`` as OpenCV FileStorage YAML; ``extra`` adds keys (numbers, strings, arrays)
+    after the four tagloc reads, which loading ignores."""
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
     if not fs.isOpened():
         raise CalibrationError(f"{path}: cannot write calibration")
@@ -99,6 +100,8 @@ def save_calibration(camera: Camera, path: str | Path) -> None:
     fs.write("image_height", camera.height)
     fs.write("camera_matrix", camera.K)
     fs.write("distortion_coefficients", camera.dist.reshape(1, -1))
+    for key, value in (extra or {}).items():
+        fs.write(key, value)
     fs.release()
 
 
