@@ -22,10 +22,17 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from tagloc.core.errors import BackendUnavailable, InputError
 from tagloc.core.stickermap import StickerMap
 from tagloc.io.fleet import FleetState, ellipse_2sigma
-from tagloc.io.rerun_view import NETWORK_FLUSH_S, circle, log_floor_plan, top_down_view
+from tagloc.io.rerun_view import (
+    NETWORK_FLUSH_S,
+    attach_sinks,
+    circle,
+    import_rerun,
+    log_floor_plan,
+    new_recording,
+    top_down_view,
+)
 
 STATE_COLOURS = {
     "tracking": (40, 200, 60),
@@ -36,14 +43,6 @@ STATE_COLOURS = {
 WARN_COLOUR = (255, 150, 0)
 STALE_COLOUR = (130, 130, 130)
 HEADING_M = 0.6  # arrow length: about an arm's length, visible at warehouse scale
-
-
-def _rr():
-    try:
-        import rerun as rr
-    except ImportError as exc:  # pragma: no cover - rerun-sdk is a dependency
-        raise BackendUnavailable("rerun-sdk is not installed; pip install rerun-sdk") from exc
-    return rr
 
 
 def fleet_blueprint(smap: StickerMap):
@@ -76,31 +75,13 @@ class FleetView:
         connect: str | None = None,
         app_id: str = "tagloc-monitor",
     ):
-        rr = _rr()
-        if not (save or spawn or connect):
-            raise InputError("Rerun: give a file to save to, spawn=True or a viewer URL")
-        self.rec = rr.RecordingStream(app_id)
-        sinks = []
-        if save:
-            Path(save).parent.mkdir(parents=True, exist_ok=True)
-            sinks.append(rr.FileSink(str(save)))
-        if spawn:
-            try:
-                self.rec.spawn(connect=False)
-            except RuntimeError as exc:
-                raise BackendUnavailable(
-                    f"cannot start the Rerun viewer ({str(exc).splitlines()[0].strip()}); use --save instead"
-                ) from exc
-            sinks.append(rr.GrpcSink())
-        if connect:
-            sinks.append(rr.GrpcSink(connect))
-        self._network = bool(spawn or connect)
-        self.rec.set_sinks(*sinks, default_blueprint=fleet_blueprint(smap))
+        self.rec = new_recording(app_id, save, spawn, connect)
+        self._network = attach_sinks(self.rec, fleet_blueprint(smap), save, spawn, connect, "use --save instead")
         log_floor_plan(self.rec, smap, "fleet")
 
     def update(self, state: FleetState, now: float, timestamp: bool = True) -> None:
         """Draw every vest as of monitor time ``now`` (``timestamp``: ``now`` is epoch seconds)."""
-        rr = _rr()
+        rr = import_rerun()
         rec = self.rec
         if timestamp:
             rec.set_time("time", timestamp=now)

@@ -58,12 +58,45 @@ ESTIMATE_COLOUR = (255, 200, 0)
 TRUTH_COLOUR = (160, 160, 160)
 
 
-def _rr():
+def import_rerun():
+    """The rerun module; BackendUnavailable if rerun-sdk is missing."""
     try:
         import rerun as rr
     except ImportError as exc:  # pragma: no cover - rerun-sdk is a dependency
         raise BackendUnavailable("rerun-sdk is not installed; pip install rerun-sdk") from exc
     return rr
+
+
+def new_recording(app_id: str, save, spawn: bool, connect: str | None, recording_id: str | None = None):
+    """A Rerun recording stream, refusing a call that names nowhere to send it."""
+    rr = import_rerun()
+    if not (save or spawn or connect):
+        raise InputError("Rerun: give a file to save to, spawn=True or a viewer URL")
+    return rr.RecordingStream(app_id, recording_id=recording_id)
+
+
+def attach_sinks(rec, blueprint, save, spawn: bool, connect: str | None, spawn_hint: str) -> bool:
+    """Send ``rec`` to a file (``save``), a viewer started here (``spawn``) and/or a viewer URL
+    (``connect``), with ``blueprint`` as the default layout. Returns whether a network viewer is
+    attached (its flush must be bounded). ``spawn_hint`` ends the error when no viewer can start."""
+    rr = import_rerun()
+    sinks = []
+    if save:
+        Path(save).parent.mkdir(parents=True, exist_ok=True)
+        sinks.append(rr.FileSink(str(save)))
+    if spawn:
+        # Start the viewer only; the stream is attached below with the other sinks.
+        try:
+            rec.spawn(connect=False)
+        except RuntimeError as exc:  # the viewer executable is missing
+            raise BackendUnavailable(
+                f"cannot start the Rerun viewer ({str(exc).splitlines()[0].strip()}); {spawn_hint}"
+            ) from exc
+        sinks.append(rr.GrpcSink())
+    if connect:
+        sinks.append(rr.GrpcSink(connect))
+    rec.set_sinks(*sinks, default_blueprint=blueprint)
+    return bool(spawn or connect)
 
 
 def image_entity(rig: Rig, camera: int) -> str:
@@ -171,7 +204,7 @@ def top_down_view(smap: StickerMap, origin: str, name: str, box: tuple[float, fl
 
 def log_floor_plan(rec, smap: StickerMap, entity: str) -> None:
     """Log (static) the map's stickers with their IDs and the floor's outline under ``entity``."""
-    rr = _rr()
+    rr = import_rerun()
     rec.log(entity, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     corners = map_corners(smap)
     if len(corners):
@@ -228,9 +261,7 @@ class RerunView:
         app_id: str = "tagloc",
         recording_id: str | None = None,
     ):
-        rr = _rr()
-        if not (save or spawn or connect):
-            raise InputError("Rerun: give a file to save to, spawn=True or a viewer URL")
+        self.rec = new_recording(app_id, save, spawn, connect, recording_id)
         if clock not in ("duration", "timestamp"):
             raise InputError(f"Rerun clock must be 'duration' or 'timestamp', not {clock!r}")
         if not 0.0 < image_scale <= 1.0:
@@ -240,36 +271,20 @@ class RerunView:
         self.jpeg_quality = int(jpeg_quality)
         self.clock = clock
         self.gt = groundtruth if groundtruth is not None and len(groundtruth[0]) else None
-        self.rec = rr.RecordingStream(app_id, recording_id=recording_id)
         box = None
         if self.gt is not None:
             # Frame the walk (with room around it) rather than the whole warehouse.
             lo, hi = self.gt[1][:, :2, 3].min(axis=0) - WALK_MARGIN_M, self.gt[1][:, :2, 3].max(axis=0) + WALK_MARGIN_M
             box = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
         bp = blueprint(rig, groundtruth=self.gt is not None, smap=smap, box=box)
-        sinks = []
-        if save:
-            Path(save).parent.mkdir(parents=True, exist_ok=True)
-            sinks.append(rr.FileSink(str(save)))
-        if spawn:
-            # Start the viewer only; the stream is attached below with the other sinks.
-            try:
-                self.rec.spawn(connect=False)
-            except RuntimeError as exc:  # the viewer executable is missing
-                raise BackendUnavailable(
-                    f"cannot start the Rerun viewer ({str(exc).splitlines()[0].strip()}); "
-                    "put `rerun` on PATH or save a recording instead"
-                ) from exc
-            sinks.append(rr.GrpcSink())
-        if connect:
-            sinks.append(rr.GrpcSink(connect))
-        self._network = bool(spawn or connect)
-        self.rec.set_sinks(*sinks, default_blueprint=bp)
+        self._network = attach_sinks(
+            self.rec, bp, save, spawn, connect, "put `rerun` on PATH or save a recording instead"
+        )
         self._path: list[list[float]] = []
         self._log_static(smap)
 
     def _log_static(self, smap: StickerMap) -> None:
-        rr = _rr()
+        rr = import_rerun()
         rec = self.rec
         log_floor_plan(rec, smap, "world")
         for k, rc in enumerate(self.rig.cameras):
@@ -304,7 +319,7 @@ class RerunView:
 
     def log(self, frame: Frame, result: FrameResult) -> None:
         """Log one frame: image, detections, pose, uncertainty, errors and timings."""
-        rr = _rr()
+        rr = import_rerun()
         rec = self.rec
         self._set_time(result)
         out = result.output
@@ -373,7 +388,7 @@ class RerunView:
         )
 
     def _log_error(self, result: FrameResult) -> None:
-        rr = _rr()
+        rr = import_rerun()
         gt, inside = interpolate_groundtruth(self.gt[0], self.gt[1], np.array([result.timestamp]))
         if not inside[0]:
             return
@@ -383,7 +398,7 @@ class RerunView:
         self.rec.log("plots/error/yaw_deg", rr.Scalars(math.degrees(abs(dyaw))))
 
     def _log_image(self, frame: Frame, result: FrameResult) -> None:
-        rr = _rr()
+        rr = import_rerun()
         s = self.image_scale
         img = frame.image
         if s != 1.0:
