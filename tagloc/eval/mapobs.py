@@ -3,7 +3,11 @@
 :func:`collect_walk` runs the localiser over one session with a given map and keeps, per frame, the
 tracked pose and, per detection, the identity (decoded, identified or none), the corners in the
 sticker's canonical order and the sticker's pose in the camera from the pose solver (also for
-decoded stickers that are not in the map: solved against the identity, so they can be placed).
+decoded stickers that are not in the map: solved against the identity, so they can be placed),
+and the floor odometry's step from the camera's previous frame (its own :class:`FloorOdometry`, the
+same measurement the localiser fuses), which links frames for the map refinement. The localiser's
+run log (:class:`tagloc.pipeline.run.RunLog`) is kept too, so one pass scores the walk as
+``tagloc eval`` would.
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tagloc.core.errors import CalibrationError
 from tagloc.core.geometry import invert
 from tagloc.core.rig import Rig
 from tagloc.core.sticker import rotate_corners
@@ -20,7 +25,9 @@ from tagloc.core.stickermap import StickerMap, load_map
 from tagloc.core.types import FrameResult, IdSource, Observation
 from tagloc.io.session import SessionReader
 from tagloc.pipeline.localiser import Localiser, LocaliserConfig
-from tagloc.pipeline.run import iterate_results
+from tagloc.pipeline.run import RunLog, run_session
+from tagloc.vision.image import as_gray
+from tagloc.vision.odometry import FloorOdometry, OdometryConfig, OdometryStep
 from tagloc.vision.pose import solve_pose
 
 
@@ -67,6 +74,8 @@ class FrameRecord:
         state: tracker state value ("initialising", "tracking", "lost").
         sightings: the frame's detections.
         skipped: why the frame could not be read, else None.
+        camera: rig camera of the frame.
+        step: floor odometry from this camera's previous frame to this one (None: no step).
     """
 
     index: int
@@ -76,16 +85,19 @@ class FrameRecord:
     state: str
     sightings: list[Sighting] = field(default_factory=list)
     skipped: str | None = None
+    camera: int = 0
+    step: OdometryStep | None = None
 
 
 @dataclass
 class WalkLog:
-    """One session seen through one map: its rig, image size and per-frame records."""
+    """One session seen through one map: its rig, per-frame records and the localiser's run log."""
 
     path: Path
     rig: Rig
     frames: list[FrameRecord]
     counts: dict = field(default_factory=dict)
+    log: RunLog | None = None
 
     @property
     def name(self) -> str:
@@ -117,8 +129,8 @@ def _sighting(obs: Observation, smap: StickerMap, rig: Rig) -> Sighting:
     return s
 
 
-def frame_record(res: FrameResult, smap: StickerMap, rig: Rig) -> FrameRecord:
-    """The audit's record of one localiser result."""
+def frame_record(res: FrameResult, smap: StickerMap, rig: Rig, step: OdometryStep | None = None) -> FrameRecord:
+    """The audit's record of one localiser result (``step``: the odometry into this frame)."""
     out = res.output
     return FrameRecord(
         res.index,
@@ -128,7 +140,29 @@ def frame_record(res: FrameResult, smap: StickerMap, rig: Rig) -> FrameRecord:
         out.state.value,
         [_sighting(o, smap, rig) for o in res.observations],
         res.skipped,
+        res.frame.camera if res.frame is not None else 0,
+        step,
     )
+
+
+class _Odometry:
+    """Floor odometry per rig camera over a walk's frames (None where a camera sees too little floor)."""
+
+    def __init__(self, rig: Rig, config: OdometryConfig | None):
+        self.rig, self.config = rig, config or OdometryConfig()
+        self.per_camera: dict[int, FloorOdometry | None] = {}
+
+    def step(self, res: FrameResult) -> OdometryStep | None:
+        frame = res.frame
+        if frame is None or frame.image is None or res.skipped:
+            return None
+        if frame.camera not in self.per_camera:
+            try:
+                self.per_camera[frame.camera] = FloorOdometry(self.rig[frame.camera], self.config)
+            except CalibrationError:
+                self.per_camera[frame.camera] = None
+        odo = self.per_camera[frame.camera]
+        return odo.measure(as_gray(frame.image), res.timestamp) if odo is not None else None
 
 
 def collect_walk(
@@ -143,11 +177,16 @@ def collect_walk(
     ``map_path``: the file ``smap`` came from, so the identification's reference cache is kept beside it.
     """
     session = SessionReader(session_dir)
-    loc = Localiser(smap, session.rig, config or LocaliserConfig(), map_path=map_path)
-    frames = [frame_record(r, smap, session.rig) for r in iterate_results(session, loc, progress=progress)]
-    counts = dict(loc.counts)
-    counts["skipped_frames"] = len(session.skipped)
-    return WalkLog(session.path, session.rig, frames, counts)
+    config = config or LocaliserConfig()
+    loc = Localiser(smap, session.rig, config, map_path=map_path)
+    odometry = _Odometry(session.rig, config.odometry_config)
+    frames: list[FrameRecord] = []
+
+    def record(res: FrameResult) -> None:
+        frames.append(frame_record(res, smap, session.rig, odometry.step(res)))
+
+    log = run_session(session, localiser=loc, progress=progress, on_result=record)
+    return WalkLog(session.path, session.rig, frames, dict(log.counts), log)
 
 
 def collect_walks(

@@ -1,12 +1,23 @@
 """Refine a sticker map from recorded walks: a joint least-squares estimate of stickers and camera poses.
 
-Unknowns: every sticker seen together with another one in a frame, as (x, y, yaw) on the floor,
-and the 6-DoF pose of the camera in each such frame. Measurements: every sticker corner the
-detector placed (outer, and inner when found), as undistorted pixels against the pinhole
-projection, weighted by the corner noise; and each sticker's survey prior from the map (its own
+Unknowns: the 6-DoF pose of the camera in every frame that saw two or more stickers, or that saw
+one and is linked by the floor odometry to another such frame, and every sticker those frames saw,
+as (x, y, yaw) on the floor. Measurements: every sticker corner the detector placed (outer, and
+inner when found), as undistorted pixels against the pinhole projection, weighted by the corner
+noise; the odometry links; and each sticker's survey prior from the map (its own
 ``sigma_m``/``sigma_deg``, or a default where the map does not state them), which anchors the map's
 frame so that it does not move. The problem is solved by ``scipy.optimize.least_squares`` with a
-sparse Jacobian pattern (a corner's residual depends on one camera and one sticker).
+sparse Jacobian pattern (a corner's residual depends on one camera and one sticker, a link's on two
+cameras).
+
+An odometry link joins two consecutive frames of a walk's camera that saw stickers, with every
+frame between them measured by the floor odometry (at most ``max_link_s`` apart): the steps are
+composed into one planar motion with its covariance (first-order propagation). The odometry sees
+the floor through the rig's nominal camera mount, so a torso that leans shows up as floor motion
+(issue 14: 1.9 m per radian of pitch); the link therefore compares the measured motion with the
+*apparent* motion of the two camera poses: the rigid planar motion between the floor patches that
+the nominal bird's-eye view of each pose shows. Composing the steps telescopes, so only the two end
+poses matter, and both are measured by their stickers' corners in all six degrees of freedom.
 
 A sticker whose estimate disagrees with its own prior beyond the chi-square bound (it was moved,
 or surveyed badly) loses its prior, the worst first, and the problem is solved again: a 15 cm move
@@ -29,15 +40,19 @@ from pathlib import Path
 import cv2
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import block_diag, coo_matrix
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.sparse.linalg import splu
 from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
 
 from tagloc.core.errors import InputError
 from tagloc.core.geometry import wrap_angle
+from tagloc.core.rig import RigCamera
 from tagloc.core.sticker import ALL_CORNERS
 from tagloc.core.stickermap import StickerMap, save_map
-from tagloc.eval.mapobs import Sighting, WalkLog, collect_walks
+from tagloc.eval.mapobs import FrameRecord, Sighting, WalkLog, collect_walks
+from tagloc.vision.odometry import OdometryConfig, floor_patch
 
 
 @dataclass
@@ -61,6 +76,12 @@ class RefineConfig:
             are dropped and the problem solved again (a corner on the wrong edge, a wrong ID).
         use_identified: also use stickers identified by appearance/ORB whose fix the tracker
             accepted (default: decoded stickers only, whose identity does not depend on the map).
+        odometry: link frames by the floor odometry (see the module docstring).
+        max_link_s: longest run of odometry steps composed into one link, s: the odometry's noise
+            was calibrated over the 0.5-2 s it bridges between stickers, and a link longer than
+            that is worth little next to the corners at either end.
+        link_points: floor points per side of the patch grid that defines a pose's apparent motion
+            (5 x 5 spans the square; the rigid fit barely changes with more).
     """
 
     corner_sigma_px: float = 0.5
@@ -70,9 +91,12 @@ class RefineConfig:
     max_moved_fraction: float = 0.3
     max_sighting_rms_px: float = 2.0
     use_identified: bool = False
+    odometry: bool = True
+    max_link_s: float = 2.0
+    link_points: int = 5
 
     def __post_init__(self) -> None:
-        for name in ("corner_sigma_px", "default_sigma_m", "default_sigma_deg", "max_sighting_rms_px"):
+        for name in ("corner_sigma_px", "default_sigma_m", "default_sigma_deg", "max_sighting_rms_px", "max_link_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise InputError(f"refine: {name} must be a positive number, got {value!r}")
@@ -118,7 +142,8 @@ class RefineResult:
         refined: the whole map, refined stickers updated with sigma columns, the rest unchanged.
         changes: one entry per refined sticker, in map order.
         seen_alone: stickers identified but never together with another one (not refinable).
-        frames_used, sightings_used, sightings_dropped: problem size.
+        frames_used, sightings_used, sightings_dropped: problem size; odometry_links: links used
+            (frames_linked: of the frames used, those that saw a single sticker, there by a link).
         rms_px: RMS corner residual after the solve; chi2_dof: chi-square per degree of freedom
             (corners and priors) with ``corner_sigma_px``.
         solve_s: wall time of the solves, s; evaluations: residual evaluations in all.
@@ -131,6 +156,8 @@ class RefineResult:
     frames_used: int = 0
     sightings_used: int = 0
     sightings_dropped: int = 0
+    odometry_links: int = 0
+    frames_linked: int = 0
     rms_px: float = float("nan")
     chi2_dof: float = float("nan")
     solve_s: float = 0.0
@@ -146,7 +173,8 @@ def _usable(s: Sighting, config: RefineConfig) -> bool:
 
 @dataclass
 class _Problem:
-    """The least-squares problem's index tables (P corner points, V views = camera poses, S stickers)."""
+    """The least-squares problem's index tables (P corner points, V views = camera poses, S stickers,
+    L odometry links)."""
 
     ids: np.ndarray  # (S,) sticker IDs refined
     rows: np.ndarray  # (S,) their rows in the map
@@ -162,24 +190,97 @@ class _Problem:
     cy: np.ndarray
     x0_views: np.ndarray  # (V, 6) OpenCV rvec, tvec of T_camera_world
     n_sightings: int
+    link_views: np.ndarray  # (L, 2) views joined by each odometry link
+    link_delta: np.ndarray  # (L, 3) composed odometry (dx, dy, dyaw): later apparent pose in the earlier's frame
+    link_whiten: np.ndarray  # (L, 3, 3) inverse Cholesky factor of each link's covariance
+    patch_q: np.ndarray  # (V, M, 2) nominal floor patch points, body frame, m (defines the apparent pose)
+    patch_rays: np.ndarray  # (V, M, 3) those points' rays in the camera through the nominal mount
+    single_linked: int  # views that saw one sticker only (there by a link)
+
+
+def _compose(a: np.ndarray, cov_a: np.ndarray, b: np.ndarray, cov_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Planar motion ``a`` then ``b`` (each (dx, dy, dyaw), ``b`` in ``a``'s end frame) and the
+    first-order covariance of the result (independent errors)."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    out = np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], a[2] + b[2]])
+    Ja = np.array([[1.0, 0.0, -s * b[0] - c * b[1]], [0.0, 1.0, c * b[0] - s * b[1]], [0.0, 0.0, 1.0]])
+    Jb = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return out, Ja @ cov_a @ Ja.T + Jb @ cov_b @ Jb.T
+
+
+def _links(
+    frames: list[FrameRecord], is_view: dict[int, int], max_link_s: float
+) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+    """Odometry links (view a, view b, delta, cov) along one camera's ``frames`` (in order) between
+    consecutive frames that are candidate views (``is_view``: frame position -> view number), every
+    frame between them having a step from its predecessor."""
+    out = []
+    last, acc, cov, t_last = None, np.zeros(3), np.zeros((3, 3)), 0.0
+    for k, fr in enumerate(frames):
+        step = fr.step
+        ok = last is not None and step is not None and k > 0 and abs(step.t0 - frames[k - 1].t) < 1e-6
+        if ok:
+            acc, cov = _compose(acc, cov, np.asarray(step.delta, float), np.asarray(step.cov, float))
+        else:
+            last = None
+        if k in is_view:
+            if last is not None and fr.t - t_last <= max_link_s:
+                out.append((last, is_view[k], acc.copy(), cov.copy()))
+            last, acc, cov, t_last = is_view[k], np.zeros(3), np.zeros((3, 3)), fr.t
+    return out
+
+
+def _patch_rays(rig_cam: RigCamera, points: int) -> tuple[np.ndarray, np.ndarray]:
+    """(M, 2) grid over the odometry's floor patch (body frame, m) and (M, 3) the rays to them from
+    the camera at its nominal mount (camera frame, z = 1)."""
+    p = floor_patch(rig_cam, OdometryConfig())
+    g = np.linspace(0.0, OdometryConfig().patch_px - 1, points)
+    col, row = np.meshgrid(g, g)
+    q = p.origin + np.column_stack([col.ravel(), row.ravel()]) @ p.A.T
+    T_cb = np.linalg.inv(rig_cam.T_body_camera)
+    pc = np.column_stack([q, np.zeros(len(q))]) @ T_cb[:3, :3].T + T_cb[:3, 3]
+    return q, pc / pc[:, 2:3]
 
 
 def _build(walks: list[WalkLog], smap: StickerMap, config: RefineConfig, drop: set[tuple[int, int, int]]) -> _Problem:
-    """Views (frame, camera) with two or more usable sightings, minus dropped sightings (walk, frame, slot)."""
-    views: list[tuple[WalkLog, int, list[tuple[int, Sighting]]]] = []
+    """Views (frame, camera) with two or more usable sightings, or one and an odometry link to
+    another view, minus dropped sightings (walk, frame, slot)."""
+    cands: list[tuple[WalkLog, int, list[tuple[int, Sighting]]]] = []
+    links: list[tuple[int, int, np.ndarray, np.ndarray]] = []
     for w, walk in enumerate(walks):
+        per_cam: dict[int, list[FrameRecord]] = {}
+        is_view: dict[int, dict[int, int]] = {}
         for fr in walk.frames:
-            by_cam: dict[int, list[tuple[int, Sighting]]] = {}
-            for slot, s in enumerate(fr.sightings):
-                if _usable(s, config) and (w, fr.index, slot) not in drop:
-                    by_cam.setdefault(s.camera, []).append((slot, s))
-            for cam, sights in by_cam.items():
-                if len({s.sticker_id for _, s in sights}) >= 2:
-                    views.append((walk, cam, sights))
+            frames = per_cam.setdefault(fr.camera, [])
+            sights = [
+                (slot, s)
+                for slot, s in enumerate(fr.sightings)
+                if _usable(s, config) and s.camera == fr.camera and (w, fr.index, slot) not in drop
+            ]
+            if sights:
+                is_view.setdefault(fr.camera, {})[len(frames)] = len(cands)
+                cands.append((walk, fr.camera, sights))
+            frames.append(fr)
+        if config.odometry:
+            for cam, frames in per_cam.items():
+                links += _links(frames, is_view.get(cam, {}), config.max_link_s)
+    # Keep the views that tie two or more stickers together: alone, or through their links.
+    n = len(cands)
+    edges = np.array([(a, b) for a, b, _, _ in links], np.int64).reshape(-1, 2)
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    _, comp = connected_components(graph, directed=False)
+    stickers_of: dict[int, set[int]] = {}
+    for v, (_, _, sights) in enumerate(cands):
+        stickers_of.setdefault(int(comp[v]), set()).update(int(s.sticker_id) for _, s in sights)
+    keep = [v for v in range(n) if len(stickers_of[int(comp[v])]) >= 2]
+    renum = {v: k for k, v in enumerate(keep)}
+    views = [cands[v] for v in keep]
+    links = [(renum[a], renum[b], d, c) for a, b, d, c in links if a in renum and b in renum]
     ids = sorted({int(s.sticker_id) for _, _, sights in views for _, s in sights})
     col = {sid: k for k, sid in enumerate(ids)}
     tables: dict[str, list] = {k: [] for k in ("view", "sticker", "sighting", "obj", "meas", "f")}
-    x0_views, view_sighting = [], []
+    x0_views, view_sighting, patch_q, patch_rays = [], [], [], []
+    rays_of: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
     n_sight = 0
     for v, (walk, cam, sights) in enumerate(views):
         camera = walk.rig[cam].camera
@@ -188,17 +289,23 @@ def _build(walks: list[WalkLog], smap: StickerMap, config: RefineConfig, drop: s
         T_cw = best.T_camera_sticker @ np.linalg.inv(smap.T_world_sticker(best.sticker_id))
         x0_views.append(np.concatenate([Rotation.from_matrix(T_cw[:3, :3]).as_rotvec(), T_cw[:3, 3]]))
         view_sighting.append([s for _, s in sights])
+        key = (id(walk), cam)
+        if key not in rays_of:
+            rays_of[key] = _patch_rays(walk.rig[cam], config.link_points)
+        patch_q.append(rays_of[key][0])
+        patch_rays.append(rays_of[key][1])
         for _, s in sights:
-            n = len(s.corners)
-            tables["view"].append(np.full(n, v))
-            tables["sticker"].append(np.full(n, col[int(s.sticker_id)]))
-            tables["sighting"].append(np.full(n, n_sight))
-            tables["obj"].append(ALL_CORNERS[:n, :2])
+            m = len(s.corners)
+            tables["view"].append(np.full(m, v))
+            tables["sticker"].append(np.full(m, col[int(s.sticker_id)]))
+            tables["sighting"].append(np.full(m, n_sight))
+            tables["obj"].append(ALL_CORNERS[:m, :2])
             tables["meas"].append(camera.undistort_pixels(s.corners))
-            tables["f"].append(np.tile(camera.K[[0, 1, 0, 1], [0, 1, 2, 2]], (n, 1)))
+            tables["f"].append(np.tile(camera.K[[0, 1, 0, 1], [0, 1, 2, 2]], (m, 1)))
             n_sight += 1
     cat = {k: (np.concatenate(v) if v else np.zeros(0)) for k, v in tables.items()}
     f = cat["f"].reshape(-1, 4)
+    M = config.link_points**2
     return _Problem(
         np.array(ids, np.int64),
         np.array([smap.row(i) for i in ids], np.int64),
@@ -214,6 +321,12 @@ def _build(walks: list[WalkLog], smap: StickerMap, config: RefineConfig, drop: s
         f[:, 3],
         np.array(x0_views).reshape(-1, 6),
         n_sight,
+        np.array([(a, b) for a, b, _, _ in links], np.int64).reshape(-1, 2),
+        np.array([d for _, _, d, _ in links]).reshape(-1, 3),
+        np.array([np.linalg.inv(np.linalg.cholesky(c + 1e-12 * np.eye(3))) for _, _, _, c in links]).reshape(-1, 3, 3),
+        np.array(patch_q).reshape(-1, M, 2),
+        np.array(patch_rays).reshape(-1, M, 3),
+        sum(len({s.sticker_id for s in sights}) == 1 for sights in view_sighting),
     )
 
 
@@ -226,7 +339,7 @@ class _Solver:
         self.prior_w = 1.0 / prior_sigma  # (S, 3)
         self.active = np.ones(len(prob.ids), bool)
         self.w_px = 1.0 / config.corner_sigma_px
-        self.V, self.S = len(prob.x0_views), len(prob.ids)
+        self.V, self.S, self.L = len(prob.x0_views), len(prob.ids), len(prob.link_views)
         self.sparsity = self._sparsity()
         self.W = self._whitening()
 
@@ -286,8 +399,50 @@ class _Solver:
         prior_rows = 2 * P + np.arange(3 * self.S)
         rows.append(prior_rows)
         cols.append(6 * V + np.arange(3 * self.S))
+        # Each link's three rows depend on the six variables of each of its two views.
+        link_rows = 2 * P + 3 * self.S + np.arange(3 * self.L)
+        for end in range(2):
+            for k in range(6):
+                rows.append(link_rows)
+                cols.append(6 * np.repeat(p.link_views[:, end], 3) + k)
         rows, cols = np.concatenate(rows), np.concatenate(cols)
-        return coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(2 * P + 3 * self.S, 6 * V + 3 * self.S)).tocsr()
+        shape = (2 * P + 3 * self.S + 3 * self.L, 6 * V + 3 * self.S)
+        return coo_matrix((np.ones(len(rows)), (rows, cols)), shape=shape).tocsr()
+
+    def apparent(self, views: np.ndarray) -> np.ndarray:
+        """(V, 3) each view's apparent body pose (x, y, yaw): the rigid planar motion taking the nominal
+        floor patch to where the camera pose actually sees those image points on the floor."""
+        p = self.p
+        R_wc = Rotation.from_rotvec(views[:, :3]).inv().as_matrix()  # (V, 3, 3)
+        centre = -np.einsum("vij,vj->vi", R_wc, views[:, 3:])  # camera centre in the world
+        rays = np.einsum("vij,vmj->vmi", R_wc, p.patch_rays)
+        scale = -centre[:, None, 2] / np.where(np.abs(rays[:, :, 2]) > 1e-9, rays[:, :, 2], -1e-9)
+        w = centre[:, None, :2] + scale[:, :, None] * rays[:, :, :2]
+        q = p.patch_q
+        qm, wm = q.mean(axis=1), w.mean(axis=1)
+        qc, wc = q - qm[:, None], w - wm[:, None]
+        yaw = np.arctan2(
+            np.sum(qc[:, :, 0] * wc[:, :, 1] - qc[:, :, 1] * wc[:, :, 0], axis=1),
+            np.sum(qc[:, :, 0] * wc[:, :, 0] + qc[:, :, 1] * wc[:, :, 1], axis=1),
+        )
+        c, sn = np.cos(yaw), np.sin(yaw)
+        t = wm - np.column_stack([c * qm[:, 0] - sn * qm[:, 1], sn * qm[:, 0] + c * qm[:, 1]])
+        return np.column_stack([t, yaw])
+
+    def link_residuals(self, x: np.ndarray) -> np.ndarray:
+        """(L, 3) whitened odometry residuals: the apparent motion between each link's views minus the
+        composed measurement."""
+        p = self.p
+        if self.L == 0:
+            return np.zeros((0, 3))
+        a = self.apparent(self.views(x))
+        pa, pb = a[p.link_views[:, 0]], a[p.link_views[:, 1]]
+        c, sn = np.cos(pa[:, 2]), np.sin(pa[:, 2])
+        d = pb[:, :2] - pa[:, :2]
+        rel = np.column_stack([c * d[:, 0] + sn * d[:, 1], -sn * d[:, 0] + c * d[:, 1], pb[:, 2] - pa[:, 2]])
+        e = rel - p.link_delta
+        e[:, 2] = wrap_angle(e[:, 2])
+        return np.einsum("lij,lj->li", p.link_whiten, e)
 
     def corner_residuals(self, x: np.ndarray) -> np.ndarray:
         """(P, 2) corner residuals in pixels (not weighted)."""
@@ -311,7 +466,9 @@ class _Solver:
         d = st - self.prior
         d[:, 2] = wrap_angle(d[:, 2])
         prior_r = d * self.prior_w * self.active[:, None]
-        return np.concatenate([self.corner_residuals(x).ravel() * self.w_px, prior_r.ravel()])
+        return np.concatenate(
+            [self.corner_residuals(x).ravel() * self.w_px, prior_r.ravel(), self.link_residuals(x).ravel()]
+        )
 
     def solve(self, x0: np.ndarray):
         # One BLAS thread: the solver's vectors are small, and threaded BLAS spinning on a busy
@@ -336,12 +493,11 @@ class _Solver:
         """(S, 3, 3) marginal covariance of each sticker, cameras eliminated (Schur complement)."""
         V, S = self.V, self.S
         H = (jac.T @ jac).tocsr()
-        A = H[: 6 * V, : 6 * V]
-        blocks = [np.linalg.pinv(A[6 * i : 6 * i + 6, 6 * i : 6 * i + 6].toarray()) for i in range(V)]
-        A_inv = block_diag(blocks, format="csr")
-        B = H[: 6 * V, 6 * V :]
+        # The cameras' block is block-diagonal but for the odometry links: a sparse LU solves it.
+        A = H[: 6 * V, : 6 * V].tocsc()
+        B = H[: 6 * V, 6 * V :].toarray()
         C = H[6 * V :, 6 * V :].toarray()
-        schur = C - (B.T @ (A_inv @ B)).toarray()
+        schur = C - B.T @ splu(A).solve(B)
         cov = np.linalg.pinv((schur + schur.T) / 2)
         return np.stack([cov[3 * k : 3 * k + 3, 3 * k : 3 * k + 3] for k in range(S)]) if S else np.zeros((0, 3, 3))
 
@@ -403,7 +559,7 @@ def refine_map(walks: list[WalkLog], smap: StickerMap, config: RefineConfig | No
             )
         break
     result.solve_s = time.perf_counter() - t0
-    n_res = 2 * len(prob.pt_view) + 3 * int(solver.active.sum())
+    n_res = 2 * len(prob.pt_view) + 3 * int(solver.active.sum()) + 3 * solver.L
     dof = max(n_res - 6 * solver.V - 3 * solver.S, 1)
     result.chi2_dof = float(2 * sol.cost / dof)
     result.rms_px = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
@@ -411,6 +567,8 @@ def refine_map(walks: list[WalkLog], smap: StickerMap, config: RefineConfig | No
     result.frames_used = solver.V
     result.sightings_used = prob.n_sightings
     result.sightings_dropped = len(drop)
+    result.odometry_links = solver.L
+    result.frames_linked = prob.single_linked
     frames_of = np.zeros(len(prob.ids), np.int64)
     sightings_of = np.zeros(len(prob.ids), np.int64)
     for sights in prob.view_sighting:
