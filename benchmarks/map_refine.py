@@ -1,6 +1,6 @@
 """Map refinement measured: survey-error map against refined map, and the localiser with each.
 
-The site is a strip of 4 x 16 stickers 0.5 m apart (``tagloc.eval.mapbench.strip_site``). The
+The site is a strip of 4 x 20 stickers 0.4 m apart (``tagloc.eval.mapbench.strip_site``). The
 simulator renders the stickers at their true poses; each session's map carries the survey error of
 ``tagloc.sim.survey`` (2 cm RMS in position, 2 degrees, stated in the map's sigma columns; one site
 survey) with one sticker moved 15 cm since the survey; the audited map also lists a sticker that is no
@@ -8,7 +8,7 @@ longer on the floor and lacks one that is. Three walks refine the map (with and 
 odometry's links); they and two fresh walks are then localised with the survey-error map, the
 refined map and the true map, and scored as ``tagloc eval`` scores a walk.
 
-    nice python benchmarks/map_refine.py -o out/map_refine [--seconds 10]
+    nice python benchmarks/map_refine.py -o out/map_refine [--seconds 8]
 """
 
 from __future__ import annotations
@@ -72,7 +72,7 @@ def describe(res: MapBenchResult, label: str) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("-o", "--out", type=Path, default=Path("out/map_refine"))
-    ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--seconds", type=float, default=8.0)
     args = ap.parse_args()
     sessions = make_sessions(args.out, [1, 2, 3, 4, 5], args.seconds)
     truth = without(strip_site(), UNMAPPED)

@@ -20,8 +20,9 @@ info: count, bounds and nearest-neighbour spacing of a map file (after full vali
 audit: localise recorded sessions with the map and report missing, unmapped, misplaced and
 hard-to-read stickers (report.md, floorplan.png, audit.json, unmapped.csv in the output directory).
 refine: localise recorded sessions with the map and jointly re-estimate the stickers seen together
-with the frames' camera poses, anchored by each sticker's survey sigma; writes the refined map with
-sigma_m/sigma_deg columns and a Markdown report of what moved.
+(in one frame, or in frames linked by the floor odometry) with the frames' camera poses, anchored by
+each sticker's survey sigma; writes the refined map with sigma_m/sigma_deg columns and a Markdown
+report of what moved.
 
 examples:
   tagloc map grid -o maps/demo.csv --width 40 --depth 25 --aisle-spacing 3.0 \\
@@ -69,9 +70,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "refine",
         help="refine sticker positions and yaws from sessions (joint least squares)",
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="Jointly re-estimate the stickers seen two or more to a frame and those frames' camera\n"
-        "poses, anchored by each sticker's survey sigma; stickers whose survey the walks contradict are\n"
-        "reported as moved. Writes the refined map (sigma_m, sigma_deg columns) and a report.\n\n"
+        description="Jointly re-estimate the stickers and the camera poses of the frames that saw two or\n"
+        "more of them, or one and a floor-odometry link to another such frame, anchored by each sticker's\n"
+        "survey sigma; stickers whose survey the walks contradict are reported as moved. Writes the refined map (sigma_m, sigma_deg columns) and a report.\n\n"
         "example:\n  tagloc map refine logs/walk1 logs/walk2 logs/walk3 --map site/map.csv -o site/map-refined.csv",
     )
     r.add_argument("sessions", type=Path, nargs="+", metavar="SESSION", help="recorded session directories")
@@ -80,6 +81,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     r.add_argument("--report", type=Path, help="Markdown report of what moved (default: OUT with .md)")
     r.add_argument("--sigma-m", type=float, default=0.02, help="survey sigma where the map states none, m (0.02)")
     r.add_argument("--sigma-deg", type=float, default=2.0, help="survey yaw sigma where the map states none, deg (2)")
+    r.add_argument(
+        "--no-odometry",
+        action="store_true",
+        help="use only frames that saw two or more stickers (no floor-odometry links between frames)",
+    )
     r.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -105,7 +111,9 @@ def run(args: argparse.Namespace) -> int:
         checks.number(args.sigma_deg, "--sigma-deg", 0, 180.0, lo_open=True)
         checks.output_file(args.out, "-o")
         checks.output_file(args.report, "--report")
-        cfg = RefineConfig(default_sigma_m=args.sigma_m, default_sigma_deg=args.sigma_deg)
+        cfg = RefineConfig(
+            default_sigma_m=args.sigma_m, default_sigma_deg=args.sigma_deg, odometry=not args.no_odometry
+        )
         res = refine_sessions(args.sessions, args.map, args.out, args.report, cfg, progress=not args.quiet)
         moved = [c.sticker_id for c in res.changes if c.moved]
         print(

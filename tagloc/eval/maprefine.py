@@ -230,7 +230,32 @@ def _links(
     return out
 
 
-def _patch_rays(rig_cam: RigCamera, points: int) -> tuple[np.ndarray, np.ndarray]:
+def apparent_poses(views: np.ndarray, patch_q: np.ndarray, patch_rays: np.ndarray) -> np.ndarray:
+    """(V, 3) the apparent body pose (x, y, yaw) of each camera pose, as the floor odometry sees it.
+
+    ``views`` (V, 6): rvec, tvec of T_camera_world; ``patch_q`` (V, M, 2): floor points of the
+    odometry's patch in the body frame (m); ``patch_rays`` (V, M, 3): the rays to them from the camera
+    at its nominal mount. The odometry takes the image to show the floor through that mount; the
+    apparent pose is the rigid planar motion taking the patch points to where the actual camera
+    pose's rays meet the floor (exactly the body pose when the camera sits at its nominal mount).
+    """
+    R_wc = Rotation.from_rotvec(views[:, :3]).inv().as_matrix()  # (V, 3, 3)
+    centre = -np.einsum("vij,vj->vi", R_wc, views[:, 3:])  # camera centre in the world
+    rays = np.einsum("vij,vmj->vmi", R_wc, patch_rays)
+    scale = -centre[:, None, 2] / np.where(np.abs(rays[:, :, 2]) > 1e-9, rays[:, :, 2], -1e-9)
+    w = centre[:, None, :2] + scale[:, :, None] * rays[:, :, :2]
+    qm, wm = patch_q.mean(axis=1), w.mean(axis=1)
+    qc, wc = patch_q - qm[:, None], w - wm[:, None]
+    yaw = np.arctan2(
+        np.sum(qc[:, :, 0] * wc[:, :, 1] - qc[:, :, 1] * wc[:, :, 0], axis=1),
+        np.sum(qc[:, :, 0] * wc[:, :, 0] + qc[:, :, 1] * wc[:, :, 1], axis=1),
+    )
+    c, sn = np.cos(yaw), np.sin(yaw)
+    t = wm - np.column_stack([c * qm[:, 0] - sn * qm[:, 1], sn * qm[:, 0] + c * qm[:, 1]])
+    return np.column_stack([t, yaw])
+
+
+def patch_rays(rig_cam: RigCamera, points: int) -> tuple[np.ndarray, np.ndarray]:
     """(M, 2) grid over the odometry's floor patch (body frame, m) and (M, 3) the rays to them from
     the camera at its nominal mount (camera frame, z = 1)."""
     p = floor_patch(rig_cam, OdometryConfig())
@@ -279,7 +304,7 @@ def _build(walks: list[WalkLog], smap: StickerMap, config: RefineConfig, drop: s
     ids = sorted({int(s.sticker_id) for _, _, sights in views for _, s in sights})
     col = {sid: k for k, sid in enumerate(ids)}
     tables: dict[str, list] = {k: [] for k in ("view", "sticker", "sighting", "obj", "meas", "f")}
-    x0_views, view_sighting, patch_q, patch_rays = [], [], [], []
+    x0_views, view_sighting, view_q, view_rays = [], [], [], []
     rays_of: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
     n_sight = 0
     for v, (walk, cam, sights) in enumerate(views):
@@ -291,9 +316,9 @@ def _build(walks: list[WalkLog], smap: StickerMap, config: RefineConfig, drop: s
         view_sighting.append([s for _, s in sights])
         key = (id(walk), cam)
         if key not in rays_of:
-            rays_of[key] = _patch_rays(walk.rig[cam], config.link_points)
-        patch_q.append(rays_of[key][0])
-        patch_rays.append(rays_of[key][1])
+            rays_of[key] = patch_rays(walk.rig[cam], config.link_points)
+        view_q.append(rays_of[key][0])
+        view_rays.append(rays_of[key][1])
         for _, s in sights:
             m = len(s.corners)
             tables["view"].append(np.full(m, v))
@@ -324,8 +349,8 @@ def _build(walks: list[WalkLog], smap: StickerMap, config: RefineConfig, drop: s
         np.array([(a, b) for a, b, _, _ in links], np.int64).reshape(-1, 2),
         np.array([d for _, _, d, _ in links]).reshape(-1, 3),
         np.array([np.linalg.inv(np.linalg.cholesky(c + 1e-12 * np.eye(3))) for _, _, _, c in links]).reshape(-1, 3, 3),
-        np.array(patch_q).reshape(-1, M, 2),
-        np.array(patch_rays).reshape(-1, M, 3),
+        np.array(view_q).reshape(-1, M, 2),
+        np.array(view_rays).reshape(-1, M, 3),
         sum(len({s.sticker_id for s in sights}) == 1 for sights in view_sighting),
     )
 
@@ -409,33 +434,13 @@ class _Solver:
         shape = (2 * P + 3 * self.S + 3 * self.L, 6 * V + 3 * self.S)
         return coo_matrix((np.ones(len(rows)), (rows, cols)), shape=shape).tocsr()
 
-    def apparent(self, views: np.ndarray) -> np.ndarray:
-        """(V, 3) each view's apparent body pose (x, y, yaw): the rigid planar motion taking the nominal
-        floor patch to where the camera pose actually sees those image points on the floor."""
-        p = self.p
-        R_wc = Rotation.from_rotvec(views[:, :3]).inv().as_matrix()  # (V, 3, 3)
-        centre = -np.einsum("vij,vj->vi", R_wc, views[:, 3:])  # camera centre in the world
-        rays = np.einsum("vij,vmj->vmi", R_wc, p.patch_rays)
-        scale = -centre[:, None, 2] / np.where(np.abs(rays[:, :, 2]) > 1e-9, rays[:, :, 2], -1e-9)
-        w = centre[:, None, :2] + scale[:, :, None] * rays[:, :, :2]
-        q = p.patch_q
-        qm, wm = q.mean(axis=1), w.mean(axis=1)
-        qc, wc = q - qm[:, None], w - wm[:, None]
-        yaw = np.arctan2(
-            np.sum(qc[:, :, 0] * wc[:, :, 1] - qc[:, :, 1] * wc[:, :, 0], axis=1),
-            np.sum(qc[:, :, 0] * wc[:, :, 0] + qc[:, :, 1] * wc[:, :, 1], axis=1),
-        )
-        c, sn = np.cos(yaw), np.sin(yaw)
-        t = wm - np.column_stack([c * qm[:, 0] - sn * qm[:, 1], sn * qm[:, 0] + c * qm[:, 1]])
-        return np.column_stack([t, yaw])
-
     def link_residuals(self, x: np.ndarray) -> np.ndarray:
         """(L, 3) whitened odometry residuals: the apparent motion between each link's views minus the
         composed measurement."""
         p = self.p
         if self.L == 0:
             return np.zeros((0, 3))
-        a = self.apparent(self.views(x))
+        a = apparent_poses(self.views(x), p.patch_q, p.patch_rays)
         pa, pb = a[p.link_views[:, 0]], a[p.link_views[:, 1]]
         c, sn = np.cos(pa[:, 2]), np.sin(pa[:, 2])
         d = pb[:, :2] - pa[:, :2]
@@ -637,7 +642,8 @@ def refine_markdown(result: RefineResult, map_name: str, walks: list[str]) -> st
         f"# Map refinement of {map_name}",
         "",
         f"From {len(walks)} walks ({', '.join(walks)}): {result.frames_used} frames with two or more decoded"
-        f" stickers, {result.sightings_used} sightings ({result.sightings_dropped} dropped as unexplained),"
+        f" stickers or one and a floor-odometry link ({result.frames_linked} such, {result.odometry_links} links),"
+        f" {result.sightings_used} sightings ({result.sightings_dropped} dropped as unexplained),"
         f" {len(result.changes)} stickers refined, RMS corner residual {result.rms_px:.2f} px"
         f" (chi-square per DoF {result.chi2_dof:.2f}), {result.solve_s:.1f} s.",
         f"Moved (survey prior rejected): {' '.join(str(c.sticker_id) for c in moved) or 'none'}."
