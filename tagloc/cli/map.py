@@ -72,7 +72,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Jointly re-estimate the stickers and the camera poses of the frames that saw two or\n"
         "more of them, or one and a floor-odometry link to another such frame, anchored by each sticker's\n"
-        "survey sigma; stickers whose survey the walks contradict are reported as moved. Writes the refined map (sigma_m, sigma_deg columns) and a report.\n\n"
+        "survey sigma; stickers whose survey the walks contradict are reported as moved.\n"
+        "Writes the refined map (sigma_m, sigma_deg columns) and a report.\n\n"
         "example:\n  tagloc map refine logs/walk1 logs/walk2 logs/walk3 --map site/map.csv -o site/map-refined.csv",
     )
     r.add_argument("sessions", type=Path, nargs="+", metavar="SESSION", help="recorded session directories")
