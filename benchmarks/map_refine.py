@@ -8,7 +8,12 @@ longer on the floor and lacks one that is. Three walks refine the map (with and 
 odometry's links); they and two fresh walks are then localised with the survey-error map, the
 refined map and the true map, and scored as ``tagloc eval`` scores a walk.
 
+With ``--sparse`` it measures instead what the odometry links add where frames rarely see two
+stickers: one aisle of 12 stickers 1.5 m apart (a warehouse's spacing), the same survey error (no
+moved sticker), three 10 s walks refined with and without the links.
+
     nice python benchmarks/map_refine.py -o out/map_refine [--seconds 8]
+    nice python benchmarks/map_refine.py -o out/map_refine_sparse --sparse
 """
 
 from __future__ import annotations
@@ -21,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tagloc.core.stickermap import load_map, save_map
+from tagloc.core.stickermap import StickerMap, load_map, save_map
 from tagloc.eval.mapbench import (
     MISSING,
     MOVED,
@@ -35,26 +40,48 @@ from tagloc.eval.mapbench import (
     strip_site,
     without,
 )
+from tagloc.eval.mapobs import collect_walk
 from tagloc.eval.maprefine import RefineConfig, refine_map
 from tagloc.sim.simulate import SimConfig, simulate_session
+from tagloc.sim.survey import SurveyConfig, surveyed_map
 
 
-def make_sessions(out: Path, seeds: list[int], seconds: float) -> list[Path]:
+def make_sessions(
+    out: Path, seeds: list[int], seconds: float, floor: StickerMap | None = None, survey: SurveyConfig = SITE_SURVEY
+) -> list[Path]:
     """The site's walks (made once, reused when present)."""
-    floor = without(strip_site(), MISSING)
+    floor = floor if floor is not None else without(strip_site(), MISSING)
     sessions = []
     for seed in seeds:
         path = out / f"walk{seed}"
         if not (path / "groundtruth_frames.jsonl").exists():
-            cfg = SimConfig(seconds=seconds, lux=150, speed_mps=1.0, seed=seed, survey=SITE_SURVEY)
+            cfg = SimConfig(seconds=seconds, lux=150, speed_mps=1.0, seed=seed, survey=survey)
             simulate_session(floor, path, cfg, progress=True)
         sessions.append(path)
     return sessions
 
 
+def sparse(out: Path, seconds: float) -> None:
+    """What the odometry links add on a sparse aisle (see the module docstring)."""
+    truth = strip_site(1, 12, 1.5)
+    survey_cfg = dataclasses.replace(SITE_SURVEY, moved=())
+    sessions = make_sessions(out, [1, 2, 3], seconds, truth, survey_cfg)
+    save_map(surveyed_map(truth, survey_cfg, seed=0), out / "survey.csv")
+    survey = load_map(out / "survey.csv")
+    walks = [collect_walk(s, survey, map_path=out / "survey.csv", progress=True) for s in sessions]
+    for odometry in (False, True):
+        res = refine_map(walks, survey, RefineConfig(odometry=odometry))
+        label = "corners + odometry" if odometry else "corners only"
+        if not res.changes:
+            print(f"{label}: {res.note}")
+            continue
+        print(describe(score_refinement(res, truth, survey, []), label))
+
+
 def describe(res: MapBenchResult, label: str) -> str:
     """The map figures of one refinement, as lines."""
     r, b = res.refine, res.bound
+    moved = f"  moved sticker found within {res.moved_after_m[0] * 100:.2f} cm; " if len(res.moved_after_m) else "  "
     return "\n".join(
         [
             f"{label}: {len(res.seen)} stickers refined from {r.frames_used} frames"
@@ -64,7 +91,7 @@ def describe(res: MapBenchResult, label: str) -> str:
             f" {np.degrees(rms(res.after_yaw)):.2f} deg",
             f"  anchoring bound: the true shape placed by the priors {rms(b.oracle_m) * 100:.2f} cm"
             f" (expected over surveys {b.expected_rms_m * 100:.2f} cm); refined shape alone {b.shape_rms_m * 100:.2f} cm",
-            f"  moved sticker found within {res.moved_after_m[0] * 100:.2f} cm; unseen unchanged: {res.unseen_unchanged}",
+            moved + f"unseen unchanged: {res.unseen_unchanged}",
         ]
     )
 
@@ -72,9 +99,13 @@ def describe(res: MapBenchResult, label: str) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("-o", "--out", type=Path, default=Path("out/map_refine"))
-    ap.add_argument("--seconds", type=float, default=8.0)
+    ap.add_argument("--seconds", type=float, default=None, help="length of each walk, s (8; 10 with --sparse)")
+    ap.add_argument("--sparse", action="store_true", help="measure the odometry links on a sparse aisle instead")
     args = ap.parse_args()
-    sessions = make_sessions(args.out, [1, 2, 3, 4, 5], args.seconds)
+    if args.sparse:
+        sparse(args.out, args.seconds or 10.0)
+        return
+    sessions = make_sessions(args.out, [1, 2, 3, 4, 5], args.seconds or 8.0)
     truth = without(strip_site(), UNMAPPED)
     save_map(truth, args.out / "true.csv")
     save_map(site_map(strip_site()), args.out / "survey.csv")
