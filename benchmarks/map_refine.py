@@ -114,6 +114,7 @@ def main() -> None:
         truth, survey, sessions[:3], sessions[3:], [MOVED], progress=True, survey_path=args.out / "survey.csv"
     )
     save_map(res.refine.refined, args.out / "refined.csv")
+    (args.out / "metrics.json").write_text(json.dumps(res.metrics, indent=1, default=float))
     # The same walks refined without the odometry links: what the links add.
     plain = refine_map(res.walks, survey, dataclasses.replace(RefineConfig(), odometry=False))
     print(describe(score_refinement(plain, truth, survey, [MOVED]), "corners only"))
@@ -127,7 +128,7 @@ def main() -> None:
         m = [res.metrics[n][p.name] for n in names]
 
         def each(key: str, fmt: str, m=m, scale: float = 1.0) -> str:
-            return " / ".join(format(x[key] * scale, fmt) for x in m)
+            return " / ".join(format(x[key] * scale if scale != 1.0 else x[key], fmt) for x in m)
 
         print(
             f"| {p.name} | {'yes' if k < 3 else 'no'} | {each('rmse_m', '.2f', scale=100)} | {each('heading_rmse_deg', '.2f')}"
