@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from tagloc.core.types import Detection, Identity, IdSource
-from tagloc.pipeline.localiser import LocaliserConfig, Tracked, TrackingConfig, match_tracked
+from tagloc.pipeline.localiser import LocaliserConfig, Tracked, TrackingConfig, match_tracked, match_tracks
 
 CFG = TrackingConfig()
 SQUARE = np.array([[100.0, 100.0], [160.0, 100.0], [160.0, 160.0], [100.0, 160.0]])  # clockwise, y down
@@ -60,6 +60,15 @@ def test_stale_other_camera_or_due_tracks_are_not_carried():
     assert match_tracked(det, [_tracked(age=CFG.redecode_every - 2)], 0, 1 / 30, CFG, only(7))[0] is not None
 
 
+def test_a_track_due_for_re_decoding_is_matched_as_due():
+    det = [Detection(np.roll(SQUARE, 1, axis=0) + 1.0)]
+    (m,) = match_tracks(det, [_tracked(age=CFG.redecode_every - 1)], 0, 1 / 30, CFG, only(7))
+    assert m is not None and m.due and m.identity.sticker_id == 7 and m.identity.rotation == 2
+    (m,) = match_tracks(det, [_tracked(age=CFG.redecode_every - 2)], 0, 1 / 30, CFG, only(7))
+    assert m is not None and not m.due
+    assert match_tracks(det, [_tracked(age=CFG.redecode_every - 1)], 0, 1 / 30, CFG, only(9)) == [None]
+
+
 def test_ambiguous_matches_carry_nothing():
     # Two tracked stickers on the same spot (cannot tell which) and two detections on one tracked one.
     two = [_tracked(sid=7), _tracked(outer=SQUARE + 2.0, sid=8)]
@@ -89,6 +98,8 @@ def test_tracking_saves_decodes_without_changing_fixes_or_taking_a_wrong_id(tmp_
     (off, m_off, wrong_off, _), (on, m_on, wrong_on, checked_on) = logs[False], logs[True]
     assert wrong_on == 0 and wrong_off == 0 and checked_on >= 20
     assert on.counts["tracked"] >= 0.5 * off.counts["decoded"]  # most decodes are carried
+    assert on.counts["reverified"] >= 1  # stickers due a re-decode were re-checked instead
+    assert on.counts["tracked"] - on.counts["reverified"] <= 3 * (on.counts["decoded"] + on.counts["reverified"])
     assert on.counts["decoded"] + on.counts["tracked"] >= off.counts["decoded"]
     assert len(on.fixes) >= len(off.fixes) - 2
     assert m_on["rmse_m"] <= m_off["rmse_m"] + 0.01

@@ -31,7 +31,7 @@ from tagloc.core.types import (
     Observation,
 )
 from tagloc.io.session import CAMERA_FILE, MAP_FILE, RIG_FILE
-from tagloc.vision.decode import decode
+from tagloc.vision.decode import decode, verify_detection
 from tagloc.vision.detect import detect
 from tagloc.vision.image import as_gray
 from tagloc.vision.odometry import FloorOdometry, OdometryConfig
@@ -121,12 +121,21 @@ class TrackingConfig:
         max_shape_change: with both centred, every corner must be within this share of a side of
             its previous place (the sticker's image turns ~3 deg and scales a few % per frame).
         max_gap_s: the previous frame must be this recent (no carrying over a dropped frame run).
+        reverify: a sticker due for re-decoding that still matches its track is first re-checked
+            by correlating its data modules with its tracked ID and rotation
+            (:func:`tagloc.vision.decode.verify_detection`, a quarter to a twentieth of a decode's
+            cost); only when that fails is it decoded (and a failed or different read ends the track).
+        reverify_min_score: the correlation that re-check needs. A decode's own final check accepts
+            from 0.5; any other ID or rotation scores <= 0.45 and the true one >= 0.9 up to 2 px of
+            blur, so 0.7 keeps a wide margin, and a sticker scoring less is simply decoded again.
     """
 
     redecode_every: int = 4
     max_centre_shift: float = 1.0
     max_shape_change: float = 0.25
     max_gap_s: float = 0.1
+    reverify: bool = True
+    reverify_min_score: float = 0.7
 
 
 @dataclass(frozen=True)
@@ -173,11 +182,31 @@ def match_tracked(
     ``candidates(detection)`` (gated map stickers, most likely first), allows that sticker and no
     other here. The rotation follows the canonical corner through the corners' cyclic shift.
     """
-    live = [
-        k
-        for k, tr in enumerate(tracked)
-        if tr.camera == camera and 0.0 < t - tr.t <= config.max_gap_s and tr.age + 1 < config.redecode_every
-    ]
+    matches = match_tracks(detections, tracked, camera, t, config, candidates)
+    return [m.identity if m is not None and not m.due else None for m in matches]
+
+
+@dataclass(frozen=True)
+class TrackMatch:
+    """A detection matched to a tracked sticker: its identity (rotation carried over), and whether
+    that sticker is due for re-decoding (``TrackingConfig.redecode_every``)."""
+
+    identity: Identity
+    due: bool
+
+
+def match_tracks(
+    detections: list[Detection],
+    tracked: list[Tracked],
+    camera: int,
+    t: float,
+    config: TrackingConfig,
+    candidates: Callable[[Detection], list[int]],
+) -> list[TrackMatch | None]:
+    """:func:`match_tracked`, with the stickers due for re-decoding matched too (``due`` True), so
+    that they can be re-checked against their tracked identity instead of decoded from scratch.
+    Every track of the previous frame takes part in the one-to-one pairing, due or not."""
+    live = [k for k, tr in enumerate(tracked) if tr.camera == camera and 0.0 < t - tr.t <= config.max_gap_s]
     pairs: list[tuple[int, int, int]] = []  # (detection, tracked, shift)
     for i, det in enumerate(detections):
         for k in live:
@@ -185,13 +214,14 @@ def match_tracked(
             shift, moved, change = _shape_match(det.outer, tracked[k].outer)
             if moved <= config.max_centre_shift * side and change <= config.max_shape_change * side:
                 pairs.append((i, k, shift))
-    out: list[Identity | None] = [None] * len(detections)
+    out: list[TrackMatch | None] = [None] * len(detections)
     for i, k, shift in pairs:
         if sum(p[0] == i for p in pairs) != 1 or sum(p[1] == k for p in pairs) != 1:
             continue
         ident = tracked[k].identity
         if candidates(detections[i]) == [ident.sticker_id]:
-            out[i] = Identity(ident.sticker_id, (ident.rotation + shift) % 4, ident.source)
+            carried = Identity(ident.sticker_id, (ident.rotation + shift) % 4, ident.source)
+            out[i] = TrackMatch(carried, tracked[k].age + 1 >= config.redecode_every)
     return out
 
 
@@ -323,7 +353,8 @@ class Localiser:
         self._passes = SurveyPasses()  # repeated fixes of a sticker share its survey error
         self._step = None  # this frame's odometry step, for the rolling-shutter correction
         self.counts = new_counts()
-        self.counts["tracked"] = 0
+        self.counts["tracked"] = 0  # detections whose identity came from sticker tracking, not a decode
+        self.counts["reverified"] = 0  # of those, re-checked by module correlation when due a re-decode
         self._tracked: list[Tracked] = []  # decoded stickers of the previous frame whose fixes were accepted
         self.counts.update(refused_timestamps=0, clock_resets=0, wrong_size_frames=0)
         self._last_t: float | None = None  # timestamp of the last frame accepted
@@ -371,8 +402,8 @@ class Localiser:
             detections = detect(gray, rig_cam.camera, method=self.config.detector)
         self.counts["detections"] += len(detections)
 
-        carried = (
-            match_tracked(
+        matches = (
+            match_tracks(
                 detections,
                 self._tracked,
                 frame.camera,
@@ -383,10 +414,11 @@ class Localiser:
             if self.config.sticker_tracking
             else [None] * len(detections)
         )
-        reads, fixes = [], []
-        for det, identity in zip(detections, carried):
-            if identity is not None:
-                read = Read(identity)
+        reads, fixes, carried = [], [], []
+        for det, m in zip(detections, matches):
+            carried.append(m.identity if m is not None and not m.due else None)
+            if m is not None and (not m.due or self._reverify(gray, det, m.identity, rig_cam, timer)):
+                read = Read(m.identity)
                 self.counts["tracked"] += 1
             else:
                 read = self._decode(gray, det, rig_cam, timer)
@@ -491,6 +523,20 @@ class Localiser:
     def _candidates(self, det: Detection, rig_cam: RigCamera, timer: StageTimer) -> list[int]:
         with timer("candidates"):
             return self.tracker.candidates(self.map, rig_cam, det.outer.mean(axis=0), k=self.config.candidates)
+
+    def _reverify(
+        self, gray: np.ndarray, det: Detection, identity: Identity, rig_cam: RigCamera, timer: StageTimer
+    ) -> bool:
+        """Whether a tracked sticker due for re-decoding still shows its tracked ID and rotation
+        (``TrackingConfig.reverify``); timed as decoding, which it stands in for."""
+        cfg = self.config.tracking
+        if not cfg.reverify:
+            return False
+        with timer("decode"):
+            score = verify_detection(gray, det, rig_cam.camera, identity.sticker_id, identity.rotation)
+        ok = score >= cfg.reverify_min_score
+        self.counts["reverified"] += ok
+        return ok
 
     def _decode(self, gray: np.ndarray, det: Detection, rig_cam: RigCamera, timer: StageTimer) -> Read:
         # Only libdmtx can need the tracker's word: zxing reads stand or fall on their own.
