@@ -122,6 +122,25 @@ def _known_sticker(k: int, shifts: np.ndarray) -> np.ndarray:
     return s
 
 
+def _blurred_module(psf: np.ndarray) -> np.ndarray:
+    """One module (a MODULE_PX square of ones) blurred by ``psf``, on a ``_CANVAS`` square centred
+    on the module's centre pixel: float32 (_CANVAS, _CANVAS).
+
+    filter2D (correlation) of the module with the PSF is the PSF, flipped, summed over a module-sized
+    box: a box filter of the small PSF instead of a large filter over the mostly empty canvas.
+    """
+    h = MODULE_PX // 2
+    padded = np.pad(psf[::-1, ::-1].astype(np.float32), h)
+    blurred = cv2.boxFilter(padded, -1, (MODULE_PX, MODULE_PX), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    canvas = np.zeros((_CANVAS, _CANVAS), np.float32)
+    r = blurred.shape[0] // 2
+    c = QUAD_PX  # the module's centre pixel
+    if r > c:  # a PSF wider than the canvas (never at RASTER_PX: blur_psf stays under ~60 px)
+        blurred, r = blurred[r - c : r + c + 1, r - c : r + c + 1], c
+    canvas[c - r : c + r + 1, c - r : c + r + 1] = blurred
+    return canvas
+
+
 def module_estimates(
     rect: np.ndarray,
     psf: np.ndarray,
@@ -147,11 +166,7 @@ def module_estimates(
     """
     lin = _linearise(rect, gamma)
     known = cv2.filter2D(_known_sticker(k, shifts), -1, psf, borderType=cv2.BORDER_REPLICATE)
-    # One module blurred by the PSF, on a canvas centred on the module's centre pixel.
-    canvas = np.zeros((_CANVAS, _CANVAS), np.float32)
-    c = QUAD_PX - MODULE_PX // 2
-    canvas[c : c + MODULE_PX, c : c + MODULE_PX] = 1.0
-    canvas = cv2.filter2D(canvas, -1, psf, borderType=cv2.BORDER_CONSTANT)
+    canvas = _blurred_module(psf)
     rr, cc, flat = _design_index(step)
     D = canvas.ravel()[flat]  # (P, 64) blurred data-module indicators at the pixels used
     DtD = (D.T @ D).astype(np.float64) + ridge * float(np.sum(canvas * canvas)) * np.eye(64)
