@@ -609,9 +609,16 @@ def _inner_offsets(p: _Profiles, outer_s: np.ndarray, ink: float, paper: float) 
 
 
 def _refine(
-    gray: np.ndarray, camera: Camera, quad: np.ndarray, cfg: DetectConfig, lin: _Linearise | None, search_px: float
+    gray: np.ndarray,
+    camera: Camera,
+    quad: np.ndarray,
+    cfg: DetectConfig,
+    lin: _Linearise | None,
+    search_px: float,
+    inner: bool = True,
 ) -> _Refined | None:
-    """One pass of edge-profile refinement around the distorted quad (4, 2)."""
+    """One pass of edge-profile refinement around the distorted quad (4, 2); ``inner`` False skips
+    the inner corners (the first pass only re-aims the second, which uses its outer square alone)."""
     p = _sample_profiles(gray, quad, cfg, search_px, lin)
     if p is None:
         return None
@@ -619,12 +626,12 @@ def _refine(
     if edges is None:
         return None
     outer_s, ink, paper, floor_med = edges
-    inner_s = _inner_offsets(p, outer_s, ink, paper)
+    inner_s = _inner_offsets(p, outer_s, ink, paper) if inner else None
     n = cfg.profiles_per_side
     # Lines are straight only without distortion: undistort every edge point (one call), then fit.
-    offsets = np.nan_to_num(np.stack([outer_s, inner_s]))  # (2, 4, n)
+    offsets = np.nan_to_num(np.stack([outer_s] if inner_s is None else [outer_s, inner_s]))  # (1 or 2, 4, n)
     pts = p.base[None] + offsets[..., None] * p.inward[None, :, None, :]
-    edge = camera.undistort_pixels(pts.reshape(-1, 2)).reshape(2, 4, n, 2)
+    edge = camera.undistort_pixels(pts.reshape(-1, 2)).reshape(len(offsets), 4, n, 2)
     min_points = _min_points(cfg)
     fit = _robust_lines(edge[0], np.isfinite(outer_s), min_points, cfg.outlier_sigmas, cfg.outlier_floor_px)
     if fit is None:
@@ -640,7 +647,7 @@ def _refine(
     score = valid * min(1.0, (floor_med - ink) / cfg.full_score_contrast) * math.exp(-rms)
 
     inner_ideal = None
-    ok = np.isfinite(inner_s)
+    ok = np.isfinite(inner_s) if inner_s is not None else np.zeros((4, n), bool)
     if ok.sum(axis=1).min() >= min_points:
         inner_ideal = _intersect(huber_lines(edge[1], ok))
         dev = np.linalg.norm(inner_ideal - _implied_inner(outer_ideal), axis=1)
@@ -688,7 +695,9 @@ def detect_stickers(gray: np.ndarray, camera: Camera, config: DetectConfig | Non
         area = _polygon_area(quad)
         if any(_inside(quad.mean(axis=0), d.outer) and area < 0.5 * _polygon_area(d.outer) for d in out):
             continue  # a symbol inside an accepted sticker
-        first = _refine(img, camera, quad, coarse_cfg, lin, search_px=cfg.coarse_search_px * cfg.downscale + 1.0)
+        first = _refine(
+            img, camera, quad, coarse_cfg, lin, search_px=cfg.coarse_search_px * cfg.downscale + 1.0, inner=False
+        )
         if first is None:
             continue
         ref = _refine(img, camera, first.outer, cfg, lin, search_px=cfg.refine_search_px)
