@@ -173,7 +173,7 @@ def distort_ideal(camera: Camera, pixels: np.ndarray) -> np.ndarray:
     if not np.any(camera.dist):
         return pts.copy()
     norm = (pts - camera.K[:2, 2]) / [camera.K[0, 0], camera.K[1, 1]]
-    return camera.project(np.c_[norm, np.ones(len(norm))])
+    return camera.project(np.concatenate([norm, np.ones((len(norm), 1))], axis=1))
 
 
 def _median_last(a: np.ndarray) -> np.ndarray:
@@ -363,23 +363,24 @@ def huber_lines(points: np.ndarray, mask: np.ndarray, iterations: int = _HUBER_I
     lines (L, 3) with unit normals; NaN rows for sets of fewer than two points.
     """
     w = mask.astype(float)
-    line = np.full((len(points), 3), np.nan)
     x, y = points[..., 0], points[..., 1]
-    for _ in range(iterations):
-        sw = w.sum(axis=1)
-        with np.errstate(invalid="ignore", divide="ignore"):
+    # The few dozen points per set make numpy's per-call overhead the cost: the loop keeps to the
+    # fewest array operations (the residual from the centred coordinates, the weight as a minimum).
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for _ in range(iterations):
+            sw = w.sum(axis=1)
             mx, my = (w * x).sum(axis=1) / sw, (w * y).sum(axis=1) / sw
-        dx, dy = x - mx[:, None], y - my[:, None]
-        sxx, syy, sxy = (w * dx * dx).sum(axis=1), (w * dy * dy).sum(axis=1), (w * dx * dy).sum(axis=1)
-        theta = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # direction of the principal axis
-        nx, ny = -np.sin(theta), np.cos(theta)
-        line = np.stack([nx, ny, -(nx * mx + ny * my)], axis=1)
-        r = np.abs(x * nx[:, None] + y * ny[:, None] + line[:, 2:3])
-        w_new = np.where(mask, np.where(r > HUBER_C, HUBER_C / np.maximum(r, 1e-12), 1.0), 0.0)
-        if float(np.abs(w_new - w).max()) < 1e-3:
-            break
-        w = w_new
-    return line
+            dx, dy = x - mx[:, None], y - my[:, None]
+            wdx = w * dx
+            sxx, syy, sxy = (wdx * dx).sum(axis=1), (w * dy * dy).sum(axis=1), (wdx * dy).sum(axis=1)
+            theta = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # direction of the principal axis
+            nx, ny = -np.sin(theta), np.cos(theta)
+            r = np.abs(dx * nx[:, None] + dy * ny[:, None])
+            w_new = np.where(mask, np.minimum(1.0, HUBER_C / r), 0.0)  # Huber: 1 within C, C / r beyond
+            if float(np.abs(w_new - w).max()) < 1e-3:
+                break
+            w = w_new
+    return np.stack([nx, ny, -(nx * mx + ny * my)], axis=1)
 
 
 def _line_residuals(points: np.ndarray, lines: np.ndarray) -> np.ndarray:
@@ -514,16 +515,17 @@ def _sample_profiles(
     if side_len.min() < 4:
         return None
     along = side_vec / side_len[:, None]
-    inward = np.c_[-along[:, 1], along[:, 0]]  # clockwise on screen with y down: left of travel is inside
+    inward = np.stack([-along[:, 1], along[:, 0]], axis=1)  # clockwise on screen, y down: left of travel is in
     margin = (1.0 - cfg.profile_span) / 2
     t = np.linspace(margin, 1.0 - margin, n)
     base = quad[:, None, :] + t[None, :, None] * side_vec[:, None, :]  # (4, n, 2)
     # Frame width along each profile, from the geometry implied by the current quad.
-    inner_guess = _implied_inner(quad)
-    ones = np.ones((4, 1))
-    inner_line = _cross(np.c_[inner_guess, ones], np.c_[inner_guess[_NEXT], ones])
-    num = -(np.einsum("inj,ij->in", base, inner_line[:, :2]) + inner_line[:, 2:3])
-    den = np.einsum("ij,ij->i", inward, inner_line[:, :2])[:, None]
+    a = _implied_inner(quad)
+    b = a[_NEXT]
+    # The inner side through a and b: (a, 1) x (b, 1) = normal (ay - by, bx - ax), offset ax by - ay bx.
+    normal = np.stack([a[:, 1] - b[:, 1], b[:, 0] - a[:, 0]], axis=1)
+    num = -(np.einsum("inj,ij->in", base, normal) + (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])[:, None])
+    den = np.einsum("ij,ij->i", inward, normal)[:, None]
     frame_w = np.clip(num / den, 1.0, None)  # (4, n) distance to the inner edge along ``inward``
     w_max = float(frame_w.max())
     if w_max > cfg.max_frame_fraction * float(side_len.max()):
@@ -538,10 +540,15 @@ def _sample_profiles(
         strip[None, :, None, None] * along[:, None, None, :] + s[None, None, :, None] * inward[:, None, None, :]
     ).astype(np.float32)
     maps = np.add(base.astype(np.float32)[:, :, None, None, :], offs[:, None]).reshape(4 * n * 3, len(s), 2)
-    vals = cv2.remap(gray, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
-    if lin is not None:
-        # Linearise after interpolation of 8-bit values (the interpolation is of the recorded codes).
-        vals = lin(vals)
+    vals = cv2.remap(gray, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    if lin is None:
+        vals = vals.astype(np.float32)
+    elif vals.dtype == np.uint8:
+        # Linearise after interpolation of 8-bit values (the interpolation is of the recorded codes,
+        # and remap rounds it to a code): a table lookup.
+        vals = lin.lut[vals]
+    else:
+        vals = lin(vals.astype(np.float32))
     prof = vals.reshape(4, n, 3, len(s)).mean(axis=2)  # (4, n, S)
     return _Profiles(base, inward, s, prof, frame_w, float(_median_last(frame_w.ravel())), quiet)
 
