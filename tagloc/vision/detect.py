@@ -217,7 +217,7 @@ def _fit_sides(contour: np.ndarray, quad: np.ndarray) -> np.ndarray:
         return quad
     rel = contour[None, :, :] - quad[:, None, :]  # (4, N, 2)
     u = np.einsum("inj,ij->in", rel, d / length[:, None] ** 2)  # position along each side, 0-1
-    off = np.abs(np.einsum("inj,ij->in", rel, np.c_[-d[:, 1], d[:, 0]] / length[:, None]))
+    off = np.abs(np.einsum("inj,ij->in", rel, np.stack([-d[:, 1], d[:, 0]], axis=1) / length[:, None]))
     near = (u > 0.15) & (u < 0.85) & (off < np.maximum(1.5, 0.06 * length)[:, None])
     if near.sum(axis=1).min() < 4:
         return quad
@@ -304,7 +304,9 @@ def _outline_quads(
         if quad is None:
             continue
         pts = local.astype(float)
-        fitted = _fit_sides(pts, _fit_sides(pts, quad))  # the second fit gathers what a skewed first missed
+        fitted = _fit_sides(pts, quad)
+        if fitted is not quad:  # the second fit gathers what a skewed first missed (the same input: the same)
+            fitted = _fit_sides(pts, fitted)
         hull_area = cv2.contourArea(hull)
         # Only a clearly cut corner is replaced (refinement, not this fit, sets the final accuracy; a
         # sub-pixel change only reshuffles its profiles), and not when the ring's inner outline
@@ -534,13 +536,17 @@ def _sample_profiles(
     step = cfg.sample_step_px
     s = np.arange(-(search_px + cfg.blur_allow_px / 2 + 2), w_max + quiet + search_px + step, step)
     strip = np.linspace(-cfg.strip_half_px, cfg.strip_half_px, 3)
-    # Sample points base + strip * along + s * inward, (4, n, 3, S, 2), summed in float32 (remap's
-    # own sub-pixel resolution is 1/32 px) from the small per-side offset grid (4, 3, S, 2).
-    offs = (
-        strip[None, :, None, None] * along[:, None, None, :] + s[None, None, :, None] * inward[:, None, None, :]
-    ).astype(np.float32)
-    maps = np.add(base.astype(np.float32)[:, :, None, None, :], offs[:, None]).reshape(4 * n * 3, len(s), 2)
-    vals = cv2.remap(gray, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    # Sample points base + strip * along + s * inward, (4, n, 3, S) per coordinate, summed in float32
+    # (remap's own sub-pixel resolution is 1/32 px) from the small per-side offset grid (4, 3, S).
+    # x and y apart: numpy broadcasts over a trailing axis of 2 an order of magnitude slower.
+    base32 = base.astype(np.float32)
+    maps = []
+    for c in (0, 1):
+        offs = (strip[None, :, None] * along[:, None, None, c] + s[None, None, :] * inward[:, None, None, c]).astype(
+            np.float32
+        )
+        maps.append(np.add(base32[:, :, None, None, c], offs[:, None]).reshape(4 * n * 3, len(s)))
+    vals = cv2.remap(gray, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     if lin is None:
         vals = vals.astype(np.float32)
     elif vals.dtype == np.uint8:
@@ -549,7 +555,8 @@ def _sample_profiles(
         vals = lin.lut[vals]
     else:
         vals = lin(vals.astype(np.float32))
-    prof = vals.reshape(4, n, 3, len(s)).mean(axis=2)  # (4, n, S)
+    strips = vals.reshape(4, n, 3, len(s))
+    prof = (strips[:, :, 0] + strips[:, :, 1] + strips[:, :, 2]) / np.float32(3.0)  # (4, n, S): the strips' mean
     return _Profiles(base, inward, s, prof, frame_w, float(_median_last(frame_w.ravel())), quiet)
 
 
