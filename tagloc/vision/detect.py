@@ -507,6 +507,19 @@ def _lineariser(gamma: float) -> _Linearise | None:
     return None if gamma == 1.0 else _Linearise(gamma)
 
 
+@functools.lru_cache(maxsize=32)
+def _linspace(start: float, stop: float, num: int) -> np.ndarray:
+    """np.linspace, made once per distinct call (read-only): its set-up costs more than the few values."""
+    out = np.linspace(start, stop, num)
+    out.flags.writeable = False
+    return out
+
+
+def _nan_to(a: np.ndarray, value: float) -> np.ndarray:
+    """``a`` with NaNs replaced by ``value`` (np.nan_to_num's infinity handling is not needed here)."""
+    return np.where(np.isnan(a), value, a)
+
+
 def _sample_profiles(
     gray: np.ndarray, quad: np.ndarray, cfg: DetectConfig, search_px: float, lin: _Linearise | None
 ) -> _Profiles | None:
@@ -519,7 +532,7 @@ def _sample_profiles(
     along = side_vec / side_len[:, None]
     inward = np.stack([-along[:, 1], along[:, 0]], axis=1)  # clockwise on screen, y down: left of travel is in
     margin = (1.0 - cfg.profile_span) / 2
-    t = np.linspace(margin, 1.0 - margin, n)
+    t = _linspace(margin, 1.0 - margin, n)
     base = quad[:, None, :] + t[None, :, None] * side_vec[:, None, :]  # (4, n, 2)
     # Frame width along each profile, from the geometry implied by the current quad.
     a = _implied_inner(quad)
@@ -535,7 +548,7 @@ def _sample_profiles(
     quiet = w_max * _QUIET_RATIO / _FRAME_RATIO
     step = cfg.sample_step_px
     s = np.arange(-(search_px + cfg.blur_allow_px / 2 + 2), w_max + quiet + search_px + step, step)
-    strip = np.linspace(-cfg.strip_half_px, cfg.strip_half_px, 3)
+    strip = _linspace(-cfg.strip_half_px, cfg.strip_half_px, 3)
     # Sample points base + strip * along + s * inward, (4, n, 3, S) per coordinate, summed in float32
     # (remap's own sub-pixel resolution is 1/32 px) from the small per-side offset grid (4, 3, S).
     # x and y apart: numpy broadcasts over a trailing axis of 2 an order of magnitude slower.
@@ -614,11 +627,11 @@ def _min_points(cfg: DetectConfig) -> int:
 def _inner_offsets(p: _Profiles, outer_s: np.ndarray, ink: float, paper: float) -> np.ndarray:
     """Inner edge offsets (4, n) along ``inward``: the rise from ink to paper, beyond the outer edge."""
     n = p.frame_w.shape[1]
-    outer0 = np.nan_to_num(outer_s)
+    outer0 = _nan_to(outer_s, 0.0)
     inner_s = _crossings(
         p.prof.reshape(4 * n, len(p.s)), np.full(4 * n, (paper + ink) / 2), p.s, (p.frame_w + outer0).ravel(), True
     ).reshape(4, n)
-    inner_s[~(inner_s > np.nan_to_num(outer_s, nan=-1e9) + 0.5)] = np.nan
+    inner_s[~(inner_s > _nan_to(outer_s, -1e9) + 0.5)] = np.nan
     return inner_s
 
 
@@ -643,7 +656,7 @@ def _refine(
     inner_s = _inner_offsets(p, outer_s, ink, paper) if inner else None
     n = cfg.profiles_per_side
     # Lines are straight only without distortion: undistort every edge point (one call), then fit.
-    offsets = np.nan_to_num(np.stack([outer_s] if inner_s is None else [outer_s, inner_s]))  # (1 or 2, 4, n)
+    offsets = _nan_to(np.stack([outer_s] if inner_s is None else [outer_s, inner_s]), 0.0)  # (1 or 2, 4, n)
     pts = p.base[None] + offsets[..., None] * p.inward[None, :, None, :]
     edge = camera.undistort_pixels(pts.reshape(-1, 2)).reshape(len(offsets), 4, n, 2)
     min_points = _min_points(cfg)
