@@ -174,27 +174,28 @@ def module_estimates(
     n = len(rr)
     mask, dark = border_template()
     border = np.rot90(np.where(dark, 0.0, 1.0), -k).astype(np.float32)
-    out = np.empty((4, 10, 10), np.float32)
-    resid = np.empty(4)
-    for p, ((r0, c0), (dy, dx)) in enumerate(zip(QUAD_ORIGIN, shifts)):
-        r, cl = rr + r0 + dy, cc + c0 + dx
-        kq = known[r, cl]
-        y = lin[r, cl]
-        N = np.empty((66, 66))
-        N[0, 0], N[0, 1], N[1, 1] = n, kq.sum(dtype=np.float64), float(kq @ kq)
-        N[1, 0] = N[0, 1]
-        N[0, 2:] = N[2:, 0] = Dt1
-        N[1, 2:] = N[2:, 1] = kq @ D
-        N[2:, 2:] = DtD
-        rhs = np.concatenate([[y.sum(dtype=np.float64), float(kq @ y)], y @ D])
-        sol = np.linalg.solve(N, rhs)
-        fit = sol[0] + sol[1] * kq + D @ sol[2:].astype(np.float32)
-        resid[p] = float(np.sqrt(np.mean((fit - y) ** 2)))
-        contrast = sol[1] if abs(sol[1]) > 1e-6 else 1e-6
-        sym = border.copy()
-        # Data modules are the symbol's interior 8x8 (raster-oriented); the border is the template.
-        sym[1:9, 1:9] = (sol[2:] / contrast + 0.5).reshape(8, 8)
-        out[p] = sym
+    # The four quadrants' systems at once (rows p): the same design D, their own pixels.
+    origin = np.asarray(QUAD_ORIGIN) + np.asarray(shifts)  # (4, 2) row, col of each shifted grid
+    r, cl = rr[None] + origin[:, 0:1], cc[None] + origin[:, 1:2]  # (4, P)
+    kq, y = known[r, cl], lin[r, cl]  # (4, P)
+    N = np.empty((4, 66, 66))
+    N[:, 0, 0] = n
+    N[:, 0, 1] = N[:, 1, 0] = kq.sum(axis=1, dtype=np.float64)
+    N[:, 1, 1] = np.einsum("pi,pi->p", kq, kq, dtype=np.float64)
+    N[:, 0, 2:] = N[:, 2:, 0] = Dt1
+    N[:, 1, 2:] = N[:, 2:, 1] = kq @ D
+    N[:, 2:, 2:] = DtD
+    rhs = np.empty((4, 66))
+    rhs[:, 0] = y.sum(axis=1, dtype=np.float64)
+    rhs[:, 1] = np.einsum("pi,pi->p", kq, y, dtype=np.float64)
+    rhs[:, 2:] = y @ D
+    sol = np.linalg.solve(N, rhs[:, :, None])[:, :, 0]  # (4, 66)
+    fit = sol[:, 0:1] + sol[:, 1:2] * kq + sol[:, 2:].astype(np.float32) @ D.T
+    resid = np.sqrt(np.mean((fit - y) ** 2, axis=1))
+    contrast = np.where(np.abs(sol[:, 1]) > 1e-6, sol[:, 1], 1e-6)
+    out = np.repeat(border[None], 4, axis=0)
+    # Data modules are the symbol's interior 8x8 (raster-oriented); the border is the template.
+    out[:, 1:9, 1:9] = (sol[:, 2:] / contrast[:, None] + 0.5).reshape(4, 8, 8)
     return out, resid
 
 
