@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -103,3 +104,30 @@ def test_tracking_saves_decodes_without_changing_fixes_or_taking_a_wrong_id(tmp_
     assert on.counts["decoded"] + on.counts["tracked"] >= off.counts["decoded"]
     assert len(on.fixes) >= len(off.fixes) - 2
     assert m_on["rmse_m"] <= m_off["rmse_m"] + 0.01
+
+
+def test_a_blank_square_that_failed_decoding_skips_least_squares_until_its_retry():
+    # A framed square with nothing printed in it (a label on the floor) is detected as a sticker
+    # and fails every decoding stage; in the frames right after, the costly least-squares stage is
+    # left out for it until its retry is due, and it never gives an identity.
+    from tagloc.core.rig import default_rig
+    from tagloc.core.stickermap import StickerMap
+    from tagloc.core.types import Frame
+    from tagloc.pipeline.localiser import Localiser
+
+    rng = np.random.default_rng(0)
+    img = np.clip(rng.normal(120, 3, (972, 1296)), 0, 255).astype(np.uint8)
+    cv2.rectangle(img, (600, 400), (680, 480), 30, cv2.FILLED)
+    cv2.rectangle(img, (607, 407), (673, 473), 210, cv2.FILLED)
+    img = cv2.GaussianBlur(img, (0, 0), 0.8)
+    smap = StickerMap(np.array([1]), np.array([[0.0, 0.0]]), np.array([0.0]))
+    loc = Localiser(smap, default_rig(), LocaliserConfig(odometry=False))
+    every = loc.config.tracking.lsq_retry_every
+    skipped = []
+    for i in range(2 * every):
+        res = loc.process(Frame(i, i / 30, img))
+        assert len(res.observations) == 1 and res.observations[0].identity is None
+        skipped.append(loc.counts["lsq_skipped"])
+    # Frame 0 runs it; then it is left out every frame but each ``every``-th.
+    steps = np.diff([0, *skipped])
+    assert steps.tolist() == ([0] + [1] * (every - 1)) * 2

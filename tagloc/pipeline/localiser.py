@@ -31,7 +31,7 @@ from tagloc.core.types import (
     Observation,
 )
 from tagloc.io.session import CAMERA_FILE, MAP_FILE, RIG_FILE
-from tagloc.vision.decode import decode, verify_detection
+from tagloc.vision.decode import DecodeConfig, decode, verify_detection
 from tagloc.vision.detect import detect
 from tagloc.vision.image import as_gray
 from tagloc.vision.odometry import FloorOdometry, OdometryConfig
@@ -128,6 +128,10 @@ class TrackingConfig:
         reverify_min_score: the correlation that re-check needs. A decode's own final check accepts
             from 0.5; any other ID or rotation scores <= 0.45 and the true one >= 0.9 up to 2 px of
             blur, so 0.7 keeps a wide margin, and a sticker scoring less is simply decoded again.
+        lsq_retry_every: a detection where and what one of the previous frame was whose decoding
+            failed through every stage (a blank framed square, a worn sticker) runs the costly
+            least-squares stage (~10-20 ms) only every this many frames in a row; the cheap stages
+            (zxing, grid sampling, ~2 ms) and identification still run every frame. 1 = always.
     """
 
     redecode_every: int = 4
@@ -136,6 +140,7 @@ class TrackingConfig:
     max_gap_s: float = 0.1
     reverify: bool = True
     reverify_min_score: float = 0.7
+    lsq_retry_every: int = 4
 
 
 @dataclass(frozen=True)
@@ -149,6 +154,24 @@ class Tracked:
     camera: int
     t: float
     age: int
+
+
+@dataclass(frozen=True)
+class FailedRead:
+    """A detection whose decoding failed, as seen in one frame: ``outer`` (4, 2) distorted px;
+    ``age``: frames since the least-squares stage last ran on it."""
+
+    outer: np.ndarray
+    camera: int
+    t: float
+    age: int
+
+
+def _same_place(det: Detection, outer: np.ndarray, config: TrackingConfig) -> bool:
+    """Whether ``det`` is where and what the quad ``outer`` (4, 2) of the previous frame was."""
+    side = min(_shortest_side(det.outer), _shortest_side(outer))
+    _, moved, change = _shape_match(det.outer, outer)
+    return moved <= config.max_centre_shift * side and change <= config.max_shape_change * side
 
 
 def _shortest_side(quad: np.ndarray) -> float:
@@ -249,10 +272,11 @@ def read_sticker(
     smap: StickerMap,
     backend: str,
     candidates: list[int] | None = None,
+    config: DecodeConfig | None = None,
 ) -> Read:
     """Decode one detection against the map (``candidates``: the tracker's, which may confirm a lone
     libdmtx read; see :func:`tagloc.vision.decode.decode`)."""
-    res = decode(gray, detection, camera, backend=backend, candidates=candidates)
+    res = decode(gray, detection, camera, backend=backend, candidates=candidates, config=config)
     if res.sticker_id is None:
         return Read(rejected=res.rejected)
     if res.sticker_id not in smap:
@@ -355,6 +379,8 @@ class Localiser:
         self.counts = new_counts()
         self.counts["tracked"] = 0  # detections whose identity came from sticker tracking, not a decode
         self.counts["reverified"] = 0  # of those, re-checked by module correlation when due a re-decode
+        self.counts["lsq_skipped"] = 0  # decodes without the least-squares stage (failed there just before)
+        self._failed: list[FailedRead] = []  # detections of the previous frame whose decoding failed
         self._tracked: list[Tracked] = []  # decoded stickers of the previous frame whose fixes were accepted
         self.counts.update(refused_timestamps=0, clock_resets=0, wrong_size_frames=0)
         self._last_t: float | None = None  # timestamp of the last frame accepted
@@ -415,13 +441,14 @@ class Localiser:
             else [None] * len(detections)
         )
         reads, fixes, carried = [], [], []
+        failed: list[FailedRead] = []  # this frame's failed reads, for the next frame
         for det, m in zip(detections, matches):
             carried.append(m.identity if m is not None and not m.due else None)
             if m is not None and (not m.due or self._reverify(gray, det, m.identity, rig_cam, timer)):
                 read = Read(m.identity)
                 self.counts["tracked"] += 1
             else:
-                read = self._decode(gray, det, rig_cam, timer)
+                read = self._decode_gated(gray, det, rig_cam, frame.camera, t, failed, timer)
             reads.append(read)
             fixes.append(self._fix(det, read.identity, rig_cam, t, timer) if read.identity is not None else None)
 
@@ -436,6 +463,7 @@ class Localiser:
                 Observation(det, frame.camera, identity, fix, read.rejected, read.unmapped_id, read.unmapped_rotation)
             )
         self._track(observations, carried, frame.camera, t)
+        self._failed = failed
 
         with timer("output"):
             out = self.tracker.output(t)
@@ -476,6 +504,7 @@ class Localiser:
         self.tracker = Tracker(self.config.tracker)
         self._odometry.clear()
         self._tracked = []
+        self._failed = []
 
     def _check_size(self, frame: Frame) -> str | None:
         """Why the frame's image cannot be this camera's, or None."""
@@ -538,11 +567,47 @@ class Localiser:
         self.counts["reverified"] += ok
         return ok
 
-    def _decode(self, gray: np.ndarray, det: Detection, rig_cam: RigCamera, timer: StageTimer) -> Read:
+    def _decode_gated(
+        self,
+        gray: np.ndarray,
+        det: Detection,
+        rig_cam: RigCamera,
+        camera: int,
+        t: float,
+        failed: list[FailedRead],
+        timer: StageTimer,
+    ) -> Read:
+        """Decode, leaving out the least-squares stage on a detection whose decoding failed in the
+        previous frame until its retry is due (``TrackingConfig.lsq_retry_every``); a failure is
+        remembered in ``failed``."""
+        cfg = self.config.tracking
+        prev = next(
+            (
+                f
+                for f in self._failed
+                if f.camera == camera and 0.0 < t - f.t <= cfg.max_gap_s and _same_place(det, f.outer, cfg)
+            ),
+            None,
+        )
+        skip_lsq = self.config.sticker_tracking and prev is not None and prev.age + 1 < cfg.lsq_retry_every
+        self.counts["lsq_skipped"] += skip_lsq
+        read = self._decode(gray, det, rig_cam, timer, DecodeConfig(lsq=False) if skip_lsq else None)
+        if read.identity is None and read.unmapped_id is None:
+            failed.append(FailedRead(det.outer.copy(), camera, t, prev.age + 1 if skip_lsq else 0))
+        return read
+
+    def _decode(
+        self,
+        gray: np.ndarray,
+        det: Detection,
+        rig_cam: RigCamera,
+        timer: StageTimer,
+        config: DecodeConfig | None = None,
+    ) -> Read:
         # Only libdmtx can need the tracker's word: zxing reads stand or fall on their own.
         cands = self._candidates(det, rig_cam, timer) if self.config.decoder != "zxing" else None
         with timer("decode"):
-            read = read_sticker(gray, det, rig_cam.camera, self.map, self.config.decoder, cands)
+            read = read_sticker(gray, det, rig_cam.camera, self.map, self.config.decoder, cands, config)
         count_read(self.counts, read)
         return read
 
