@@ -128,10 +128,11 @@ class TrackingConfig:
         reverify_min_score: the correlation that re-check needs. A decode's own final check accepts
             from 0.5; any other ID or rotation scores <= 0.45 and the true one >= 0.9 up to 2 px of
             blur, so 0.7 keeps a wide margin, and a sticker scoring less is simply decoded again.
-        lsq_retry_every: a detection where and what one of the previous frame was whose decoding
-            failed through every stage (a blank framed square, a worn sticker) runs the costly
-            least-squares stage (~10-20 ms) only every this many frames in a row; the cheap stages
-            (zxing, grid sampling, ~2 ms) and identification still run every frame. 1 = always.
+        lsq_retry_every: a detection where and what one of the previous frame was that neither
+            decoding (every stage) nor identification named (a blank framed square, a worn sticker
+            off the track) runs the costly least-squares stage (~10-20 ms) only every this many
+            frames in a row; the cheap stages (zxing, grid sampling, ~2 ms) and identification
+            still run every frame. 1 = always.
     """
 
     redecode_every: int = 4
@@ -158,8 +159,8 @@ class Tracked:
 
 @dataclass(frozen=True)
 class FailedRead:
-    """A detection whose decoding failed, as seen in one frame: ``outer`` (4, 2) distorted px;
-    ``age``: frames since the least-squares stage last ran on it."""
+    """A detection that neither decoding nor identification named, as seen in one frame: ``outer``
+    (4, 2) distorted px; ``age``: frames since the least-squares stage last ran on it."""
 
     outer: np.ndarray
     camera: int
@@ -380,7 +381,7 @@ class Localiser:
         self.counts["tracked"] = 0  # detections whose identity came from sticker tracking, not a decode
         self.counts["reverified"] = 0  # of those, re-checked by module correlation when due a re-decode
         self.counts["lsq_skipped"] = 0  # decodes without the least-squares stage (failed there just before)
-        self._failed: list[FailedRead] = []  # detections of the previous frame whose decoding failed
+        self._failed: list[FailedRead] = []  # detections of the previous frame nothing named
         self._tracked: list[Tracked] = []  # decoded stickers of the previous frame whose fixes were accepted
         self.counts.update(refused_timestamps=0, clock_resets=0, wrong_size_frames=0)
         self._last_t: float | None = None  # timestamp of the last frame accepted
@@ -441,24 +442,29 @@ class Localiser:
             else [None] * len(detections)
         )
         reads, fixes, carried = [], [], []
-        failed: list[FailedRead] = []  # this frame's failed reads, for the next frame
+        lsq_ages: list[int | None] = []  # per decoded detection: its least-squares age if it stays unknown
         for det, m in zip(detections, matches):
             carried.append(m.identity if m is not None and not m.due else None)
             if m is not None and (not m.due or self._reverify(gray, det, m.identity, rig_cam, timer)):
                 read = Read(m.identity)
                 self.counts["tracked"] += 1
+                lsq_ages.append(None)
             else:
-                read = self._decode_gated(gray, det, rig_cam, frame.camera, t, failed, timer)
+                read, age = self._decode_gated(gray, det, rig_cam, frame.camera, t, timer)
+                lsq_ages.append(age)
             reads.append(read)
             fixes.append(self._fix(det, read.identity, rig_cam, t, timer) if read.identity is not None else None)
 
         observations = []
-        for det, read, fix in zip(detections, reads, fixes):
+        failed: list[FailedRead] = []  # detections neither decoded nor identified, for the next frame
+        for det, read, fix, age in zip(detections, reads, fixes, lsq_ages):
             identity = read.identity
             if identity is None and read.unmapped_id is None and self.config.identify != "off":
                 identity = self._identify(gray, det, rig_cam, timer)
                 if identity is not None:
                     fix = self._fix(det, identity, rig_cam, t, timer)
+            if identity is None and read.unmapped_id is None and age is not None:
+                failed.append(FailedRead(det.outer.copy(), frame.camera, t, age))
             observations.append(
                 Observation(det, frame.camera, identity, fix, read.rejected, read.unmapped_id, read.unmapped_rotation)
             )
@@ -574,12 +580,12 @@ class Localiser:
         rig_cam: RigCamera,
         camera: int,
         t: float,
-        failed: list[FailedRead],
         timer: StageTimer,
-    ) -> Read:
-        """Decode, leaving out the least-squares stage on a detection whose decoding failed in the
-        previous frame until its retry is due (``TrackingConfig.lsq_retry_every``); a failure is
-        remembered in ``failed``."""
+    ) -> tuple[Read, int]:
+        """Decode, leaving out the least-squares stage on a detection that neither decoding nor
+        identification named in the previous frame until its retry is due
+        (``TrackingConfig.lsq_retry_every``). Returns the read and the frames since the
+        least-squares stage last ran on this detection (0: now)."""
         cfg = self.config.tracking
         prev = next(
             (
@@ -592,9 +598,7 @@ class Localiser:
         skip_lsq = self.config.sticker_tracking and prev is not None and prev.age + 1 < cfg.lsq_retry_every
         self.counts["lsq_skipped"] += skip_lsq
         read = self._decode(gray, det, rig_cam, timer, DecodeConfig(lsq=False) if skip_lsq else None)
-        if read.identity is None and read.unmapped_id is None:
-            failed.append(FailedRead(det.outer.copy(), camera, t, prev.age + 1 if skip_lsq else 0))
-        return read
+        return read, prev.age + 1 if skip_lsq else 0
 
     def _decode(
         self,
