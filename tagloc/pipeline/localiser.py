@@ -355,7 +355,7 @@ class Localiser:
                 out = self.tracker.output()
             return FrameResult(frame.index, t, [], out, timer.finish(), refused, frame)
         with timer("predict"):
-            self.tracker.predict(t)
+            self.tracker.predict(t, frame.camera)
         if frame.image is None:
             self.counts["skipped"] += 1
             with timer("output"):
@@ -364,7 +364,8 @@ class Localiser:
         gray = as_gray(frame.image)
         rig_cam = self.rig[frame.camera]
         if self.config.odometry:
-            # Before the fixes: the step covers the interval the tracker just predicted over.
+            # This camera's step since its previous frame: the tracker fuses it against its clone of
+            # the pose there (tracker.clones), whatever other cameras' frames came in between.
             with timer("odometry"):
                 self._odometry_step(gray, frame.camera, t)
         with timer("detect"):
@@ -476,7 +477,7 @@ class Localiser:
         self._step = step
         if step is not None:
             self.counts["odometry_steps"] += 1
-            self.tracker.update_odometry(step)
+            self.tracker.update_odometry(step, camera)
 
     def _body_twist(self, rig_cam: RigCamera, t: float) -> np.ndarray | None:
         """The body's motion (vx, vy, yaw rate; body frame) for the rolling-shutter correction, or None."""
