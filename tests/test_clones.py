@@ -173,3 +173,16 @@ def test_two_camera_odometry_nees_is_honest():
     # A second camera's steps are further measurements: the stated uncertainty shrinks (a little
     # here: the shared tilt and vest offsets, not the steps' noise, dominate it after 2 s).
     assert np.mean(sig2) < np.mean(sig1)
+
+
+def test_a_step_from_before_the_track_started_is_ignored():
+    tr = Tracker()
+    fix = [PoseFix(np.eye(4), np.zeros(3), np.diag([1e-4, 1e-4, 1e-4]), 0.3)]
+    cov = np.diag([1e-5, 1e-5, 1e-5])
+    tr.predict(0.0, "rear")
+    tr.predict(0.03, "front")
+    tr.update(fix, 1, IdSource.DECODED, 0.03)  # the track starts on front's frame
+    tr.predict(0.07, "rear")
+    # Rear's step began before the track: nothing to fuse it against, and no bookkeeping fault.
+    assert not tr.update_odometry(OdometryStep(0.0, 0.07, np.zeros(3), cov, 0.5), "rear").accepted
+    assert tr.stats["odometry_ignored"] == 1 and tr.stats["odometry_unmatched"] == 0

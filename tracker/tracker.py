@@ -140,6 +140,7 @@ class Tracker:
         # odometry pose at that camera's last frame, for its next step.
         self._clones = CloneSet(DIM)
         self._here: set[Hashable] = set()  # cameras whose frames are at the filter's time
+        self._clones_dropped_t = -math.inf  # when the clones were last dropped (restart, forgetting)
         self._last_odo_t = -math.inf  # end of the last odometry step fused
         self._odo_scale = np.sqrt(np.asarray(cfg.odometry_inflation, float))
         self._stats: dict[str, int] = {f"{v}_{s.value}": 0 for s in _SOURCES for v in ("accepted", "rejected")}
@@ -251,7 +252,7 @@ class Tracker:
             return
         if self._t is not None and t > self._t:
             if self._state is TrackState.INITIALISING:
-                self._clones.clear()
+                self._drop_clones()
             else:
                 # The filter replaces its arrays rather than writing into them: x0, P0 stay as they were.
                 t0, x0, P0 = self._t, self._ekf.x[:, 0], self._ekf.P
@@ -261,13 +262,20 @@ class Tracker:
                     # than any step can span is of no more use.
                     self._clones.advance(jac[0], x0, P0, M_ODO, t0, t, self._here, self.config.odometry_max_dt)
                 else:
-                    self._clones.clear()
+                    self._drop_clones()
                 if t - t0 > self.config.gap_s and t0 - self._last_odo_t <= self.config.gap_s:
                     self._gap_noise(t - t0)
             self._here = set()
         self._here.add(camera)
         self._t = t
         self._check_lost()
+
+    def _drop_clones(self) -> None:
+        """Forget every camera's clone: the track restarted or forgot its past, so no step from before
+        now can be fused (such steps are counted as ``odometry_ignored``, not unmatched)."""
+        self._clones.clear()
+        if self._t is not None:
+            self._clones_dropped_t = self._t
 
     def _gap_noise(self, dt: float) -> None:
         """Widen yaw and yaw rate after ``dt`` s no odometry could follow (see ``gap_yaw_accel_psd``).
@@ -292,7 +300,7 @@ class Tracker:
             # Long without a fix, the speed and turn rate are stale: keep the pose mean and let a
             # walker of unknown velocity spread from there instead of extrapolating for hours.
             self._forgot = True
-            self._clones.clear()
+            self._drop_clones()
             self._guarded(self._ekf.forget_motion)
 
     def _is_lost(self, P: np.ndarray, t: float) -> bool:
@@ -415,7 +423,7 @@ class Tracker:
     def _start(self, alt: tuple[np.ndarray, np.ndarray], sticker_id: int, source: IdSource, t: float) -> None:
         """(Re)start the track from one fix: pose from it, speed and yaw rate unknown."""
         self._hyp = None
-        self._clones.clear()
+        self._drop_clones()
         self._ekf = WalkingEKF(self.config)
         self._ekf.reset(alt[0], alt[1])
         # A fresh track: its sticker set and last-fix time start from this fix alone.
@@ -446,7 +454,7 @@ class Tracker:
             return False
         self._ekf = h.ekf
         self._hyp = None
-        self._clones.clear()
+        self._drop_clones()
         self._track_ids = set(h.ids)
         self._accept(sticker_id, IdSource.DECODED, t)
         self._stats["reinitialisations"] += 1
@@ -494,6 +502,9 @@ class Tracker:
             self.predict(t1, camera)
         t_clone = self._clones.time(camera)
         tol = 1e-6 + 1e-9 * abs(t1)
+        if t_clone is None and t0 <= self._clones_dropped_t + tol:
+            self._stats["odometry_ignored"] += 1
+            return UpdateResult(False, "the track restarted after the step's first frame")
         if t_clone is None or abs(t_clone - t0) > tol or abs(self._t - t1) > tol:
             self._stats["odometry_unmatched"] += 1
             return UpdateResult(False, "odometry interval does not match the camera's last frame")
