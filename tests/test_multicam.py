@@ -8,9 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tagloc.cli import main
 from tagloc.core.errors import SessionError
 from tagloc.core.rig import default_rig
 from tagloc.core.stickermap import load_map
+from tagloc.eval import multicam
 from tagloc.eval.multicam import MultiCamConfig, camera_subset, front_rear_rig, run_two_camera, sticker_in_view
 from tagloc.io.session import SessionInfo, SessionReader, SessionWriter
 from tagloc.pipeline.run import run_session
@@ -67,7 +69,7 @@ def test_camera_subset_keeps_one_cameras_frames(two_cam):
     assert sticker_in_view(two_cam, 2, [0]) <= sticker_in_view(two_cam, 2)
 
 
-def test_two_camera_eval_table(tmp_path):
+def test_two_camera_eval_table(tmp_path, monkeypatch, capsys):
     cfg = MultiCamConfig(map_path=MAP, out=tmp_path, seeds=(1,), seconds=1.0, fps=10.0, scale=0.5, progress=False)
     text = run_two_camera(cfg)
     res = json.loads((tmp_path / "results.json").read_text())
@@ -84,8 +86,11 @@ def test_two_camera_eval_table(tmp_path):
     assert any(line.startswith("| s1 | front |") for line in lines)
     assert any(line.startswith("| s1 | front+rear |") for line in lines)
     assert (tmp_path / "two_camera.png").stat().st_size > 1000 and (tmp_path / "report.md").exists()
-    # A second run reuses the walk (same conditions) and gives the same table.
+    # A second run reuses the walk (same conditions) and gives the same table; so does the CLI preset.
     assert run_two_camera(cfg) == text
+    monkeypatch.setattr(multicam, "TWO_CAMERA_WALKS", cfg)
+    assert main(["eval", "--preset", "two-camera", "--quiet", "-o", str(tmp_path)]) == 0
+    assert capsys.readouterr().out.strip() == text
 
 
 def test_camera_column_checked_and_single_camera_layout_kept(tmp_path):
