@@ -1,6 +1,7 @@
 """One camera against front + rear cameras on the same simulated walks (issue 16, several cameras).
 
-Run: ``nice python benchmarks/two_cameras.py [--seeds 1 2 3] [--seconds 20] [--fps 15] [--out out/multicam]``.
+Run: ``nice python benchmarks/two_cameras.py [--seeds 1 2 3] [--seconds 20] [--fps 15] [--odometry-cameras 0]
+[--out out/multicam]``.
 Simulates each walk once with a rear-down camera added to the default front one
 (:func:`tagloc.eval.multicam.front_rear_rig`), localises it with the front camera's frames alone and
 with both, and prints per walk and rig the fraction of frame times with a mapped sticker in view,
@@ -25,6 +26,9 @@ def main() -> None:
     ap.add_argument("--lux", type=float, default=100.0)
     ap.add_argument("--scale", type=float, default=1.0)
     ap.add_argument("--rolling-shutter", action="store_true", help="simulate a rolling shutter (30 ms read-out)")
+    ap.add_argument(
+        "--odometry-cameras", type=int, nargs="+", default=None, help="rig cameras running floor odometry (default all)"
+    )
     ap.add_argument("--out", type=Path, default=Path("out/multicam"))
     args = ap.parse_args()
     cfg = MultiCamConfig(
@@ -36,6 +40,7 @@ def main() -> None:
         out=args.out,
         progress=False,
         sim_extra={"rolling_shutter": True} if args.rolling_shutter else {},
+        odometry_cameras=None if args.odometry_cameras is None else tuple(args.odometry_cameras),
     )
     print(run_two_camera(cfg))
 

@@ -15,6 +15,7 @@ from tagloc.core.stickermap import load_map
 from tagloc.eval import multicam
 from tagloc.eval.multicam import MultiCamConfig, camera_subset, front_rear_rig, run_two_camera, sticker_in_view
 from tagloc.io.session import SessionInfo, SessionReader, SessionWriter
+from tagloc.pipeline.localiser import Localiser, LocaliserConfig
 from tagloc.pipeline.run import run_session
 from tagloc.sim.simulate import SimConfig, read_groundtruth_frames, simulate_session
 
@@ -103,3 +104,13 @@ def test_camera_column_checked_and_single_camera_layout_kept(tmp_path):
     (tmp_path / "one" / "frames.csv").write_text("index,timestamp_s,camera\n0,0.000000,1\n")
     with pytest.raises(SessionError, match=r"frames.csv:2: camera '1' is not a camera of the rig"):
         SessionReader(tmp_path / "one")
+
+
+def test_odometry_from_chosen_cameras_only(two_cam):
+    session = SessionReader(two_cam)
+    loc = Localiser(session.map, session.rig, LocaliserConfig(odometry_cameras=(0,)))
+    both = run_session(session).counts["odometry_steps"]
+    front = run_session(session, localiser=loc).counts
+    assert loc.floor_odometry(1) is None and loc.floor_odometry(0) is not None
+    assert 0 < front["odometry_steps"] <= min(9, both)
+    assert front["odometry_unavailable"] == 0 and front["tracker_odometry_unmatched"] == 0

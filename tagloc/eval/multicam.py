@@ -29,6 +29,7 @@ from tagloc.core.rig import Rig, RigCamera, default_rig, looking_forward
 from tagloc.eval.consistency import nees_blocks, nees_test
 from tagloc.eval.metrics import error_metrics, trajectory_errors
 from tagloc.io.session import FRAMES_CSV, SessionReader
+from tagloc.pipeline.localiser import LocaliserConfig
 from tagloc.pipeline.run import RunLog, run_session
 from tagloc.sim.simulate import SIM_REVISION, SimConfig, read_groundtruth_frames, simulate_session
 
@@ -61,6 +62,7 @@ class MultiCamConfig:
     scale: float = 1.0
     progress: bool = True
     sim_extra: dict = field(default_factory=dict)  # further SimConfig fields (e.g. rolling_shutter)
+    odometry_cameras: tuple[int, ...] | None = None  # LocaliserConfig.odometry_cameras (None: all)
 
 
 #: The fixed walks of ``tagloc eval --preset two-camera``: three seeded 20 s walks over the demo map,
@@ -145,7 +147,7 @@ def compare_cameras(cfg: MultiCamConfig | None = None) -> list[dict]:
         n_cams = len(full.rig)
         for name, cams in RIGS.items():
             session = camera_subset(full, cams)
-            log = run_session(session, progress=cfg.progress)
+            log = run_session(session, LocaliserConfig(odometry_cameras=cfg.odometry_cameras), progress=cfg.progress)
             rows.append(
                 {
                     "walk": f"s{seed}",
@@ -236,6 +238,8 @@ def run_two_camera(cfg: MultiCamConfig | None = None) -> str:
     conditions = (
         f"{len(cfg.seeds)} walks (seeds {', '.join(map(str, cfg.seeds))}) of {cfg.seconds:g} s over"
         f" {cfg.map_path}, {cfg.fps:g} fps per camera, {cfg.lux:g} lux"
+        + "".join(f", {k} {v}" for k, v in cfg.sim_extra.items())
+        + ("" if cfg.odometry_cameras is None else f", floor odometry from cameras {list(cfg.odometry_cameras)}")
     )
     report = [
         "# tagloc eval: one camera against front + rear",

@@ -78,7 +78,8 @@ class LocaliserConfig:
         candidates: K, the most candidates handed to identification.
         tracker: the EKF's configuration.
         odometry: measure the body's motion between frames from the floor texture and feed it to
-            the tracker; ``odometry_config`` tunes it.
+            the tracker; ``odometry_config`` tunes it. ``odometry_cameras``: the rig cameras (indices)
+            that measure it, None: all (each camera's steps run from its own previous frame).
         sticker_tracking: carry a decoded sticker's identity to the next frame instead of decoding
             it again; ``tracking`` tunes it (see :func:`match_tracked`).
         clock_reset_frames: a frame whose timestamp is not after the previous frame's is refused
@@ -99,6 +100,7 @@ class LocaliserConfig:
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     odometry: bool = True
     odometry_config: OdometryConfig = field(default_factory=OdometryConfig)
+    odometry_cameras: tuple[int, ...] | None = None
     clock_reset_frames: int = 5
     sticker_tracking: bool = True
     tracking: TrackingConfig = field(default_factory=lambda: TrackingConfig())
@@ -461,7 +463,10 @@ class Localiser:
 
     def floor_odometry(self, camera: int) -> FloorOdometry | None:
         """The floor odometry of rig camera ``camera`` (made on first use), or None if that camera
-        sees too little floor for it."""
+        sees too little floor for it or is not one of ``odometry_cameras``."""
+        chosen = self.config.odometry_cameras
+        if camera not in self._odometry and chosen is not None and camera not in chosen:
+            self._odometry[camera] = None
         if camera not in self._odometry:
             try:
                 self._odometry[camera] = FloorOdometry(self.rig[camera], self.config.odometry_config)
