@@ -18,6 +18,7 @@ from tagloc.io.session import SessionInfo, SessionReader, SessionWriter
 from tagloc.pipeline.localiser import Localiser, LocaliserConfig
 from tagloc.pipeline.run import run_session
 from tagloc.sim.simulate import SimConfig, read_groundtruth_frames, simulate_session
+from tagloc.vision.odometry import floor_patch
 
 MAP = Path(__file__).resolve().parents[1] / "maps" / "demo.csv"
 
@@ -114,3 +115,13 @@ def test_odometry_from_chosen_cameras_only(two_cam):
     assert loc.floor_odometry(1) is None and loc.floor_odometry(0) is not None
     assert 0 < front["odometry_steps"] <= min(9, both)
     assert front["odometry_unavailable"] == 0 and front["tracker_odometry_unmatched"] == 0
+
+
+def test_a_rear_camera_matches_its_nearest_floor():
+    """The odometry patch of a camera looking back mirrors the front camera's about the camera: the
+    nearest full square, not the farthest (seen coarser, and swung more by the torso's lean)."""
+    front, rear = front_rear_rig().cameras
+    pf, pr = floor_patch(front), floor_patch(rear)
+    x_front, x_rear = front.T_body_camera[0, 3], rear.T_body_camera[0, 3]
+    assert pr.side == pytest.approx(pf.side, abs=1e-3)
+    assert x_rear - pr.x_far == pytest.approx(pf.x_near - x_front, abs=0.02)
