@@ -53,7 +53,7 @@ class MultiCamConfig:
     """The comparison: ``seeds`` walks of ``seconds`` at ``fps`` per camera and ``lux`` over
     ``map_path``, rendered at ``scale`` of the full resolution; sessions and report under ``out``."""
 
-    map_path: Path = Path("maps/demo.csv")
+    map_path: Path = Path(__file__).resolve().parents[2] / "maps" / "demo.csv"  # the source tree's
     out: Path = Path("out/multicam")
     seeds: tuple[int, ...] = (1, 2, 3)
     seconds: float = 20.0
@@ -237,7 +237,7 @@ def run_two_camera(cfg: MultiCamConfig | None = None) -> str:
     (out / "results.json").write_text(json.dumps({"rows": slim, "summary": summary}, indent=1, default=float))
     conditions = (
         f"{len(cfg.seeds)} walks (seeds {', '.join(map(str, cfg.seeds))}) of {cfg.seconds:g} s over"
-        f" {cfg.map_path}, {cfg.fps:g} fps per camera, {cfg.lux:g} lux"
+        f" {Path(cfg.map_path).name}, {cfg.fps:g} fps per camera, {cfg.lux:g} lux"
         + "".join(f", {k} {v}" for k, v in cfg.sim_extra.items())
         + ("" if cfg.odometry_cameras is None else f", floor odometry from cameras {list(cfg.odometry_cameras)}")
     )
