@@ -186,3 +186,18 @@ def test_a_step_from_before_the_track_started_is_ignored():
     # Rear's step began before the track: nothing to fuse it against, and no bookkeeping fault.
     assert not tr.update_odometry(OdometryStep(0.0, 0.07, np.zeros(3), cov, 0.5), "rear").accepted
     assert tr.stats["odometry_ignored"] == 1 and tr.stats["odometry_unmatched"] == 0
+
+
+def test_cameras_at_the_same_time_clone_the_same_pose():
+    tr = Tracker()
+    fix = [PoseFix(np.eye(4), np.zeros(3), np.diag([1e-4, 1e-4, 1e-4]), 0.3)]
+    cov = np.diag([1e-5, 1e-5, 1e-5])
+    tr.predict(0.0, "front")
+    tr.update(fix, 1, IdSource.DECODED, 0.0)
+    tr.predict(0.0, "rear")  # a second camera's frame with the same stamp
+    tr.predict(0.07, "front")
+    assert set(tr.odometry_cameras) == {"front", "rear"}
+    assert tr.update_odometry(OdometryStep(0.0, 0.07, np.array([0.05, 0.0, 0.0]), cov, 0.5), "front").accepted
+    assert tr.update_odometry(OdometryStep(0.0, 0.07, np.array([0.05, 0.0, 0.0]), cov, 0.5), "rear").accepted
+    out = tr.output()
+    assert np.all(np.isfinite(out.pose)) and np.all(np.linalg.eigvalsh(out.cov) > 0)
