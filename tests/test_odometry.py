@@ -322,12 +322,14 @@ def test_tracker_odometry_bookkeeping(rng):
     assert not res.accepted and tr.stats["odometry_ignored"] == 1
     fix = [PoseFix(np.eye(4), np.zeros(3), np.diag([1e-4, 1e-4, 1e-4]), 0.3)]
     tr.update(fix, 1, IdSource.DECODED, 0.0)
-    # A fix fused at t1 before the step: the step no longer matches the prediction.
+    # A step must start at the camera's previous frame; a fix fused at t1 before the step does not
+    # matter (the clone of the pose at 0 follows it, see tracker.clones).
     t1 = 1 / FPS
     tr.predict(t1)
     tr.update(fix, 1, IdSource.DECODED, t1)
-    assert not tr.update_odometry(OdometryStep(0.0, t1, np.zeros(3), cov, 0.5)).accepted
+    assert not tr.update_odometry(OdometryStep(0.5 / FPS, t1, np.zeros(3), cov, 0.5)).accepted
     assert tr.stats["odometry_unmatched"] == 1
+    assert tr.update_odometry(OdometryStep(0.0, t1, np.zeros(3), cov, 0.5)).accepted
     # The step moves the filter itself; a 1 m jump in one frame is gated out; a plausible one is fused.
     t2 = 2 / FPS
     res = tr.update_odometry(OdometryStep(t1, t2, np.array([1.0, 0.0, 0.0]), cov, 0.5))

@@ -142,7 +142,8 @@ class TrackerConfig:
       tagloc's floor odometry states its covariance against exactly that motion (see
       :class:`tagloc.vision.odometry.OdometryConfig`), so the factors are 1.
     - ``odometry_gate_prob``: chi-square bound (3 DoF) on the relative-pose innovation.
-    - ``odometry_max_dt``: the longest interval between the two frames of a step.
+    - ``odometry_max_dt``: the longest interval between the two frames of a step (so also how long
+      a camera's clone of its last frame is kept, see :mod:`tracker.clones`).
 
     Frame gaps (dropped frames: the driver loses single frames and bursts of 3-8): the filter
     predicts across a gap like across any interval, but floor odometry cannot bridge one longer

@@ -78,7 +78,8 @@ class LocaliserConfig:
         candidates: K, the most candidates handed to identification.
         tracker: the EKF's configuration.
         odometry: measure the body's motion between frames from the floor texture and feed it to
-            the tracker; ``odometry_config`` tunes it.
+            the tracker; ``odometry_config`` tunes it. ``odometry_cameras``: the rig cameras (indices)
+            that measure it, None: all (each camera's steps run from its own previous frame).
         sticker_tracking: carry a decoded sticker's identity to the next frame instead of decoding
             it again; ``tracking`` tunes it (see :func:`match_tracked`).
         clock_reset_frames: a frame whose timestamp is not after the previous frame's is refused
@@ -99,6 +100,7 @@ class LocaliserConfig:
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     odometry: bool = True
     odometry_config: OdometryConfig = field(default_factory=OdometryConfig)
+    odometry_cameras: tuple[int, ...] | None = None
     clock_reset_frames: int = 5
     sticker_tracking: bool = True
     tracking: TrackingConfig = field(default_factory=lambda: TrackingConfig())
@@ -413,7 +415,7 @@ class Localiser:
                 out = self.tracker.output()
             return FrameResult(frame.index, t, [], out, timer.finish(), refused, frame)
         with timer("predict"):
-            self.tracker.predict(t)
+            self.tracker.predict(t, frame.camera)
         if frame.image is None:
             self.counts["skipped"] += 1
             with timer("output"):
@@ -422,7 +424,8 @@ class Localiser:
         gray = as_gray(frame.image)
         rig_cam = self.rig[frame.camera]
         if self.config.odometry:
-            # Before the fixes: the step covers the interval the tracker just predicted over.
+            # This camera's step since its previous frame: the tracker fuses it against its clone of
+            # the pose there (tracker.clones), whatever other cameras' frames came in between.
             with timer("odometry"):
                 self._odometry_step(gray, frame.camera, t)
         with timer("detect"):
@@ -527,7 +530,10 @@ class Localiser:
 
     def floor_odometry(self, camera: int) -> FloorOdometry | None:
         """The floor odometry of rig camera ``camera`` (made on first use), or None if that camera
-        sees too little floor for it."""
+        sees too little floor for it or is not one of ``odometry_cameras``."""
+        chosen = self.config.odometry_cameras
+        if camera not in self._odometry and chosen is not None and camera not in chosen:
+            self._odometry[camera] = None
         if camera not in self._odometry:
             try:
                 self._odometry[camera] = FloorOdometry(self.rig[camera], self.config.odometry_config)
@@ -543,7 +549,7 @@ class Localiser:
         self._step = step
         if step is not None:
             self.counts["odometry_steps"] += 1
-            self.tracker.update_odometry(step)
+            self.tracker.update_odometry(step, camera)
 
     def _body_twist(self, rig_cam: RigCamera, t: float) -> np.ndarray | None:
         """The body's motion (vx, vy, yaw rate; body frame) for the rolling-shutter correction, or None."""

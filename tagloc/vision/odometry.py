@@ -279,7 +279,11 @@ def floor_patch(rig_camera: RigCamera, config: OdometryConfig | None = None) -> 
 
     xs = floor[ok, 0]
     best = (0.0, 0.0)
-    for x0 in np.linspace(xs.min(), xs.max(), _NEAR_EDGE_STEPS):
+    # Squares nearest the camera first (of equal size the first found stays): a nearer patch is seen
+    # finer. A camera looking back sees its nearest floor at the footprint's largest x, not its least.
+    x_cam = float(rig_camera.T_body_camera[0, 3])
+    near_edges = np.linspace(xs.min(), xs.max(), _NEAR_EDGE_STEPS)
+    for x0 in sorted(near_edges, key=lambda x: abs(x + 0.5 * cfg.max_side_m - x_cam)):
         lo, hi = 0.0, cfg.max_side_m
         if best[1] >= hi and fits(x0, hi):
             continue  # a nearer square of full size was already found
