@@ -43,16 +43,17 @@ from typing import TypeVar
 import numpy as np
 from filterpy.kalman import update as kf_update
 
-from tagloc.core.geometry import wrap_angle
+from tagloc.core.geometry import map_error_jacobian, wrap_angle
 from tagloc.core.rig import RigCamera
 from tagloc.core.stickermap import StickerMap
-from tagloc.core.types import IdSource, PoseFix, TrackerOutput, TrackState
+from tagloc.core.types import IdSource, PoseFix, SurveyPrior, TrackerOutput, TrackState
 from tracker import motion
 from tracker.candidates import select_candidates
 from tracker.config import TrackerConfig
 from tracker.ekf import (
     DIM,
     M_ODO,
+    MapTerm,
     WalkingEKF,
     largest_eig_2x2,
     odometry_cov,
@@ -297,8 +298,10 @@ class Tracker:
         return ok
 
     # -- fixes --------------------------------------------------------------------------------------
-    def _clean(self, fixes: list[PoseFix]) -> list[tuple[np.ndarray, np.ndarray]]:
-        """(body (3,), cov (3, 3) SPD) of the usable fixes, in the order given."""
+    def _clean(
+        self, fixes: list[PoseFix], sticker_id: int, survey: SurveyPrior | None
+    ) -> list[tuple[np.ndarray, np.ndarray, MapTerm | None]]:
+        """(body (3,), cov (3, 3) SPD, map term or None) of the usable fixes, in the order given."""
         out = []
         for f in fixes:
             z = np.asarray(f.body, float).ravel()
@@ -310,11 +313,27 @@ class Tracker:
                 continue
             z = z.copy()
             z[2] = wrap_angle(float(z[2]))
-            out.append((z, sym_spd(C, self.config.min_eig)))
+            term = None
+            if survey is not None and (survey.sigma_m > 0 or survey.sigma_yaw > 0):
+                prior = np.diag([survey.sigma_m**2, survey.sigma_m**2, survey.sigma_yaw**2])
+                term = MapTerm(int(sticker_id), map_error_jacobian(z[:2], survey.sticker_xy), prior)
+            out.append((z, sym_spd(C, self.config.min_eig), term))
         return out
 
-    def update(self, fixes: list[PoseFix], sticker_id: int, source: IdSource, t: float) -> UpdateResult:
-        """Offer one sticker's pose fix(es) (1, or 2 IPPE alternatives best first) seen at frame time ``t``."""
+    def update(
+        self,
+        fixes: list[PoseFix],
+        sticker_id: int,
+        source: IdSource,
+        t: float,
+        survey: SurveyPrior | None = None,
+    ) -> UpdateResult:
+        """Offer one sticker's pose fix(es) (1, or 2 IPPE alternatives best first) seen at frame time ``t``.
+
+        ``survey``: the sticker's map position and survey sigmas; its survey error then becomes a
+        state while the sticker is being fixed (see :mod:`tracker.ekf`). None: the map is exact (or
+        the fixes' covariances already carry it).
+        """
         source = IdSource(source)
         t = float(t)
         if not math.isfinite(t):
@@ -322,7 +341,7 @@ class Tracker:
             return UpdateResult(False, "invalid timestamp")
         if source is IdSource.NONE:
             return UpdateResult(False, "unidentified sticker")
-        alts = self._clean(fixes)
+        alts = self._clean(fixes, sticker_id, survey)
         if not alts:
             self._stats["invalid_fixes"] += 1
             return UpdateResult(False, "no usable fix (empty, NaN or malformed)")
@@ -346,7 +365,7 @@ class Tracker:
 
         k, nis = self._best(alts, lag)
         if nis <= self._gate[source]:
-            self._fuse(*alts[k], lag)
+            self._fuse(alts[k], lag)
             self._accept(sticker_id, source, t)
             if source is IdSource.DECODED:
                 self._hyp = None
@@ -372,9 +391,9 @@ class Tracker:
     def _best(self, alts, lag: float) -> tuple[int, float]:
         """Index and NIS of the alternative closest to the prediction."""
         best = (0, math.inf)
-        for i, (z, C) in enumerate(alts):
+        for i, (z, C, term) in enumerate(alts):
             try:
-                nis = self._ekf.innovation(z, C, lag).nis
+                nis = self._ekf.innovation(z, C, lag, term).nis
             except np.linalg.LinAlgError:
                 self._stats["numeric_errors"] += 1
                 continue
@@ -382,10 +401,11 @@ class Tracker:
                 best = (i, nis)
         return best
 
-    def _fuse(self, z: np.ndarray, C: np.ndarray, lag: float) -> None:
-        """Fuse an accepted fix (vest pose z, own covariance C); a late one through retrodiction."""
+    def _fuse(self, alt: tuple[np.ndarray, np.ndarray, MapTerm | None], lag: float) -> None:
+        """Fuse an accepted fix (vest pose, own covariance, map term); a late one through retrodiction."""
         self._clone = None
-        self._guarded(lambda: self._ekf.fuse(z, C, lag))
+        z, C, term = alt
+        self._guarded(lambda: self._ekf.fuse(z, C, lag, term))
         if lag > 0.0:
             self._stats["late_fixes_fused"] += 1
 
@@ -397,12 +417,14 @@ class Tracker:
         self._state = TrackState.TRACKING
         self._forgot = False
 
-    def _start(self, alt: tuple[np.ndarray, np.ndarray], sticker_id: int, source: IdSource, t: float) -> None:
+    def _start(
+        self, alt: tuple[np.ndarray, np.ndarray, MapTerm | None], sticker_id: int, source: IdSource, t: float
+    ) -> None:
         """(Re)start the track from one fix: pose from it, speed and yaw rate unknown."""
         self._hyp = None
         self._clone = None
         self._ekf = WalkingEKF(self.config)
-        self._ekf.reset(alt[0], alt[1])
+        self._ekf.reset_from_fix(*alt)
         # A fresh track: its sticker set and last-fix time start from this fix alone.
         self._track_ids = set()
         self._last_fix_t = -math.inf
@@ -421,7 +443,7 @@ class Tracker:
                 h = None
         if h is None:
             ekf = WalkingEKF(cfg)
-            ekf.reset(alts[0][0], alts[0][1])
+            ekf.reset_from_fix(*alts[0])
             h = _Hypothesis(ekf, t, t, {int(sticker_id)}, 1)
         self._hyp = h
         # Several stickers are needed to overrule a track that other stickers support; a track that
@@ -442,10 +464,11 @@ class Tracker:
         """Fuse the best of ``alts`` into the hypothesis if it passes its gate; False if none does."""
         h.ekf.advance(t - h.t)
         h.t = t
-        nis, i = min((h.ekf.innovation(z, C).nis, i) for i, (z, C) in enumerate(alts))
+        nis, i = min((h.ekf.innovation(z, C, 0.0, term).nis, i) for i, (z, C, term) in enumerate(alts))
         if not nis <= self.config.gate:  # NaN included
             return False
-        h.ekf.fuse(*alts[i])
+        z, C, term = alts[i]
+        h.ekf.fuse(z, C, 0.0, term)
         h.ids.add(int(sticker_id))
         h.count += 1
         return True
