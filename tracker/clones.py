@@ -154,6 +154,11 @@ class CloneSet:
         self.X = P1 @ Bt
         return True
 
+    def decorrelate(self, rows: slice) -> None:
+        """The state's entries ``rows`` were just replaced by a new state independent of the past (a
+        map-error slot given to another sticker): no clone is correlated with them."""
+        self.X[rows, :] = 0.0
+
     def joint(self, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The joint mean (n + 3k,) and covariance of [state, clones] (the clones in ``keys`` order)."""
         n = len(x)

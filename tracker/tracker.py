@@ -48,10 +48,10 @@ from typing import TypeVar
 import numpy as np
 from filterpy.kalman import update as kf_update
 
-from tagloc.core.geometry import wrap_angle
+from tagloc.core.geometry import map_error_jacobian, wrap_angle
 from tagloc.core.rig import RigCamera
 from tagloc.core.stickermap import StickerMap
-from tagloc.core.types import IdSource, PoseFix, TrackerOutput, TrackState
+from tagloc.core.types import IdSource, PoseFix, SurveyPrior, TrackerOutput, TrackState
 from tracker import motion
 from tracker.candidates import select_candidates
 from tracker.clones import CloneSet
@@ -60,8 +60,10 @@ from tracker.ekf import (
     DIM,
     M_ODO,
     OFF,
+    MapTerm,
     WalkingEKF,
     largest_eig_2x2,
+    map_slot,
     odometry_model,
     pose_residual,
     sym_spd,
@@ -317,8 +319,10 @@ class Tracker:
         return ok
 
     # -- fixes --------------------------------------------------------------------------------------
-    def _clean(self, fixes: list[PoseFix]) -> list[tuple[np.ndarray, np.ndarray]]:
-        """(body (3,), cov (3, 3) SPD) of the usable fixes, in the order given."""
+    def _clean(
+        self, fixes: list[PoseFix], sticker_id: int, survey: SurveyPrior | None
+    ) -> list[tuple[np.ndarray, np.ndarray, MapTerm | None]]:
+        """(body (3,), cov (3, 3) SPD, map term or None) of the usable fixes, in the order given."""
         out = []
         for f in fixes:
             z = np.asarray(f.body, float).ravel()
@@ -330,11 +334,27 @@ class Tracker:
                 continue
             z = z.copy()
             z[2] = wrap_angle(float(z[2]))
-            out.append((z, sym_spd(C, self.config.min_eig)))
+            term = None
+            if survey is not None and (survey.sigma_m > 0 or survey.sigma_yaw > 0):
+                prior = np.diag([survey.sigma_m**2, survey.sigma_m**2, survey.sigma_yaw**2])
+                term = MapTerm(int(sticker_id), map_error_jacobian(z[:2], survey.sticker_xy), prior)
+            out.append((z, sym_spd(C, self.config.min_eig), term))
         return out
 
-    def update(self, fixes: list[PoseFix], sticker_id: int, source: IdSource, t: float) -> UpdateResult:
-        """Offer one sticker's pose fix(es) (1, or 2 IPPE alternatives best first) seen at frame time ``t``."""
+    def update(
+        self,
+        fixes: list[PoseFix],
+        sticker_id: int,
+        source: IdSource,
+        t: float,
+        survey: SurveyPrior | None = None,
+    ) -> UpdateResult:
+        """Offer one sticker's pose fix(es) (1, or 2 IPPE alternatives best first) seen at frame time ``t``.
+
+        ``survey``: the sticker's map position and survey sigmas; its survey error then becomes a
+        state while the sticker is being fixed (see :mod:`tracker.ekf`). None: the map is exact (or
+        the fixes' covariances already carry it).
+        """
         source = IdSource(source)
         t = float(t)
         if not math.isfinite(t):
@@ -342,7 +362,7 @@ class Tracker:
             return UpdateResult(False, "invalid timestamp")
         if source is IdSource.NONE:
             return UpdateResult(False, "unidentified sticker")
-        alts = self._clean(fixes)
+        alts = self._clean(fixes, sticker_id, survey)
         if not alts:
             self._stats["invalid_fixes"] += 1
             return UpdateResult(False, "no usable fix (empty, NaN or malformed)")
@@ -366,7 +386,7 @@ class Tracker:
 
         k, nis = self._best(alts, lag)
         if nis <= self._gate[source]:
-            self._fuse(*alts[k], lag)
+            self._fuse(alts[k], lag)
             self._accept(sticker_id, source, t)
             if source is IdSource.DECODED:
                 self._hyp = None
@@ -392,9 +412,9 @@ class Tracker:
     def _best(self, alts, lag: float) -> tuple[int, float]:
         """Index and NIS of the alternative closest to the prediction."""
         best = (0, math.inf)
-        for i, (z, C) in enumerate(alts):
+        for i, (z, C, term) in enumerate(alts):
             try:
-                nis = self._ekf.innovation(z, C, lag).nis
+                nis = self._ekf.innovation(z, C, lag, term).nis
             except np.linalg.LinAlgError:
                 self._stats["numeric_errors"] += 1
                 continue
@@ -402,10 +422,18 @@ class Tracker:
                 best = (i, nis)
         return best
 
-    def _fuse(self, z: np.ndarray, C: np.ndarray, lag: float) -> None:
-        """Fuse an accepted fix (vest pose z, own covariance C); a late one through retrodiction."""
+    def _fuse(self, alt: tuple[np.ndarray, np.ndarray, MapTerm | None], lag: float) -> None:
+        """Fuse an accepted fix (vest pose, own covariance, map term); a late one through retrodiction."""
+        z, C, term = alt
+        if term is not None:
+            # The sticker's survey error takes its slot first: a new sticker's is a fresh state,
+            # independent of everything, clones included; then the fix is a pure conditioning,
+            # which the clones follow exactly.
+            k, fresh = self._ekf.claim_slot(term)
+            if fresh:
+                self._clones.decorrelate(map_slot(k))
         x0, P0 = self._ekf.x[:, 0], self._ekf.P
-        if self._guarded(lambda: self._ekf.fuse(z, C, lag)):
+        if self._guarded(lambda: self._ekf.fuse(z, C, lag, term)):
             # The odometry clones follow the fix (see tracker.clones).
             if not self._clones.carry(x0, P0, self._ekf.x[:, 0], self._ekf.P, _ANGLES, self.config.min_eig):
                 self._stats["numeric_errors"] += 1
@@ -420,12 +448,14 @@ class Tracker:
         self._state = TrackState.TRACKING
         self._forgot = False
 
-    def _start(self, alt: tuple[np.ndarray, np.ndarray], sticker_id: int, source: IdSource, t: float) -> None:
+    def _start(
+        self, alt: tuple[np.ndarray, np.ndarray, MapTerm | None], sticker_id: int, source: IdSource, t: float
+    ) -> None:
         """(Re)start the track from one fix: pose from it, speed and yaw rate unknown."""
         self._hyp = None
         self._drop_clones()
         self._ekf = WalkingEKF(self.config)
-        self._ekf.reset(alt[0], alt[1])
+        self._ekf.reset_from_fix(*alt)
         # A fresh track: its sticker set and last-fix time start from this fix alone.
         self._track_ids = set()
         self._last_fix_t = -math.inf
@@ -444,7 +474,7 @@ class Tracker:
                 h = None
         if h is None:
             ekf = WalkingEKF(cfg)
-            ekf.reset(alts[0][0], alts[0][1])
+            ekf.reset_from_fix(*alts[0])
             h = _Hypothesis(ekf, t, t, {int(sticker_id)}, 1)
         self._hyp = h
         # Several stickers are needed to overrule a track that other stickers support; a track that
@@ -465,10 +495,11 @@ class Tracker:
         """Fuse the best of ``alts`` into the hypothesis if it passes its gate; False if none does."""
         h.ekf.advance(t - h.t)
         h.t = t
-        nis, i = min((h.ekf.innovation(z, C).nis, i) for i, (z, C) in enumerate(alts))
+        nis, i = min((h.ekf.innovation(z, C, 0.0, term).nis, i) for i, (z, C, term) in enumerate(alts))
         if not nis <= self.config.gate:  # NaN included
             return False
-        h.ekf.fuse(*alts[i])
+        z, C, term = alts[i]
+        h.ekf.fuse(z, C, 0.0, term)
         h.ids.add(int(sticker_id))
         h.count += 1
         return True

@@ -29,13 +29,14 @@ from tagloc.core.types import (
     Identity,
     IdSource,
     Observation,
+    SurveyPrior,
 )
 from tagloc.io.session import CAMERA_FILE, MAP_FILE, RIG_FILE
 from tagloc.vision.decode import DecodeConfig, decode, verify_detection
 from tagloc.vision.detect import detect
 from tagloc.vision.image import as_gray
 from tagloc.vision.odometry import FloorOdometry, OdometryConfig
-from tagloc.vision.pose import PoseConfig, SurveyPasses, solve_pose
+from tagloc.vision.pose import PoseConfig, solve_pose
 from tracker.tracker import Tracker, TrackerConfig
 
 #: The stages whose time is the tracker's: its prediction, candidate choice, updates and output.
@@ -377,7 +378,6 @@ class Localiser:
         self._refs = refs
         self._map_path = map_path
         self._odometry: dict[int, FloorOdometry | None] = {}  # per rig camera; None: camera sees too little floor
-        self._passes = SurveyPasses()  # repeated fixes of a sticker share its survey error
         self._step = None  # this frame's odometry step, for the rolling-shutter correction
         self.counts = new_counts()
         self.counts["tracked"] = 0  # detections whose identity came from sticker tracking, not a decode
@@ -388,7 +388,6 @@ class Localiser:
         self.counts.update(refused_timestamps=0, clock_resets=0, wrong_size_frames=0)
         self._last_t: float | None = None  # timestamp of the last frame accepted
         self._refused_run = 0
-        self._passes = SurveyPasses()  # repeated fixes of a sticker share its survey error
         self._step = None  # this frame's odometry step, for the rolling-shutter correction
 
     @property
@@ -561,6 +560,18 @@ class Localiser:
             return np.asarray(s.delta, float) / (s.t1 - s.t0)
         return self.tracker.velocity()
 
+    def survey_prior(self, sticker_id: int) -> SurveyPrior:
+        """The sticker's map position and survey sigmas: the map's ``sigma_m``/``sigma_deg`` where
+        stated, else the pose config's defaults (``map_sigma_m``, ``map_sigma_yaw``)."""
+        row = self.map.row(sticker_id)
+        sig_m, sig_yaw = float(self.map.sigma_xy[row]), float(self.map.sigma_yaw[row])
+        pose = self.config.pose
+        return SurveyPrior(
+            np.asarray(self.map.T_world_sticker(sticker_id)[:2, 3], float),
+            sig_m if math.isfinite(sig_m) else pose.map_sigma_m,
+            sig_yaw if math.isfinite(sig_yaw) else pose.map_sigma_yaw,
+        )
+
     def _candidates(self, det: Detection, rig_cam: RigCamera, timer: StageTimer) -> list[int]:
         with timer("candidates"):
             return self.tracker.candidates(self.map, rig_cam, det.outer.mean(axis=0), k=self.config.candidates)
@@ -636,20 +647,21 @@ class Localiser:
 
     def _fix(self, det: Detection, identity: Identity, rig_cam: RigCamera, t: float, timer: StageTimer) -> Fix:
         with timer("pose"):
-            row = self.map.row(identity.sticker_id)
-            survey = (float(self.map.sigma_xy[row]), float(self.map.sigma_yaw[row]))  # NaN: the default
+            T_world_sticker = self.map.T_world_sticker(identity.sticker_id)
+            # The fix itself is solved against the map as if exact: the tracker carries the sticker's
+            # survey error as a state, shared by all of that sticker's fixes.
             sol = solve_pose(
                 det,
                 identity.rotation,
-                self.map.T_world_sticker(identity.sticker_id),
+                T_world_sticker,
                 rig_cam,
                 config=self.config.pose,
-                map_sigma=survey,
-                map_scale=self._passes.scale(identity.sticker_id, t),
                 body_twist=self._body_twist(rig_cam, t),
             )
         if not sol.poses:
             return Fix([], sol.ambiguous)
         with timer("update"):
-            res = self.tracker.update(sol.poses, identity.sticker_id, identity.source, t)
+            res = self.tracker.update(
+                sol.poses, identity.sticker_id, identity.source, t, self.survey_prior(identity.sticker_id)
+            )
         return Fix(sol.poses, sol.ambiguous, res.accepted, res.reason)
