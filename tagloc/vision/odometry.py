@@ -160,10 +160,16 @@ class OdometryConfig:
     one). ``tilt_fit_roll``: fit the roll too, not only the pitch (on four simulated walks it took
     the sideways error summed over 0.5 s from 5 to 2.4-3.5 cm on three and raised it from 2.4 to
     4.4 cm on the fourth, a slow walk under a steep camera).
-    Below ``tilt_min_speed`` of the patch (half a slow walk's 0.6 m/s) the rigid step stands: a
-    standing body sways by a few tenths of a degree over seconds, far less than the fit's own
-    noise, which there read as a slow turn and slide (0.04 deg and 2-3 mm per frame, the same way
-    for 8 s, on a simulated stop in front of a sticker, even with a 0.1 deg prior).
+    The fitted tilt change is used to correct the rigid match's step (the rigid map that the tilt
+    change alone makes the nominal patch see is taken out of it), not to replace the step by the
+    fit's own rigid part (``tilt_refit_rigid``): on a simulated 8 s stop in front of a sticker the
+    homography's rigid part drifted by 0.04 deg and 2-3 mm per frame the same way, the rigid
+    match's did not. Below ``tilt_min_speed`` of the patch (0.15 m/s: a standing body sways by a
+    few tenths of a degree over seconds, below the fit's noise, which there became a forward creep
+    of 1.4 mm per frame) the rigid step stands; above it, the pitch of starting and braking
+    (atan(a / g), 5-8 deg over a second) is caught from the first steps (on a simulated start from
+    a stop: 7 cm of forward error over 1 s instead of 11). ``tilt_pitch_when_slow`` fits the pitch
+    below that speed too (off: see the creep above).
     Only the change between the two frames matters to first order (a constant tilt off the nominal
     changes the step's scale by its cosine), so no absolute tilt is needed. On simulated walks
     this halves to quarters the error of steps summed over 0.5-1 s (the time between sticker
@@ -220,8 +226,10 @@ class OdometryConfig:
     rolling_shutter: bool = True
     tilt_correction: bool = True
     tilt_prior_sigma: float = math.radians(0.3)
-    tilt_min_speed: float = 0.3
+    tilt_min_speed: float = 0.15
     tilt_fit_roll: bool = True
+    tilt_pitch_when_slow: bool = False
+    tilt_refit_rigid: bool = False
     tilt_grid: int = 6
     homography_point_sigma_m: float = 0.002
     homography_iterations: int = 10
@@ -284,6 +292,16 @@ def _kabsch(p1: np.ndarray, p0: np.ndarray) -> np.ndarray:
     yaw = math.atan2(H[0, 1] - H[1, 0], H[0, 0] + H[1, 1])
     t = m0 - _rot2(yaw) @ m1
     return np.array([t[0], t[1], yaw])
+
+
+def _compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(dx, dy, dyaw) of the planar motion ``a`` followed by ``b`` (``b`` in ``a``'s frame)."""
+    return np.array([*(a[:2] + _rot2(a[2]) @ b[:2]), a[2] + b[2]])
+
+
+def _invert2(a: np.ndarray) -> np.ndarray:
+    """(dx, dy, dyaw) of the inverse planar motion of ``a``."""
+    return np.array([*(-(_rot2(-a[2]) @ a[:2])), -a[2]])
 
 
 def _apply_h(H: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -596,8 +614,10 @@ class FloorOdometry:
         from scipy.optimize import least_squares
 
         cfg = self.config
-        if math.sqrt(self._centre_moved2(delta)) < cfg.tilt_min_speed * dt:
+        slow = math.sqrt(self._centre_moved2(delta)) < cfg.tilt_min_speed * dt
+        if slow and not cfg.tilt_pitch_when_slow:
             return delta
+        roll = cfg.tilt_fit_roll and not slow
         H0 = np.eye(3, dtype=np.float32)
         H0[:2] = W
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, cfg.homography_iterations, cfg.homography_eps)
@@ -619,22 +639,31 @@ class FloorOdometry:
 
         def residuals(x: np.ndarray) -> np.ndarray:
             dx, dy, dyaw, ry = x[:4]
-            rx = x[4] if cfg.tilt_fit_roll else 0.0
+            rx = x[4] if roll else 0.0
             # Small rotation (rx about body x, ry about body y) of the nominal rays about the camera.
             d = rays + np.cross(np.array([rx, ry, 0.0]), rays)
             p1 = c[:2] + (-c[2] / d[:, 2])[:, None] * d[:, :2]
             co, si = math.cos(dyaw), math.sin(dyaw)
             r = (p1 @ np.array([[co, si], [-si, co]]) + (dx, dy) - p0).ravel() / sp
-            return np.r_[r, ry / sig, rx / sig] if cfg.tilt_fit_roll else np.r_[r, ry / sig]
+            return np.r_[r, ry / sig, rx / sig] if roll else np.r_[r, ry / sig]
 
         try:
-            sol = least_squares(
-                residuals, np.r_[delta, 0.0, 0.0] if cfg.tilt_fit_roll else np.r_[delta, 0.0], method="lm"
-            )
+            sol = least_squares(residuals, np.r_[delta, 0.0, 0.0] if roll else np.r_[delta, 0.0], method="lm")
         except (ValueError, np.linalg.LinAlgError):
             return delta
         if not (sol.success and np.all(np.isfinite(sol.x))):
             return delta
+        if not cfg.tilt_refit_rigid:
+            # Keep the rigid match's step and take out only what the fitted tilt change alone
+            # makes it see: the rigid map from the frame's nominal floor points to where the
+            # tilted rays meet the floor (the fit's own rigid part is the less reliable one).
+            ry = float(sol.x[3])
+            rx = float(sol.x[4]) if roll else 0.0
+            d = rays + np.cross(np.array([rx, ry, 0.0]), rays)
+            p_tilt = c[:2] + (-c[2] / d[:, 2])[:, None] * d[:, :2]
+            p_nom = c[:2] + (-c[2] / rays[:, 2])[:, None] * rays[:, :2]
+            T = _kabsch(p_nom, p_tilt)
+            return _compose(delta, _invert2(T))
         return np.asarray(sol.x[:3], float)
 
     def _tilt(self, t: float) -> np.ndarray | None:
