@@ -28,6 +28,18 @@ step, else the tracker's prediction): the remap moves by ``-d (dp/dq) (v + w x q
 ``d``, floor point ``q`` and body twist ``(v, w)`` (first order; computed on the 80 x 80 patch
 grid and interpolated).
 
+A torso leaning into a turn (roll atan(v omega / g): 8 degrees at 1.3 m/s and 60 deg/s, 15 at 1.5 m/s
+and 100 deg/s) sees the floor through the tilted camera, so the nominal patch is a perspective-
+distorted square displaced sideways: the best rigid match of two such patches turns less than the
+body (6.3 % of every turn on the standard eval's s02, 10 degrees summed over its 20 s; 0.4 degrees
+per metre walked per degree of roll), and the turn's lever to the displaced patch lengthens or
+shortens the step. The odometry therefore follows the lean from its own speed and turn rate (see
+``lean_correction``) and computes the step from where the matched patch points really are on the
+floor (:meth:`FloorOdometry.level_motion`). With the true per-frame tilt instead of the predicted
+lean, the step errors on s02 would fall from 10.4 / 6.1 mm (forward / sideways RMS) to 3.8 / 1.8 mm
+and the turn bias to -0.7 %: the remaining step error is mostly the tilt's change from frame to
+frame (gait nod, lean building up and easing), which a planar match cannot tell from motion.
+
 What it measures is the camera's motion carried through the nominal rig: the vest's. The vest
 moving on the body (sway, torso yaw, tilt) is not the body's motion; the tracker's vest-offset
 state takes that part (see :mod:`tracker.config`), so the step covariance (see
@@ -57,7 +69,10 @@ _NEAR_EDGE_STEPS = 60  # near-edge positions tried across the footprint's depth
 _BISECTIONS = 20  # bisection steps of the side: max_side_m / 2**20, about a micrometre
 _SIDE_TOL_M = 1e-4  # a farther square must be larger by this to win
 _ZNCC_INSET = 6  # the turn guesses are compared on the patch less 1/6 at each border (warped in)
-_SAME_TURN_RAD = 1e-9  # a grid guess this close to the one already tried is skipped
+_SAME_TURN_RAD = 1e-9
+_G = 9.81  # gravity, m/s^2
+_TILT_GRID = 5  # cells per patch side of the lean's weighted fit (a smooth map; each cell 16 px)
+_LEVEL_ITERATIONS = 2  # corrections of the level motion (the second changes it by under 1e-4 of a step)  # a grid guess this close to the one already tried is skipped
 
 
 @dataclass
@@ -125,17 +140,62 @@ class OdometryConfig:
     :meth:`FloorOdometry.covariance`): over a gap, the heading error then swings the estimated path
     about the patch ahead, and its sideways drift stays small until the walker passes that patch.
 
+    Tilt (``tilt_correction``): the bird's-eye patch is made through the rig's nominal pose, so a
+    change of the vest's pitch or roll between two frames (the gait's nod and sway, the lean into a
+    turn or with braking) shifts and keystones the patch as if the floor had moved: 1.9 m per radian
+    of pitch and 1.3 m per radian of roll at the patch centre, ~1 cm per frame of walking (measured
+    against the true camera poses of simulated walks). Seen through a homography instead of a
+    rigid motion, the two differ: a shift is uniform, a tilt stretches the near and far edges of
+    the patch differently. So after the rigid alignment, ECC is run again with
+    ``MOTION_HOMOGRAPHY`` (``homography_iterations``, ``homography_eps``), and the step is fitted
+    (:func:`scipy.optimize.least_squares`) as the rigid motion of the floor seen by a camera whose
+    pitch and roll changed by (rx, ry) about its centre, on a ``tilt_grid`` x ``tilt_grid`` grid of
+    patch points (each fitted to ``homography_point_sigma_m``, the homography's precision on the
+    floor: ~0.1 of a 12.5 mm patch pixel, at a few points' spread). The tilt change has a prior of
+    ``tilt_prior_sigma`` per frame: the gait's ~0.6 deg nod at 1.9 Hz changes by at most 0.24 deg in
+    1/30 s and its ~0.7 deg sway at 0.95 Hz by 0.14 deg; a 10 deg lean into a turn takes ~0.3 s or
+    more to build up (1 deg per frame at the most, rare, and followed by ``lean_correction``). So 0.3
+    deg keeps the fit in the physical range where the patch's perspective alone cannot pin it down
+    (with 1 deg, roll traded against sideways motion on simulated walks: 11 mm per step sideways on
+    one). ``tilt_fit_roll``: fit the roll too, not only the pitch (on four simulated walks it took
+    the sideways error summed over 0.5 s from 5 to 2.4-3.5 cm on three and raised it from 2.4 to
+    4.4 cm on the fourth, a slow walk under a steep camera).
+    The fitted tilt change is used to correct the rigid match's step (the rigid map that the tilt
+    change alone makes the nominal patch see is taken out of it), not to replace the step by the
+    fit's own rigid part (``tilt_refit_rigid``): on a simulated 8 s stop in front of a sticker the
+    homography's rigid part drifted by 0.04 deg and 2-3 mm per frame the same way, the rigid
+    match's did not. Below ``tilt_min_speed`` of the patch (0.15 m/s: a standing body sways by a
+    few tenths of a degree over seconds, below the fit's noise, which there became a forward creep
+    of 1.4 mm per frame) the rigid step stands; above it, the pitch of starting and braking
+    (atan(a / g), 5-8 deg over a second) is caught from the first steps (on a simulated start from
+    a stop: 7 cm of forward error over 1 s instead of 11). ``tilt_pitch_when_slow`` fits the pitch
+    below that speed too (off: see the creep above).
+    Only the change between the two frames matters to first order (a constant tilt off the nominal
+    changes the step's scale by its cosine), so no absolute tilt is needed. On simulated walks
+    this halves to quarters the error of steps summed over 0.5-1 s (the time between sticker
+    passes) in the forward and sideways directions; per single step it is no better, because the
+    nod it removes telescopes anyway over consecutive steps.
+
     ``rolling_shutter``: for a rolling-shutter camera (``RigCamera.readout_s`` > 0), sample each
     frame's patch where each floor point was at its row's time (see the module docstring).
 
-    Calibration (tagloc's simulator, six 20 s walks at 56-265 lux, 0.9-1.5 m/s, pitch 46-66 deg),
-    on windows of 15-60 frames (the 0.5-2 s gaps between sticker passes that odometry bridges), so
-    that the variance of the summed step errors matches the sum of the stated variances: the
-    standing values on windows slower than 0.3 m/s on average, the per-metre values on windows
-    faster than 0.9 m/s. Checked on the pose integrated over 15-60 frames (the simulator's roll
-    drift included), by speed class: stated and actual sigma agree within about 20 %. Over 4-8
-    frames of walking the forward errors are correlated (the gait's pitch nod; 1.8 cm against
-    1.0 cm stated over 8 frames), which a per-frame variance cannot state at every horizon.
+    ``lean_correction``: follow the torso's lean into turns, roll atan(v omega / g) from the
+    odometry's own speed and turn rate, through the inverted pendulum's lag sqrt(h_com / g)
+    (``lean_com_height_m``: an adult's centre of mass, about 0.55 of 1.75 m stature), and match the
+    patches as the tilted camera sees them (see :meth:`FloorOdometry.level_motion`). Below
+    ``lean_min`` (0.25 degrees: a false turn of 0.004 degrees per 4.5 cm step, a twentieth of the
+    step noise) the nominal geometry is kept, which saves the fit's 0.45 ms on straight walking.
+
+    Calibration (tagloc's simulator, revision 3 with the leaning walker: the six 20 s walks of
+    ``tagloc eval --preset standard``, 56-265 lux, 0.9-1.5 m/s, pitch 46-66 deg, tilt correction on),
+    on non-overlapping windows of 15, 30 and 60 frames (the 0.5-2 s gaps between sticker passes
+    that odometry bridges): the errors of the patch centre's motion and of the turn, summed over a
+    window, squared, fitted (non-negative least squares, each window weighted by 1/its length) as
+    the window's sum of ``sigma^2 + sigma_per_m^2 d^2``, then raised by 10 % so that the stated
+    variance covers the actual one over all windows (actual/stated 1.03-1.16 before; 324 windows
+    per axis). The standing values are large for a still camera because the walks' slow windows are
+    braking, turning on the spot and swaying in place, not a tripod. Tilt correction trades the
+    old per-frame sharpness (1.4 mm forward) for errors that no longer grow with the gait's nod.
     """
 
     patch_px: int = 80
@@ -157,13 +217,26 @@ class OdometryConfig:
     min_side_m: float = 0.2
     ecc_iterations: int = 5
     ecc_eps: float = 1e-2
-    sigma_forward: float = 0.0014
-    sigma_lateral: float = 0.00065
-    sigma_yaw: float = math.radians(0.08)
-    sigma_forward_per_m: float = 0.07
-    sigma_lateral_per_m: float = 0.014
-    sigma_yaw_per_m: float = math.radians(1.75)
+    sigma_forward: float = 0.0102
+    sigma_lateral: float = 0.0069
+    sigma_yaw: float = math.radians(0.123)
+    sigma_forward_per_m: float = 0.0
+    sigma_lateral_per_m: float = 0.159
+    sigma_yaw_per_m: float = math.radians(2.83)
     rolling_shutter: bool = True
+    tilt_correction: bool = True
+    tilt_prior_sigma: float = math.radians(0.3)
+    tilt_min_speed: float = 0.15
+    tilt_fit_roll: bool = True
+    tilt_pitch_when_slow: bool = False
+    tilt_refit_rigid: bool = False
+    tilt_grid: int = 6
+    homography_point_sigma_m: float = 0.002
+    homography_iterations: int = 10
+    homography_eps: float = 1e-3
+    lean_correction: bool = True
+    lean_com_height_m: float = 0.95
+    lean_min: float = math.radians(0.25)
 
 
 @dataclass
@@ -210,6 +283,49 @@ def _rot2(a: float) -> np.ndarray:
     """(2, 2) rotation by ``a`` rad."""
     c, s = math.cos(a), math.sin(a)
     return np.array([[c, -s], [s, c]])
+
+
+def _kabsch(p1: np.ndarray, p0: np.ndarray) -> np.ndarray:
+    """(dx, dy, dyaw) of the rigid map best taking points ``p1`` (N, 2) to ``p0`` (N, 2)."""
+    m1, m0 = p1.mean(axis=0), p0.mean(axis=0)
+    H = (p1 - m1).T @ (p0 - m0)
+    yaw = math.atan2(H[0, 1] - H[1, 0], H[0, 0] + H[1, 1])
+    t = m0 - _rot2(yaw) @ m1
+    return np.array([t[0], t[1], yaw])
+
+
+def _compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(dx, dy, dyaw) of the planar motion ``a`` followed by ``b`` (``b`` in ``a``'s frame)."""
+    return np.array([*(a[:2] + _rot2(a[2]) @ b[:2]), a[2] + b[2]])
+
+
+def _invert2(a: np.ndarray) -> np.ndarray:
+    """(dx, dy, dyaw) of the inverse planar motion of ``a``."""
+    return np.array([*(-(_rot2(-a[2]) @ a[:2])), -a[2]])
+
+
+def _apply_h(H: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Points (N, 2) through the homography ``H`` (3, 3)."""
+    x = np.column_stack([p, np.ones(len(p))]) @ H.T
+    return x[:, :2] / x[:, 2:]
+
+
+def _weighted_rigid_fit(q1: np.ndarray, q0: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """(2, 3) rigid map ``q0 ~ R q1 + t`` minimising sum (r_i^T S_i r_i) with 2x2 weights ``S`` (N, 2, 2):
+    one Gauss-Newton step from the unweighted fit (the maps fitted here are near-rigid)."""
+    d = _kabsch(q1, q0)
+    R = _rot2(d[2])
+    r = q0 - q1 @ R.T - d[:2]
+    Jt = (q1 @ R.T) @ np.array([[0.0, 1.0], [-1.0, 0.0]])  # d(R q)/d(angle) = J R q, J = [[0, -1], [1, 0]]
+    J = np.zeros((len(q1), 2, 3))
+    J[:, :, 0] = Jt
+    J[:, 0, 1] = J[:, 1, 2] = 1.0
+    SJ = S @ J  # (N, 2, 3)
+    N = np.tensordot(J, SJ, axes=([0, 1], [0, 1]))
+    g = np.tensordot(SJ, r, axes=([0, 1], [0, 1]))
+    step = np.linalg.solve(N, g)
+    a = d[2] + step[0]
+    return np.hstack([_rot2(a), (d[:2] + step[1:])[:, None]])
 
 
 def _floor_from_pixels(rig_camera: RigCamera, px: np.ndarray, min_depression: float) -> np.ndarray:
@@ -279,7 +395,11 @@ def floor_patch(rig_camera: RigCamera, config: OdometryConfig | None = None) -> 
 
     xs = floor[ok, 0]
     best = (0.0, 0.0)
-    for x0 in np.linspace(xs.min(), xs.max(), _NEAR_EDGE_STEPS):
+    # Squares nearest the camera first (of equal size the first found stays): a nearer patch is seen
+    # finer. A camera looking back sees its nearest floor at the footprint's largest x, not its least.
+    x_cam = float(rig_camera.T_body_camera[0, 3])
+    near_edges = np.linspace(xs.min(), xs.max(), _NEAR_EDGE_STEPS)
+    for x0 in sorted(near_edges, key=lambda x: abs(x + 0.5 * cfg.max_side_m - x_cam)):
         lo, hi = 0.0, cfg.max_side_m
         if best[1] >= hi and fits(x0, hi):
             continue  # a nearer square of full size was already found
@@ -325,6 +445,12 @@ class FloorOdometry:
         self._levels = ss.bit_length() - 1
         self._window = cv2.createHanningWindow((n, n), cv2.CV_32F)
         self._A_inv = np.linalg.inv(p.A)
+        self._cam_centre = np.asarray(rig_camera.T_body_camera, float)[:3, 3].copy()
+        g5 = (np.arange(_TILT_GRID) + 0.5) * n / _TILT_GRID - 0.5  # cell centres
+        gc, gr = np.meshgrid(g5, g5)
+        self._grid = np.column_stack([gc.ravel(), gr.ravel()])  # patch pixels carried through the lean
+        self._lean_state: list[float] | None = None  # see _update_lean
+        self._lean_tau = math.sqrt(cfg.lean_com_height_m / _G)
         self._centre = p.centre
         cx, cy = self._centre
         self._lever = np.array([[1.0, 0.0, cy], [0.0, 1.0, -cx], [0.0, 0.0, 1.0]])
@@ -332,6 +458,14 @@ class FloorOdometry:
         self._last_turn: tuple[float, float] | None = None  # (time, yaw rate rad/s) of the last step
         self._criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, cfg.ecc_iterations, cfg.ecc_eps)
         self._last_twist: tuple[float, np.ndarray] | None = None  # (time, (vx, vy, w)) of the last step
+        # The tilt fit's grid: patch pixels of the current frame, and the nominal rays to their floor
+        # points from the camera (body frame).
+        g = np.linspace(0.1, 0.9, cfg.tilt_grid) * (n - 1)
+        q1 = np.stack(np.meshgrid(g, g), axis=-1).reshape(-1, 2)
+        self._tilt_q1 = np.column_stack([q1, np.ones(len(q1))])
+        c = rig_camera.T_body_camera[:3, 3]
+        f1 = q1 @ p.A.T + p.origin
+        self._tilt_rays = np.column_stack([f1 - c[:2], np.full(len(f1), -c[2])])
         rs = cfg.rolling_shutter and rig_camera.readout_s > 0
         self._rs = self._rolling_shutter_grid(n, ss, T_cb) if rs else None
 
@@ -391,6 +525,7 @@ class FloorOdometry:
         self._prev = None
         self._last_turn = None
         self._last_twist = None
+        self._lean_state = None
 
     def measure(self, gray: np.ndarray, t: float, body_twist: np.ndarray | None = None) -> OdometryStep | None:
         """Body motion from the previous frame to this one (``gray`` (H, W) uint8, time ``t`` s), or None.
@@ -451,10 +586,118 @@ class FloorOdometry:
         W = W.astype(np.float64)
         if np.hypot(*W[:, 2]) > cfg.max_shift_frac * n * cfg.ecc_shift_allowance:
             return None
-        delta = self.body_motion(W[:, :2], W[:, 2])
-        self._last_turn = (float(t), float(delta[2]) / dt)
-        self._last_twist = (float(t), delta / dt)
+        R_tilt = self._tilt(t0)
+        if R_tilt is None:
+            level = self.body_motion(W[:, :2], W[:, 2])
+        else:
+            level = self.level_motion(W[:, :2], W[:, 2], R_tilt, small)
+        self._update_lean(float(t), level, dt)
+        # The rigid match guides the next frame (turn guess, rolling-shutter remap); the step
+        # reported also has the tilt's change between the two frames taken out.
+        self._last_turn = (float(t), float(level[2]) / dt)
+        self._last_twist = (float(t), level / dt)
+        delta = self._untilted_step(small, psmall, W, level, dt, R_tilt) if cfg.tilt_correction else level
         return OdometryStep(t0, float(t), delta, self.covariance(delta), float(response))
+
+    def _untilted_step(
+        self,
+        small: np.ndarray,
+        psmall: np.ndarray,
+        W: np.ndarray,
+        delta: np.ndarray,
+        dt: float,
+        R_tilt: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """The step ``delta`` (3,) refitted with the vest's tilt change (see ``tilt_correction``) on top
+        of the lean ``R_tilt`` (3, 3; None: level) both frames share; the rigid step itself when the
+        homography does not converge."""
+        from scipy.optimize import least_squares
+
+        cfg = self.config
+        slow = math.sqrt(self._centre_moved2(delta)) < cfg.tilt_min_speed * dt
+        if slow and not cfg.tilt_pitch_when_slow:
+            return delta
+        roll = cfg.tilt_fit_roll and not slow
+        H0 = np.eye(3, dtype=np.float32)
+        H0[:2] = W
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, cfg.homography_iterations, cfg.homography_eps)
+        try:
+            _, H = cv2.findTransformECC(small, psmall, H0, cv2.MOTION_HOMOGRAPHY, crit, None, 1)
+        except cv2.error:
+            return delta
+        q0 = self._tilt_q1 @ H.T.astype(np.float64)
+        if not np.all(np.abs(q0[:, 2]) > 1e-6):
+            return delta
+        p0 = (q0[:, :2] / q0[:, 2:]) @ self.patch.A.T + self.patch.origin
+        Rt = np.eye(3) if R_tilt is None else R_tilt
+        p0 = self._level_floor(p0, Rt)
+        pv = self.rig_camera.vest_point
+        c = pv + Rt @ (self._cam_centre - pv)
+        rays = self._tilt_rays @ Rt.T
+        sp = cfg.homography_point_sigma_m
+        sig = cfg.tilt_prior_sigma
+
+        def residuals(x: np.ndarray) -> np.ndarray:
+            dx, dy, dyaw, ry = x[:4]
+            rx = x[4] if roll else 0.0
+            # Small rotation (rx about body x, ry about body y) of the nominal rays about the camera.
+            d = rays + np.cross(np.array([rx, ry, 0.0]), rays)
+            p1 = c[:2] + (-c[2] / d[:, 2])[:, None] * d[:, :2]
+            co, si = math.cos(dyaw), math.sin(dyaw)
+            r = (p1 @ np.array([[co, si], [-si, co]]) + (dx, dy) - p0).ravel() / sp
+            return np.r_[r, ry / sig, rx / sig] if roll else np.r_[r, ry / sig]
+
+        try:
+            sol = least_squares(residuals, np.r_[delta, 0.0, 0.0] if roll else np.r_[delta, 0.0], method="lm")
+        except (ValueError, np.linalg.LinAlgError):
+            return delta
+        if not (sol.success and np.all(np.isfinite(sol.x))):
+            return delta
+        if not cfg.tilt_refit_rigid:
+            # Keep the rigid match's step and take out only what the fitted tilt change alone
+            # makes it see: the rigid map from the frame's nominal floor points to where the
+            # tilted rays meet the floor (the fit's own rigid part is the less reliable one).
+            ry = float(sol.x[3])
+            rx = float(sol.x[4]) if roll else 0.0
+            d = rays + np.cross(np.array([rx, ry, 0.0]), rays)
+            p_tilt = c[:2] + (-c[2] / d[:, 2])[:, None] * d[:, :2]
+            p_nom = c[:2] + (-c[2] / rays[:, 2])[:, None] * rays[:, :2]
+            T = _kabsch(p_nom, p_tilt)
+            return _compose(delta, _invert2(T))
+        return np.asarray(sol.x[:3], float)
+
+    def _tilt(self, t: float) -> np.ndarray | None:
+        """The torso's lean (3, 3) at time ``t`` as the steps up to then say (see
+        :meth:`_update_lean`); None when off, or when no step that recent is known."""
+        cfg = self.config
+        st = self._lean_state
+        if not cfg.lean_correction or st is None or not 0.0 <= t - st[0] <= cfg.turn_memory * cfg.max_dt:
+            return None
+        if abs(st[3]) < cfg.lean_min:
+            return None
+        cr, sr = math.cos(st[3]), math.sin(st[3])
+        return np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
+
+    def _update_lean(self, t: float, delta: np.ndarray, dt: float) -> None:
+        """Follow the torso's lean with the step ``delta`` (3,) over ``dt`` s ending at ``t``.
+
+        A walker in balance leans into a turn so that gravity and the centripetal force add up
+        along the body: roll atan(v omega / g) (a left turn tips the top to the left, roll < 0 about
+        +x), reached with the inverted pendulum's time constant sqrt(h_com / g); speed and turn rate
+        are this odometry's own steps, and the lag also averages their noise. (The forward lean
+        with acceleration, atan(a / g), is left out: the acceleration differentiated from the
+        steps is too noisy, and its error moves the patch, and with it the turn's lever, by 3.7 cm
+        per degree: on a simulated walk it made the sideways error of turns on the spot worse.)"""
+        v, w = float(delta[0]) / dt, float(delta[2]) / dt
+        lag = 1.0 - math.exp(-dt / self._lean_tau)
+        st = self._lean_state
+        if st is None or not 0.0 < t - st[0] <= self.config.turn_memory * self.config.max_dt:
+            # (time, speed, turn rate, roll); a walk starts in balance.
+            self._lean_state = [t, v, w, -math.atan(v * w / _G)]
+            return
+        st[0] = t
+        st[1], st[2] = v, w
+        st[3] += lag * (-math.atan(v * w / _G) - st[3])
 
     def _turn_grid(self, skip: float) -> list[float]:
         """Turn guesses (rad) every ``rotation_step`` up to ``max_rotation`` either way, less ``skip``."""
@@ -531,6 +774,75 @@ class FloorOdometry:
         t = A @ wt + b - R @ b
         return np.array([t[0], t[1], yaw])
 
+    def _centre_moved2(self, delta: np.ndarray) -> float:
+        """Squared distance (m^2) the patch centre moved in a step ``delta`` (3,) (dx, dy, dyaw)."""
+        co, si = math.cos(delta[2]), math.sin(delta[2])
+        cx, cy = self._centre
+        return float((delta[0] + (co - 1.0) * cx - si * cy) ** 2 + (delta[1] + si * cx + (co - 1.0) * cy) ** 2)
+
+    def _level_floor(self, p: np.ndarray, R_tilt: np.ndarray) -> np.ndarray:
+        """Where nominal floor points ``p`` (N, 2) (body frame, m) are when the torso is tilted by
+        ``R_tilt`` (3, 3) about the vest point: (N, 2) in the level body frame."""
+        c = self._cam_centre
+        pv = self.rig_camera.vest_point
+        rays = np.column_stack([p - c[:2], np.full(len(p), -c[2])]) @ R_tilt.T
+        c1 = pv + R_tilt @ (c - pv)
+        s = -c1[2] / rays[:, 2]
+        return c1[:2] + s[:, None] * rays[:, :2]
+
+    def level_motion(self, Wl: np.ndarray, wt: np.ndarray, R_tilt: np.ndarray, small: np.ndarray) -> np.ndarray:
+        """(dx, dy, dyaw) of body1 in body0 from ECC's patch-pixel map q0 = Wl q1 + wt, the torso
+        tilted by ``R_tilt`` (3, 3) in both frames; ``small``: the current (template) patch.
+
+        The bird's-eye patch assumes the nominal rig. Seen through a tilted torso, the floor under
+        the patch is a perspective-distorted square off to one side, so two patches differ by a
+        non-rigid map, and ECC's best rigid match of it turns by about (tilt) x (patch motion) more
+        or less than the body (per degree of roll, 0.017 degrees per 4.5 cm walked; per degree of
+        pitch, 0.6 % of the turn), and the turn's lever to the displaced patch moves it forward or
+        back. The body motion is therefore the one whose non-rigid map ECC would have matched as
+        it did: ECC weighs each part of the patch by its image gradients (the structure tensor;
+        the bird's-eye patch is blurred along the view, so sideways displacements count more), so
+        the same weighted rigid fit is applied to the map a candidate motion predicts, and the
+        candidate (from the unweighted fit of the matched points carried to the level floor) is
+        corrected by the difference, twice. The tilt's change between the frames is left out: its
+        apparent motion is the tracker's tilt offset."""
+        A, b = self.patch.A, self.patch.origin
+        q1 = self._grid
+
+        def to_floor(q: np.ndarray) -> np.ndarray:
+            return q @ A.T + b
+
+        def to_px(pf: np.ndarray) -> np.ndarray:
+            return (pf - b) @ self._A_inv.T
+
+        corners = to_floor(np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]) * (self.config.patch_px - 1))
+        H = cv2.getPerspectiveTransform(
+            corners.astype(np.float32), self._level_floor(corners, R_tilt).astype(np.float32)
+        )  # nominal floor -> level floor
+        H_inv = np.linalg.inv(H)
+        S = self._structure(small)
+        measured = self.body_motion(Wl, wt)
+        p1 = self._level_floor(to_floor(q1), R_tilt)
+        M = _kabsch(p1, self._level_floor(to_floor(q1 @ Wl.T + wt), R_tilt))
+        for _ in range(_LEVEL_ITERATIONS):
+            # The patch points q1 seen in frame 0 if the body moved by M: level floor, moved, nominal.
+            pm = p1 @ _rot2(M[2]).T + M[:2]
+            q0 = to_px(_apply_h(H_inv, pm))
+            Wp = _weighted_rigid_fit(q1, q0, S)
+            M = M + (measured - self.body_motion(Wp[:, :2], Wp[:, 2]))
+        return M
+
+    def _structure(self, small: np.ndarray) -> np.ndarray:
+        """(k*k, 2, 2) image-gradient structure tensors of the patch's k x k cells (patch pixels)."""
+        k = _TILT_GRID
+        gx = cv2.Sobel(small, cv2.CV_32F, 1, 0)
+        gy = cv2.Sobel(small, cv2.CV_32F, 0, 1)
+        t = [cv2.resize(g, (k, k), interpolation=cv2.INTER_AREA) for g in (gx * gx, gx * gy, gy * gy)]
+        S = np.empty((k * k, 2, 2))
+        S[:, 0, 0], S[:, 0, 1], S[:, 1, 1] = (x.ravel() for x in t)
+        S[:, 1, 0] = S[:, 0, 1]
+        return S + 1e-9 * np.eye(2)
+
     def covariance(self, delta: np.ndarray) -> np.ndarray:
         """(3, 3) covariance of a step ``delta`` (3,) ``(dx, dy, dyaw)`` (see :class:`OdometryConfig`).
 
@@ -542,9 +854,7 @@ class FloorOdometry:
         cfg = self.config
         # The image motion drives the errors (blur, perspective), so they grow with how far the
         # patch centre moved, which on a turn on the spot is far more than the body origin.
-        co, si = math.cos(delta[2]), math.sin(delta[2])
-        cx, cy = self._centre
-        d2 = float((delta[0] + (co - 1.0) * cx - si * cy) ** 2 + (delta[1] + si * cx + (co - 1.0) * cy) ** 2)
+        d2 = self._centre_moved2(delta)
         D = np.diag(
             [
                 cfg.sigma_forward**2 + cfg.sigma_forward_per_m**2 * d2,
