@@ -57,7 +57,10 @@ _NEAR_EDGE_STEPS = 60  # near-edge positions tried across the footprint's depth
 _BISECTIONS = 20  # bisection steps of the side: max_side_m / 2**20, about a micrometre
 _SIDE_TOL_M = 1e-4  # a farther square must be larger by this to win
 _ZNCC_INSET = 6  # the turn guesses are compared on the patch less 1/6 at each border (warped in)
-_SAME_TURN_RAD = 1e-9  # a grid guess this close to the one already tried is skipped
+_SAME_TURN_RAD = 1e-9
+_G = 9.81  # gravity, m/s^2
+_TILT_GRID = 5  # cells per patch side of the lean's weighted fit (a smooth map; each cell 16 px)
+_LEVEL_ITERATIONS = 2  # corrections of the level motion (the second changes it by under 1e-4 of a step)  # a grid guess this close to the one already tried is skipped
 
 
 @dataclass
@@ -164,6 +167,8 @@ class OdometryConfig:
     sigma_lateral_per_m: float = 0.014
     sigma_yaw_per_m: float = math.radians(1.75)
     rolling_shutter: bool = True
+    lean_correction: bool = True
+    lean_com_height_m: float = 0.95
 
 
 @dataclass
@@ -210,6 +215,38 @@ def _rot2(a: float) -> np.ndarray:
     """(2, 2) rotation by ``a`` rad."""
     c, s = math.cos(a), math.sin(a)
     return np.array([[c, -s], [s, c]])
+
+
+def _kabsch(p1: np.ndarray, p0: np.ndarray) -> np.ndarray:
+    """(dx, dy, dyaw) of the rigid map best taking points ``p1`` (N, 2) to ``p0`` (N, 2)."""
+    m1, m0 = p1.mean(axis=0), p0.mean(axis=0)
+    H = (p1 - m1).T @ (p0 - m0)
+    yaw = math.atan2(H[0, 1] - H[1, 0], H[0, 0] + H[1, 1])
+    t = m0 - _rot2(yaw) @ m1
+    return np.array([t[0], t[1], yaw])
+
+
+def _apply_h(H: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Points (N, 2) through the homography ``H`` (3, 3)."""
+    x = np.column_stack([p, np.ones(len(p))]) @ H.T
+    return x[:, :2] / x[:, 2:]
+
+
+def _weighted_rigid_fit(q1: np.ndarray, q0: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """(2, 3) rigid map ``q0 ~ R q1 + t`` minimising sum (r_i^T S_i r_i) with 2x2 weights ``S`` (N, 2, 2):
+    one Gauss-Newton step from the unweighted fit (the maps fitted here are near-rigid)."""
+    d = _kabsch(q1, q0)
+    R = _rot2(d[2])
+    r = q0 - q1 @ R.T - d[:2]
+    Jt = (q1 @ R.T) @ np.array([[0.0, 1.0], [-1.0, 0.0]])  # d(R q)/d(angle) = J R q, J = [[0, -1], [1, 0]]
+    J = np.zeros((len(q1), 2, 3))
+    J[:, :, 0] = Jt
+    J[:, 0, 1] = J[:, 1, 2] = 1.0
+    N = np.einsum("nai,nab,nbj->ij", J, S, J)
+    g = np.einsum("nai,nab,nb->i", J, S, r)
+    step = np.linalg.solve(N, g)
+    a = d[2] + step[0]
+    return np.hstack([_rot2(a), (d[:2] + step[1:])[:, None]])
 
 
 def _floor_from_pixels(rig_camera: RigCamera, px: np.ndarray, min_depression: float) -> np.ndarray:
@@ -325,6 +362,12 @@ class FloorOdometry:
         self._levels = ss.bit_length() - 1
         self._window = cv2.createHanningWindow((n, n), cv2.CV_32F)
         self._A_inv = np.linalg.inv(p.A)
+        self._cam_centre = np.asarray(rig_camera.T_body_camera, float)[:3, 3].copy()
+        g5 = (np.arange(_TILT_GRID) + 0.5) * n / _TILT_GRID - 0.5  # cell centres
+        gc, gr = np.meshgrid(g5, g5)
+        self._grid = np.column_stack([gc.ravel(), gr.ravel()])  # patch pixels carried through the lean
+        self._lean_state: list[float] | None = None  # see _update_lean
+        self._lean_tau = math.sqrt(cfg.lean_com_height_m / _G)
         self._centre = p.centre
         cx, cy = self._centre
         self._lever = np.array([[1.0, 0.0, cy], [0.0, 1.0, -cx], [0.0, 0.0, 1.0]])
@@ -391,6 +434,7 @@ class FloorOdometry:
         self._prev = None
         self._last_turn = None
         self._last_twist = None
+        self._lean_state = None
 
     def measure(self, gray: np.ndarray, t: float, body_twist: np.ndarray | None = None) -> OdometryStep | None:
         """Body motion from the previous frame to this one (``gray`` (H, W) uint8, time ``t`` s), or None.
@@ -451,10 +495,51 @@ class FloorOdometry:
         W = W.astype(np.float64)
         if np.hypot(*W[:, 2]) > cfg.max_shift_frac * n * cfg.ecc_shift_allowance:
             return None
-        delta = self.body_motion(W[:, :2], W[:, 2])
+        R_tilt = self._tilt(t0)
+        if R_tilt is None:
+            delta = self.body_motion(W[:, :2], W[:, 2])
+        else:
+            delta = self.level_motion(W[:, :2], W[:, 2], R_tilt, small)
+        self._update_lean(float(t), delta, dt)
         self._last_turn = (float(t), float(delta[2]) / dt)
         self._last_twist = (float(t), delta / dt)
         return OdometryStep(t0, float(t), delta, self.covariance(delta), float(response))
+
+    def _tilt(self, t: float) -> np.ndarray | None:
+        """The torso's lean (3, 3) at time ``t`` as the steps up to then say (see
+        :meth:`_update_lean`); None when off, or when no step that recent is known."""
+        cfg = self.config
+        st = self._lean_state
+        if not cfg.lean_correction or st is None or not 0.0 <= t - st[0] <= cfg.turn_memory * cfg.max_dt:
+            return None
+        cr, sr = math.cos(st[4]), math.sin(st[4])
+        cp, sp = math.cos(st[5]), math.sin(st[5])
+        Rx = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
+        Ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
+        return Ry @ Rx
+
+    def _update_lean(self, t: float, delta: np.ndarray, dt: float) -> None:
+        """Follow the torso's lean with the step ``delta`` (3,) over ``dt`` s ending at ``t``.
+
+        A walker in balance leans so that gravity and the ground force's horizontal part add up
+        along the body: into a turn by atan(v omega / g) (roll; a left turn tips the top to the
+        left, roll < 0 about +x), forward by atan(a / g) when speeding up (pitch), reached with the
+        inverted pendulum's time constant sqrt(h_com / g). The speed, turn rate and acceleration are
+        this odometry's own steps; the lag also averages their noise."""
+        v, w = float(delta[0]) / dt, float(delta[2]) / dt
+        lag = 1.0 - math.exp(-dt / self._lean_tau)
+        st = self._lean_state
+        if st is None or not 0.0 < t - st[0] <= self.config.turn_memory * self.config.max_dt:
+            # (time, speed, turn rate, acceleration, roll, pitch); a walk starts in balance.
+            self._lean_state = [t, v, w, 0.0, -math.atan(v * w / _G), 0.0]
+            return
+        v_prev = st[1]
+        st[0] = t
+        st[1] += lag * (v - st[1])
+        st[2] += lag * (w - st[2])
+        st[3] += lag * ((st[1] - v_prev) / dt - st[3])
+        st[4] += lag * (-math.atan(v * w / _G) - st[4])
+        st[5] += lag * (math.atan(st[3] / _G) - st[5])
 
     def _turn_grid(self, skip: float) -> list[float]:
         """Turn guesses (rad) every ``rotation_step`` up to ``max_rotation`` either way, less ``skip``."""
@@ -530,6 +615,69 @@ class FloorOdometry:
         R = _rot2(yaw)
         t = A @ wt + b - R @ b
         return np.array([t[0], t[1], yaw])
+
+    def _level_floor(self, p: np.ndarray, R_tilt: np.ndarray) -> np.ndarray:
+        """Where nominal floor points ``p`` (N, 2) (body frame, m) are when the torso is tilted by
+        ``R_tilt`` (3, 3) about the vest point: (N, 2) in the level body frame."""
+        c = self._cam_centre
+        pv = self.rig_camera.vest_point
+        rays = np.column_stack([p - c[:2], np.full(len(p), -c[2])]) @ R_tilt.T
+        c1 = pv + R_tilt @ (c - pv)
+        s = -c1[2] / rays[:, 2]
+        return c1[:2] + s[:, None] * rays[:, :2]
+
+    def level_motion(self, Wl: np.ndarray, wt: np.ndarray, R_tilt: np.ndarray, small: np.ndarray) -> np.ndarray:
+        """(dx, dy, dyaw) of body1 in body0 from ECC's patch-pixel map q0 = Wl q1 + wt, the torso
+        tilted by ``R_tilt`` (3, 3) in both frames; ``small``: the current (template) patch.
+
+        The bird's-eye patch assumes the nominal rig. Seen through a tilted torso, the floor under
+        the patch is a perspective-distorted square off to one side, so two patches differ by a
+        non-rigid map, and ECC's best rigid match of it turns by about (tilt) x (patch motion) more
+        or less than the body (per degree of roll, 0.017 degrees per 4.5 cm walked; per degree of
+        pitch, 0.6 % of the turn), and the turn's lever to the displaced patch moves it forward or
+        back. The body motion is therefore the one whose non-rigid map ECC would have matched as
+        it did: ECC weighs each part of the patch by its image gradients (the structure tensor;
+        the bird's-eye patch is blurred along the view, so sideways displacements count more), so
+        the same weighted rigid fit is applied to the map a candidate motion predicts, and the
+        candidate (from the unweighted fit of the matched points carried to the level floor) is
+        corrected by the difference, twice. The tilt's change between the frames is left out: its
+        apparent motion is the tracker's tilt offset."""
+        A, b = self.patch.A, self.patch.origin
+        q1 = self._grid
+
+        def to_floor(q: np.ndarray) -> np.ndarray:
+            return q @ A.T + b
+
+        def to_px(pf: np.ndarray) -> np.ndarray:
+            return (pf - b) @ self._A_inv.T
+
+        corners = to_floor(np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]) * (self.config.patch_px - 1))
+        H = cv2.getPerspectiveTransform(
+            corners.astype(np.float32), self._level_floor(corners, R_tilt).astype(np.float32)
+        )  # nominal floor -> level floor
+        H_inv = np.linalg.inv(H)
+        S = self._structure(small)
+        measured = self.body_motion(Wl, wt)
+        p1 = self._level_floor(to_floor(q1), R_tilt)
+        M = _kabsch(p1, self._level_floor(to_floor(q1 @ Wl.T + wt), R_tilt))
+        for _ in range(_LEVEL_ITERATIONS):
+            # The patch points q1 seen in frame 0 if the body moved by M: level floor, moved, nominal.
+            pm = p1 @ _rot2(M[2]).T + M[:2]
+            q0 = to_px(_apply_h(H_inv, pm))
+            Wp = _weighted_rigid_fit(q1, q0, S)
+            M = M + (measured - self.body_motion(Wp[:, :2], Wp[:, 2]))
+        return M
+
+    def _structure(self, small: np.ndarray) -> np.ndarray:
+        """(k*k, 2, 2) image-gradient structure tensors of the patch's k x k cells (patch pixels)."""
+        k = _TILT_GRID
+        gx = cv2.Sobel(small, cv2.CV_32F, 1, 0)
+        gy = cv2.Sobel(small, cv2.CV_32F, 0, 1)
+        t = [cv2.resize(g, (k, k), interpolation=cv2.INTER_AREA) for g in (gx * gx, gx * gy, gy * gy)]
+        S = np.empty((k * k, 2, 2))
+        S[:, 0, 0], S[:, 0, 1], S[:, 1, 1] = (x.ravel() for x in t)
+        S[:, 1, 0] = S[:, 0, 1]
+        return S + 1e-9 * np.eye(2)
 
     def covariance(self, delta: np.ndarray) -> np.ndarray:
         """(3, 3) covariance of a step ``delta`` (3,) ``(dx, dy, dyaw)`` (see :class:`OdometryConfig`).
