@@ -1,0 +1,171 @@
+"""Floor odometry against ground truth on simulated sessions: bias, drift, cost, and the step covariance.
+
+Run (from the repository root, on sessions made by ``tagloc eval --preset all`` or ``tagloc simulate``)::
+
+    PYTHONPATH=$PWD python benchmarks/odometry_accuracy.py SESSION [SESSION ...] [--config '{"lean_correction": false}']
+    PYTHONPATH=$PWD python benchmarks/odometry_accuracy.py SESSION ... --calibrate
+
+Each session's frames go through :class:`tagloc.vision.odometry.FloorOdometry` alone (no tracker),
+and each step is compared with the true motion of the vest (the ground truth's camera pose carried
+through the nominal rig to the vest point, :func:`tagloc.core.rig.vest_planar`), which is what the
+odometry measures. Per walk: share of steps measured, per-step RMS error (forward, sideways, turn),
+the turn's scale error (slope of the turn error regressed on the true turn: -6 % means turns come
+out 6 % short), the summed turn error over the walk, the summed forward error against the distance
+walked, and the mean CPU time per ``measure`` call (process time: robust to other load).
+
+``--calibrate`` fits the step covariance as :class:`tagloc.vision.odometry.OdometryConfig` describes:
+the errors are carried to the patch centre (where they are independent), summed over windows of 15,
+30, 45 and 60 frames, and the standing sigmas are those for which the variance of the sums over
+windows slower than 0.3 m/s equals the stated one; the per-metre sigmas, the same over windows
+faster than 0.9 m/s, with the standing part subtracted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from tagloc.core.geometry import wrap_angle
+from tagloc.core.rig import vest_planar
+from tagloc.io.session import SessionReader
+from tagloc.vision.image import as_gray
+from tagloc.vision.odometry import FloorOdometry, OdometryConfig
+
+WINDOWS = (15, 30, 45, 60)  # frames: the 0.5-2 s gaps between sticker passes that odometry bridges
+SLOW_MPS, FAST_MPS = 0.3, 0.9  # window mean speeds of the standing and walking classes
+
+
+def _relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(dx, dy, dyaw) of planar pose ``b`` in the frame of ``a``."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    d = b[:2] - a[:2]
+    return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], wrap_angle(b[2] - a[2])])
+
+
+def run_session(path: Path, config: OdometryConfig) -> dict:
+    """Steps of one session: true (N, 3), measured (N, 3; NaN where refused), patch-centre motion
+    (N,), frame times (N,), the odometry, and the mean cost per frame (s)."""
+    cv2.setNumThreads(1)
+    session = SessionReader(path)
+    rc = session.rig.cameras[0]
+    odo = FloorOdometry(rc, config)
+    T_camera_body = np.linalg.inv(rc.T_body_camera)
+    gt = {}
+    with (path / "groundtruth_frames.jsonl").open() as f:
+        for line in f:
+            rec = json.loads(line)
+            gt[rec["index"]] = np.array(rec["T_world_camera"])
+    true, meas, t1 = [], [], []
+    prev = None
+    cost = 0.0
+    n = 0
+    for fr in session.frames():
+        gray = as_gray(fr.image)
+        t0 = time.process_time()
+        step = odo.measure(gray, fr.timestamp)
+        cost += time.process_time() - t0
+        n += 1
+        vest = vest_planar(gt[fr.index] @ T_camera_body, rc.vest_point)
+        if prev is not None and fr.index == prev[0] + 1:
+            true.append(_relative(prev[1], vest))
+            meas.append(step.delta if step is not None else np.full(3, np.nan))
+            t1.append(fr.timestamp)
+        prev = (fr.index, vest)
+    true, meas = np.array(true), np.array(meas)
+    return {"true": true, "meas": meas, "t": np.array(t1), "odo": odo, "cost_s": cost / max(n, 1)}
+
+
+def _patch_motion(odo: FloorOdometry, delta: np.ndarray) -> np.ndarray:
+    """How far the patch centre moved (m) in each step ``delta`` (N, 3) (see ``covariance``)."""
+    cx, cy = odo.patch.centre
+    co, si = np.cos(delta[:, 2]), np.sin(delta[:, 2])
+    return np.hypot(delta[:, 0] + (co - 1) * cx - si * cy, delta[:, 1] + si * cx + (co - 1) * cy)
+
+
+def summary_row(name: str, r: dict) -> str:
+    """One table row of a session's step statistics."""
+    ok = np.all(np.isfinite(r["meas"]), axis=1)
+    tr, me = r["true"][ok], r["meas"][ok]
+    e = me - tr
+    e[:, 2] = (e[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    A = np.column_stack([tr[:, 2], np.ones(len(tr))])
+    slope = np.linalg.lstsq(A, e[:, 2], rcond=None)[0][0]
+    rms = np.sqrt(np.mean(e**2, axis=0))
+    return (
+        f"{name:10s} {100 * ok.mean():5.1f}  {1e3 * rms[0]:6.2f} {1e3 * rms[1]:6.2f} {math.degrees(rms[2]):6.3f}"
+        f"  {100 * slope:+6.2f}  {math.degrees(e[:, 2].sum()):+7.2f} / {math.degrees(np.abs(tr[:, 2]).sum()):4.0f}"
+        f"  {100 * e[:, 0].sum():+6.1f} / {tr[:, 0].sum():5.1f}  {1e3 * r['cost_s']:5.2f}"
+    )
+
+
+HEADER = (
+    f"{'walk':10s} {'ok %':>5s}  {'rms fwd':>6s} {'lat mm':>6s} {'yaw deg':>6s}  {'turn %':>6s}"
+    f"  {'sum yaw err / turned deg':>24s}  {'sum fwd err cm / m':>18s}  {'ms':>5s}"
+)
+
+
+def calibrate(results: list[dict]) -> dict[str, float]:
+    """Step sigmas fitted on windows of summed patch-centre errors (see the module docstring)."""
+    sums, dsq, n_steps, speed = [], [], [], []
+    for r in results:
+        odo = r["odo"]
+        cx, cy = odo.patch.centre
+        G_inv = np.linalg.inv(np.array([[1.0, 0.0, cy], [0.0, 1.0, -cx], [0.0, 0.0, 1.0]]))
+        ok = np.all(np.isfinite(r["meas"]), axis=1)
+        e = r["meas"] - r["true"]
+        e[:, 2] = (e[:, 2] + np.pi) % (2 * np.pi) - np.pi
+        ep = e @ G_inv.T  # patch-centre forward, sideways and turn errors
+        d = _patch_motion(odo, np.where(ok[:, None], r["meas"], r["true"]))
+        for w in WINDOWS:
+            for k in range(0, len(e) - w + 1, w):
+                sl = slice(k, k + w)
+                if not ok[sl].all():
+                    continue
+                sums.append(ep[sl].sum(axis=0))
+                dsq.append(float(np.sum(d[sl] ** 2)))
+                n_steps.append(w)
+                speed.append(float(np.sum(np.hypot(r["true"][sl, 0], r["true"][sl, 1]))) / (w / 30.0))
+    sums, dsq, n_steps, speed = map(np.array, (sums, dsq, n_steps, speed))
+    slow, fast = speed < SLOW_MPS, speed > FAST_MPS
+    s0 = np.sqrt(np.sum(sums[slow] ** 2, axis=0) / np.sum(n_steps[slow]))
+    per_m2 = (np.sum(sums[fast] ** 2, axis=0) - s0**2 * np.sum(n_steps[fast])) / np.sum(dsq[fast])
+    s1 = np.sqrt(np.maximum(per_m2, 0.0))
+    print(f"windows: {slow.sum()} standing (< {SLOW_MPS} m/s), {fast.sum()} walking (> {FAST_MPS} m/s)")
+    names = ("forward", "lateral", "yaw")
+    return {f"sigma_{n}": float(v) for n, v in zip(names, s0)} | {
+        f"sigma_{n}_per_m": float(v) for n, v in zip(names, s1)
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("sessions", nargs="+", type=Path, help="session directories with groundtruth_frames.jsonl")
+    ap.add_argument("--config", default="{}", help="OdometryConfig overrides as JSON (angles in radians)")
+    ap.add_argument("--calibrate", action="store_true", help="fit the step sigmas on these sessions")
+    args = ap.parse_args()
+    config = OdometryConfig(**json.loads(args.config))
+    results = []
+    print(HEADER)
+    for path in tqdm(args.sessions, desc="sessions", unit="walk", leave=False):
+        r = run_session(path, config)
+        results.append(r)
+        tqdm.write(summary_row(path.name, r))
+    if args.calibrate:
+        for k, v in calibrate(results).items():
+            current = getattr(config, k)
+            unit = "deg" if "yaw" in k else "m"
+            conv = math.degrees if "yaw" in k else float
+            print(
+                f"{k:22s} fitted {conv(v):.5f} {unit}{'/m' if 'per_m' in k else ''}  (configured {conv(current):.5f})"
+            )
+
+
+if __name__ == "__main__":
+    main()
