@@ -141,7 +141,10 @@ def test_deltas_match_groundtruth(stop_walk):
     assert rms[0] < 0.008 and rms[1] < 0.008  # metres per frame (steps are up to 4.5 cm)
     assert rms[2] < math.radians(0.5)
     assert abs(errs[ok, 0].sum()) < 0.10  # 5 s of forward motion (~4 m) within 10 cm
-    assert 1.0 < nees[ok].mean() < 6.0  # 3 expected (3 DoF): 1.2 on this walk, 2.3-4.1 on the eval sessions
+    # 3 would be exact per step (3 DoF); the covariance is calibrated on 15-60 frame windows, where
+    # the gait's correlated errors add up faster than white ones, and against the patch's apparent
+    # motion (the tilt's share is the tracker's tilt offset): per step it is conservative, 0.48 here.
+    assert 0.25 < nees[ok].mean() < 3.0
     # The turn's error swings the body origin sideways through the lever to the patch ahead: the
     # sideways and turn errors are strongly anti-correlated, as the step covariance states.
     assert np.corrcoef(errs[ok, 1], errs[ok, 2])[0, 1] < -0.4
