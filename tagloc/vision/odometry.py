@@ -35,9 +35,9 @@ body (6.3 % of every turn on the standard eval's s02, 10 degrees summed over its
 per metre walked per degree of roll), and the turn's lever to the displaced patch lengthens or
 shortens the step. With ``lean_correction`` the odometry follows the lean from its own speed and
 turn rate and computes the step from where the matched patch points really are on the floor
-(:meth:`FloorOdometry.level_motion`; off by default for now, see :class:`OdometryConfig`). With the true per-frame tilt instead of the predicted
-lean, the step errors on s02 would fall from 10.4 / 6.1 mm (forward / sideways RMS) to 3.8 / 1.8 mm
-and the turn bias to -0.7 %: the remaining step error is mostly the tilt's change from frame to
+(:meth:`FloorOdometry.level_motion`; off by default for now, see :class:`OdometryConfig`). With
+the true per-frame tilt instead of the predicted lean, the step errors on s02 would fall from
+10.4 / 6.1 mm (forward / sideways RMS) to 3.8 / 1.8 mm and the turn bias to -0.7 %: the remaining step error is mostly the tilt's change from frame to
 frame (gait nod, lean building up and easing), which a planar match cannot tell from motion.
 
 What it measures is the camera's motion carried through the nominal rig: the vest's. The vest
@@ -69,10 +69,12 @@ _NEAR_EDGE_STEPS = 60  # near-edge positions tried across the footprint's depth
 _BISECTIONS = 20  # bisection steps of the side: max_side_m / 2**20, about a micrometre
 _SIDE_TOL_M = 1e-4  # a farther square must be larger by this to win
 _ZNCC_INSET = 6  # the turn guesses are compared on the patch less 1/6 at each border (warped in)
-_SAME_TURN_RAD = 1e-9
+_SAME_TURN_RAD = 1e-9  # a grid guess this close to the one already tried is skipped
 _G = 9.81  # gravity, m/s^2
 _TILT_GRID = 5  # cells per patch side of the lean's weighted fit (a smooth map; each cell 16 px)
-_LEVEL_ITERATIONS = 2  # corrections of the level motion (the second changes it by under 1e-4 of a step)  # a grid guess this close to the one already tried is skipped
+# Fixed-point corrections of the level motion: the map from a motion to ECC's answer is close to
+# the identity (a few per cent off), so each correction shrinks the mismatch by that factor.
+_LEVEL_ITERATIONS = 2
 
 
 @dataclass
@@ -143,16 +145,17 @@ class OdometryConfig:
     ``rolling_shutter``: for a rolling-shutter camera (``RigCamera.readout_s`` > 0), sample each
     frame's patch where each floor point was at its row's time (see the module docstring).
 
-    ``lean_correction`` (off by default, see below): follow the torso's lean into turns, roll atan(v omega / g) from the
-    odometry's own speed and turn rate, through the inverted pendulum's lag sqrt(h_com / g)
-    (``lean_com_height_m``: an adult's centre of mass, about 0.55 of 1.75 m stature), and match the
+    ``lean_correction`` (off by default, see below): follow the torso's lean into turns, roll
+    atan(v omega / g) from the odometry's own speed and turn rate, through the inverted pendulum's
+    lag sqrt(h_com / g) (``lean_com_height_m``: an adult's centre of mass, about 0.55 of 1.75 m stature), and match the
     patches as the tilted camera sees them (see :meth:`FloorOdometry.level_motion`). Below
     ``lean_min`` (0.25 degrees: a false turn of 0.004 degrees per 4.5 cm step, a twentieth of the
-    step noise) the nominal geometry is kept, which saves the fit's 0.45 ms on straight walking.
+    step noise) the nominal geometry is kept, which keeps the cost (s00: 1.38 ms CPU per frame,
+    1.35 without the correction, 1.83 with the fit on every frame).
     It removes the turn bias (s02: -6.3 % -> -1.3 % of every turn, 10 -> 1 degree summed over 20 s)
     and most of the forward drift in turns (f03-long: +2.3 m -> +0.3 m over 70 m), and the tracker's
-    heading improves on 8 of the 11 eval walks (one equal); but with today's tracker the position does not
-    follow (standard / field preset RMSE 11.2 / 10.6 cm with it, 10.3 / 10.1 cm without, both with
+    heading improves on 8 of the 11 eval walks (one equal); but with today's tracker the position
+    does not follow (standard / field preset RMSE 11.2 / 10.6 cm with it, 10.3 / 10.1 cm without, both with
     the covariance below): the largest step error left is the tilt's change from frame to frame,
     which the tracker's tilt offset was sized for with the uncorrected steps. Off until the tracker
     is re-fitted to it (the README's floor odometry section has the tables).
