@@ -147,18 +147,18 @@ class OdometryConfig:
 
     ``lean_correction`` (off by default, see below): follow the torso's lean into turns, roll
     atan(v omega / g) from the odometry's own speed and turn rate, through the inverted pendulum's
-    lag sqrt(h_com / g) (``lean_com_height_m``: an adult's centre of mass, about 0.55 of 1.75 m stature), and match the
-    patches as the tilted camera sees them (see :meth:`FloorOdometry.level_motion`). Below
+    lag sqrt(h_com / g) (``lean_com_height_m``: an adult's centre of mass, about 0.55 of 1.75 m
+    stature), and match the patches as the tilted camera sees them (see :meth:`FloorOdometry.level_motion`). Below
     ``lean_min`` (0.25 degrees: a false turn of 0.004 degrees per 4.5 cm step, a twentieth of the
     step noise) the nominal geometry is kept, which keeps the cost (s00: 1.38 ms CPU per frame,
     1.35 without the correction, 1.83 with the fit on every frame).
     It removes the turn bias (s02: -6.3 % -> -1.3 % of every turn, 10 -> 1 degree summed over 20 s)
     and most of the forward drift in turns (f03-long: +2.3 m -> +0.3 m over 70 m), and the tracker's
     heading improves on 8 of the 11 eval walks (one equal); but with today's tracker the position
-    does not follow (standard / field preset RMSE 11.2 / 10.6 cm with it, 10.3 / 10.1 cm without, both with
-    the covariance below): the largest step error left is the tilt's change from frame to frame,
-    which the tracker's tilt offset was sized for with the uncorrected steps. Off until the tracker
-    is re-fitted to it (the README's floor odometry section has the tables).
+    does not follow (standard / field preset RMSE 11.2 / 10.6 cm with it, 10.4 / 10.3 cm without):
+    the largest step error left is the tilt's change from frame to frame, which the tracker's tilt
+    offset was sized for with the uncorrected steps. Off until the tracker is re-fitted to it (the
+    README's floor odometry section has the tables).
 
     Calibration (tagloc's simulator, the six 20 s walks of ``tagloc eval --preset standard``, with
     the torso's lean and gait: 56-265 lux, 0.9-1.5 m/s, pitch 46-66 deg), on windows of 15, 30, 45
@@ -171,9 +171,11 @@ class OdometryConfig:
     camera: the vest's, plus the apparent motion of the torso's tilt changing (gait nod, lean
     building up), which the tracker states as its tilt offset, not here. (Against the vest's motion
     alone the same fit gives 16 mm standing forward and 0.18 m/m sideways: that is the tilt
-    offset's share counted twice.) The previous values (1.4 / 0.65 mm, 0.08 deg; 0.07 / 0.014 m/m,
-    1.75 deg/m) were fitted before the simulator's walker leaned; they understated walking noise by
-    a factor of 1.6-3. Over 4-8 frames of walking the forward errors are correlated (the gait's
+    offset's share counted twice.) Fitted without ``lean_correction`` (with it: 0.21 / 0.022 m/m,
+    2.76 deg/m walking, the standing values the same). Held out, the five walks of ``--preset
+    field`` fit 3.3 / 1.6 mm and 0.13 deg standing, 0.15 / 0.028 m/m and 2.3 deg/m walking. The
+    previous values (1.4 / 0.65 mm, 0.08 deg; 0.07 / 0.014 m/m, 1.75 deg/m) were fitted before the
+    simulator's walker leaned; they understated the noise by a factor of 1.4-2.5. Over 4-8 frames of walking the forward errors are correlated (the gait's
     pitch nod), which a per-frame variance cannot state at every horizon.
     """
 
@@ -199,9 +201,9 @@ class OdometryConfig:
     sigma_forward: float = 0.0015
     sigma_lateral: float = 0.0016
     sigma_yaw: float = math.radians(0.11)
-    sigma_forward_per_m: float = 0.21
-    sigma_lateral_per_m: float = 0.022
-    sigma_yaw_per_m: float = math.radians(2.76)
+    sigma_forward_per_m: float = 0.14
+    sigma_lateral_per_m: float = 0.023
+    sigma_yaw_per_m: float = math.radians(2.46)
     rolling_shutter: bool = True
     lean_correction: bool = False
     lean_com_height_m: float = 0.95
