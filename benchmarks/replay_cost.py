@@ -9,7 +9,8 @@ OpenCV on one thread:
    busy machine's other processes do not count), and the total by number of stickers in view.
    "tracker" sums its prediction, candidate choice, updates and output.
 2. Start-up: the whole ``tagloc replay`` process on a one-frame copy of the session (imports,
-   set-up, one frame, outputs), CPU and wall time.
+   set-up, one frame, outputs), CPU and wall time; with ``--startup-breakdown`` also what its
+   imports cost, step by step, and the replay with filterpy's scipy.stats import stubbed out.
 3. The whole ``tagloc replay`` process on the session beside a process that reads the same frames
    and runs ``cv2.aruco.ArucoDetector.detectMarkers`` on each, alternated ``--repeat`` times;
    their CPU times and ratio.
@@ -50,6 +51,25 @@ _ARUCO = (
     + "for f in sorted((s / 'frames').iterdir()):\n"
     + "    det.detectMarkers(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE))\n"
 )
+# Start-up, broken down: each line a separate process, cumulative. filterpy's package __init__
+# imports filterpy.stats, which imports scipy.stats (for its own distributions), so no import path
+# into filterpy avoids it; the last line replays with filterpy.stats replaced by a stub (a
+# measurement of what the rest costs, not a way to run: the stub raises if it is ever called).
+_STARTUP_STEPS = (
+    ("python", "pass"),
+    ("+ numpy, cv2", "import numpy, cv2"),
+    ("+ scipy.spatial (the map's KD-tree)", "import numpy, cv2, scipy.spatial"),
+    ("+ filterpy.kalman (scipy.stats)", "import numpy, cv2, scipy.spatial, filterpy.kalman"),
+)
+_STUB_STATS = (
+    "import types\n"
+    + "m = types.ModuleType('filterpy.stats')\n"
+    + "def logpdf(*a, **k):\n"
+    + "    raise RuntimeError('filterpy.stats is stubbed for a start-up measurement')\n"
+    + "m.logpdf = logpdf\n"
+    + "sys.modules['filterpy.stats'] = m\n"
+)
+_REPLAY_STUBBED = "import sys\n" + _STUB_STATS + _REPLAY
 _STAGES = ("odometry", "detect", "decode", "identify", "pose", "tracker", "total")
 
 
@@ -170,6 +190,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--skip-aruco", action="store_true", help="no whole-process replay/ArUco comparison")
     p.add_argument("--live", action="store_true", help="also measure the live loop's latency")
     p.add_argument("--pipeline-only", action="store_true", help="only the per-frame pipeline cost")
+    p.add_argument(
+        "--startup-breakdown",
+        action="store_true",
+        help="also time the imports start-up is made of, and a replay without filterpy's scipy.stats",
+    )
     p.add_argument("--json", type=Path, help="write the figures as JSON")
     args = p.parse_args(argv)
     core = None if args.core < 0 else args.core
@@ -210,6 +235,18 @@ def main(argv: list[str] | None = None) -> int:
         f"\nStart-up (whole `tagloc replay` of a one-frame copy): CPU {_spread([c for c, _ in starts])} s, "
         f"wall {_spread([w for _, w in starts])} s"
     )
+    if args.startup_breakdown:
+        out["startup_breakdown"] = {}
+        print("Start-up breakdown, CPU s (separate processes, cumulative imports)")
+        for label, code in _STARTUP_STEPS:
+            cpu = [_child(code, "", core)[0] for _ in range(args.repeat)]
+            out["startup_breakdown"][label] = cpu
+            print(f"  {label:<44} {_spread(cpu)}")
+        with tempfile.TemporaryDirectory() as tmp:
+            one = _one_frame_copy(args.session, Path(tmp) / "one")
+            cpu = [_child(_REPLAY_STUBBED, str(one), core)[0] for _ in range(args.repeat)]
+        out["startup_breakdown"]["replay, filterpy.stats stubbed"] = cpu
+        print(f"  {'one-frame replay, filterpy.stats stubbed':<44} {_spread(cpu)}")
 
     if not args.skip_aruco:
         rep, aru = [], []

@@ -69,7 +69,7 @@ def test_targets_and_tables(quick):
     wrong = next(t for t in quick["targets"] if t["target"].startswith("wrong IDs"))
     assert wrong["value"] == 0 and wrong["pass"] is True
     text = format_tables(quick)
-    for title in ("1. Stage time", "2a.", "2b.", "3a.", "3b.", "4. Paper", "Targets"):
+    for title in ("1. Stage CPU time", "2a.", "2b.", "3a.", "3b.", "4. Paper", "Targets"):
         assert title in text
     assert "PASS" in text and "load average" in text
     # Aligned: every line of a table has the width of its header line.

@@ -14,7 +14,7 @@ from tagloc.core.geometry import invert, planar_T, transform_points
 from tagloc.core.rig import looking_forward
 from tagloc.core.sticker import INNER_CORNERS, OUTER_CORNERS, render_sticker
 from tagloc.core.types import Detection
-from tagloc.vision.decode import DecodeConfig, DecodeResult, combine_reads, decode, verify_id
+from tagloc.vision.decode import DecodeConfig, DecodeResult, combine_reads, decode, verify_detection, verify_id
 from tagloc.vision.rectify import RectifyConfig, distorted_mapping, rectify
 
 # --- a small frame synthesiser (kept local so this file stands alone) -------------------------
@@ -242,6 +242,19 @@ def test_verify_id_separates_right_from_wrong():
     for wrong in (97927, 97846, 97848, 10000):
         assert verify_id(rect, wrong, r) < 0.45
     assert verify_id(rect, 97847, (r + 1) % 4) < 0.45
+
+
+def test_verify_detection_clears_the_tracked_id_and_no_other():
+    """Re-checking a tracked sticker: its ID and rotation pass the tracking threshold (0.7); another
+    ID or rotation stays under a decode's own threshold (0.5), so it falls back to decoding."""
+    cam = default_camera()
+    for seed, blur in ((8, 0.0), (9, 2.0)):
+        gray, det, r = synth_case(seed, 4242, blur_px=blur)
+        assert verify_detection(gray, det, cam, 4242, r) > 0.7
+        for wrong in (4243, 4241, 24242):
+            assert verify_detection(gray, det, cam, wrong, r) < 0.5
+        for rot in range(1, 4):
+            assert verify_detection(gray, det, cam, 4242, (r + rot) % 4) < 0.5
 
 
 def test_libdmtx_backend_reads_or_reports_missing():

@@ -8,13 +8,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tagloc.cli import main
 from tagloc.core.errors import SessionError
 from tagloc.core.rig import default_rig
 from tagloc.core.stickermap import load_map
-from tagloc.eval.multicam import front_rear_rig, sticker_in_view
+from tagloc.eval import multicam
+from tagloc.eval.multicam import MultiCamConfig, camera_subset, front_rear_rig, run_two_camera, sticker_in_view
 from tagloc.io.session import SessionInfo, SessionReader, SessionWriter
+from tagloc.pipeline.localiser import Localiser, LocaliserConfig
 from tagloc.pipeline.run import run_session
 from tagloc.sim.simulate import SimConfig, read_groundtruth_frames, simulate_session
+from tagloc.vision.odometry import floor_patch
 
 MAP = Path(__file__).resolve().parents[1] / "maps" / "demo.csv"
 
@@ -50,6 +54,45 @@ def test_every_camera_is_rendered_into_one_session(two_cam):
 def test_the_localiser_takes_both_cameras(two_cam):
     log = run_session(SessionReader(two_cam))
     assert len(log.stamps) == 20 and np.all(np.diff(log.stamps) > 0)
+    # Each camera's floor-odometry step spans its own previous frame, with the other camera's frame
+    # in between: every step is matched to its camera's clone (before per-camera clones: none was).
+    c = log.counts
+    assert c["odometry_steps"] >= 5 and c["tracker_odometry_unmatched"] == 0
+    assert c["tracker_odometry_accepted"] >= 0.8 * (c["odometry_steps"] - c["tracker_odometry_ignored"])
+
+
+def test_camera_subset_keeps_one_cameras_frames(two_cam):
+    session = SessionReader(two_cam)
+    front = camera_subset(session, [0])
+    assert list(front.cameras) == [0] * 10 and list(front.index) == list(session.index[::2])
+    assert [f.camera for f in front.frames(with_images=False)] == [0] * 10
+    assert len(session) == 20  # the original is untouched
+    # The front camera alone sees a sticker at no more frame times than both together.
+    assert sticker_in_view(two_cam, 2, [0]) <= sticker_in_view(two_cam, 2)
+
+
+def test_two_camera_eval_table(tmp_path, monkeypatch, capsys):
+    cfg = MultiCamConfig(map_path=MAP, out=tmp_path, seeds=(1,), seconds=1.0, fps=10.0, scale=0.5, progress=False)
+    text = run_two_camera(cfg)
+    res = json.loads((tmp_path / "results.json").read_text())
+    rows = {r["rig"]: r for r in res["rows"]}
+    assert set(rows) == {"front", "front+rear"} and all(r["walk"] == "s1" for r in rows.values())
+    assert rows["front"]["frames"] == 10 and rows["front+rear"]["frames"] == 20
+    assert rows["front+rear"]["sticker_in_view"] >= rows["front"]["sticker_in_view"]
+    assert rows["front+rear"]["fixes"] >= rows["front"]["fixes"]
+    for r in rows.values():
+        assert r["odometry_unmatched"] == 0
+        assert 0.0 < r["rmse_m"] < 0.5 and np.isfinite(r["nees_mean"]) and 0.0 <= r["coverage"] <= 1.0
+    assert set(res["summary"]) == {"front", "front+rear"}
+    lines = text.splitlines()
+    assert any(line.startswith("| s1 | front |") for line in lines)
+    assert any(line.startswith("| s1 | front+rear |") for line in lines)
+    assert (tmp_path / "two_camera.png").stat().st_size > 1000 and (tmp_path / "report.md").exists()
+    # A second run reuses the walk (same conditions) and gives the same table; so does the CLI preset.
+    assert run_two_camera(cfg) == text
+    monkeypatch.setattr(multicam, "TWO_CAMERA_WALKS", cfg)
+    assert main(["eval", "--preset", "two-camera", "--quiet", "-o", str(tmp_path)]) == 0
+    assert capsys.readouterr().out.strip() == text
 
 
 def test_camera_column_checked_and_single_camera_layout_kept(tmp_path):
@@ -62,3 +105,23 @@ def test_camera_column_checked_and_single_camera_layout_kept(tmp_path):
     (tmp_path / "one" / "frames.csv").write_text("index,timestamp_s,camera\n0,0.000000,1\n")
     with pytest.raises(SessionError, match=r"frames.csv:2: camera '1' is not a camera of the rig"):
         SessionReader(tmp_path / "one")
+
+
+def test_odometry_from_chosen_cameras_only(two_cam):
+    session = SessionReader(two_cam)
+    loc = Localiser(session.map, session.rig, LocaliserConfig(odometry_cameras=(0,)))
+    both = run_session(session).counts["odometry_steps"]
+    front = run_session(session, localiser=loc).counts
+    assert loc.floor_odometry(1) is None and loc.floor_odometry(0) is not None
+    assert 0 < front["odometry_steps"] <= min(9, both)
+    assert front["odometry_unavailable"] == 0 and front["tracker_odometry_unmatched"] == 0
+
+
+def test_a_rear_camera_matches_its_nearest_floor():
+    """The odometry patch of a camera looking back mirrors the front camera's about the camera: the
+    nearest full square, not the farthest (seen coarser, and swung more by the torso's lean)."""
+    front, rear = front_rear_rig().cameras
+    pf, pr = floor_patch(front), floor_patch(rear)
+    x_front, x_rear = front.T_body_camera[0, 3], rear.T_body_camera[0, 3]
+    assert pr.side == pytest.approx(pf.side, abs=1e-3)
+    assert x_rear - pr.x_far == pytest.approx(pf.x_near - x_front, abs=0.02)

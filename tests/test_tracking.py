@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
 from tagloc.core.types import Detection, Identity, IdSource
-from tagloc.pipeline.localiser import LocaliserConfig, Tracked, TrackingConfig, match_tracked
+from tagloc.pipeline.localiser import LocaliserConfig, Tracked, TrackingConfig, match_tracked, match_tracks
 
 CFG = TrackingConfig()
 SQUARE = np.array([[100.0, 100.0], [160.0, 100.0], [160.0, 160.0], [100.0, 160.0]])  # clockwise, y down
@@ -60,6 +61,15 @@ def test_stale_other_camera_or_due_tracks_are_not_carried():
     assert match_tracked(det, [_tracked(age=CFG.redecode_every - 2)], 0, 1 / 30, CFG, only(7))[0] is not None
 
 
+def test_a_track_due_for_re_decoding_is_matched_as_due():
+    det = [Detection(np.roll(SQUARE, 1, axis=0) + 1.0)]
+    (m,) = match_tracks(det, [_tracked(age=CFG.redecode_every - 1)], 0, 1 / 30, CFG, only(7))
+    assert m is not None and m.due and m.identity.sticker_id == 7 and m.identity.rotation == 2
+    (m,) = match_tracks(det, [_tracked(age=CFG.redecode_every - 2)], 0, 1 / 30, CFG, only(7))
+    assert m is not None and not m.due
+    assert match_tracks(det, [_tracked(age=CFG.redecode_every - 1)], 0, 1 / 30, CFG, only(9)) == [None]
+
+
 def test_ambiguous_matches_carry_nothing():
     # Two tracked stickers on the same spot (cannot tell which) and two detections on one tracked one.
     two = [_tracked(sid=7), _tracked(outer=SQUARE + 2.0, sid=8)]
@@ -89,6 +99,35 @@ def test_tracking_saves_decodes_without_changing_fixes_or_taking_a_wrong_id(tmp_
     (off, m_off, wrong_off, _), (on, m_on, wrong_on, checked_on) = logs[False], logs[True]
     assert wrong_on == 0 and wrong_off == 0 and checked_on >= 20
     assert on.counts["tracked"] >= 0.5 * off.counts["decoded"]  # most decodes are carried
+    assert on.counts["reverified"] >= 1  # stickers due a re-decode were re-checked instead
+    assert on.counts["tracked"] - on.counts["reverified"] <= 3 * (on.counts["decoded"] + on.counts["reverified"])
     assert on.counts["decoded"] + on.counts["tracked"] >= off.counts["decoded"]
     assert len(on.fixes) >= len(off.fixes) - 2
     assert m_on["rmse_m"] <= m_off["rmse_m"] + 0.01
+
+
+def test_a_blank_square_that_failed_decoding_skips_least_squares_until_its_retry():
+    # A framed square with nothing printed in it (a label on the floor) is detected as a sticker
+    # and fails every decoding stage; in the frames right after, the costly least-squares stage is
+    # left out for it until its retry is due, and it never gives an identity.
+    from tagloc.core.rig import default_rig
+    from tagloc.core.stickermap import StickerMap
+    from tagloc.core.types import Frame
+    from tagloc.pipeline.localiser import Localiser
+
+    rng = np.random.default_rng(0)
+    img = np.clip(rng.normal(120, 3, (972, 1296)), 0, 255).astype(np.uint8)
+    cv2.rectangle(img, (600, 400), (680, 480), 30, cv2.FILLED)
+    cv2.rectangle(img, (607, 407), (673, 473), 210, cv2.FILLED)
+    img = cv2.GaussianBlur(img, (0, 0), 0.8)
+    smap = StickerMap(np.array([1]), np.array([[0.0, 0.0]]), np.array([0.0]))
+    loc = Localiser(smap, default_rig(), LocaliserConfig(odometry=False))
+    every = loc.config.tracking.lsq_retry_every
+    skipped = []
+    for i in range(2 * every):
+        res = loc.process(Frame(i, i / 30, img))
+        assert len(res.observations) == 1 and res.observations[0].identity is None
+        skipped.append(loc.counts["lsq_skipped"])
+    # Frame 0 runs it; then it is left out every frame but each ``every``-th.
+    steps = np.diff([0, *skipped])
+    assert steps.tolist() == ([0] + [1] * (every - 1)) * 2

@@ -86,20 +86,20 @@ class TrackerConfig:
     half a period, 0.5 s. So fixes of one frame share the offset, consecutive frames share most of
     it, and the offset decays back onto the walk between fixes.
 
-    Tilt offset, seen by floor odometry only: the odometry maps the image to the floor through the
-    rig's nominal pose, so a change of the torso's tilt between two frames looks like floor motion:
-    for the patch centre ~0.9 m ahead of a camera 1.3 m up, (h^2 + d^2) / h = 1.9 m per radian of
-    pitch (forward) and h = 1.3 m per radian of roll (sideways). The gait's nod and roll are in the
-    odometry's own per-step noise; the lean of the whole body is not: atan(a / g) with the speed
-    changes (people start and stop at ~1 m/s^2, 5.8 deg, for about a second every ~10-15 s of
-    walking: ~0.4 m/s^2 RMS, 2.3 deg) and atan(v omega / g) into turns (~0.45 m/s^2 RMS over a walk
-    with a turn every few seconds, 2.6 deg). So ``tilt_sigma_forward`` = 1.9 x 0.040 = 7.7 cm and
-    ``tilt_sigma_lateral`` = 1.3 x 0.046 = 6.0 cm (stationary, body axes), correlation
-    ``tilt_corr_s`` 1 s (a braking or a turn lasts about that long), scaled by
-    ``min(1, |v| / floor_walk_speed)`` (a lean needs speed). A second Gauss-Markov state (x, y):
-    fixes do not see it (the vest point does not move when the torso tilts about it), odometry steps
-    measure the motion of vest + tilt offset, so the lean's apparent motion is bounded instead of
-    integrated into the pose. ``gravity`` (m/s^2) gives the lean into a turn that candidate
+    Tilt offset, seen by floor odometry only: an odometry that maps the image to the floor through
+    the rig's nominal pose sees a change of the torso's tilt between two frames as floor motion: for
+    the patch centre ~0.9 m ahead of a camera 1.3 m up, (h^2 + d^2) / h = 1.9 m per radian of pitch
+    (forward) and h = 1.3 m per radian of roll (sideways). A second Gauss-Markov state (x, y) can
+    carry that apparent motion (``tilt_sigma_forward``, ``tilt_sigma_lateral`` stationary, body
+    axes, correlation ``tilt_corr_s``, scaled by ``min(1, |v| / floor_walk_speed)``): fixes do not
+    see it, odometry steps measure vest + tilt offset, so the lean's apparent motion is bounded
+    instead of integrated. tagloc's floor odometry takes the tilt out itself (it fits the tilt's
+    change between frames from the patch's perspective and follows the lean into turns: see
+    :class:`tagloc.vision.odometry.OdometryConfig`), so the defaults are 0 (no such state: on the
+    eleven eval walks the state only let the filter explain real motion away as tilt, since a 2 cm
+    per-frame tilt freedom is cheaper than any change of speed). Set them (e.g. 7.7 and 6.0 cm,
+    1 s: the lean of atan(a / g) and atan(v omega / g) at 2.3-2.6 deg RMS on the arms above) for an
+    odometry source that does not. ``gravity`` (m/s^2) gives the lean into a turn that candidate
     selection expects, atan(v omega / g) (:meth:`tracker.tracker.Tracker.leaned_camera`).
 
     Gates (squared Mahalanobis distance of the innovation over x, y, yaw, 3 DoF):
@@ -142,7 +142,8 @@ class TrackerConfig:
       tagloc's floor odometry states its covariance against exactly that motion (see
       :class:`tagloc.vision.odometry.OdometryConfig`), so the factors are 1.
     - ``odometry_gate_prob``: chi-square bound (3 DoF) on the relative-pose innovation.
-    - ``odometry_max_dt``: the longest interval between the two frames of a step.
+    - ``odometry_max_dt``: the longest interval between the two frames of a step (so also how long
+      a camera's clone of its last frame is kept, see :mod:`tracker.clones`).
 
     Frame gaps (dropped frames: the driver loses single frames and bursts of 3-8): the filter
     predicts across a gap like across any interval, but floor odometry cannot bridge one longer
@@ -179,8 +180,8 @@ class TrackerConfig:
     floor_still_sigma_yaw: float = math.radians(0.5)
     floor_still_corr_s: float = 2.0
     floor_corr_s: float = 0.5
-    tilt_sigma_forward: float = 0.077
-    tilt_sigma_lateral: float = 0.060
+    tilt_sigma_forward: float = 0.0
+    tilt_sigma_lateral: float = 0.0
     tilt_corr_s: float = 1.0
     gravity: float = 9.81
     gate_prob: float = 0.999

@@ -21,6 +21,21 @@ one frame share the offset exactly, consecutive frames share most of it, and the
 odometry integrates is bounded instead of accumulating: the filter separates the smooth walk
 (body) from the ~1 Hz wobble (offset) by their dynamics. The operator's pose is the vest's,
 body + offset (:func:`vest_pose`, :func:`vest_cov`).
+
+Survey error of the map: a fix is its sticker's map pose composed with what the camera measured, so
+a sticker surveyed ``e`` = (dx, dy, dyaw) off moves every one of its fixes by ``J e`` (``J``:
+:func:`tagloc.core.geometry.map_error_jacobian`, the turn acting on the lever from the sticker to
+the vest point). That error is the same in every frame that sees the sticker: treated as fresh
+noise per fix, thirty fixes a second would average it away and claim to know the sticker's place
+better than its survey; inflated per fix instead, the fixes (1 cm apart from the truth) would stop
+counting. So each sticker being fixed gets its own error state ``e`` (constant: no process noise),
+with the survey's covariance as its prior and zero mean, in one of ``MAP_SLOTS`` slots: a fix
+measures ``vest + J e`` and the filter works out, from the fixes at changing levers and from the
+odometry between stickers, how much of the disagreement is the map's. A slot is taken by the
+least recently fixed sticker when a new one is accepted; its old sticker is then marginalised out
+(its rows and columns dropped: exact). Seeing that sticker again much later starts a fresh prior,
+which forgets what the track had learnt about it (slightly optimistic on a return visit; with four
+slots a sticker is only dropped after four others were fixed since).
 """
 
 from __future__ import annotations
@@ -36,15 +51,44 @@ from tagloc.core.geometry import wrap_angle
 from tracker import motion
 from tracker.config import TrackerConfig
 
+# Stickers whose survey error is a state at once: two or three are in view at a time (10 cm stickers
+# 1.2-2 m apart under a ~1 x 1.5 m footprint), and a slot should outlive a short pass of another.
+MAP_SLOTS = 4
 POSE = slice(0, 3)
-DIM = motion.DIM + 3 + 2  # walking body + vest offset + odometry's tilt offset
 OFF = slice(motion.DIM, motion.DIM + 3)
-TILT = slice(motion.DIM + 3, DIM)
-M_VEST = np.hstack([np.eye(3), np.zeros((3, motion.DIM - 3)), np.eye(3), np.zeros((3, 2))])  # body + offset
+TILT = slice(motion.DIM + 3, motion.DIM + 5)
+MAP0 = motion.DIM + 5
+DIM = MAP0 + 3 * MAP_SLOTS  # walking body + vest offset + odometry's tilt offset + map errors
+M_VEST = np.zeros((3, DIM))  # body + offset
+M_VEST[:, POSE] = np.eye(3)
+M_VEST[:, OFF] = np.eye(3)
 M_VEST.flags.writeable = False
 # What floor odometry follows: the vest pose plus the tilt offset (x, y only).
-M_ODO = M_VEST + np.hstack([np.zeros((3, DIM - 2)), np.vstack([np.eye(2), np.zeros((1, 2))])])
+M_ODO = M_VEST.copy()
+M_ODO[:2, TILT] = np.eye(2)
 M_ODO.flags.writeable = False
+
+
+def map_slot(k: int) -> slice:
+    """State slice (3,) of map-error slot ``k``: the survey error (dx, dy, dyaw) of its sticker."""
+    return slice(MAP0 + 3 * k, MAP0 + 3 * k + 3)
+
+
+@dataclass(frozen=True)
+class MapTerm:
+    """How one fix depends on its sticker's survey error.
+
+    Attributes:
+        sticker_id: the sticker the fix came from.
+        J: (3, 3) d fix / d map error (:func:`tagloc.core.geometry.map_error_jacobian`).
+        prior: (3, 3) survey covariance of the sticker's map pose (dx, dy in m, dyaw in rad).
+    """
+
+    sticker_id: int
+    J: np.ndarray
+    prior: np.ndarray
+
+
 _NO_NOISE = np.zeros((3, 3))
 _NO_NOISE.flags.writeable = False
 
@@ -139,13 +183,17 @@ class Innovation:
 
 
 class WalkingEKF(ExtendedKalmanFilter):
-    """10-state EKF: CTRV body (x, y, yaw, v, w), vest offset (dx, dy, dyaw), tilt offset (tx, ty);
-    vest-pose measurements (fixes) and odometry-pose steps."""
+    """EKF: CTRV body (x, y, yaw, v, w), vest offset (dx, dy, dyaw), tilt offset (tx, ty) and the survey
+    errors of up to ``MAP_SLOTS`` stickers; vest-pose measurements (fixes) and odometry-pose steps."""
 
     def __init__(self, config: TrackerConfig):
         super().__init__(dim_x=DIM, dim_z=3)
         self.cfg = config
         self._dt = 0.0
+        # Slot k holds the survey error of sticker slots[k] (None: free), last fixed at used[k].
+        self.slots: list[int | None] = [None] * MAP_SLOTS
+        self._used = [-math.inf] * MAP_SLOTS
+        self._fixes = 0
         full = config.floor_cov(0.0)
         big = max(full[0, 0], full[1, 1])
         tilt = config.tilt_cov(0.0)
@@ -157,7 +205,10 @@ class WalkingEKF(ExtendedKalmanFilter):
             config.v_var_cap,
             config.w_var_cap,
             4.0 * np.array([big, big, full[2, 2]]),
-            4.0 * np.array([big_tilt, big_tilt]),
+            # (a floor above min_eig: with the tilt offset off, its variance sits at that floor)
+            np.full(2, max(4.0 * big_tilt, 1e-6)),
+            # Map errors have no process noise: the cap only guards against numerical growth.
+            np.full(3 * MAP_SLOTS, 1.0),
         ]
 
     def _decay(self, dt: float) -> float:
@@ -200,7 +251,28 @@ class WalkingEKF(ExtendedKalmanFilter):
         P[TILT, TILT] = self.cfg.tilt_cov(float(pose[2]))
         P[motion.V, motion.V] = self.cfg.init_v_sigma**2
         P[motion.W, motion.W] = self.cfg.init_w_sigma**2
+        for k in range(MAP_SLOTS):
+            P[map_slot(k), map_slot(k)] = self._free_slot_cov()
+        self.slots = [None] * MAP_SLOTS
+        self._used = [-math.inf] * MAP_SLOTS
         self.set(np.r_[np.asarray(pose, float), np.zeros(DIM - 3)], P)
+
+    def reset_from_fix(self, pose: np.ndarray, R: np.ndarray, term: MapTerm | None) -> None:
+        """:meth:`reset` from a fix whose sticker's survey error is ``term`` (None: an exact map): the
+        vest is the fix less ``J e``, so it starts correlated with that error's new state."""
+        self.reset(pose, R)
+        if term is None:
+            return
+        k = self._take_slot(term.sticker_id)
+        P = self.P.copy()
+        s = map_slot(k)
+        JS = term.J @ term.prior
+        for blk in (POSE,):
+            P[blk, s] = -JS
+            P[s, blk] = -JS.T
+        P[POSE, POSE] = P[POSE, POSE] + JS @ term.J.T
+        P[s, s] = term.prior
+        self.set(self.x[:, 0], P)
 
     def forget_motion(self) -> None:
         """Drop what is known about speed and yaw rate (zero mean, initial variance, uncorrelated)."""
@@ -219,7 +291,9 @@ class WalkingEKF(ExtendedKalmanFilter):
         x = self.x[:, 0]
         body = motion.propagate(x[: motion.DIM], self._dt)
         # The offsets are linear: their blocks of F (set by ``advance`` for this step) are their decays.
-        self.x = np.concatenate((body, self.F[OFF, OFF] @ x[OFF], self.F[TILT, TILT] @ x[TILT])).reshape(DIM, 1)
+        self.x = np.concatenate((body, self.F[OFF, OFF] @ x[OFF], self.F[TILT, TILT] @ x[TILT], x[MAP0:])).reshape(
+            DIM, 1
+        )
 
     def _transition(self, x: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
         """(F (DIM, DIM), Q (DIM, DIM)) of a step of ``h`` s (negative: backwards) from state ``x``."""
@@ -235,6 +309,7 @@ class WalkingEKF(ExtendedKalmanFilter):
         Q[OFF, OFF] = (1.0 - a * a) * cfg.floor_cov(float(x[motion.YAW]), float(x[motion.V]))
         b = self._tilt_decay(h)
         F[TILT, TILT] = b * np.eye(2)
+        F[MAP0:, MAP0:] = np.eye(DIM - MAP0)  # a sticker's survey error does not change
         Q[TILT, TILT] = (1.0 - b * b) * cfg.tilt_cov(float(x[motion.YAW]), float(x[motion.V]))
         return F, Q
 
@@ -259,6 +334,66 @@ class WalkingEKF(ExtendedKalmanFilter):
             F_total = self.F @ F_total
         return F_total
 
+    # -- map-error slots -----------------------------------------------------------------------
+    @staticmethod
+    def _free_slot_cov() -> np.ndarray:
+        """Covariance parked in a free slot: small, positive (keeps P SPD), uncorrelated."""
+        return np.eye(3) * 1e-8
+
+    def slot_of(self, sticker_id: int) -> int | None:
+        """The map-error slot holding ``sticker_id``, or None."""
+        try:
+            return self.slots.index(int(sticker_id))
+        except ValueError:
+            return None
+
+    def _take_slot(self, sticker_id: int) -> int:
+        """A slot for ``sticker_id``: its own, else a free one, else the least recently fixed one,
+        whose sticker is marginalised out (its rows and columns zeroed: exact)."""
+        k = self.slot_of(sticker_id)
+        if k is None:
+            k = self.slots.index(None) if None in self.slots else int(np.argmin(self._used))
+            s = map_slot(k)
+            x, P = self.x[:, 0].copy(), self.P.copy()
+            x[s] = 0.0
+            P[s, :] = 0.0
+            P[:, s] = 0.0
+            P[s, s] = self._free_slot_cov()
+            self.x, self.P = x.reshape(DIM, 1), P
+            self.slots[k] = int(sticker_id)
+        self._fixes += 1
+        self._used[k] = self._fixes
+        return k
+
+    def claim_slot(self, term: MapTerm) -> tuple[int, bool]:
+        """The slot of ``term``'s sticker, marked as just fixed; a new sticker takes one (the least
+        recently fixed one's sticker is marginalised out) with its survey prior. Returns (slot,
+        whether it is fresh)."""
+        k = self.slot_of(term.sticker_id)
+        if k is not None:
+            self._fixes += 1
+            self._used[k] = self._fixes
+            return k, False
+        k = self._take_slot(term.sticker_id)
+        P = self.P.copy()
+        P[map_slot(k), map_slot(k)] = term.prior
+        self.P = P
+        return k, True
+
+    def _map_columns(
+        self, H: np.ndarray, R: np.ndarray, term: MapTerm | None, take: bool
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Add the sticker's survey error to the model: through its slot's columns of ``H`` when it has
+        (or, with ``take``, gets) one, else as extra noise ``J prior J^T`` (what a fresh slot would add)."""
+        if term is None:
+            return H, R
+        k = self.claim_slot(term)[0] if take else self.slot_of(term.sticker_id)
+        if k is None:
+            return H, R + term.J @ term.prior @ term.J.T
+        H = np.array(H, float)
+        H[:, map_slot(k)] = term.J
+        return H, R
+
     # -- measurement --------------------------------------------------------------------------
     def _model(self, lag: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(h(x) (3,), H (3, DIM), extra noise (3, 3)) of a vest pose measured ``lag`` s before the state."""
@@ -270,27 +405,38 @@ class WalkingEKF(ExtendedKalmanFilter):
         # backwards too (decay a, fresh variance (1 - a^2) F).
         back = motion.propagate(x[: motion.DIM], -lag)
         F, Q = self._transition(x, -lag)
-        H = np.hstack([F[POSE, : motion.DIM], F[OFF, OFF], np.zeros((3, 2))])
+        H = np.zeros((3, DIM))
+        H[:, : motion.DIM] = F[POSE, : motion.DIM]
+        H[:, OFF] = F[OFF, OFF]
         Qb = Q[POSE, POSE] + Q[OFF, OFF]
         return back[POSE] + F[OFF, OFF] @ x[OFF], H, Qb
 
-    def innovation(self, z: np.ndarray, R: np.ndarray, lag: float = 0.0) -> Innovation:
-        """Innovation of vest pose ``z`` (3,) with its own covariance ``R`` (3, 3), measured ``lag`` s ago."""
+    def innovation(self, z: np.ndarray, R: np.ndarray, lag: float = 0.0, term: MapTerm | None = None) -> Innovation:
+        """Innovation of vest pose ``z`` (3,) with its own covariance ``R`` (3, 3), measured ``lag`` s ago,
+        from a sticker whose survey error is ``term`` (None: an exact map)."""
         hx, H, Qb = self._model(lag)
-        R = R + Qb
+        H, R = self._map_columns(H, R + Qb, term, take=False)
+        if term is not None:
+            k = self.slot_of(term.sticker_id)
+            if k is not None:
+                hx = hx + term.J @ self.x[map_slot(k), 0]
         y = pose_residual(z, hx)
         S = H @ self.P @ H.T + R
         S = 0.5 * (S + S.T)
         return Innovation(y, S, float(y @ np.linalg.solve(S, y)), R)
 
-    def fuse(self, z: np.ndarray, R: np.ndarray, lag: float = 0.0) -> None:
-        """Kalman update with one vest pose ``z`` (3,), its own covariance ``R``, ``lag`` s old."""
+    def fuse(self, z: np.ndarray, R: np.ndarray, lag: float = 0.0, term: MapTerm | None = None) -> None:
+        """Kalman update with one vest pose ``z`` (3,), its own covariance ``R``, ``lag`` s old, from a
+        sticker whose survey error is ``term`` (None: an exact map); the sticker takes a slot."""
         hx, H, Qb = self._model(lag)
+        H, R = self._map_columns(H, R + Qb, term, take=True)
+        if term is not None:
+            hx = hx + term.J @ self.x[map_slot(self.slot_of(term.sticker_id)), 0]
         self.update(
             np.asarray(z, float).reshape(3, 1),
             lambda _x: H,
             lambda _x: hx.reshape(3, 1),
-            R=R + Qb,
+            R=R,
             residual=pose_residual,
         )
         self._tidy()

@@ -20,44 +20,51 @@ Rules, in one place:
   fixes are taken; one that passes the gate is fused, one that does not re-initialises the track.
 - ``reinit_fixes`` gated-out DECODED fixes that agree with each other re-initialise the track.
 - Floor odometry (:meth:`Tracker.update_odometry`): each step is the vest's relative pose between
-  two consecutive frames. :meth:`Tracker.predict` keeps a clone of the vest pose at the time it
-  advanced from, with its cross-covariance to the new state (stochastic cloning), and the step is
-  fused as a measurement of ``vest(t1) (-) clone(t0)`` (the camera moves with the vest). That is
-  exact for one step (forward, lateral and turn alike, so sidesteps and stops are followed), and
-  consecutive steps share no clone, so fusing every frame never counts a frame twice. The vest's
-  wobble, which the steps follow, lands in the offset state and is bounded there instead of
-  accumulating in the body's pose. Used while
-  TRACKING or LOST (it slows the growth of the uncertainty either way), gated, and only on the
-  interval the filter just advanced over with nothing fused in between (so: before the frame's
-  fixes); otherwise it is counted as ``odometry_unmatched``.
+  two consecutive frames of one camera. When :meth:`Tracker.predict` advances from a frame of
+  camera A, it keeps a clone of the (odometry) pose there, keyed by A, with its cross-covariance to
+  the state (stochastic cloning); A's next step is fused as a measurement of
+  ``vest(t1) (-) clone_A(t0)`` (the camera moves with the vest). That is exact for one step
+  (forward, lateral and turn alike, so sidesteps and stops are followed), and consecutive steps of
+  a camera share no clone, so fusing every frame never counts a frame twice. The vest's wobble,
+  which the steps follow, lands in the offset state and is bounded there instead of accumulating
+  in the body's pose. With several cameras their frames interleave: a clone is carried, with its
+  cross-covariance kept exact, through every prediction (``cross <- F cross``) and every update
+  (fixes and the other cameras' steps: a joint update over the state and the clones), so camera
+  A's step is fused against A's clone even when camera B's frame came in between. A clone older
+  than ``odometry_max_dt`` is dropped (no step can use it); a restart drops them all. Used while
+  TRACKING or LOST (it slows the growth of the uncertainty either way), gated, and only for a step
+  that ends at the filter's time and starts at the camera's clone (call it after the frame's
+  :meth:`Tracker.predict`); otherwise it is counted as ``odometry_unmatched``.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass
 from typing import TypeVar
 
 import numpy as np
 from filterpy.kalman import update as kf_update
 
-from tagloc.core.geometry import wrap_angle
+from tagloc.core.geometry import map_error_jacobian, wrap_angle
 from tagloc.core.rig import RigCamera
 from tagloc.core.stickermap import StickerMap
-from tagloc.core.types import IdSource, PoseFix, TrackerOutput, TrackState
+from tagloc.core.types import IdSource, PoseFix, SurveyPrior, TrackerOutput, TrackState
 from tracker import motion
 from tracker.candidates import select_candidates
+from tracker.clones import CloneSet
 from tracker.config import TrackerConfig
 from tracker.ekf import (
     DIM,
     M_ODO,
+    OFF,
+    MapTerm,
     WalkingEKF,
     largest_eig_2x2,
-    odometry_cov,
+    map_slot,
     odometry_model,
-    odometry_pose,
     pose_residual,
     sym_spd,
     vest_cov,
@@ -85,17 +92,6 @@ class UpdateResult:
 
 
 @dataclass
-class _Clone:
-    """The odometry pose (vest + tilt offset) at ``t0`` (3,), its covariance (3, 3) and its
-    cross-covariance with the state (DIM, 3)."""
-
-    t0: float
-    pose: np.ndarray
-    P: np.ndarray
-    cross: np.ndarray
-
-
-@dataclass
 class _Hypothesis:
     """A fresh filter fed with decoded fixes the track rejected."""
 
@@ -107,6 +103,7 @@ class _Hypothesis:
 
 
 _SOURCES = (IdSource.DECODED, IdSource.ORB, IdSource.APPEARANCE)
+_ANGLES = (motion.YAW, OFF.stop - 1)  # the state's angles: body yaw, the vest offset's yaw
 
 R = TypeVar("R")
 
@@ -141,7 +138,11 @@ class Tracker:
         self._track_ids: set[int] = set()  # stickers whose fixes the track took since it (re)started
         self._forgot = False  # speed and yaw rate dropped after a long time without fixes
         self._hyp: _Hypothesis | None = None
-        self._clone: _Clone | None = None  # pose before the last advance, for odometry
+        # Per camera (key given to predict/update_odometry; None when the caller names none): the
+        # odometry pose at that camera's last frame, for its next step.
+        self._clones = CloneSet(DIM)
+        self._here: set[Hashable] = set()  # cameras whose frames are at the filter's time
+        self._clones_dropped_t = -math.inf  # when the clones were last dropped (restart, forgetting)
         self._last_odo_t = -math.inf  # end of the last odometry step fused
         self._odo_scale = np.sqrt(np.asarray(cfg.odometry_inflation, float))
         self._stats: dict[str, int] = {f"{v}_{s.value}": 0 for s in _SOURCES for v in ("accepted", "rejected")}
@@ -186,6 +187,12 @@ class Tracker:
     def time(self) -> float | None:
         """Timestamp (s) the filter stands at, None before the first frame."""
         return self._t
+
+    @property
+    def odometry_cameras(self) -> tuple[Hashable, ...]:
+        """The cameras whose next odometry step the tracker can fuse (each has a clone of the pose at
+        its last frame, at most ``odometry_max_dt`` old)."""
+        return tuple(self._clones.keys)
 
     @property
     def stats(self) -> dict[str, int]:
@@ -234,8 +241,10 @@ class Tracker:
         return dataclasses.replace(rig_camera, T_body_camera=T @ rig_camera.T_body_camera)
 
     # -- time ---------------------------------------------------------------------------------------
-    def predict(self, t: float) -> None:
-        """Move the filter to frame time ``t`` (s); an older or non-finite ``t`` leaves it unchanged."""
+    def predict(self, t: float, camera: Hashable = None) -> None:
+        """Move the filter to frame time ``t`` (s) of a frame of ``camera`` (a key naming the camera, for
+        its odometry, e.g. the rig camera's index; None will do for one camera); an older or non-finite
+        ``t`` leaves it unchanged."""
         t = float(t)
         if not math.isfinite(t):
             self._stats["invalid_times"] += 1
@@ -244,18 +253,31 @@ class Tracker:
             self._stats["out_of_order_frames"] += 1
             return
         if self._t is not None and t > self._t:
-            self._clone = None
-            if self._state is not TrackState.INITIALISING:
+            if self._state is TrackState.INITIALISING:
+                self._drop_clones()
+            else:
                 # The filter replaces its arrays rather than writing into them: x0, P0 stay as they were.
                 t0, x0, P0 = self._t, self._ekf.x[:, 0], self._ekf.P
                 jac: list[np.ndarray] = []
                 if self._guarded(lambda: jac.append(self._ekf.advance(t - t0))):
-                    JP = jac[0] @ P0
-                    self._clone = _Clone(t0, odometry_pose(x0), odometry_cov(P0), JP @ M_ODO.T)
+                    # The cameras of the frames just left start their next steps here; a clone older
+                    # than any step can span is of no more use.
+                    self._clones.advance(jac[0], x0, P0, M_ODO, t0, t, self._here, self.config.odometry_max_dt)
+                else:
+                    self._drop_clones()
                 if t - t0 > self.config.gap_s and t0 - self._last_odo_t <= self.config.gap_s:
                     self._gap_noise(t - t0)
+            self._here = set()
+        self._here.add(camera)
         self._t = t
         self._check_lost()
+
+    def _drop_clones(self) -> None:
+        """Forget every camera's clone: the track restarted or forgot its past, so no step from before
+        now can be fused (such steps are counted as ``odometry_ignored``, not unmatched)."""
+        self._clones.clear()
+        if self._t is not None:
+            self._clones_dropped_t = self._t
 
     def _gap_noise(self, dt: float) -> None:
         """Widen yaw and yaw rate after ``dt`` s no odometry could follow (see ``gap_yaw_accel_psd``).
@@ -280,7 +302,7 @@ class Tracker:
             # Long without a fix, the speed and turn rate are stale: keep the pose mean and let a
             # walker of unknown velocity spread from there instead of extrapolating for hours.
             self._forgot = True
-            self._clone = None
+            self._drop_clones()
             self._guarded(self._ekf.forget_motion)
 
     def _is_lost(self, P: np.ndarray, t: float) -> bool:
@@ -297,8 +319,10 @@ class Tracker:
         return ok
 
     # -- fixes --------------------------------------------------------------------------------------
-    def _clean(self, fixes: list[PoseFix]) -> list[tuple[np.ndarray, np.ndarray]]:
-        """(body (3,), cov (3, 3) SPD) of the usable fixes, in the order given."""
+    def _clean(
+        self, fixes: list[PoseFix], sticker_id: int, survey: SurveyPrior | None
+    ) -> list[tuple[np.ndarray, np.ndarray, MapTerm | None]]:
+        """(body (3,), cov (3, 3) SPD, map term or None) of the usable fixes, in the order given."""
         out = []
         for f in fixes:
             z = np.asarray(f.body, float).ravel()
@@ -310,11 +334,27 @@ class Tracker:
                 continue
             z = z.copy()
             z[2] = wrap_angle(float(z[2]))
-            out.append((z, sym_spd(C, self.config.min_eig)))
+            term = None
+            if survey is not None and (survey.sigma_m > 0 or survey.sigma_yaw > 0):
+                prior = np.diag([survey.sigma_m**2, survey.sigma_m**2, survey.sigma_yaw**2])
+                term = MapTerm(int(sticker_id), map_error_jacobian(z[:2], survey.sticker_xy), prior)
+            out.append((z, sym_spd(C, self.config.min_eig), term))
         return out
 
-    def update(self, fixes: list[PoseFix], sticker_id: int, source: IdSource, t: float) -> UpdateResult:
-        """Offer one sticker's pose fix(es) (1, or 2 IPPE alternatives best first) seen at frame time ``t``."""
+    def update(
+        self,
+        fixes: list[PoseFix],
+        sticker_id: int,
+        source: IdSource,
+        t: float,
+        survey: SurveyPrior | None = None,
+    ) -> UpdateResult:
+        """Offer one sticker's pose fix(es) (1, or 2 IPPE alternatives best first) seen at frame time ``t``.
+
+        ``survey``: the sticker's map position and survey sigmas; its survey error then becomes a
+        state while the sticker is being fixed (see :mod:`tracker.ekf`). None: the map is exact (or
+        the fixes' covariances already carry it).
+        """
         source = IdSource(source)
         t = float(t)
         if not math.isfinite(t):
@@ -322,7 +362,7 @@ class Tracker:
             return UpdateResult(False, "invalid timestamp")
         if source is IdSource.NONE:
             return UpdateResult(False, "unidentified sticker")
-        alts = self._clean(fixes)
+        alts = self._clean(fixes, sticker_id, survey)
         if not alts:
             self._stats["invalid_fixes"] += 1
             return UpdateResult(False, "no usable fix (empty, NaN or malformed)")
@@ -346,7 +386,7 @@ class Tracker:
 
         k, nis = self._best(alts, lag)
         if nis <= self._gate[source]:
-            self._fuse(*alts[k], lag)
+            self._fuse(alts[k], lag)
             self._accept(sticker_id, source, t)
             if source is IdSource.DECODED:
                 self._hyp = None
@@ -372,9 +412,9 @@ class Tracker:
     def _best(self, alts, lag: float) -> tuple[int, float]:
         """Index and NIS of the alternative closest to the prediction."""
         best = (0, math.inf)
-        for i, (z, C) in enumerate(alts):
+        for i, (z, C, term) in enumerate(alts):
             try:
-                nis = self._ekf.innovation(z, C, lag).nis
+                nis = self._ekf.innovation(z, C, lag, term).nis
             except np.linalg.LinAlgError:
                 self._stats["numeric_errors"] += 1
                 continue
@@ -382,10 +422,21 @@ class Tracker:
                 best = (i, nis)
         return best
 
-    def _fuse(self, z: np.ndarray, C: np.ndarray, lag: float) -> None:
-        """Fuse an accepted fix (vest pose z, own covariance C); a late one through retrodiction."""
-        self._clone = None
-        self._guarded(lambda: self._ekf.fuse(z, C, lag))
+    def _fuse(self, alt: tuple[np.ndarray, np.ndarray, MapTerm | None], lag: float) -> None:
+        """Fuse an accepted fix (vest pose, own covariance, map term); a late one through retrodiction."""
+        z, C, term = alt
+        if term is not None:
+            # The sticker's survey error takes its slot first: a new sticker's is a fresh state,
+            # independent of everything, clones included; then the fix is a pure conditioning,
+            # which the clones follow exactly.
+            k, fresh = self._ekf.claim_slot(term)
+            if fresh:
+                self._clones.decorrelate(map_slot(k))
+        x0, P0 = self._ekf.x[:, 0], self._ekf.P
+        if self._guarded(lambda: self._ekf.fuse(z, C, lag, term)):
+            # The odometry clones follow the fix (see tracker.clones).
+            if not self._clones.carry(x0, P0, self._ekf.x[:, 0], self._ekf.P, _ANGLES, self.config.min_eig):
+                self._stats["numeric_errors"] += 1
         if lag > 0.0:
             self._stats["late_fixes_fused"] += 1
 
@@ -397,12 +448,14 @@ class Tracker:
         self._state = TrackState.TRACKING
         self._forgot = False
 
-    def _start(self, alt: tuple[np.ndarray, np.ndarray], sticker_id: int, source: IdSource, t: float) -> None:
+    def _start(
+        self, alt: tuple[np.ndarray, np.ndarray, MapTerm | None], sticker_id: int, source: IdSource, t: float
+    ) -> None:
         """(Re)start the track from one fix: pose from it, speed and yaw rate unknown."""
         self._hyp = None
-        self._clone = None
+        self._drop_clones()
         self._ekf = WalkingEKF(self.config)
-        self._ekf.reset(alt[0], alt[1])
+        self._ekf.reset_from_fix(*alt)
         # A fresh track: its sticker set and last-fix time start from this fix alone.
         self._track_ids = set()
         self._last_fix_t = -math.inf
@@ -421,7 +474,7 @@ class Tracker:
                 h = None
         if h is None:
             ekf = WalkingEKF(cfg)
-            ekf.reset(alts[0][0], alts[0][1])
+            ekf.reset_from_fix(*alts[0])
             h = _Hypothesis(ekf, t, t, {int(sticker_id)}, 1)
         self._hyp = h
         # Several stickers are needed to overrule a track that other stickers support; a track that
@@ -431,7 +484,7 @@ class Tracker:
             return False
         self._ekf = h.ekf
         self._hyp = None
-        self._clone = None
+        self._drop_clones()
         self._track_ids = set(h.ids)
         self._accept(sticker_id, IdSource.DECODED, t)
         self._stats["reinitialisations"] += 1
@@ -442,21 +495,23 @@ class Tracker:
         """Fuse the best of ``alts`` into the hypothesis if it passes its gate; False if none does."""
         h.ekf.advance(t - h.t)
         h.t = t
-        nis, i = min((h.ekf.innovation(z, C).nis, i) for i, (z, C) in enumerate(alts))
+        nis, i = min((h.ekf.innovation(z, C, 0.0, term).nis, i) for i, (z, C, term) in enumerate(alts))
         if not nis <= self.config.gate:  # NaN included
             return False
-        h.ekf.fuse(*alts[i])
+        z, C, term = alts[i]
+        h.ekf.fuse(z, C, 0.0, term)
         h.ids.add(int(sticker_id))
         h.count += 1
         return True
 
     # -- odometry ---------------------------------------------------------------------------------
-    def update_odometry(self, step) -> UpdateResult:
-        """Fuse one floor-odometry step (:class:`tagloc.vision.odometry.OdometryStep`): the body pose at
-        ``step.t1`` relative to ``step.t0`` (``delta`` (3,) in the body frame at ``t0``, ``cov`` (3, 3)).
+    def update_odometry(self, step, camera: Hashable = None) -> UpdateResult:
+        """Fuse one floor-odometry step (:class:`tagloc.vision.odometry.OdometryStep`) of ``camera`` (the
+        key given to :meth:`predict`): the body pose at ``step.t1`` relative to ``step.t0`` (``delta``
+        (3,) in the body frame at ``t0``, ``cov`` (3, 3)).
 
-        The filter is moved to ``t1`` if it is behind. The step must cover the interval the filter
-        last advanced over, with nothing fused since (call it before the frame's fixes).
+        The filter is moved to ``t1`` if it is behind. The step must start at the camera's previous
+        frame (its clone) and end at the filter's time; fixes fused in between do not matter.
         """
         cfg = self.config
         z = np.asarray(step.delta, float).ravel()
@@ -475,21 +530,27 @@ class Tracker:
             self._stats["odometry_ignored"] += 1
             return UpdateResult(False, "initialising: odometry needs a pose to move")
         if self._t is None or t1 > self._t:
-            self.predict(t1)
-        c = self._clone
+            self.predict(t1, camera)
+        t_clone = self._clones.time(camera)
         tol = 1e-6 + 1e-9 * abs(t1)
-        if c is None or abs(c.t0 - t0) > tol or abs(self._t - t1) > tol:
+        if t_clone is None and t0 <= self._clones_dropped_t + tol:
+            self._stats["odometry_ignored"] += 1
+            return UpdateResult(False, "the track restarted after the step's first frame")
+        if t_clone is None or abs(t_clone - t0) > tol or abs(self._t - t1) > tol:
             self._stats["odometry_unmatched"] += 1
-            return UpdateResult(False, "odometry interval does not match the filter's last prediction")
-        x8, P8 = self._ekf.x[:, 0], self._ekf.P
+            return UpdateResult(False, "odometry interval does not match the camera's last frame")
+        x8 = self._ekf.x[:, 0]
         n = DIM
-        # Joint state [x (DIM), clone (3)]; the measurement is the odometry pose (the vest's, plus the
-        # tilt offset that the odometry's fixed homography adds) at t1 seen from the clone.
-        x = np.concatenate((x8, c.pose))
-        P = np.zeros((n + 3, n + 3))
-        P[:n, :n], P[n:, n:], P[:n, n:], P[n:, :n] = P8, c.P, c.cross, c.cross.T
+        # Joint state [x (DIM), clones (3 each)]; the measurement is the odometry pose (the vest's,
+        # plus the tilt offset that the odometry's fixed homography adds) at t1 seen from this
+        # camera's clone. The other cameras' clones ride along, so their covariances stay exact.
+        x, P = self._clones.joint(x8, self._ekf.P)
         P = sym_spd(P, cfg.min_eig)  # the caps applied while advancing may have bent it slightly
-        hx, H = odometry_model(x8, c.pose)
+        a = n + 3 * self._clones.keys.index(camera)
+        hx, H3 = odometry_model(x8, x[a : a + 3])
+        H = np.zeros((3, len(x)))
+        H[:, :n] = H3[:, :n]
+        H[:, a : a + 3] = H3[:, n:]
         R = sym_spd(C * np.outer(self._odo_scale, self._odo_scale), cfg.min_eig)
         y = pose_residual(z, hx)
         S = H @ P @ H.T + R
@@ -508,10 +569,14 @@ class Tracker:
             xa, Pa = kf_update(x, P, H @ x + y, R, H)
             xa = np.asarray(xa, float).ravel()
             self._ekf.set(xa[:n], 0.5 * (Pa[:n, :n] + Pa[:n, :n].T))
+            self._clones.absorb(xa, Pa)
 
-        self._clone = None  # one step per interval: a second one would reuse the same frames
+        clones_before = (self._clones.x, self._clones.P, self._clones.X)
         if not self._guarded(fuse):
+            self._clones.x, self._clones.P, self._clones.X = clones_before
             return UpdateResult(False, "numerical failure fusing odometry", nis)
+        # One step per interval: a second one would reuse the same frames.
+        self._clones.drop(camera)
         self._stats["odometry_accepted"] += 1
         self._last_odo_t = t1
         return UpdateResult(True, "fused", nis)

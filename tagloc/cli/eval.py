@@ -14,16 +14,21 @@ Presets: standard (default) draws --sessions walks over the condition ranges (50
 0.8-1.6 m/s, stickers 1.2-2.0 m apart, camera pitch 45-70 deg); field runs a fixed set of walks
 with rolling shutter, jittered and dropped frames, survey error, missing/unmapped stickers, a 90 s
 walk and a dim-sensor walk; all runs both (into OUT/standard and OUT/field) and prints both
-summaries.
+summaries. two-camera renders three fixed 20 s walks with a front-down + rear-down rig and compares
+one camera (the front one's frames alone) against both: time with a sticker in view, RMSE, NEES.
 
 examples:
   tagloc eval --sessions 6 --seconds 20 -o out/eval
-  tagloc eval --preset all --modes full -o out/eval"""
+  tagloc eval --preset all --modes full -o out/eval
+  tagloc eval --preset two-camera -o out/eval/two_camera"""
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
-        "--preset", choices=("standard", "field", "all"), default="standard", help="set of walks (default standard)"
+        "--preset",
+        choices=("standard", "field", "all", "two-camera"),
+        default="standard",
+        help="set of walks (default standard)",
     )
     p.add_argument("--sessions", type=int, default=6, help="number of simulated sessions (standard; default 6)")
     p.add_argument("--seconds", type=float, default=20.0, help="length of each session, s (standard; default 20)")

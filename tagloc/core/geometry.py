@@ -104,3 +104,14 @@ def interpolate_groundtruth(
         xy = np.column_stack([np.interp(t, gt_stamps, gt_T[:, 0, 3]), np.interp(t, gt_stamps, gt_T[:, 1, 3])])
     yaw = np.arctan2(R[:, 1, 0], R[:, 0, 0])
     return np.column_stack([xy, yaw]).reshape(-1, 3), inside
+
+
+def map_error_jacobian(body_xy: np.ndarray, sticker_xy: np.ndarray) -> np.ndarray:
+    """(3, 3) d fix (x, y, yaw) / d map error (dx, dy, dyaw) of the sticker the fix came from.
+
+    A fix is the sticker's map pose composed with the measured sticker-to-body transform, so a map
+    pose off by (dx, dy, da) moves the fix by (dx, dy) plus the turn ``da`` about the sticker's
+    centre: ``[[1, 0, -ry], [0, 1, rx], [0, 0, 1]]`` with ``r = body - sticker`` (m).
+    """
+    rx, ry = float(body_xy[0] - sticker_xy[0]), float(body_xy[1] - sticker_xy[1])
+    return np.array([[1.0, 0.0, -ry], [0.0, 1.0, rx], [0.0, 0.0, 1.0]])

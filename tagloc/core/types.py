@@ -81,6 +81,20 @@ class PoseFix:
 
 
 @dataclass(frozen=True)
+class SurveyPrior:
+    """What the map says about how well one sticker was surveyed: the sticker's map position and the
+    standard deviations of its survey error (metres per axis, radians of yaw).
+
+    A fix inherits its sticker's survey error unchanged in every frame that sees it, so the tracker
+    estimates that error as a state instead of treating it as fresh noise (see :mod:`tracker.ekf`).
+    """
+
+    sticker_xy: np.ndarray  # (2,) map position of the sticker's centre, m
+    sigma_m: float
+    sigma_yaw: float
+
+
+@dataclass(frozen=True)
 class Identity:
     """Which sticker a detection is, known by decoding or by identification among candidates.
 

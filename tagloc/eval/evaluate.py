@@ -110,6 +110,8 @@ FIELD_WALKS: tuple[Scenario, ...] = (
 )
 
 PRESETS = ("standard", "field")
+#: One camera against front + rear on the same walks (:mod:`tagloc.eval.multicam`); not part of "all".
+TWO_CAMERA = "two-camera"
 
 
 @dataclass
@@ -398,7 +400,12 @@ def _nees_summary(rows: list[dict]) -> dict:
 def run_presets(cfg: EvalConfig, preset: str) -> str:
     """Evaluate ``preset`` ("standard", "field" or "all": both, into ``cfg.out``/standard and
     ``cfg.out``/field) and return the text to print: each preset's table and notes, then (for all)
-    both presets' summaries."""
+    both presets' summaries. "two-camera" runs :func:`tagloc.eval.multicam.run_two_camera` into
+    ``cfg.out`` (its own table; ``modes``, ``sessions``, ``seconds`` and ``seed`` do not apply)."""
+    if preset == TWO_CAMERA:
+        from tagloc.eval.multicam import TWO_CAMERA_WALKS, run_two_camera
+
+        return run_two_camera(replace(TWO_CAMERA_WALKS, out=Path(cfg.out), progress=cfg.progress))
     presets = PRESETS if preset == "all" else (preset,)
     parts, summaries = [], []
     for p in presets:

@@ -29,13 +29,14 @@ from tagloc.core.types import (
     Identity,
     IdSource,
     Observation,
+    SurveyPrior,
 )
 from tagloc.io.session import CAMERA_FILE, MAP_FILE, RIG_FILE
-from tagloc.vision.decode import decode
+from tagloc.vision.decode import DecodeConfig, decode, verify_detection
 from tagloc.vision.detect import detect
 from tagloc.vision.image import as_gray
 from tagloc.vision.odometry import FloorOdometry, OdometryConfig
-from tagloc.vision.pose import PoseConfig, SurveyPasses, solve_pose
+from tagloc.vision.pose import PoseConfig, solve_pose
 from tracker.tracker import Tracker, TrackerConfig
 
 #: The stages whose time is the tracker's: its prediction, candidate choice, updates and output.
@@ -78,7 +79,8 @@ class LocaliserConfig:
         candidates: K, the most candidates handed to identification.
         tracker: the EKF's configuration.
         odometry: measure the body's motion between frames from the floor texture and feed it to
-            the tracker; ``odometry_config`` tunes it.
+            the tracker; ``odometry_config`` tunes it. ``odometry_cameras``: the rig cameras (indices)
+            that measure it, None: all (each camera's steps run from its own previous frame).
         sticker_tracking: carry a decoded sticker's identity to the next frame instead of decoding
             it again; ``tracking`` tunes it (see :func:`match_tracked`).
         clock_reset_frames: a frame whose timestamp is not after the previous frame's is refused
@@ -99,6 +101,7 @@ class LocaliserConfig:
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     odometry: bool = True
     odometry_config: OdometryConfig = field(default_factory=OdometryConfig)
+    odometry_cameras: tuple[int, ...] | None = None
     clock_reset_frames: int = 5
     sticker_tracking: bool = True
     tracking: TrackingConfig = field(default_factory=lambda: TrackingConfig())
@@ -121,12 +124,27 @@ class TrackingConfig:
         max_shape_change: with both centred, every corner must be within this share of a side of
             its previous place (the sticker's image turns ~3 deg and scales a few % per frame).
         max_gap_s: the previous frame must be this recent (no carrying over a dropped frame run).
+        reverify: a sticker due for re-decoding that still matches its track is first re-checked
+            by correlating its data modules with its tracked ID and rotation
+            (:func:`tagloc.vision.decode.verify_detection`, a quarter to a twentieth of a decode's
+            cost); only when that fails is it decoded (and a failed or different read ends the track).
+        reverify_min_score: the correlation that re-check needs. A decode's own final check accepts
+            from 0.5; any other ID or rotation scores <= 0.45 and the true one >= 0.9 up to 2 px of
+            blur, so 0.7 keeps a wide margin, and a sticker scoring less is simply decoded again.
+        lsq_retry_every: a detection where and what one of the previous frame was that neither
+            decoding (every stage) nor identification named (a blank framed square, a worn sticker
+            off the track) runs the costly least-squares stage (~10-20 ms) only every this many
+            frames in a row; the cheap stages (zxing, grid sampling, ~2 ms) and identification
+            still run every frame. 1 = always.
     """
 
     redecode_every: int = 4
     max_centre_shift: float = 1.0
     max_shape_change: float = 0.25
     max_gap_s: float = 0.1
+    reverify: bool = True
+    reverify_min_score: float = 0.7
+    lsq_retry_every: int = 4
 
 
 @dataclass(frozen=True)
@@ -140,6 +158,24 @@ class Tracked:
     camera: int
     t: float
     age: int
+
+
+@dataclass(frozen=True)
+class FailedRead:
+    """A detection that neither decoding nor identification named, as seen in one frame: ``outer``
+    (4, 2) distorted px; ``age``: frames since the least-squares stage last ran on it."""
+
+    outer: np.ndarray
+    camera: int
+    t: float
+    age: int
+
+
+def _same_place(det: Detection, outer: np.ndarray, config: TrackingConfig) -> bool:
+    """Whether ``det`` is where and what the quad ``outer`` (4, 2) of the previous frame was."""
+    side = min(_shortest_side(det.outer), _shortest_side(outer))
+    _, moved, change = _shape_match(det.outer, outer)
+    return moved <= config.max_centre_shift * side and change <= config.max_shape_change * side
 
 
 def _shortest_side(quad: np.ndarray) -> float:
@@ -173,11 +209,31 @@ def match_tracked(
     ``candidates(detection)`` (gated map stickers, most likely first), allows that sticker and no
     other here. The rotation follows the canonical corner through the corners' cyclic shift.
     """
-    live = [
-        k
-        for k, tr in enumerate(tracked)
-        if tr.camera == camera and 0.0 < t - tr.t <= config.max_gap_s and tr.age + 1 < config.redecode_every
-    ]
+    matches = match_tracks(detections, tracked, camera, t, config, candidates)
+    return [m.identity if m is not None and not m.due else None for m in matches]
+
+
+@dataclass(frozen=True)
+class TrackMatch:
+    """A detection matched to a tracked sticker: its identity (rotation carried over), and whether
+    that sticker is due for re-decoding (``TrackingConfig.redecode_every``)."""
+
+    identity: Identity
+    due: bool
+
+
+def match_tracks(
+    detections: list[Detection],
+    tracked: list[Tracked],
+    camera: int,
+    t: float,
+    config: TrackingConfig,
+    candidates: Callable[[Detection], list[int]],
+) -> list[TrackMatch | None]:
+    """:func:`match_tracked`, with the stickers due for re-decoding matched too (``due`` True), so
+    that they can be re-checked against their tracked identity instead of decoded from scratch.
+    Every track of the previous frame takes part in the one-to-one pairing, due or not."""
+    live = [k for k, tr in enumerate(tracked) if tr.camera == camera and 0.0 < t - tr.t <= config.max_gap_s]
     pairs: list[tuple[int, int, int]] = []  # (detection, tracked, shift)
     for i, det in enumerate(detections):
         for k in live:
@@ -185,13 +241,14 @@ def match_tracked(
             shift, moved, change = _shape_match(det.outer, tracked[k].outer)
             if moved <= config.max_centre_shift * side and change <= config.max_shape_change * side:
                 pairs.append((i, k, shift))
-    out: list[Identity | None] = [None] * len(detections)
+    out: list[TrackMatch | None] = [None] * len(detections)
     for i, k, shift in pairs:
         if sum(p[0] == i for p in pairs) != 1 or sum(p[1] == k for p in pairs) != 1:
             continue
         ident = tracked[k].identity
         if candidates(detections[i]) == [ident.sticker_id]:
-            out[i] = Identity(ident.sticker_id, (ident.rotation + shift) % 4, ident.source)
+            carried = Identity(ident.sticker_id, (ident.rotation + shift) % 4, ident.source)
+            out[i] = TrackMatch(carried, tracked[k].age + 1 >= config.redecode_every)
     return out
 
 
@@ -219,10 +276,11 @@ def read_sticker(
     smap: StickerMap,
     backend: str,
     candidates: list[int] | None = None,
+    config: DecodeConfig | None = None,
 ) -> Read:
     """Decode one detection against the map (``candidates``: the tracker's, which may confirm a lone
     libdmtx read; see :func:`tagloc.vision.decode.decode`)."""
-    res = decode(gray, detection, camera, backend=backend, candidates=candidates)
+    res = decode(gray, detection, camera, backend=backend, candidates=candidates, config=config)
     if res.sticker_id is None:
         return Read(rejected=res.rejected)
     if res.sticker_id not in smap:
@@ -320,15 +378,16 @@ class Localiser:
         self._refs = refs
         self._map_path = map_path
         self._odometry: dict[int, FloorOdometry | None] = {}  # per rig camera; None: camera sees too little floor
-        self._passes = SurveyPasses()  # repeated fixes of a sticker share its survey error
         self._step = None  # this frame's odometry step, for the rolling-shutter correction
         self.counts = new_counts()
-        self.counts["tracked"] = 0
+        self.counts["tracked"] = 0  # detections whose identity came from sticker tracking, not a decode
+        self.counts["reverified"] = 0  # of those, re-checked by module correlation when due a re-decode
+        self.counts["lsq_skipped"] = 0  # decodes without the least-squares stage (failed there just before)
+        self._failed: list[FailedRead] = []  # detections of the previous frame nothing named
         self._tracked: list[Tracked] = []  # decoded stickers of the previous frame whose fixes were accepted
         self.counts.update(refused_timestamps=0, clock_resets=0, wrong_size_frames=0)
         self._last_t: float | None = None  # timestamp of the last frame accepted
         self._refused_run = 0
-        self._passes = SurveyPasses()  # repeated fixes of a sticker share its survey error
         self._step = None  # this frame's odometry step, for the rolling-shutter correction
 
     @property
@@ -355,7 +414,7 @@ class Localiser:
                 out = self.tracker.output()
             return FrameResult(frame.index, t, [], out, timer.finish(), refused, frame)
         with timer("predict"):
-            self.tracker.predict(t)
+            self.tracker.predict(t, frame.camera)
         if frame.image is None:
             self.counts["skipped"] += 1
             with timer("output"):
@@ -364,15 +423,16 @@ class Localiser:
         gray = as_gray(frame.image)
         rig_cam = self.rig[frame.camera]
         if self.config.odometry:
-            # Before the fixes: the step covers the interval the tracker just predicted over.
+            # This camera's step since its previous frame: the tracker fuses it against its clone of
+            # the pose there (tracker.clones), whatever other cameras' frames came in between.
             with timer("odometry"):
                 self._odometry_step(gray, frame.camera, t)
         with timer("detect"):
             detections = detect(gray, rig_cam.camera, method=self.config.detector)
         self.counts["detections"] += len(detections)
 
-        carried = (
-            match_tracked(
+        matches = (
+            match_tracks(
                 detections,
                 self._tracked,
                 frame.camera,
@@ -383,27 +443,35 @@ class Localiser:
             if self.config.sticker_tracking
             else [None] * len(detections)
         )
-        reads, fixes = [], []
-        for det, identity in zip(detections, carried):
-            if identity is not None:
-                read = Read(identity)
+        reads, fixes, carried = [], [], []
+        lsq_ages: list[int | None] = []  # per decoded detection: its least-squares age if it stays unknown
+        for det, m in zip(detections, matches):
+            carried.append(m.identity if m is not None and not m.due else None)
+            if m is not None and (not m.due or self._reverify(gray, det, m.identity, rig_cam, timer)):
+                read = Read(m.identity)
                 self.counts["tracked"] += 1
+                lsq_ages.append(None)
             else:
-                read = self._decode(gray, det, rig_cam, timer)
+                read, age = self._decode_gated(gray, det, rig_cam, frame.camera, t, timer)
+                lsq_ages.append(age)
             reads.append(read)
             fixes.append(self._fix(det, read.identity, rig_cam, t, timer) if read.identity is not None else None)
 
         observations = []
-        for det, read, fix in zip(detections, reads, fixes):
+        failed: list[FailedRead] = []  # detections neither decoded nor identified, for the next frame
+        for det, read, fix, age in zip(detections, reads, fixes, lsq_ages):
             identity = read.identity
             if identity is None and read.unmapped_id is None and self.config.identify != "off":
                 identity = self._identify(gray, det, rig_cam, timer)
                 if identity is not None:
                     fix = self._fix(det, identity, rig_cam, t, timer)
+            if identity is None and read.unmapped_id is None and age is not None:
+                failed.append(FailedRead(det.outer.copy(), frame.camera, t, age))
             observations.append(
                 Observation(det, frame.camera, identity, fix, read.rejected, read.unmapped_id, read.unmapped_rotation)
             )
         self._track(observations, carried, frame.camera, t)
+        self._failed = failed
 
         with timer("output"):
             out = self.tracker.output(t)
@@ -444,6 +512,7 @@ class Localiser:
         self.tracker = Tracker(self.config.tracker)
         self._odometry.clear()
         self._tracked = []
+        self._failed = []
 
     def _check_size(self, frame: Frame) -> str | None:
         """Why the frame's image cannot be this camera's, or None."""
@@ -460,7 +529,10 @@ class Localiser:
 
     def floor_odometry(self, camera: int) -> FloorOdometry | None:
         """The floor odometry of rig camera ``camera`` (made on first use), or None if that camera
-        sees too little floor for it."""
+        sees too little floor for it or is not one of ``odometry_cameras``."""
+        chosen = self.config.odometry_cameras
+        if camera not in self._odometry and chosen is not None and camera not in chosen:
+            self._odometry[camera] = None
         if camera not in self._odometry:
             try:
                 self._odometry[camera] = FloorOdometry(self.rig[camera], self.config.odometry_config)
@@ -476,7 +548,7 @@ class Localiser:
         self._step = step
         if step is not None:
             self.counts["odometry_steps"] += 1
-            self.tracker.update_odometry(step)
+            self.tracker.update_odometry(step, camera)
 
     def _body_twist(self, rig_cam: RigCamera, t: float) -> np.ndarray | None:
         """The body's motion (vx, vy, yaw rate; body frame) for the rolling-shutter correction, or None."""
@@ -488,15 +560,75 @@ class Localiser:
             return np.asarray(s.delta, float) / (s.t1 - s.t0)
         return self.tracker.velocity()
 
+    def survey_prior(self, sticker_id: int) -> SurveyPrior:
+        """The sticker's map position and survey sigmas: the map's ``sigma_m``/``sigma_deg`` where
+        stated, else the pose config's defaults (``map_sigma_m``, ``map_sigma_yaw``)."""
+        row = self.map.row(sticker_id)
+        sig_m, sig_yaw = float(self.map.sigma_xy[row]), float(self.map.sigma_yaw[row])
+        pose = self.config.pose
+        return SurveyPrior(
+            np.asarray(self.map.T_world_sticker(sticker_id)[:2, 3], float),
+            sig_m if math.isfinite(sig_m) else pose.map_sigma_m,
+            sig_yaw if math.isfinite(sig_yaw) else pose.map_sigma_yaw,
+        )
+
     def _candidates(self, det: Detection, rig_cam: RigCamera, timer: StageTimer) -> list[int]:
         with timer("candidates"):
             return self.tracker.candidates(self.map, rig_cam, det.outer.mean(axis=0), k=self.config.candidates)
 
-    def _decode(self, gray: np.ndarray, det: Detection, rig_cam: RigCamera, timer: StageTimer) -> Read:
+    def _reverify(
+        self, gray: np.ndarray, det: Detection, identity: Identity, rig_cam: RigCamera, timer: StageTimer
+    ) -> bool:
+        """Whether a tracked sticker due for re-decoding still shows its tracked ID and rotation
+        (``TrackingConfig.reverify``); timed as decoding, which it stands in for."""
+        cfg = self.config.tracking
+        if not cfg.reverify:
+            return False
+        with timer("decode"):
+            score = verify_detection(gray, det, rig_cam.camera, identity.sticker_id, identity.rotation)
+        ok = score >= cfg.reverify_min_score
+        self.counts["reverified"] += ok
+        return ok
+
+    def _decode_gated(
+        self,
+        gray: np.ndarray,
+        det: Detection,
+        rig_cam: RigCamera,
+        camera: int,
+        t: float,
+        timer: StageTimer,
+    ) -> tuple[Read, int]:
+        """Decode, leaving out the least-squares stage on a detection that neither decoding nor
+        identification named in the previous frame until its retry is due
+        (``TrackingConfig.lsq_retry_every``). Returns the read and the frames since the
+        least-squares stage last ran on this detection (0: now)."""
+        cfg = self.config.tracking
+        prev = next(
+            (
+                f
+                for f in self._failed
+                if f.camera == camera and 0.0 < t - f.t <= cfg.max_gap_s and _same_place(det, f.outer, cfg)
+            ),
+            None,
+        )
+        skip_lsq = self.config.sticker_tracking and prev is not None and prev.age + 1 < cfg.lsq_retry_every
+        self.counts["lsq_skipped"] += skip_lsq
+        read = self._decode(gray, det, rig_cam, timer, DecodeConfig(lsq=False) if skip_lsq else None)
+        return read, prev.age + 1 if skip_lsq else 0
+
+    def _decode(
+        self,
+        gray: np.ndarray,
+        det: Detection,
+        rig_cam: RigCamera,
+        timer: StageTimer,
+        config: DecodeConfig | None = None,
+    ) -> Read:
         # Only libdmtx can need the tracker's word: zxing reads stand or fall on their own.
         cands = self._candidates(det, rig_cam, timer) if self.config.decoder != "zxing" else None
         with timer("decode"):
-            read = read_sticker(gray, det, rig_cam.camera, self.map, self.config.decoder, cands)
+            read = read_sticker(gray, det, rig_cam.camera, self.map, self.config.decoder, cands, config)
         count_read(self.counts, read)
         return read
 
@@ -515,20 +647,21 @@ class Localiser:
 
     def _fix(self, det: Detection, identity: Identity, rig_cam: RigCamera, t: float, timer: StageTimer) -> Fix:
         with timer("pose"):
-            row = self.map.row(identity.sticker_id)
-            survey = (float(self.map.sigma_xy[row]), float(self.map.sigma_yaw[row]))  # NaN: the default
+            T_world_sticker = self.map.T_world_sticker(identity.sticker_id)
+            # The fix itself is solved against the map as if exact: the tracker carries the sticker's
+            # survey error as a state, shared by all of that sticker's fixes.
             sol = solve_pose(
                 det,
                 identity.rotation,
-                self.map.T_world_sticker(identity.sticker_id),
+                T_world_sticker,
                 rig_cam,
                 config=self.config.pose,
-                map_sigma=survey,
-                map_scale=self._passes.scale(identity.sticker_id, t),
                 body_twist=self._body_twist(rig_cam, t),
             )
         if not sol.poses:
             return Fix([], sol.ambiguous)
         with timer("update"):
-            res = self.tracker.update(sol.poses, identity.sticker_id, identity.source, t)
+            res = self.tracker.update(
+                sol.poses, identity.sticker_id, identity.source, t, self.survey_prior(identity.sticker_id)
+            )
         return Fix(sol.poses, sol.ambiguous, res.accepted, res.reason)

@@ -173,7 +173,7 @@ def distort_ideal(camera: Camera, pixels: np.ndarray) -> np.ndarray:
     if not np.any(camera.dist):
         return pts.copy()
     norm = (pts - camera.K[:2, 2]) / [camera.K[0, 0], camera.K[1, 1]]
-    return camera.project(np.c_[norm, np.ones(len(norm))])
+    return camera.project(np.concatenate([norm, np.ones((len(norm), 1))], axis=1))
 
 
 def _median_last(a: np.ndarray) -> np.ndarray:
@@ -215,9 +215,11 @@ def _fit_sides(contour: np.ndarray, quad: np.ndarray) -> np.ndarray:
     length = np.sqrt(np.einsum("ij,ij->i", d, d))
     if length.min() < 4:
         return quad
-    rel = contour[None, :, :] - quad[:, None, :]  # (4, N, 2)
-    u = np.einsum("inj,ij->in", rel, d / length[:, None] ** 2)  # position along each side, 0-1
-    off = np.abs(np.einsum("inj,ij->in", rel, np.c_[-d[:, 1], d[:, 0]] / length[:, None]))
+    # x and y apart, (4, N) each: numpy is slow over a trailing axis of 2.
+    rx, ry = contour[None, :, 0] - quad[:, 0:1], contour[None, :, 1] - quad[:, 1:2]
+    along, normal = d / length[:, None] ** 2, d / length[:, None]
+    u = rx * along[:, 0:1] + ry * along[:, 1:2]  # position along each side, 0-1
+    off = np.abs(ry * normal[:, 0:1] - rx * normal[:, 1:2])
     near = (u > 0.15) & (u < 0.85) & (off < np.maximum(1.5, 0.06 * length)[:, None])
     if near.sum(axis=1).min() < 4:
         return quad
@@ -304,7 +306,9 @@ def _outline_quads(
         if quad is None:
             continue
         pts = local.astype(float)
-        fitted = _fit_sides(pts, _fit_sides(pts, quad))  # the second fit gathers what a skewed first missed
+        fitted = _fit_sides(pts, quad)
+        if fitted is not quad:  # the second fit gathers what a skewed first missed (the same input: the same)
+            fitted = _fit_sides(pts, fitted)
         hull_area = cv2.contourArea(hull)
         # Only a clearly cut corner is replaced (refinement, not this fit, sets the final accuracy; a
         # sub-pixel change only reshuffles its profiles), and not when the ring's inner outline
@@ -363,23 +367,24 @@ def huber_lines(points: np.ndarray, mask: np.ndarray, iterations: int = _HUBER_I
     lines (L, 3) with unit normals; NaN rows for sets of fewer than two points.
     """
     w = mask.astype(float)
-    line = np.full((len(points), 3), np.nan)
     x, y = points[..., 0], points[..., 1]
-    for _ in range(iterations):
-        sw = w.sum(axis=1)
-        with np.errstate(invalid="ignore", divide="ignore"):
+    # The few dozen points per set make numpy's per-call overhead the cost: the loop keeps to the
+    # fewest array operations (the residual from the centred coordinates, the weight as a minimum).
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for _ in range(iterations):
+            sw = w.sum(axis=1)
             mx, my = (w * x).sum(axis=1) / sw, (w * y).sum(axis=1) / sw
-        dx, dy = x - mx[:, None], y - my[:, None]
-        sxx, syy, sxy = (w * dx * dx).sum(axis=1), (w * dy * dy).sum(axis=1), (w * dx * dy).sum(axis=1)
-        theta = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # direction of the principal axis
-        nx, ny = -np.sin(theta), np.cos(theta)
-        line = np.stack([nx, ny, -(nx * mx + ny * my)], axis=1)
-        r = np.abs(x * nx[:, None] + y * ny[:, None] + line[:, 2:3])
-        w_new = np.where(mask, np.where(r > HUBER_C, HUBER_C / np.maximum(r, 1e-12), 1.0), 0.0)
-        if float(np.abs(w_new - w).max()) < 1e-3:
-            break
-        w = w_new
-    return line
+            dx, dy = x - mx[:, None], y - my[:, None]
+            wdx = w * dx
+            sxx, syy, sxy = (wdx * dx).sum(axis=1), (w * dy * dy).sum(axis=1), (wdx * dy).sum(axis=1)
+            theta = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # direction of the principal axis
+            nx, ny = -np.sin(theta), np.cos(theta)
+            r = np.abs(dx * nx[:, None] + dy * ny[:, None])
+            w_new = np.where(mask, np.minimum(1.0, HUBER_C / r), 0.0)  # Huber: 1 within C, C / r beyond
+            if float(np.abs(w_new - w).max()) < 1e-3:
+                break
+            w = w_new
+    return np.stack([nx, ny, -(nx * mx + ny * my)], axis=1)
 
 
 def _line_residuals(points: np.ndarray, lines: np.ndarray) -> np.ndarray:
@@ -504,6 +509,19 @@ def _lineariser(gamma: float) -> _Linearise | None:
     return None if gamma == 1.0 else _Linearise(gamma)
 
 
+@functools.lru_cache(maxsize=32)
+def _linspace(start: float, stop: float, num: int) -> np.ndarray:
+    """np.linspace, made once per distinct call (read-only): its set-up costs more than the few values."""
+    out = np.linspace(start, stop, num)
+    out.flags.writeable = False
+    return out
+
+
+def _nan_to(a: np.ndarray, value: float) -> np.ndarray:
+    """``a`` with NaNs replaced by ``value`` (np.nan_to_num's infinity handling is not needed here)."""
+    return np.where(np.isnan(a), value, a)
+
+
 def _sample_profiles(
     gray: np.ndarray, quad: np.ndarray, cfg: DetectConfig, search_px: float, lin: _Linearise | None
 ) -> _Profiles | None:
@@ -514,16 +532,17 @@ def _sample_profiles(
     if side_len.min() < 4:
         return None
     along = side_vec / side_len[:, None]
-    inward = np.c_[-along[:, 1], along[:, 0]]  # clockwise on screen with y down: left of travel is inside
+    inward = np.stack([-along[:, 1], along[:, 0]], axis=1)  # clockwise on screen, y down: left of travel is in
     margin = (1.0 - cfg.profile_span) / 2
-    t = np.linspace(margin, 1.0 - margin, n)
+    t = _linspace(margin, 1.0 - margin, n)
     base = quad[:, None, :] + t[None, :, None] * side_vec[:, None, :]  # (4, n, 2)
     # Frame width along each profile, from the geometry implied by the current quad.
-    inner_guess = _implied_inner(quad)
-    ones = np.ones((4, 1))
-    inner_line = _cross(np.c_[inner_guess, ones], np.c_[inner_guess[_NEXT], ones])
-    num = -(np.einsum("inj,ij->in", base, inner_line[:, :2]) + inner_line[:, 2:3])
-    den = np.einsum("ij,ij->i", inward, inner_line[:, :2])[:, None]
+    a = _implied_inner(quad)
+    b = a[_NEXT]
+    # The inner side through a and b: (a, 1) x (b, 1) = normal (ay - by, bx - ax), offset ax by - ay bx.
+    normal = np.stack([a[:, 1] - b[:, 1], b[:, 0] - a[:, 0]], axis=1)
+    num = -(np.einsum("inj,ij->in", base, normal) + (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])[:, None])
+    den = np.einsum("ij,ij->i", inward, normal)[:, None]
     frame_w = np.clip(num / den, 1.0, None)  # (4, n) distance to the inner edge along ``inward``
     w_max = float(frame_w.max())
     if w_max > cfg.max_frame_fraction * float(side_len.max()):
@@ -531,18 +550,28 @@ def _sample_profiles(
     quiet = w_max * _QUIET_RATIO / _FRAME_RATIO
     step = cfg.sample_step_px
     s = np.arange(-(search_px + cfg.blur_allow_px / 2 + 2), w_max + quiet + search_px + step, step)
-    strip = np.linspace(-cfg.strip_half_px, cfg.strip_half_px, 3)
-    # Sample points base + strip * along + s * inward, (4, n, 3, S, 2), summed in float32 (remap's
-    # own sub-pixel resolution is 1/32 px) from the small per-side offset grid (4, 3, S, 2).
-    offs = (
-        strip[None, :, None, None] * along[:, None, None, :] + s[None, None, :, None] * inward[:, None, None, :]
-    ).astype(np.float32)
-    maps = np.add(base.astype(np.float32)[:, :, None, None, :], offs[:, None]).reshape(4 * n * 3, len(s), 2)
-    vals = cv2.remap(gray, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
-    if lin is not None:
-        # Linearise after interpolation of 8-bit values (the interpolation is of the recorded codes).
-        vals = lin(vals)
-    prof = vals.reshape(4, n, 3, len(s)).mean(axis=2)  # (4, n, S)
+    strip = _linspace(-cfg.strip_half_px, cfg.strip_half_px, 3)
+    # Sample points base + strip * along + s * inward, (4, n, 3, S) per coordinate, summed in float32
+    # (remap's own sub-pixel resolution is 1/32 px) from the small per-side offset grid (4, 3, S).
+    # x and y apart: numpy broadcasts over a trailing axis of 2 an order of magnitude slower.
+    base32 = base.astype(np.float32)
+    maps = []
+    for c in (0, 1):
+        offs = (strip[None, :, None] * along[:, None, None, c] + s[None, None, :] * inward[:, None, None, c]).astype(
+            np.float32
+        )
+        maps.append(np.add(base32[:, :, None, None, c], offs[:, None]).reshape(4 * n * 3, len(s)))
+    vals = cv2.remap(gray, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    if lin is None:
+        vals = vals.astype(np.float32)
+    elif vals.dtype == np.uint8:
+        # Linearise after interpolation of 8-bit values (the interpolation is of the recorded codes,
+        # and remap rounds it to a code): a table lookup.
+        vals = lin.lut[vals]
+    else:
+        vals = lin(vals.astype(np.float32))
+    strips = vals.reshape(4, n, 3, len(s))
+    prof = (strips[:, :, 0] + strips[:, :, 1] + strips[:, :, 2]) / np.float32(3.0)  # (4, n, S): the strips' mean
     return _Profiles(base, inward, s, prof, frame_w, float(_median_last(frame_w.ravel())), quiet)
 
 
@@ -600,18 +629,25 @@ def _min_points(cfg: DetectConfig) -> int:
 def _inner_offsets(p: _Profiles, outer_s: np.ndarray, ink: float, paper: float) -> np.ndarray:
     """Inner edge offsets (4, n) along ``inward``: the rise from ink to paper, beyond the outer edge."""
     n = p.frame_w.shape[1]
-    outer0 = np.nan_to_num(outer_s)
+    outer0 = _nan_to(outer_s, 0.0)
     inner_s = _crossings(
         p.prof.reshape(4 * n, len(p.s)), np.full(4 * n, (paper + ink) / 2), p.s, (p.frame_w + outer0).ravel(), True
     ).reshape(4, n)
-    inner_s[~(inner_s > np.nan_to_num(outer_s, nan=-1e9) + 0.5)] = np.nan
+    inner_s[~(inner_s > _nan_to(outer_s, -1e9) + 0.5)] = np.nan
     return inner_s
 
 
 def _refine(
-    gray: np.ndarray, camera: Camera, quad: np.ndarray, cfg: DetectConfig, lin: _Linearise | None, search_px: float
+    gray: np.ndarray,
+    camera: Camera,
+    quad: np.ndarray,
+    cfg: DetectConfig,
+    lin: _Linearise | None,
+    search_px: float,
+    inner: bool = True,
 ) -> _Refined | None:
-    """One pass of edge-profile refinement around the distorted quad (4, 2)."""
+    """One pass of edge-profile refinement around the distorted quad (4, 2); ``inner`` False skips
+    the inner corners (the first pass only re-aims the second, which uses its outer square alone)."""
     p = _sample_profiles(gray, quad, cfg, search_px, lin)
     if p is None:
         return None
@@ -619,12 +655,12 @@ def _refine(
     if edges is None:
         return None
     outer_s, ink, paper, floor_med = edges
-    inner_s = _inner_offsets(p, outer_s, ink, paper)
+    inner_s = _inner_offsets(p, outer_s, ink, paper) if inner else None
     n = cfg.profiles_per_side
     # Lines are straight only without distortion: undistort every edge point (one call), then fit.
-    offsets = np.nan_to_num(np.stack([outer_s, inner_s]))  # (2, 4, n)
+    offsets = _nan_to(np.stack([outer_s] if inner_s is None else [outer_s, inner_s]), 0.0)  # (1 or 2, 4, n)
     pts = p.base[None] + offsets[..., None] * p.inward[None, :, None, :]
-    edge = camera.undistort_pixels(pts.reshape(-1, 2)).reshape(2, 4, n, 2)
+    edge = camera.undistort_pixels(pts.reshape(-1, 2)).reshape(len(offsets), 4, n, 2)
     min_points = _min_points(cfg)
     fit = _robust_lines(edge[0], np.isfinite(outer_s), min_points, cfg.outlier_sigmas, cfg.outlier_floor_px)
     if fit is None:
@@ -640,7 +676,7 @@ def _refine(
     score = valid * min(1.0, (floor_med - ink) / cfg.full_score_contrast) * math.exp(-rms)
 
     inner_ideal = None
-    ok = np.isfinite(inner_s)
+    ok = np.isfinite(inner_s) if inner_s is not None else np.zeros((4, n), bool)
     if ok.sum(axis=1).min() >= min_points:
         inner_ideal = _intersect(huber_lines(edge[1], ok))
         dev = np.linalg.norm(inner_ideal - _implied_inner(outer_ideal), axis=1)
@@ -688,7 +724,9 @@ def detect_stickers(gray: np.ndarray, camera: Camera, config: DetectConfig | Non
         area = _polygon_area(quad)
         if any(_inside(quad.mean(axis=0), d.outer) and area < 0.5 * _polygon_area(d.outer) for d in out):
             continue  # a symbol inside an accepted sticker
-        first = _refine(img, camera, quad, coarse_cfg, lin, search_px=cfg.coarse_search_px * cfg.downscale + 1.0)
+        first = _refine(
+            img, camera, quad, coarse_cfg, lin, search_px=cfg.coarse_search_px * cfg.downscale + 1.0, inner=False
+        )
         if first is None:
             continue
         ref = _refine(img, camera, first.outer, cfg, lin, search_px=cfg.refine_search_px)

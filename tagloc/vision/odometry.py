@@ -33,11 +33,11 @@ and 100 deg/s) sees the floor through the tilted camera, so the nominal patch is
 distorted square displaced sideways: the best rigid match of two such patches turns less than the
 body (6.3 % of every turn on the standard eval's s02, 10 degrees summed over its 20 s; 0.4 degrees
 per metre walked per degree of roll), and the turn's lever to the displaced patch lengthens or
-shortens the step. With ``lean_correction`` the odometry follows the lean from its own speed and
-turn rate and computes the step from where the matched patch points really are on the floor
-(:meth:`FloorOdometry.level_motion`; off by default for now, see :class:`OdometryConfig`). With
-the true per-frame tilt instead of the predicted lean, the step errors on s02 would fall from
-10.4 / 6.1 mm (forward / sideways RMS) to 3.8 / 1.8 mm and the turn bias to -0.7 %: the remaining step error is mostly the tilt's change from frame to
+shortens the step. The odometry therefore follows the lean from its own speed and turn rate (see
+``lean_correction``) and computes the step from where the matched patch points really are on the
+floor (:meth:`FloorOdometry.level_motion`). With the true per-frame tilt instead of the predicted
+lean, the step errors on s02 would fall from 10.4 / 6.1 mm (forward / sideways RMS) to 3.8 / 1.8 mm
+and the turn bias to -0.7 %: the remaining step error is mostly the tilt's change from frame to
 frame (gait nod, lean building up and easing), which a planar match cannot tell from motion.
 
 What it measures is the camera's motion carried through the nominal rig: the vest's. The vest
@@ -69,12 +69,10 @@ _NEAR_EDGE_STEPS = 60  # near-edge positions tried across the footprint's depth
 _BISECTIONS = 20  # bisection steps of the side: max_side_m / 2**20, about a micrometre
 _SIDE_TOL_M = 1e-4  # a farther square must be larger by this to win
 _ZNCC_INSET = 6  # the turn guesses are compared on the patch less 1/6 at each border (warped in)
-_SAME_TURN_RAD = 1e-9  # a grid guess this close to the one already tried is skipped
+_SAME_TURN_RAD = 1e-9
 _G = 9.81  # gravity, m/s^2
 _TILT_GRID = 5  # cells per patch side of the lean's weighted fit (a smooth map; each cell 16 px)
-# Fixed-point corrections of the level motion: the map from a motion to ECC's answer is close to
-# the identity (a few per cent off), so each correction shrinks the mismatch by that factor.
-_LEVEL_ITERATIONS = 2
+_LEVEL_ITERATIONS = 2  # corrections of the level motion (the second changes it by under 1e-4 of a step)  # a grid guess this close to the one already tried is skipped
 
 
 @dataclass
@@ -142,41 +140,62 @@ class OdometryConfig:
     :meth:`FloorOdometry.covariance`): over a gap, the heading error then swings the estimated path
     about the patch ahead, and its sideways drift stays small until the walker passes that patch.
 
+    Tilt (``tilt_correction``): the bird's-eye patch is made through the rig's nominal pose, so a
+    change of the vest's pitch or roll between two frames (the gait's nod and sway, the lean into a
+    turn or with braking) shifts and keystones the patch as if the floor had moved: 1.9 m per radian
+    of pitch and 1.3 m per radian of roll at the patch centre, ~1 cm per frame of walking (measured
+    against the true camera poses of simulated walks). Seen through a homography instead of a
+    rigid motion, the two differ: a shift is uniform, a tilt stretches the near and far edges of
+    the patch differently. So after the rigid alignment, ECC is run again with
+    ``MOTION_HOMOGRAPHY`` (``homography_iterations``, ``homography_eps``), and the step is fitted
+    (:func:`scipy.optimize.least_squares`) as the rigid motion of the floor seen by a camera whose
+    pitch and roll changed by (rx, ry) about its centre, on a ``tilt_grid`` x ``tilt_grid`` grid of
+    patch points (each fitted to ``homography_point_sigma_m``, the homography's precision on the
+    floor: ~0.1 of a 12.5 mm patch pixel, at a few points' spread). The tilt change has a prior of
+    ``tilt_prior_sigma`` per frame: the gait's ~0.6 deg nod at 1.9 Hz changes by at most 0.24 deg in
+    1/30 s and its ~0.7 deg sway at 0.95 Hz by 0.14 deg; a 10 deg lean into a turn takes ~0.3 s or
+    more to build up (1 deg per frame at the most, rare, and followed by ``lean_correction``). So 0.3
+    deg keeps the fit in the physical range where the patch's perspective alone cannot pin it down
+    (with 1 deg, roll traded against sideways motion on simulated walks: 11 mm per step sideways on
+    one). ``tilt_fit_roll``: fit the roll too, not only the pitch (on four simulated walks it took
+    the sideways error summed over 0.5 s from 5 to 2.4-3.5 cm on three and raised it from 2.4 to
+    4.4 cm on the fourth, a slow walk under a steep camera).
+    The fitted tilt change is used to correct the rigid match's step (the rigid map that the tilt
+    change alone makes the nominal patch see is taken out of it), not to replace the step by the
+    fit's own rigid part (``tilt_refit_rigid``): on a simulated 8 s stop in front of a sticker the
+    homography's rigid part drifted by 0.04 deg and 2-3 mm per frame the same way, the rigid
+    match's did not. Below ``tilt_min_speed`` of the patch (0.15 m/s: a standing body sways by a
+    few tenths of a degree over seconds, below the fit's noise, which there became a forward creep
+    of 1.4 mm per frame) the rigid step stands; above it, the pitch of starting and braking
+    (atan(a / g), 5-8 deg over a second) is caught from the first steps (on a simulated start from
+    a stop: 7 cm of forward error over 1 s instead of 11). ``tilt_pitch_when_slow`` fits the pitch
+    below that speed too (off: see the creep above).
+    Only the change between the two frames matters to first order (a constant tilt off the nominal
+    changes the step's scale by its cosine), so no absolute tilt is needed. On simulated walks
+    this halves to quarters the error of steps summed over 0.5-1 s (the time between sticker
+    passes) in the forward and sideways directions; per single step it is no better, because the
+    nod it removes telescopes anyway over consecutive steps.
+
     ``rolling_shutter``: for a rolling-shutter camera (``RigCamera.readout_s`` > 0), sample each
     frame's patch where each floor point was at its row's time (see the module docstring).
 
-    ``lean_correction`` (off by default, see below): follow the torso's lean into turns, roll
-    atan(v omega / g) from the odometry's own speed and turn rate, through the inverted pendulum's
-    lag sqrt(h_com / g) (``lean_com_height_m``: an adult's centre of mass, about 0.55 of 1.75 m
-    stature), and match the patches as the tilted camera sees them (see :meth:`FloorOdometry.level_motion`). Below
+    ``lean_correction``: follow the torso's lean into turns, roll atan(v omega / g) from the
+    odometry's own speed and turn rate, through the inverted pendulum's lag sqrt(h_com / g)
+    (``lean_com_height_m``: an adult's centre of mass, about 0.55 of 1.75 m stature), and match the
+    patches as the tilted camera sees them (see :meth:`FloorOdometry.level_motion`). Below
     ``lean_min`` (0.25 degrees: a false turn of 0.004 degrees per 4.5 cm step, a twentieth of the
-    step noise) the nominal geometry is kept, which keeps the cost (s00: 1.38 ms CPU per frame,
-    1.35 without the correction, 1.83 with the fit on every frame).
-    It removes the turn bias (s02: -6.3 % -> -1.3 % of every turn, 10 -> 1 degree summed over 20 s)
-    and most of the forward drift in turns (f03-long: +2.3 m -> +0.3 m over 70 m), and the tracker's
-    heading improves on 8 of the 11 eval walks (one equal); but with today's tracker the position
-    does not follow (standard / field preset RMSE 11.2 / 10.6 cm with it, 10.4 / 10.3 cm without):
-    the largest step error left is the tilt's change from frame to frame, which the tracker's tilt
-    offset was sized for with the uncorrected steps. Off until the tracker is re-fitted to it (the
-    README's floor odometry section has the tables).
+    step noise) the nominal geometry is kept, which saves the fit's 0.45 ms on straight walking.
 
-    Calibration (tagloc's simulator, the six 20 s walks of ``tagloc eval --preset standard``, with
-    the torso's lean and gait: 56-265 lux, 0.9-1.5 m/s, pitch 46-66 deg), on windows of 15, 30, 45
-    and 60 frames (the 0.5-2 s gaps between sticker passes that odometry bridges), so that the
-    variance of the summed step errors (carried to the patch centre, where they are independent)
-    matches the sum of the stated variances: the standing values on windows slower than 0.3 m/s on
-    average (111 windows), the per-metre values on windows faster than 0.9 m/s (208), with the
-    standing part subtracted (``benchmarks/odometry_accuracy.py SESSIONS --calibrate --reference
-    apparent``). The reference is the motion the nominal patch appears to make given the true
-    camera: the vest's, plus the apparent motion of the torso's tilt changing (gait nod, lean
-    building up), which the tracker states as its tilt offset, not here. (Against the vest's motion
-    alone the same fit gives 16 mm standing forward and 0.18 m/m sideways: that is the tilt
-    offset's share counted twice.) Fitted without ``lean_correction`` (with it: 0.21 / 0.022 m/m,
-    2.76 deg/m walking, the standing values the same). Held out, the five walks of ``--preset
-    field`` fit 3.3 / 1.6 mm and 0.13 deg standing, 0.15 / 0.028 m/m and 2.3 deg/m walking. The
-    previous values (1.4 / 0.65 mm, 0.08 deg; 0.07 / 0.014 m/m, 1.75 deg/m) were fitted before the
-    simulator's walker leaned; they understated the noise by a factor of 1.4-2.5. Over 4-8 frames of walking the forward errors are correlated (the gait's
-    pitch nod), which a per-frame variance cannot state at every horizon.
+    Calibration (tagloc's simulator, revision 3 with the leaning walker: the six 20 s walks of
+    ``tagloc eval --preset standard``, 56-265 lux, 0.9-1.5 m/s, pitch 46-66 deg, tilt correction on),
+    on non-overlapping windows of 15, 30 and 60 frames (the 0.5-2 s gaps between sticker passes
+    that odometry bridges): the errors of the patch centre's motion and of the turn, summed over a
+    window, squared, fitted (non-negative least squares, each window weighted by 1/its length) as
+    the window's sum of ``sigma^2 + sigma_per_m^2 d^2``, then raised by 10 % so that the stated
+    variance covers the actual one over all windows (actual/stated 1.03-1.16 before; 324 windows
+    per axis). The standing values are large for a still camera because the walks' slow windows are
+    braking, turning on the spot and swaying in place, not a tripod. Tilt correction trades the
+    old per-frame sharpness (1.4 mm forward) for errors that no longer grow with the gait's nod.
     """
 
     patch_px: int = 80
@@ -198,14 +217,24 @@ class OdometryConfig:
     min_side_m: float = 0.2
     ecc_iterations: int = 5
     ecc_eps: float = 1e-2
-    sigma_forward: float = 0.0015
-    sigma_lateral: float = 0.0016
-    sigma_yaw: float = math.radians(0.11)
-    sigma_forward_per_m: float = 0.14
-    sigma_lateral_per_m: float = 0.023
-    sigma_yaw_per_m: float = math.radians(2.46)
+    sigma_forward: float = 0.0102
+    sigma_lateral: float = 0.0069
+    sigma_yaw: float = math.radians(0.123)
+    sigma_forward_per_m: float = 0.0
+    sigma_lateral_per_m: float = 0.159
+    sigma_yaw_per_m: float = math.radians(2.83)
     rolling_shutter: bool = True
-    lean_correction: bool = False
+    tilt_correction: bool = True
+    tilt_prior_sigma: float = math.radians(0.3)
+    tilt_min_speed: float = 0.15
+    tilt_fit_roll: bool = True
+    tilt_pitch_when_slow: bool = False
+    tilt_refit_rigid: bool = False
+    tilt_grid: int = 6
+    homography_point_sigma_m: float = 0.002
+    homography_iterations: int = 10
+    homography_eps: float = 1e-3
+    lean_correction: bool = True
     lean_com_height_m: float = 0.95
     lean_min: float = math.radians(0.25)
 
@@ -263,6 +292,16 @@ def _kabsch(p1: np.ndarray, p0: np.ndarray) -> np.ndarray:
     yaw = math.atan2(H[0, 1] - H[1, 0], H[0, 0] + H[1, 1])
     t = m0 - _rot2(yaw) @ m1
     return np.array([t[0], t[1], yaw])
+
+
+def _compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(dx, dy, dyaw) of the planar motion ``a`` followed by ``b`` (``b`` in ``a``'s frame)."""
+    return np.array([*(a[:2] + _rot2(a[2]) @ b[:2]), a[2] + b[2]])
+
+
+def _invert2(a: np.ndarray) -> np.ndarray:
+    """(dx, dy, dyaw) of the inverse planar motion of ``a``."""
+    return np.array([*(-(_rot2(-a[2]) @ a[:2])), -a[2]])
 
 
 def _apply_h(H: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -356,7 +395,11 @@ def floor_patch(rig_camera: RigCamera, config: OdometryConfig | None = None) -> 
 
     xs = floor[ok, 0]
     best = (0.0, 0.0)
-    for x0 in np.linspace(xs.min(), xs.max(), _NEAR_EDGE_STEPS):
+    # Squares nearest the camera first (of equal size the first found stays): a nearer patch is seen
+    # finer. A camera looking back sees its nearest floor at the footprint's largest x, not its least.
+    x_cam = float(rig_camera.T_body_camera[0, 3])
+    near_edges = np.linspace(xs.min(), xs.max(), _NEAR_EDGE_STEPS)
+    for x0 in sorted(near_edges, key=lambda x: abs(x + 0.5 * cfg.max_side_m - x_cam)):
         lo, hi = 0.0, cfg.max_side_m
         if best[1] >= hi and fits(x0, hi):
             continue  # a nearer square of full size was already found
@@ -415,6 +458,14 @@ class FloorOdometry:
         self._last_turn: tuple[float, float] | None = None  # (time, yaw rate rad/s) of the last step
         self._criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, cfg.ecc_iterations, cfg.ecc_eps)
         self._last_twist: tuple[float, np.ndarray] | None = None  # (time, (vx, vy, w)) of the last step
+        # The tilt fit's grid: patch pixels of the current frame, and the nominal rays to their floor
+        # points from the camera (body frame).
+        g = np.linspace(0.1, 0.9, cfg.tilt_grid) * (n - 1)
+        q1 = np.stack(np.meshgrid(g, g), axis=-1).reshape(-1, 2)
+        self._tilt_q1 = np.column_stack([q1, np.ones(len(q1))])
+        c = rig_camera.T_body_camera[:3, 3]
+        f1 = q1 @ p.A.T + p.origin
+        self._tilt_rays = np.column_stack([f1 - c[:2], np.full(len(f1), -c[2])])
         rs = cfg.rolling_shutter and rig_camera.readout_s > 0
         self._rs = self._rolling_shutter_grid(n, ss, T_cb) if rs else None
 
@@ -537,13 +588,83 @@ class FloorOdometry:
             return None
         R_tilt = self._tilt(t0)
         if R_tilt is None:
-            delta = self.body_motion(W[:, :2], W[:, 2])
+            level = self.body_motion(W[:, :2], W[:, 2])
         else:
-            delta = self.level_motion(W[:, :2], W[:, 2], R_tilt, small)
-        self._update_lean(float(t), delta, dt)
-        self._last_turn = (float(t), float(delta[2]) / dt)
-        self._last_twist = (float(t), delta / dt)
+            level = self.level_motion(W[:, :2], W[:, 2], R_tilt, small)
+        self._update_lean(float(t), level, dt)
+        # The rigid match guides the next frame (turn guess, rolling-shutter remap); the step
+        # reported also has the tilt's change between the two frames taken out.
+        self._last_turn = (float(t), float(level[2]) / dt)
+        self._last_twist = (float(t), level / dt)
+        delta = self._untilted_step(small, psmall, W, level, dt, R_tilt) if cfg.tilt_correction else level
         return OdometryStep(t0, float(t), delta, self.covariance(delta), float(response))
+
+    def _untilted_step(
+        self,
+        small: np.ndarray,
+        psmall: np.ndarray,
+        W: np.ndarray,
+        delta: np.ndarray,
+        dt: float,
+        R_tilt: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """The step ``delta`` (3,) refitted with the vest's tilt change (see ``tilt_correction``) on top
+        of the lean ``R_tilt`` (3, 3; None: level) both frames share; the rigid step itself when the
+        homography does not converge."""
+        from scipy.optimize import least_squares
+
+        cfg = self.config
+        slow = math.sqrt(self._centre_moved2(delta)) < cfg.tilt_min_speed * dt
+        if slow and not cfg.tilt_pitch_when_slow:
+            return delta
+        roll = cfg.tilt_fit_roll and not slow
+        H0 = np.eye(3, dtype=np.float32)
+        H0[:2] = W
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, cfg.homography_iterations, cfg.homography_eps)
+        try:
+            _, H = cv2.findTransformECC(small, psmall, H0, cv2.MOTION_HOMOGRAPHY, crit, None, 1)
+        except cv2.error:
+            return delta
+        q0 = self._tilt_q1 @ H.T.astype(np.float64)
+        if not np.all(np.abs(q0[:, 2]) > 1e-6):
+            return delta
+        p0 = (q0[:, :2] / q0[:, 2:]) @ self.patch.A.T + self.patch.origin
+        Rt = np.eye(3) if R_tilt is None else R_tilt
+        p0 = self._level_floor(p0, Rt)
+        pv = self.rig_camera.vest_point
+        c = pv + Rt @ (self._cam_centre - pv)
+        rays = self._tilt_rays @ Rt.T
+        sp = cfg.homography_point_sigma_m
+        sig = cfg.tilt_prior_sigma
+
+        def residuals(x: np.ndarray) -> np.ndarray:
+            dx, dy, dyaw, ry = x[:4]
+            rx = x[4] if roll else 0.0
+            # Small rotation (rx about body x, ry about body y) of the nominal rays about the camera.
+            d = rays + np.cross(np.array([rx, ry, 0.0]), rays)
+            p1 = c[:2] + (-c[2] / d[:, 2])[:, None] * d[:, :2]
+            co, si = math.cos(dyaw), math.sin(dyaw)
+            r = (p1 @ np.array([[co, si], [-si, co]]) + (dx, dy) - p0).ravel() / sp
+            return np.r_[r, ry / sig, rx / sig] if roll else np.r_[r, ry / sig]
+
+        try:
+            sol = least_squares(residuals, np.r_[delta, 0.0, 0.0] if roll else np.r_[delta, 0.0], method="lm")
+        except (ValueError, np.linalg.LinAlgError):
+            return delta
+        if not (sol.success and np.all(np.isfinite(sol.x))):
+            return delta
+        if not cfg.tilt_refit_rigid:
+            # Keep the rigid match's step and take out only what the fitted tilt change alone
+            # makes it see: the rigid map from the frame's nominal floor points to where the
+            # tilted rays meet the floor (the fit's own rigid part is the less reliable one).
+            ry = float(sol.x[3])
+            rx = float(sol.x[4]) if roll else 0.0
+            d = rays + np.cross(np.array([rx, ry, 0.0]), rays)
+            p_tilt = c[:2] + (-c[2] / d[:, 2])[:, None] * d[:, :2]
+            p_nom = c[:2] + (-c[2] / rays[:, 2])[:, None] * rays[:, :2]
+            T = _kabsch(p_nom, p_tilt)
+            return _compose(delta, _invert2(T))
+        return np.asarray(sol.x[:3], float)
 
     def _tilt(self, t: float) -> np.ndarray | None:
         """The torso's lean (3, 3) at time ``t`` as the steps up to then say (see
@@ -653,6 +774,12 @@ class FloorOdometry:
         t = A @ wt + b - R @ b
         return np.array([t[0], t[1], yaw])
 
+    def _centre_moved2(self, delta: np.ndarray) -> float:
+        """Squared distance (m^2) the patch centre moved in a step ``delta`` (3,) (dx, dy, dyaw)."""
+        co, si = math.cos(delta[2]), math.sin(delta[2])
+        cx, cy = self._centre
+        return float((delta[0] + (co - 1.0) * cx - si * cy) ** 2 + (delta[1] + si * cx + (co - 1.0) * cy) ** 2)
+
     def _level_floor(self, p: np.ndarray, R_tilt: np.ndarray) -> np.ndarray:
         """Where nominal floor points ``p`` (N, 2) (body frame, m) are when the torso is tilted by
         ``R_tilt`` (3, 3) about the vest point: (N, 2) in the level body frame."""
@@ -727,9 +854,7 @@ class FloorOdometry:
         cfg = self.config
         # The image motion drives the errors (blur, perspective), so they grow with how far the
         # patch centre moved, which on a turn on the spot is far more than the body origin.
-        co, si = math.cos(delta[2]), math.sin(delta[2])
-        cx, cy = self._centre
-        d2 = float((delta[0] + (co - 1.0) * cx - si * cy) ** 2 + (delta[1] + si * cx + (co - 1.0) * cy) ** 2)
+        d2 = self._centre_moved2(delta)
         D = np.diag(
             [
                 cfg.sigma_forward**2 + cfg.sigma_forward_per_m**2 * d2,

@@ -15,12 +15,11 @@ margin of the corner noise), both are returned, best first, and the solution is 
 
 The map is a measurement too: a sticker surveyed ``e`` off in position moves the fix by ``e``, and
 one ``a`` off in yaw turns the whole fix about the sticker's centre, moving the body by ``a`` times
-its distance from the sticker (1.5 m and 1 degree: 2.6 cm) and its heading by ``a``. The fix's
-covariance adds that (:func:`map_covariance`), with the map's per-sticker ``sigma_m``/``sigma_deg``
-when stated and :class:`PoseConfig`'s defaults when not. A sticker's survey error is the same in
-every frame that sees it, so the fixes of one pass past it share it and must not average it away:
-:class:`SurveyPasses` scales the k-th fix's map part by k^2, which caps the information a pass
-draws from that one map pose at pi^2/6 times one fix's, however many frames see the sticker.
+its distance from the sticker (1.5 m and 1 degree: 2.6 cm) and its heading by ``a``. A fix used on
+its own (the paper's baselines) carries that in its covariance (``map_sigma``:
+:func:`map_covariance`). tagloc's tracker instead estimates each sticker's survey error as a state
+(:mod:`tracker.ekf`), because the error is the same in every frame that sees the sticker: the
+localiser then solves without it and hands the tracker the sticker's survey sigmas.
 
 A rolling-shutter camera (``RigCamera.readout_s`` > 0) exposes each row at its own time, so a
 moving camera sees each corner from a slightly different pose: the sticker is skewed and, lower
@@ -41,7 +40,7 @@ import cv2
 import numpy as np
 
 from tagloc.core.errors import InputError
-from tagloc.core.geometry import T_from_rvec_tvec, invert, wrap_angle
+from tagloc.core.geometry import T_from_rvec_tvec, invert, map_error_jacobian, wrap_angle
 from tagloc.core.rig import RigCamera, row_delay_s, vest_planar
 from tagloc.core.sticker import ALL_CORNERS, OUTER_CORNERS, rotate_corners
 from tagloc.core.types import Detection, PoseFix
@@ -61,10 +60,11 @@ class PoseConfig:
         max_reprojection_px: solutions with a larger RMS reprojection error are dropped.
         map_sigma_m, map_sigma_yaw: survey standard deviation of a sticker's centre (per axis, m)
             and yaw (rad) where the map does not state one. Stickers are stuck down by hand and
-            measured with tape or a laser: 1 cm and 1 degree, the better end of the 1-2 cm and 1-2
+            measured with tape or a laser: 1.5 cm and 1.5 degrees, the middle of the 1-2 cm and 1-2
             degrees such surveys achieve (a total-station survey states its own, smaller, sigmas in
             the map). Too small a value makes a mis-surveyed sticker's fixes fail the gate pass
-            after pass; too large one only leans on odometry a little more.
+            after pass, or pass it and pull the track overconfidently; too large one only leans on
+            odometry a little more.
     """
 
     use_inner: bool = True
@@ -72,8 +72,8 @@ class PoseConfig:
     sigma_4pt_px: float = 0.5
     ambiguity_chi2: float = 16.0
     max_reprojection_px: float = 5.0
-    map_sigma_m: float = 0.01
-    map_sigma_yaw: float = math.radians(1.0)
+    map_sigma_m: float = 0.015
+    map_sigma_yaw: float = math.radians(1.5)
 
 
 @dataclass
@@ -124,37 +124,8 @@ def map_covariance(body: np.ndarray, sticker_xy: np.ndarray, sigma_m: float, sig
     sticker's centre: ``J = [[1, 0, -ry], [0, 1, rx], [0, 0, 1]]`` with ``r = body - sticker``
     (m), and the covariance is ``J diag(sigma_m^2, sigma_m^2, sigma_yaw^2) J^T``.
     """
-    rx, ry = float(body[0] - sticker_xy[0]), float(body[1] - sticker_xy[1])
-    J = np.array([[1.0, 0.0, -ry], [0.0, 1.0, rx], [0.0, 0.0, 1.0]])
+    J = map_error_jacobian(body[:2], sticker_xy)
     return (J * np.array([sigma_m**2, sigma_m**2, sigma_yaw**2])) @ J.T
-
-
-class SurveyPasses:
-    """How often each sticker has given a fix in its current pass, for the map part of the covariance.
-
-    Consecutive fixes of one sticker carry one and the same survey error. Fused as independent,
-    n of them would claim to know the sticker's map pose n times better than the survey does,
-    and a mis-surveyed sticker would pull the track (and later stickers would be gated). The
-    k-th fix of a pass therefore carries its map covariance times k^2: the information about the
-    map pose summed over a pass is then at most sum 1/k^2 = pi^2/6 = 1.64 times one fix's, while
-    the corner-noise part (independent between frames) keeps its full weight. A pass ends when
-    the sticker has given no fix for ``gap_s`` seconds: the filter's own process noise has by then
-    spread its pose by more than the survey sigma (walking 1.3 m/s, over 1 s), so seeing the
-    sticker again is worth a fresh pass.
-    """
-
-    def __init__(self, gap_s: float = 1.0):
-        self.gap_s = gap_s
-        self._seen: dict[int, tuple[float, int]] = {}  # id -> (time of the last fix, fixes in the pass)
-
-    def scale(self, sticker_id: int, t: float) -> float:
-        """Factor on the map covariance of the fix of ``sticker_id`` at time ``t`` (s); counts that fix."""
-        last = self._seen.get(int(sticker_id))
-        k = last[1] + 1 if last is not None and 0.0 <= t - last[0] <= self.gap_s else 1
-        self._seen[int(sticker_id)] = (float(t), k)
-        if len(self._seen) > 256:  # forget stickers long out of view
-            self._seen = {i: v for i, v in self._seen.items() if t - v[0] <= self.gap_s}
-        return float(k * k)
 
 
 def camera_twist(rig_camera: RigCamera, body_twist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -216,7 +187,6 @@ def solve_pose(
     corner_sigma_px: float | None = None,
     config: PoseConfig | None = None,
     map_sigma: tuple[float, float] | None = None,
-    map_scale: float = 1.0,
     body_twist: np.ndarray | None = None,
 ) -> PoseSolution:
     """Pose of the camera and the body from one sticker.
@@ -231,8 +201,7 @@ def solve_pose(
             (floored at ``config.min_sigma_px``) or ``config.sigma_4pt_px`` with 4 points.
         map_sigma: the sticker's survey (sigma per axis m, sigma yaw rad) from the map, NaN where
             the map states none (then ``config.map_sigma_m`` / ``config.map_sigma_yaw``); None:
-            ``T_world_sticker`` is exact (no map part). ``map_scale`` multiplies
-            that part of the covariance (see :class:`SurveyPasses`).
+            ``T_world_sticker`` is exact (no map part).
         body_twist: the body's motion (vx, vy, yaw rate) in the body frame (m/s, m/s, rad/s), for
             a rolling-shutter camera (``rig_camera.readout_s`` > 0): the corners are moved to the
             frame's time before the final solve (see the module docstring). None: no correction.
@@ -292,6 +261,6 @@ def solve_pose(
         T_world_camera = T_world_sticker @ invert(T_from_rvec_tvec(rvec, tvec))
         body = vest_planar(T_world_camera @ T_camera_body, rig_camera.vest_point)
         if sig_m > 0 or sig_yaw > 0:
-            cov = cov + map_scale * map_covariance(body, T_world_sticker[:2, 3], sig_m, sig_yaw)
+            cov = cov + map_covariance(body, T_world_sticker[:2, 3], sig_m, sig_yaw)
         poses.append(PoseFix(T_world_camera, body, cov, rms))
     return PoseSolution(poses, len(poses) > 1, (time.perf_counter() - t0) * 1e3, sigma)

