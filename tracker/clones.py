@@ -33,6 +33,7 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
 from tagloc.core.geometry import wrap_angle
+from tracker.ekf import sym_spd
 
 
 class CloneSet:
@@ -181,11 +182,6 @@ class CloneSet:
 
 def _floored(C: np.ndarray, min_eig: float) -> np.ndarray:
     """``C`` symmetrised, eigenvalues floored at ``min_eig`` (the subtraction may round below zero)."""
-    C = 0.5 * (C + C.T)
     if not len(C):
         return C
-    w, V = np.linalg.eigh(C)
-    if w[0] >= min_eig:
-        return C
-    C = (V * np.maximum(w, min_eig)) @ V.T
-    return 0.5 * (C + C.T)
+    return sym_spd(C, min_eig)
