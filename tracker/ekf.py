@@ -263,15 +263,12 @@ class WalkingEKF(ExtendedKalmanFilter):
         self.reset(pose, R)
         if term is None:
             return
-        k = self._take_slot(term.sticker_id)
+        s = map_slot(self.claim_slot(term)[0])
         P = self.P.copy()
-        s = map_slot(k)
         JS = term.J @ term.prior
-        for blk in (POSE,):
-            P[blk, s] = -JS
-            P[s, blk] = -JS.T
+        P[POSE, s] = -JS
+        P[s, POSE] = -JS.T
         P[POSE, POSE] = P[POSE, POSE] + JS @ term.J.T
-        P[s, s] = term.prior
         self.set(self.x[:, 0], P)
 
     def forget_motion(self) -> None:
@@ -348,21 +345,17 @@ class WalkingEKF(ExtendedKalmanFilter):
             return None
 
     def _take_slot(self, sticker_id: int) -> int:
-        """A slot for ``sticker_id``: its own, else a free one, else the least recently fixed one,
-        whose sticker is marginalised out (its rows and columns zeroed: exact)."""
-        k = self.slot_of(sticker_id)
-        if k is None:
-            k = self.slots.index(None) if None in self.slots else int(np.argmin(self._used))
-            s = map_slot(k)
-            x, P = self.x[:, 0].copy(), self.P.copy()
-            x[s] = 0.0
-            P[s, :] = 0.0
-            P[:, s] = 0.0
-            P[s, s] = self._free_slot_cov()
-            self.x, self.P = x.reshape(DIM, 1), P
-            self.slots[k] = int(sticker_id)
-        self._fixes += 1
-        self._used[k] = self._fixes
+        """A slot for a sticker that has none: a free one, else the least recently fixed one, whose
+        sticker is marginalised out (its rows and columns zeroed: exact)."""
+        k = self.slots.index(None) if None in self.slots else int(np.argmin(self._used))
+        s = map_slot(k)
+        x, P = self.x[:, 0].copy(), self.P.copy()
+        x[s] = 0.0
+        P[s, :] = 0.0
+        P[:, s] = 0.0
+        P[s, s] = self._free_slot_cov()
+        self.x, self.P = x.reshape(DIM, 1), P
+        self.slots[k] = int(sticker_id)
         return k
 
     def claim_slot(self, term: MapTerm) -> tuple[int, bool]:
@@ -370,29 +363,30 @@ class WalkingEKF(ExtendedKalmanFilter):
         recently fixed one's sticker is marginalised out) with its survey prior. Returns (slot,
         whether it is fresh)."""
         k = self.slot_of(term.sticker_id)
-        if k is not None:
-            self._fixes += 1
-            self._used[k] = self._fixes
-            return k, False
-        k = self._take_slot(term.sticker_id)
-        P = self.P.copy()
-        P[map_slot(k), map_slot(k)] = term.prior
-        self.P = P
-        return k, True
+        fresh = k is None
+        if fresh:
+            k = self._take_slot(term.sticker_id)
+            P = self.P.copy()
+            P[map_slot(k), map_slot(k)] = term.prior
+            self.P = P
+        self._fixes += 1
+        self._used[k] = self._fixes
+        return k, fresh
 
     def _map_columns(
-        self, H: np.ndarray, R: np.ndarray, term: MapTerm | None, take: bool
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Add the sticker's survey error to the model: through its slot's columns of ``H`` when it has
-        (or, with ``take``, gets) one, else as extra noise ``J prior J^T`` (what a fresh slot would add)."""
+        self, hx: np.ndarray, H: np.ndarray, R: np.ndarray, term: MapTerm | None, take: bool
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Add the sticker's survey error to the model (hx (3,), H (3, DIM), R (3, 3)): through its
+        slot when it has (or, with ``take``, gets) one, ``hx + J e`` and ``J`` in the slot's columns of
+        ``H``; else as extra noise ``J prior J^T`` (what a fresh slot would add)."""
         if term is None:
-            return H, R
+            return hx, H, R
         k = self.claim_slot(term)[0] if take else self.slot_of(term.sticker_id)
         if k is None:
-            return H, R + term.J @ term.prior @ term.J.T
+            return hx, H, R + term.J @ term.prior @ term.J.T
         H = np.array(H, float)
         H[:, map_slot(k)] = term.J
-        return H, R
+        return hx + term.J @ self.x[map_slot(k), 0], H, R
 
     # -- measurement --------------------------------------------------------------------------
     def _model(self, lag: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -415,11 +409,7 @@ class WalkingEKF(ExtendedKalmanFilter):
         """Innovation of vest pose ``z`` (3,) with its own covariance ``R`` (3, 3), measured ``lag`` s ago,
         from a sticker whose survey error is ``term`` (None: an exact map)."""
         hx, H, Qb = self._model(lag)
-        H, R = self._map_columns(H, R + Qb, term, take=False)
-        if term is not None:
-            k = self.slot_of(term.sticker_id)
-            if k is not None:
-                hx = hx + term.J @ self.x[map_slot(k), 0]
+        hx, H, R = self._map_columns(hx, H, R + Qb, term, take=False)
         y = pose_residual(z, hx)
         S = H @ self.P @ H.T + R
         S = 0.5 * (S + S.T)
@@ -429,9 +419,7 @@ class WalkingEKF(ExtendedKalmanFilter):
         """Kalman update with one vest pose ``z`` (3,), its own covariance ``R``, ``lag`` s old, from a
         sticker whose survey error is ``term`` (None: an exact map); the sticker takes a slot."""
         hx, H, Qb = self._model(lag)
-        H, R = self._map_columns(H, R + Qb, term, take=True)
-        if term is not None:
-            hx = hx + term.J @ self.x[map_slot(self.slot_of(term.sticker_id)), 0]
+        hx, H, R = self._map_columns(hx, H, R + Qb, term, take=True)
         self.update(
             np.asarray(z, float).reshape(3, 1),
             lambda _x: H,

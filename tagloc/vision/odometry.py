@@ -640,16 +640,19 @@ class FloorOdometry:
         sp = cfg.homography_point_sigma_m
         sig = cfg.tilt_prior_sigma
 
-        def residuals(X: np.ndarray) -> np.ndarray:
-            """Residuals (k, m) of k parameter rows X (k, 5): (dx, dy, dyaw, ry, rx)."""
-            dx, dy, dyaw, ry, rx = (X[:, i, None] for i in range(5))
-            # Small rotation (rx about body x, ry about body y) of the nominal rays about the camera:
-            # d + (rx, ry, 0) x d.
+        def floor_hit(rx, ry):
+            """(x, y) where the grid's rays meet the floor after a small rotation (rx about body x,
+            ry about body y) about the camera: d + (rx, ry, 0) x d. Scalars or (k, 1) columns."""
             ddx = rays[:, 0] + ry * rays[:, 2]
             ddy = rays[:, 1] - rx * rays[:, 2]
             ddz = rays[:, 2] + rx * rays[:, 1] - ry * rays[:, 0]
             k = -c[2] / ddz
-            p1x, p1y = c[0] + k * ddx, c[1] + k * ddy
+            return c[0] + k * ddx, c[1] + k * ddy
+
+        def residuals(X: np.ndarray) -> np.ndarray:
+            """Residuals (k, m) of k parameter rows X (k, 5): (dx, dy, dyaw, ry, rx)."""
+            dx, dy, dyaw, ry, rx = (X[:, i, None] for i in range(5))
+            p1x, p1y = floor_hit(rx, ry)
             co, si = np.cos(dyaw), np.sin(dyaw)
             rxy = np.concatenate([co * p1x - si * p1y + dx - p0[:, 0], si * p1x + co * p1y + dy - p0[:, 1]], axis=1)
             return np.concatenate([rxy / sp, ry / sig, rx / sig], axis=1)
@@ -670,18 +673,14 @@ class FloorOdometry:
             if not np.all(np.isfinite(step)):
                 return delta
             x[:free] += step
-        sol_x = x
         if not cfg.tilt_refit_rigid:
             # Keep the rigid match's step and take out only what the fitted tilt change alone
             # makes it see: the rigid map from the frame's nominal floor points to where the
             # tilted rays meet the floor (the fit's own rigid part is the less reliable one).
-            ry, rx = float(sol_x[3]), float(sol_x[4])
-            d = rays + np.cross(np.array([rx, ry, 0.0]), rays)
-            p_tilt = c[:2] + (-c[2] / d[:, 2])[:, None] * d[:, :2]
-            p_nom = c[:2] + (-c[2] / rays[:, 2])[:, None] * rays[:, :2]
-            T = _kabsch(p_nom, p_tilt)
-            return _compose(delta, _invert2(T))
-        return np.asarray(sol_x[:3], float)
+            p_tilt = np.column_stack(floor_hit(float(x[4]), float(x[3])))
+            p_nom = np.column_stack(floor_hit(0.0, 0.0))
+            return _compose(delta, _invert2(_kabsch(p_nom, p_tilt)))
+        return np.asarray(x[:3], float)
 
     def _tilt(self, t: float) -> np.ndarray | None:
         """The torso's lean (3, 3) at time ``t`` as the steps up to then say (see
