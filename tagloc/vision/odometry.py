@@ -493,15 +493,29 @@ class FloorOdometry:
         """The remap maps for one frame: the nominal ones, moved for the rolling shutter when known."""
         if self._rs is None or body_twist is None:
             return self._map_x, self._map_y
-        q, d, J = self._rs
+        q0, q1, d, J00, J01, J10, J11 = self._rs_columns()
         vx, vy, w = (float(a) for a in np.asarray(body_twist, float).ravel()[:3])
         # A floor point fixed in the world, seen d seconds after the frame time, sits at
         # q - d (v + w x q) in the body frame of the frame time.
-        u = np.column_stack([vx - w * q[:, 1], vy + w * q[:, 0]])
-        shift = -(d[:, None] * np.einsum("kij,kj->ki", J, u)).astype(np.float32)
+        u0, u1 = vx - w * q1, vy + w * q0
         n, m = self.config.patch_px, self._map_x.shape[0]
-        fine = cv2.resize(shift.reshape(n, n, 2), (m, m), interpolation=cv2.INTER_LINEAR)
-        return self._map_x + fine[..., 0], self._map_y + fine[..., 1]
+        # x and y apart, from contiguous columns (numpy over a trailing axis of 2, and strided adds
+        # of the interleaved resize, cost more than the arithmetic). One two-channel resize: resized
+        # apart, OpenCV's single-channel path rounds differently in the last bit.
+        shift = np.empty((n * n, 2), np.float32)
+        shift[:, 0] = -(d * (J00 * u0 + J01 * u1))
+        shift[:, 1] = -(d * (J10 * u0 + J11 * u1))
+        fx, fy = cv2.split(cv2.resize(shift.reshape(n, n, 2), (m, m), interpolation=cv2.INTER_LINEAR))
+        return self._map_x + fx, self._map_y + fy
+
+    def _rs_columns(self) -> tuple[np.ndarray, ...]:
+        """The rolling-shutter grid (see :meth:`_rolling_shutter_grid`) as contiguous columns: q_x,
+        q_y, row delays, and the four entries of d pixel / d q, each (n*n,)."""
+        if getattr(self, "_rs_cols", None) is None:
+            q, d, J = self._rs
+            cols = (q[:, 0], q[:, 1], d, J[:, 0, 0], J[:, 0, 1], J[:, 1, 0], J[:, 1, 1])
+            self._rs_cols = tuple(np.ascontiguousarray(c) for c in cols)
+        return self._rs_cols
 
     def birdseye(self, gray: np.ndarray, body_twist: np.ndarray | None = None) -> np.ndarray:
         """The bird's-eye patch (patch_px, patch_px) of a (H, W) uint8 frame, float32, high-passed.
