@@ -179,7 +179,7 @@ def live_latency(session: Path, defer_lsq: bool = True) -> dict:
         "max_ms": float(np.max(summary.latency_ms)) if len(summary.latency_ms) else float("nan"),
         "fixes": summary.fixes,
         "lsq_deferred": counts.get("lsq_deferred", 0),
-        "deferred_reads": counts.get("deferred_reads", 0),
+        "deferred_named": counts.get("deferred_named", 0),
     }
 
 
@@ -281,7 +281,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"  {name:<32} median {_spread([x['median_ms'] for x in lats])} ms, p99 "
                 f"{_spread([x['p99_ms'] for x in lats])} ms, max {_spread([x['max_ms'] for x in lats])} ms; "
                 f"{lats[0]['frames']} frames, {lats[0]['dropped']} dropped, {lats[0]['fixes']} fixes, "
-                f"{lats[0]['lsq_deferred']} deferred decodes, {lats[0]['deferred_reads']} reads taken from them"
+                f"{lats[0]['lsq_deferred']} deferred decodes, {lats[0]['deferred_named']} of them named"
             )
     _write(args.json, out)
     return 0

@@ -93,14 +93,13 @@ class LocaliserConfig:
             odometry step, else the tracker's prediction) before solving its pose; the odometry's
             own correction is ``odometry_config.rolling_shutter``.
         defer_lsq: (``tagloc live``) a detection that the quick decoding stages (zxing, grid
-            sampling) leave unread is not sent through the least-squares stage (~6-11 ms) within
-            the frame: that decode runs after the frame's result is published
-            (:meth:`Localiser.deferred_work`, in the wait for the next frame), and an identity it
-            reads is taken by the next frame's detection at the same place once that detection's
-            modules correlate with it (``tracking.reverify_min_score``, the re-check of a tracked
-            sticker). The fix comes one frame later, and the slowest stage leaves the frame's
-            latency. Off for a replay (which has no wait between frames): same results as before.
-            Only with the "zxing" decoder (the stage belongs to it).
+            sampling) leave unread is not sent through the least-squares stage (~6-11 ms), nor
+            identified, within the frame: that work is done after the frame's result is published
+            (:meth:`Localiser.deferred_work`, in the wait for the next frame), exactly as the frame
+            would have done it, and its fix goes to the tracker at the frame's time, before the
+            next frame. Only the published pose of that one frame lacks the fix; the slowest stage
+            leaves the frame's latency. Off for a replay (no wait between frames): results as
+            before. Only with the "zxing" decoder (the stage belongs to it).
     """
 
     detector: str = "contour"
@@ -146,18 +145,6 @@ class TrackingConfig:
             off the track) runs the costly least-squares stage (~10-20 ms) only every this many
             frames in a row; the cheap stages (zxing, grid sampling, ~2 ms) and identification
             still run every frame. 1 = always.
-        deferred_max_centre_shift: a deferred decode's identity (``LocaliserConfig.defer_lsq``) is
-            offered to a detection of the next frame whose centre is within this many sticker sides
-            of the decoded one's (and of the same shape, ``max_shape_change``); the detection keeps
-            it only if its modules confirm it (``deferred_min_score``), which is the safeguard. 3:
-            stickers that need the least-squares stage are the blurred ones, seen in fast turns,
-            where they move 1.5 sides a frame (a 6 deg turn per frame at 1.5 m; walk300, frame 229).
-        deferred_min_score: that confirmation's module correlation. The decode itself accepted its
-            least-squares read at the decoder's own check, 0.5 (``DecodeConfig.min_verify``; any
-            other ID or rotation scores <= 0.45), and the same check on the next frame's view of
-            the sticker is as strict; ``reverify_min_score``'s 0.7 is for sharp tracked stickers,
-            and refused half of the deferred reads on the standard eval's s01 (blurred stickers
-            score 0.51-0.85 there).
     """
 
     redecode_every: int = 4
@@ -167,8 +154,6 @@ class TrackingConfig:
     reverify: bool = True
     reverify_min_score: float = 0.7
     lsq_retry_every: int = 4
-    deferred_max_centre_shift: float = 3.0
-    deferred_min_score: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -182,17 +167,6 @@ class Tracked:
     camera: int
     t: float
     age: int
-
-
-@dataclass(frozen=True)
-class DeferredRead:
-    """An identity read by a deferred least-squares decode (``LocaliserConfig.defer_lsq``) of the
-    detection ``outer`` (4, 2) distorted px, seen by ``camera`` at time ``t``."""
-
-    outer: np.ndarray
-    identity: Identity
-    camera: int
-    t: float
 
 
 @dataclass(frozen=True)
@@ -419,9 +393,8 @@ class Localiser:
         self.counts["reverified"] = 0  # of those, re-checked by module correlation when due a re-decode
         self.counts["lsq_skipped"] = 0  # decodes without the least-squares stage (failed there just before)
         self.counts["lsq_deferred"] = 0  # least-squares decodes run after their frame (defer_lsq)
-        self.counts["deferred_reads"] = 0  # detections that took the identity one of those read
+        self.counts["deferred_named"] = 0  # of those detections, named then (decoded or identified)
         self._pending: list[tuple] = []  # this frame's deferred least-squares decodes (defer_lsq)
-        self._deferred: list[DeferredRead] = []  # what those read, for the next frame
         self._failed: list[FailedRead] = []  # detections of the previous frame nothing named
         self._tracked: list[Tracked] = []  # decoded stickers of the previous frame whose fixes were accepted
         self.counts.update(refused_timestamps=0, clock_resets=0, wrong_size_frames=0)
@@ -461,9 +434,9 @@ class Localiser:
             return FrameResult(frame.index, t, [], out, timer.finish(), frame.error or "unreadable", frame)
         gray = as_gray(frame.image)
         rig_cam = self.rig[frame.camera]
-        # Deferred decodes not run before this frame are dropped (the detection, still unread, queues
-        # its decode again); what those that ran read is for this frame only.
-        ready, self._deferred, self._pending = self._deferred, [], []
+        # Deferred decodes not run before this frame are dropped (the detection, still unread here,
+        # queues its decode again).
+        self._pending = []
         if self.config.odometry:
             # This camera's step since its previous frame: the tracker fuses it against its clone of
             # the pose there (tracker.clones), whatever other cameras' frames came in between.
@@ -493,10 +466,6 @@ class Localiser:
                 read = Read(m.identity)
                 self.counts["tracked"] += 1
                 lsq_ages.append(None)
-            elif ready and (ident := self._deferred_identity(gray, det, ready, rig_cam, frame.camera, t, timer)):
-                read = Read(ident)
-                self.counts["deferred_reads"] += 1
-                lsq_ages.append(None)
             else:
                 read, age = self._decode_gated(gray, det, rig_cam, frame.camera, t, timer)
                 lsq_ages.append(age)
@@ -507,8 +476,8 @@ class Localiser:
         failed: list[FailedRead] = []  # detections neither decoded nor identified, for the next frame
         for det, read, fix, age in zip(detections, reads, fixes, lsq_ages):
             identity = read.identity
-            # A detection whose decode was deferred is named by that decode for the next frame;
-            # identifying it now would put back the cost the deferral took out of this frame.
+            # A detection whose decode was deferred is identified after the frame too, if that decode
+            # fails (as in the frame): here it would put back the cost the deferral took out.
             deferred = self.config.defer_lsq and any(job[1] is det for job in self._pending)
             if identity is None and read.unmapped_id is None and self.config.identify != "off" and not deferred:
                 identity = self._identify(gray, det, rig_cam, timer)
@@ -562,7 +531,7 @@ class Localiser:
         self._odometry.clear()
         self._tracked = []
         self._failed = []
-        self._pending, self._deferred = [], []
+        self._pending = []
 
     def _check_size(self, frame: Frame) -> str | None:
         """Why the frame's image cannot be this camera's, or None."""
@@ -671,47 +640,34 @@ class Localiser:
         return read, prev.age + 1 if skip_lsq else 0
 
     def deferred_work(self, go_on: Callable[[], bool] | None = None) -> int:
-        """Run the decodes the last frame deferred (``LocaliserConfig.defer_lsq``), each while
-        ``go_on()`` (default: always) says there is time (a live loop: no frame waiting); what they
-        read is offered to the next frame. Returns how many ran."""
+        """Finish the detections the last frame deferred (``LocaliserConfig.defer_lsq``), each while
+        ``go_on()`` (default: always) says there is time (a live loop: no frame waiting): the whole
+        decode, identification if it fails, and the fix, fused at the frame's time as the frame
+        would have fused it (the filter is still there); a decoded sticker whose fix the tracker
+        accepted is tracked into the next frame. Returns how many ran; the rest are dropped."""
         jobs, self._pending = self._pending, []
         ran = 0
         for gray, det, rig_cam, camera, t in jobs:
             if go_on is not None and not go_on():
                 break
-            read = read_sticker(gray, det, rig_cam.camera, self.map, self.config.decoder)
             ran += 1
-            if read.identity is not None:
-                self._deferred.append(DeferredRead(det.outer.copy(), read.identity, camera, t))
+            timer = StageTimer()  # the frame is published: its times are not added to
+            read = read_sticker(gray, det, rig_cam.camera, self.map, self.config.decoder)
+            identity = read.identity
+            if identity is not None or read.unmapped_id is not None:
+                count_read(self.counts, read)
+            if identity is None and read.unmapped_id is None and self.config.identify != "off":
+                identity = self._identify(gray, det, rig_cam, timer)
+            if identity is None:
+                continue
+            self.counts["deferred_named"] += 1
+            fix = self._fix(det, identity, rig_cam, t, timer)
+            # Named after all: no longer a failed read; decoded and accepted: tracked (see _track).
+            self._failed = [f for f in self._failed if not (f.t == t and np.array_equal(f.outer, det.outer))]
+            if identity.source == IdSource.DECODED and fix.accepted is True:
+                self._tracked.append(Tracked(det.outer.copy(), identity, camera, t, 0))
         self.counts["lsq_deferred"] += ran
         return ran
-
-    def _deferred_identity(
-        self,
-        gray: np.ndarray,
-        det: Detection,
-        ready: list[DeferredRead],
-        rig_cam: RigCamera,
-        camera: int,
-        t: float,
-        timer: StageTimer,
-    ) -> Identity | None:
-        """The identity a deferred decode of the previous frame read for the detection at ``det``'s
-        place (rotation carried through the corners' shift), if ``det``'s modules confirm it."""
-        cfg = self.config.tracking
-        for d in ready:
-            if d.camera != camera or not 0.0 < t - d.t <= cfg.max_gap_s:
-                continue
-            side = min(_shortest_side(det.outer), _shortest_side(d.outer))
-            shift, moved, change = _shape_match(det.outer, d.outer)
-            if moved > cfg.deferred_max_centre_shift * side or change > cfg.max_shape_change * side:
-                continue
-            ident = Identity(d.identity.sticker_id, (d.identity.rotation + shift) % 4, d.identity.source)
-            with timer("decode"):
-                score = verify_detection(gray, det, rig_cam.camera, ident.sticker_id, ident.rotation)
-            if score >= cfg.deferred_min_score:
-                return ident
-        return None
 
     def _decode(
         self,
