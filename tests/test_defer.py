@@ -110,3 +110,15 @@ def test_a_walk_with_deferred_decodes_is_tracked_as_in_a_replay(blurred_walk):
     assert fused(live) >= fused(replay) - 3
     r, lv = (trajectory_metrics(g.stamps[g.valid], g.poses[g.valid], g.covs[g.valid], *gt) for g in (rlog, llog))
     assert lv["rmse_m"] <= r["rmse_m"] + 0.005
+
+
+def test_warm_up_makes_the_first_frames_set_up_before_it():
+    from tagloc.vision.refs import build_refs
+
+    smap, rig, _ = _blurred_scene()
+    bank = build_refs(smap, progress=False)
+    loc = Localiser(smap, rig, refs=bank)
+    assert loc._odometry == {} and not bank.derived
+    loc.warm_up()
+    assert loc._odometry[0] is not None  # the patch and its remap tables
+    assert any(k[0] == "appearance" for k in bank.derived)  # identification's tables

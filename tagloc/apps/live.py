@@ -145,6 +145,8 @@ def run_live(
     if localiser is None:
         localiser = _make_localiser(cfg)
     stop = stop or threading.Event()
+    if hasattr(localiser, "warm_up"):
+        localiser.warm_up()  # set-up the first frame would pay, before the clock starts
     # A source handed in (tests, benchmarks) is the one camera; otherwise one per --camera.
     sources = [source] if source is not None else _open_sources(cfg, len(localiser.rig))
     source = sources[0]

@@ -546,6 +546,18 @@ class Localiser:
             return f"frame {frame.index}: image is {w}x{h}, the calibration is for {cam.width}x{cam.height}"
         return None
 
+    def warm_up(self) -> None:
+        """Do now the set-up the first frames would otherwise pay (a live loop, before its first
+        frame: 0.1 s of it landed on the first frame's latency): each camera's odometry (patch
+        search, remap tables) and, with a reference bank, identification's tables."""
+        if self.config.odometry:
+            for c in range(len(self.rig)):
+                self.floor_odometry(c)
+        if self.config.identify != "off" and self._refs is not None:
+            from tagloc.vision.identify import prepare
+
+            prepare(self._refs)
+
     def floor_odometry(self, camera: int) -> FloorOdometry | None:
         """The floor odometry of rig camera ``camera`` (made on first use), or None if that camera
         sees too little floor for it or is not one of ``odometry_cameras``."""
