@@ -15,7 +15,9 @@ OpenCV on one thread:
    and runs ``cv2.aruco.ArucoDetector.detectMarkers`` on each, alternated ``--repeat`` times;
    their CPU times and ratio.
 4. With ``--live``: ``tagloc live``'s loop on the frames decoded ahead into memory, played at the
-   session's rate, each result written to the JSON-lines frame log: grab-to-publication latency.
+   session's rate, each result written to the JSON-lines frame log: grab-to-publication latency,
+   as live runs (least-squares decodes after the frame is published, ``LocaliserConfig.defer_lsq``)
+   and with every decode inside its frame (as a replay does).
 
 Example::
 
