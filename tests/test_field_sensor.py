@@ -581,9 +581,17 @@ def test_odometry_step_is_not_fooled_by_the_vest_tilting(pitch_deg, roll_deg, le
         for k, (body, T) in enumerate(((bodyA, np.eye(4)), (bodyB, tilt)))
     ]
     errs = {}
-    for fit in (False, True):
-        odo = FloorOdometry(rc, OdometryConfig(tilt_correction=fit))
+    for name, cfg in (
+        ("none", OdometryConfig(tilt_correction=False)),
+        ("fit", OdometryConfig(tilt_filter=False)),
+        ("filtered", OdometryConfig()),
+    ):
+        odo = FloorOdometry(rc, cfg)
         odo.measure(imgs[0], 0.0)
+        odo.anchor_tilt_angles(0.0, 0.0, 0.0)  # a sticker fix in the first frame saw it upright
         got = odo.measure(imgs[1], 1 / 30)
-        errs[fit] = 1000 * float(np.hypot(*(got.delta[:2] - step[:2])))
-    assert errs[False] > 8.0 and errs[True] < left * errs[False], errs
+        errs[name] = 1000 * float(np.hypot(*(got.delta[:2] - step[:2])))
+    # Measured: none 13.5-16.8 mm; fit 4.0-7.9 mm; filtered (anchored upright in the first frame)
+    # 0.7-3.8 mm.
+    assert errs["none"] > 8.0 and errs["fit"] < left * errs["none"], errs
+    assert errs["filtered"] < left * errs["none"], errs

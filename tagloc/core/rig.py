@@ -93,6 +93,22 @@ def vest_planar(T_world_body: np.ndarray, vest_point: np.ndarray) -> np.ndarray:
     return np.array([p[0], p[1], math.atan2(T[1, 0], T[0, 0])])
 
 
+def torso_tilt(T_world_camera: np.ndarray, T_body_camera: np.ndarray) -> tuple[float, float]:
+    """The torso's (pitch, roll) off the rig's nominal pose (rad), given a camera's measured pose.
+
+    ``T_world_camera`` (4, 4) is where the camera is; ``T_body_camera`` (4, 4) where the rig puts it
+    on an upright body. The tilt is the rotation ``R`` in the body's heading frame (the horizontal
+    direction of the body's +x, as in :func:`vest_planar`) with ``R_world_camera = R_heading R
+    R_body_camera``; pitch turns about the body's y axis (> 0 tips +x, the front, down), roll about
+    its x axis (> 0 tips +y, the left, up).
+    """
+    Rb = np.asarray(T_world_camera, float)[:3, :3] @ np.asarray(T_body_camera, float)[:3, :3].T
+    yaw = math.atan2(Rb[1, 0], Rb[0, 0])
+    c, s = math.cos(yaw), math.sin(yaw)
+    R = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]]) @ Rb
+    return math.atan2(R[0, 2], R[2, 2]), math.atan2(-R[1, 2], R[2, 2])
+
+
 def _shared_height(cameras: list[RigCamera], height: float | None) -> list[RigCamera]:
     """The cameras with one vest height: ``height``, or the cameras' mean height."""
     h = float(np.mean([c.T_body_camera[2, 3] for c in cameras])) if height is None else float(height)

@@ -19,7 +19,7 @@ import numpy as np
 
 from tagloc.core.camera import Camera, load_calibration
 from tagloc.core.errors import CalibrationError, InputError
-from tagloc.core.rig import Rig, RigCamera, default_rig, load_rig
+from tagloc.core.rig import Rig, RigCamera, default_rig, load_rig, torso_tilt
 from tagloc.core.stickermap import StickerMap, load_map
 from tagloc.core.types import (
     Detection,
@@ -728,4 +728,11 @@ class Localiser:
             res = self.tracker.update(
                 sol.poses, identity.sticker_id, identity.source, t, self.survey_prior(identity.sticker_id)
             )
+        if res.accepted and res.chosen is not None:
+            # The sticker's plane gives the torso's tilt whatever the map says of the sticker's
+            # place: it anchors every camera's odometry tilt (see tagloc.vision.torso_tilt).
+            tilt = torso_tilt(sol.poses[res.chosen].T_world_camera, rig_cam.T_body_camera)
+            for odo in self._odometry.values():
+                if odo is not None:
+                    odo.anchor_tilt_angles(t, *tilt)
         return Fix(sol.poses, sol.ambiguous, res.accepted, res.reason)

@@ -1,0 +1,124 @@
+"""The torso's absolute pitch and roll between sticker fixes, for the floor odometry's tilt correction.
+
+The floor odometry fits how much the camera's pitch and roll changed between two frames (see
+``OdometryConfig.tilt_correction``) and takes the floor motion that change fakes out of the step.
+Summed over a gap, those corrections add up to the tilt's change since the gap began, so the
+position error they leave is the *lever* (about 1.5-1.9 m of floor per radian at the patch)
+times the error of that summed change. Summed per-frame fits random-walk: each fit is
+~0.3 degrees off (measured against the true vest tilt on simulated walks, which is as large as
+the true per-frame change), so after 5 s the sum is ~5 degrees off, 10-15 cm of floor.
+
+A torso's tilt, though, does not wander: it is a stationary process about upright (the gait's nod
+and sway, the lean into turns and with starting and braking, each gone within a second or so).
+This module keeps the absolute pitch and roll as two independent scalar Kalman filters:
+
+- the process is Ornstein-Uhlenbeck about a prior mean (pitch: 0; roll: the odometry's lean
+  into the turn under way; both plus the operator's own posture, learned from the fixes) with a
+  stationary standard deviation ``sigma`` and correlation time ``tau``;
+- each frame's fitted change is a measurement of ``theta_k - theta_{k-1}`` (the filter carries the
+  previous value alongside for that step);
+- a sticker fix measures the absolute tilt outright (the camera's pose from a sticker gives its
+  pitch and roll to ~0.15 degrees RMS on simulated walks), anchoring the filter.
+
+The odometry then corrects each step by the *filtered* change, so the corrections over a gap add
+up to (estimate - truth) at its end minus the same at its start: bounded by the filter's error
+instead of growing with the square root of the number of frames.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+__all__ = ["TiltAxis", "TorsoTilt"]
+
+
+@dataclass
+class TiltAxis:
+    """One tilt angle's estimate (rad) and variance (rad^2) at time ``t`` (s), about the prior mean
+    ``mean`` (rad) in force then; ``posture``: the operator's own offset, learned from the fixes."""
+
+    sigma: float
+    tau: float
+    t: float | None = None
+    value: float = 0.0
+    var: float = 0.0
+    mean: float = 0.0
+    posture: float = 0.0
+    posture_fixes: int = 0
+
+    def _predicted(self, t: float, mean: float) -> tuple[float, float, float, float]:
+        """(value, var, phi, q) carried from ``self.t`` to ``t`` about the new prior ``mean``."""
+        if self.t is None:
+            return mean + self.posture, self.sigma**2, 0.0, self.sigma**2
+        phi = math.exp(-max(t - self.t, 0.0) / self.tau)
+        q = self.sigma**2 * (1.0 - phi * phi)
+        m0, m1 = self.mean + self.posture, mean + self.posture
+        return m1 + phi * (self.value - m0), phi * phi * self.var + q, phi, q
+
+    def step(self, t: float, mean: float, change: float | None, change_var: float) -> float:
+        """Move to time ``t`` (s) with prior ``mean`` (rad); fuse the measured ``change`` (rad) since
+        the last time (None: none measured) of variance ``change_var``. Returns the estimated
+        change (rad)."""
+        before = self.value if self.t is not None else mean + self.posture
+        v1, p1, phi, _ = self._predicted(t, mean)
+        if change is not None and self.t is not None:
+            # Joint Gaussian of (theta_t, theta_before): cov(theta_t, theta_before) = phi var.
+            c = phi * self.var
+            s = p1 - 2.0 * c + self.var + change_var
+            gain = (p1 - c) / s
+            v1 += gain * (change - (v1 - before))
+            p1 -= gain * (p1 - c)
+        self.t, self.value, self.var, self.mean = t, v1, max(p1, 0.0), mean
+        return v1 - before
+
+    def anchor(self, t: float, mean: float, measured: float, measured_var: float, posture_count: int) -> None:
+        """Fuse an absolute measurement ``measured`` (rad, variance ``measured_var``) at time ``t``;
+        the posture offset averages the first ``posture_count`` fixes' departures from the prior
+        mean, then follows them with that weight (0: no posture offset)."""
+        v1, p1, _, _ = self._predicted(t, mean)
+        gain = p1 / (p1 + measured_var)
+        self.t, self.value, self.var, self.mean = t, v1 + gain * (measured - v1), (1.0 - gain) * p1, mean
+        if posture_count > 0:
+            self.posture_fixes = min(self.posture_fixes + 1, posture_count)
+            self.posture += (measured - mean - self.posture) / self.posture_fixes
+
+
+@dataclass
+class TorsoTilt:
+    """The torso's pitch and roll (rad) off the rig's nominal pose, between and at sticker fixes.
+
+    ``sigma_pitch``, ``sigma_roll``: stationary standard deviations about the prior mean;
+    ``tau``: correlation time (s); ``fit_sigma``: one frame's fitted change; ``anchor_sigma``: a
+    sticker fix's tilt; ``posture_fixes``: how many fixes the operator's posture offset averages.
+    """
+
+    sigma_pitch: float
+    sigma_roll: float
+    tau: float
+    fit_sigma: float
+    anchor_sigma: float
+    posture_fixes: int
+    pitch: TiltAxis = field(init=False)
+    roll: TiltAxis = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.pitch = TiltAxis(self.sigma_pitch, self.tau)
+        self.roll = TiltAxis(self.sigma_roll, self.tau)
+
+    def step(self, t: float, lean_roll: float, d_pitch: float | None, d_roll: float | None) -> tuple[float, float]:
+        """Advance to ``t`` with the lean's roll ``lean_roll`` (rad) as the roll's prior and the
+        fitted changes (rad; None: not fitted). Returns the estimated (pitch, roll) changes."""
+        r = self.fit_sigma**2
+        return self.pitch.step(t, 0.0, d_pitch, r), self.roll.step(t, lean_roll, d_roll, r)
+
+    def anchor(self, t: float, lean_roll: float, pitch: float, roll: float) -> None:
+        """Fuse a sticker fix's measured (pitch, roll) (rad) at time ``t``."""
+        r = self.anchor_sigma**2
+        self.pitch.anchor(t, 0.0, pitch, r, self.posture_fixes)
+        self.roll.anchor(t, lean_roll, roll, r, self.posture_fixes)
+
+    def reset(self) -> None:
+        """Forget the estimate (the posture learned so far is kept)."""
+        for axis in (self.pitch, self.roll):
+            axis.t, axis.value, axis.var, axis.mean = None, 0.0, 0.0, 0.0

@@ -1,0 +1,82 @@
+"""The torso-tilt filter that bounds the floor odometry's tilt correction (tagloc.vision.torso_tilt)."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from tagloc.core.geometry import planar_T
+from tagloc.core.rig import looking_forward, torso_tilt, vest_planar
+from tagloc.vision.torso_tilt import TorsoTilt
+
+
+@pytest.mark.parametrize("pitch_deg, roll_deg, yaw_deg", [(3.0, 0.0, 0.0), (0.0, -4.0, 120.0), (-2.5, 1.5, -70.0)])
+def test_torso_tilt_reads_back_the_tilt_of_the_body(pitch_deg, roll_deg, yaw_deg):
+    T_body_camera = looking_forward(1.3, 55.0)
+    tilt = np.eye(4)
+    tilt[:3, :3] = Rotation.from_euler("xy", [roll_deg, pitch_deg], degrees=True).as_matrix()
+    T_world_body = planar_T(3.0, -1.0, math.radians(yaw_deg)) @ tilt
+    pitch, roll = torso_tilt(T_world_body @ T_body_camera, T_body_camera)
+    # Small tilts compose about x then y nearly independently: within 0.01 degree here.
+    assert math.degrees(pitch) == pytest.approx(pitch_deg, abs=0.01)
+    assert math.degrees(roll) == pytest.approx(roll_deg, abs=0.01)
+    # The heading it is taken in is the one the body point reports.
+    assert math.degrees(vest_planar(T_world_body, np.zeros(3))[2]) == pytest.approx(yaw_deg, abs=0.1)
+
+
+def test_a_positive_pitch_tips_the_front_down():
+    T_body_camera = looking_forward(1.3, 55.0)
+    tilt = np.eye(4)
+    tilt[:3, :3] = Rotation.from_euler("y", 5.0, degrees=True).as_matrix()
+    front = tilt[:3, :3] @ np.array([1.0, 0.0, 0.0])
+    assert front[2] < 0
+    assert torso_tilt(tilt @ T_body_camera, T_body_camera)[0] > 0
+
+
+def _walk(seed: int, n: int, sigma: float, tau: float, dt: float, fit_sigma: float):
+    """A stationary (OU) tilt sequence (n,) and its noisy per-frame fitted changes (n,)."""
+    rng = np.random.default_rng(seed)
+    phi = math.exp(-dt / tau)
+    theta = np.zeros(n)
+    theta[0] = rng.normal(0.0, sigma)
+    for k in range(1, n):
+        theta[k] = phi * theta[k - 1] + rng.normal(0.0, sigma * math.sqrt(1 - phi * phi))
+    fits = np.r_[0.0, np.diff(theta)] + rng.normal(0.0, fit_sigma, n)
+    return theta, fits
+
+
+def test_filtered_changes_stay_bounded_where_summed_fits_random_walk():
+    sigma, tau, dt, fit_sigma = math.radians(3.0), 1.0, 1 / 30, math.radians(0.3)
+    raw_err, filt_err = [], []
+    for seed in range(40):
+        theta, fits = _walk(seed, 150, sigma, tau, dt, fit_sigma)
+        f = TorsoTilt(sigma, math.radians(1.0), tau, fit_sigma, math.radians(0.3), 0)
+        f.anchor(0.0, 0.0, float(theta[0]), 0.0)  # a fix sees the tilt at the start (to 0.3 degrees)
+        start, total = f.pitch.value, 0.0
+        for k in range(1, len(theta)):
+            d_pitch, _ = f.step(k * dt, 0.0, float(fits[k]), None)
+            total += d_pitch
+            assert math.isfinite(d_pitch) and f.pitch.var > 0
+        # The changes telescope: their sum is exactly the estimate's move since the anchor.
+        assert total == pytest.approx(f.pitch.value - start, abs=1e-12)
+        raw_err.append(theta[0] + fits[1:].sum() - theta[-1])
+        filt_err.append(start + total - theta[-1])
+    raw, filt = (math.degrees(float(np.sqrt(np.mean(np.square(e))))) for e in (raw_err, filt_err))
+    # After 5 s the summed fits are ~0.3 * sqrt(149) = 3.7 degrees off; the filter's error stays
+    # below the prior's 3 degrees (measured: raw 4.3, filtered 1.7 degrees RMS over 40 walks).
+    assert raw > 3.0 and filt < 0.8 * raw and filt < 3.0, (raw, filt)
+
+
+def test_an_anchor_pulls_the_estimate_to_the_fix_and_learns_the_posture():
+    f = TorsoTilt(math.radians(3.0), math.radians(1.0), 1.0, math.radians(0.3), math.radians(0.3), 3)
+    for k in range(3):
+        f.anchor(0.1 * k, 0.0, math.radians(2.0), math.radians(-1.0))
+    # Three fixes of a vest worn 2 degrees forward: the estimate is there, and so is the posture
+    # the prior now decays to.
+    assert math.degrees(f.pitch.value) == pytest.approx(2.0, abs=0.05)
+    assert math.degrees(f.pitch.posture) == pytest.approx(2.0, abs=1e-9)
+    assert math.degrees(f.roll.posture) == pytest.approx(-1.0, abs=1e-9)
+    f.step(100.0, 0.0, None, None)  # long after, with nothing measured
+    assert math.degrees(f.pitch.value) == pytest.approx(2.0, abs=1e-6)
+    assert math.degrees(math.sqrt(f.pitch.var)) == pytest.approx(3.0, rel=1e-6)
