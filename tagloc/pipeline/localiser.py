@@ -663,19 +663,22 @@ class Localiser:
             if go_on is not None and not go_on():
                 break
             ran += 1
-            timer = StageTimer()  # the frame is published: its times are not added to
+            timer = StageTimer()  # not reported: the frame's result is already out
             read = read_sticker(gray, det, rig_cam.camera, self.map, self.config.decoder)
             identity = read.identity
             if identity is not None or read.unmapped_id is not None:
                 count_read(self.counts, read)
             if identity is None and read.unmapped_id is None and self.config.identify != "off":
                 identity = self._identify(gray, det, rig_cam, timer)
+            if identity is None and read.unmapped_id is None:
+                continue
+            # Named after all (or read as an unmapped sticker): not a failed read (see process).
+            self._failed = [f for f in self._failed if not (f.t == t and np.array_equal(f.outer, det.outer))]
             if identity is None:
                 continue
             self.counts["deferred_named"] += 1
             fix = self._fix(det, identity, rig_cam, t, timer)
-            # Named after all: no longer a failed read; decoded and accepted: tracked (see _track).
-            self._failed = [f for f in self._failed if not (f.t == t and np.array_equal(f.outer, det.outer))]
+            # Decoded and accepted: carried into the next frame (see _track).
             if identity.source == IdSource.DECODED and fix.accepted is True:
                 self._tracked.append(Tracked(det.outer.copy(), identity, camera, t, 0))
         self.counts["lsq_deferred"] += ran
