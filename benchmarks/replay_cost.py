@@ -198,6 +198,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--skip-aruco", action="store_true", help="no whole-process replay/ArUco comparison")
     p.add_argument("--live", action="store_true", help="also measure the live loop's latency")
     p.add_argument("--pipeline-only", action="store_true", help="only the per-frame pipeline cost")
+    p.add_argument("--live-only", action="store_true", help="only the live loop's latency (implies --live)")
     p.add_argument(
         "--startup-breakdown",
         action="store_true",
@@ -211,6 +212,10 @@ def main(argv: list[str] | None = None) -> int:
     cv2.setNumThreads(1)
     out: dict = {"session": str(args.session), "core": core}
 
+    if args.live_only:
+        _live(args, out)
+        _write(args.json, out)
+        return 0
     pc = pipeline_cost(args.session, args.repeat)
     runs = pc["runs"]
     print(
@@ -273,20 +278,25 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{'ratio replay / ArUco':<28} {_spread(ratio)}")
 
     if args.live:
-        print("\nLive loop on raw frames from memory at the session rate, latency grab to publication:")
-        out["live"] = {}
-        for defer in (True, False):  # live's default first
-            name = "least-squares decodes deferred" if defer else "every decode in its frame"
-            lats = [live_latency(args.session, defer) for _ in range(args.repeat)]
-            out["live"][name] = lats
-            print(
-                f"  {name:<32} median {_spread([x['median_ms'] for x in lats])} ms, p99 "
-                f"{_spread([x['p99_ms'] for x in lats])} ms, max {_spread([x['max_ms'] for x in lats])} ms; "
-                f"{lats[0]['frames']} frames, {lats[0]['dropped']} dropped, {lats[0]['fixes']} fixes, "
-                f"{lats[0]['lsq_deferred']} deferred decodes, {lats[0]['deferred_named']} of them named"
-            )
+        _live(args, out)
     _write(args.json, out)
     return 0
+
+
+def _live(args: argparse.Namespace, out: dict) -> None:
+    """The live loop's latency, as live runs and with every decode in its frame, into ``out``."""
+    print("\nLive loop on raw frames from memory at the session rate, latency grab to publication:")
+    out["live"] = {}
+    for defer in (True, False):  # live's default first
+        name = "least-squares decodes deferred" if defer else "every decode in its frame"
+        lats = [live_latency(args.session, defer) for _ in range(args.repeat)]
+        out["live"][name] = lats
+        print(
+            f"  {name:<32} median {_spread([x['median_ms'] for x in lats])} ms, p99 "
+            f"{_spread([x['p99_ms'] for x in lats])} ms, max {_spread([x['max_ms'] for x in lats])} ms; "
+            f"{lats[0]['frames']} frames, {lats[0]['dropped']} dropped, {lats[0]['fixes']} fixes, "
+            f"{lats[0]['lsq_deferred']} deferred decodes, {lats[0]['deferred_named']} of them named"
+        )
 
 
 def _write(path: Path | None, out: dict) -> None:
