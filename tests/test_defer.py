@@ -49,6 +49,7 @@ def test_deferred_work_leaves_the_tracker_where_the_frame_would_have():
     assert l0.observations[0].identity is None and live.counts["identified"] == 0  # put off
     assert live.deferred_work() == 1
     assert live.counts["deferred_named"] == 1 and live.counts["decoded"] == replay.counts["decoded"] == 1
+    assert live.counts["deferred_fixes"] == int(r0.observations[0].accepted is True)
     r1 = replay.process(Frame(1, 1 / 30, img))
     l1 = live.process(Frame(1, 1 / 30, img))
     assert [o.identity for o in l1.observations] == [o.identity for o in r1.observations]

@@ -327,12 +327,16 @@ class _LiveRun:
                 writer.write(frame.index, frame.timestamp, frame.image, frame.camera)
             result = self.localiser.process(frame)
             self.latencies.append(outputs.emit(result, frame, grabbed=item.grabbed))
+            self.fixes += sum(o.accepted is True for o in result.observations)
             deferred = getattr(self.localiser, "deferred_work", None)
             if deferred is not None:
-                # Published: the work the frame put off runs now, while no next frame is waiting.
+                # Published: the work the frame put off runs now, while no next frame is waiting
+                # (its fixes count with the run's, though its frame went out without them).
+                counts = getattr(self.localiser, "counts", {})
+                before = counts.get("deferred_fixes", 0)
                 deferred(self._no_frame_waiting)
+                self.fixes += counts.get("deferred_fixes", 0) - before
             self.frames += 1
-            self.fixes += sum(o.accepted is True for o in result.observations)
             self.state = result.output.state.value
             if self.bag is not None:
                 self.bag.write_frame(frame, result)

@@ -394,6 +394,7 @@ class Localiser:
         self.counts["lsq_skipped"] = 0  # decodes without the least-squares stage (failed there just before)
         self.counts["lsq_deferred"] = 0  # least-squares decodes run after their frame (defer_lsq)
         self.counts["deferred_named"] = 0  # of those detections, named then (decoded or identified)
+        self.counts["deferred_fixes"] = 0  # and of those, fixes the tracker accepted
         self._pending: list[tuple] = []  # this frame's deferred least-squares decodes (defer_lsq)
         self._failed: list[FailedRead] = []  # detections of the previous frame nothing named
         self._tracked: list[Tracked] = []  # decoded stickers of the previous frame whose fixes were accepted
@@ -678,6 +679,7 @@ class Localiser:
                 continue
             self.counts["deferred_named"] += 1
             fix = self._fix(det, identity, rig_cam, t, timer)
+            self.counts["deferred_fixes"] += fix.accepted is True
             # Decoded and accepted: carried into the next frame (see _track).
             if identity.source == IdSource.DECODED and fix.accepted is True:
                 self._tracked.append(Tracked(det.outer.copy(), identity, camera, t, 0))
