@@ -206,7 +206,9 @@ class OdometryConfig:
     the camera's measured tilt (``tilt_anchor_sigma``: 0.15 deg RMS measured on simulated walks,
     0.45 deg at the 99th percentile), and the operator's own posture (a vest worn tipped) is
     learned as the mean of the fixes' tilts (``tilt_posture_fixes``: averaged over the first 300,
-    ~30 s of fixes, then followed with that weight). Offline on s04 and s00 (anchored at the true
+    ~30 s of fixes, then followed with that weight, and shrunk towards upright as if 30 upright
+    fixes had come first, so that one odd fix cannot set it). ``tilt_gate_reset``: see
+    ``LocaliserConfig.tilt_gate_chi2`` (3 fixes, a tenth of a second of a sticker in view). Offline on s04 and s00 (anchored at the true
     tilt, as a fix does), the forward error summed over 5 s fell from 14.9 / 7.0 cm (raw fits) to
     7.1 / 7.1 cm, and over 1-2 s stayed at 4.8-6.6 / 3.5-4.7 cm.
 
@@ -272,6 +274,7 @@ class OdometryConfig:
     tilt_fit_sigma: float = math.radians(0.3)
     tilt_anchor_sigma: float = math.radians(0.3)
     tilt_posture_fixes: int = 300
+    tilt_gate_reset: int = 3
     tilt_iterations: int = 2
     tilt_grid: int = 6
     homography_point_sigma_m: float = 0.002
@@ -522,6 +525,7 @@ class FloorOdometry:
         self._tilt_rays = np.column_stack([f1 - c[:2], np.full(len(f1), -c[2])])
         rs = cfg.rolling_shutter and rig_camera.readout_s > 0
         self._rs = self._rolling_shutter_grid(n, ss, T_cb) if rs else None
+        self.tilt_gated_in_row = 0  # sticker fixes refused by the tilt gate in a row (see tilt_gate_result)
         self._torso = (
             TorsoTilt(
                 cfg.tilt_sigma_pitch,
@@ -611,6 +615,23 @@ class FloorOdometry:
         (4, 4): any rig camera's pose, with its own ``T_body_camera``, gives the same torso tilt; pass
         this odometry's camera pose or use :meth:`anchor_tilt_angles`)."""
         self.anchor_tilt_angles(t, *torso_tilt(T_world_camera, self.rig_camera.T_body_camera))
+
+    def tilt_consistent(self, t: float, T_world_camera: np.ndarray, chi2: float) -> tuple[bool, float]:
+        """Whether a camera pose ``T_world_camera`` (4, 4) of this odometry's camera, measured at
+        ``t``, tilts the torso as the filtered tilt expects (see :meth:`TorsoTilt.consistent`);
+        always True without the filter."""
+        if self._torso is None:
+            return True, 0.0
+        pitch, roll = torso_tilt(T_world_camera, self.rig_camera.T_body_camera)
+        return self._torso.consistent(float(t), self._lean_roll(t), pitch, roll, chi2)
+
+    def tilt_gate_result(self, passed: bool) -> None:
+        """Count fixes refused by the tilt gate in a row; after ``tilt_gate_reset`` of them the tilt
+        estimate is forgotten (``tilt_gated_in_row`` back to 0)."""
+        self.tilt_gated_in_row = 0 if passed else self.tilt_gated_in_row + 1
+        if self.tilt_gated_in_row >= self.config.tilt_gate_reset and self._torso is not None:
+            self._torso.reset()
+            self.tilt_gated_in_row = 0
 
     def anchor_tilt_angles(self, t: float, pitch: float, roll: float) -> None:
         """Fuse a measured torso (pitch, roll) (rad) at time ``t`` (see :mod:`tagloc.vision.torso_tilt`)."""
