@@ -407,3 +407,40 @@ def test_lean_into_a_turn_does_not_shrink_the_turn(turn_deg):
     assert forward[False] > 0.047
     assert forward[True] == pytest.approx(0.0433, abs=0.002)
     assert abs(ratios[True] - 1.0) < 0.03  # 1.001-1.020 measured
+
+
+def test_a_weak_match_is_kept_with_a_larger_covariance(monkeypatch):
+    """A match whose ECC correlation falls between ``weak_ecc`` and ``min_ecc`` (heavy blur) is kept
+    with ``weak_ecc_cov_scale`` times the covariance; below ``weak_ecc`` it is refused."""
+    from tagloc.core.geometry import planar_T
+    from tagloc.core.stickermap import StickerMap
+    from tagloc.sim.floor import Floor, FloorConfig
+    from tagloc.sim.simulate import render_view
+
+    rc = rig_camera(55.0)
+    floor = Floor(StickerMap(np.array([1]), np.array([[50.0, 50.0]]), np.array([0.0])), FloorConfig(), seed=4)
+    poses = [planar_T(2.0, 1.0, 0.4), planar_T(2.0, 1.0, 0.4) @ planar_T(0.04, 0.0, 0.0)]
+    imgs = [render_view(floor, rc.camera, T @ rc.T_body_camera, lux=200, seed=k).image for k, T in enumerate(poses)]
+
+    def steps(rho: float, **cfg):
+        real = cv2.findTransformECC
+
+        def weak(*args):
+            _, W = real(*args)
+            return rho, W
+
+        monkeypatch.setattr(cv2, "findTransformECC", weak)
+        odo = FloorOdometry(rc, OdometryConfig(**cfg))
+        odo.measure(imgs[0], 0.0)
+        step = odo.measure(imgs[1], 1 / FPS)
+        monkeypatch.setattr(cv2, "findTransformECC", real)
+        return odo, step
+
+    odo, strong = steps(0.9)
+    _, weak = steps(0.27)
+    assert strong is not None and weak is not None
+    assert np.allclose(weak.delta, strong.delta)
+    assert np.allclose(weak.cov, 4.0 * odo.covariance(weak.delta))
+    assert np.allclose(strong.cov, odo.covariance(strong.delta))
+    assert steps(0.27, weak_ecc=0.3)[1] is None
+    assert steps(0.2)[1] is None

@@ -69,7 +69,7 @@ def test_filtered_changes_stay_bounded_where_summed_fits_random_walk():
 
 
 def test_an_anchor_pulls_the_estimate_to_the_fix_and_learns_the_posture():
-    f = TorsoTilt(math.radians(3.0), math.radians(1.0), 1.0, math.radians(0.3), math.radians(0.3), 3)
+    f = TorsoTilt(math.radians(3.0), math.radians(1.0), 1.0, math.radians(0.3), math.radians(0.3), 3, 0)
     for k in range(3):
         f.anchor(0.1 * k, 0.0, math.radians(2.0), math.radians(-1.0))
     # Three fixes of a vest worn 2 degrees forward: the estimate is there, and so is the posture
@@ -80,3 +80,40 @@ def test_an_anchor_pulls_the_estimate_to_the_fix_and_learns_the_posture():
     f.step(100.0, 0.0, None, None)  # long after, with nothing measured
     assert math.degrees(f.pitch.value) == pytest.approx(2.0, abs=1e-6)
     assert math.degrees(math.sqrt(f.pitch.var)) == pytest.approx(3.0, rel=1e-6)
+
+
+def test_one_odd_fix_cannot_set_the_posture():
+    f = TorsoTilt(math.radians(3.0), math.radians(1.0), 1.0, math.radians(0.3), math.radians(0.3), 300, 30)
+    f.anchor(0.0, 0.0, math.radians(6.0), 0.0)
+    assert math.degrees(f.pitch.posture) == pytest.approx(6.0 / 31, abs=1e-9)
+
+
+def test_the_tilt_gate_keeps_the_upright_solution_and_recovers_from_a_bad_anchor():
+    """A pose solution whose camera tilts the torso far from the filtered tilt is dropped (the planar
+    pose's other branch, a sheared or clipped sticker); after ``tilt_gate_reset`` refusals in a row
+    the filter is forgotten and the prior alone judges."""
+    from tagloc.core.rig import default_rig
+    from tagloc.core.stickermap import StickerMap
+    from tagloc.core.types import PoseFix
+    from tagloc.pipeline.localiser import Localiser
+
+    rig = default_rig()
+    loc = Localiser(StickerMap(np.array([1]), np.array([[0.0, 0.0]]), np.array([0.0])), rig)
+    odo = loc.floor_odometry(0)
+    Tbc = rig[0].T_body_camera
+
+    def pose(pitch_deg: float) -> PoseFix:
+        tilt = np.eye(4)
+        tilt[:3, :3] = Rotation.from_euler("y", pitch_deg, degrees=True).as_matrix()
+        return PoseFix(planar_T(1.0, 2.0, 0.3) @ tilt @ Tbc, np.zeros(3), np.eye(3) * 1e-4, 0.2)
+
+    upright, tipped = pose(0.5), pose(7.0)
+    odo.anchor_tilt_angles(0.0, 0.0, 0.0)  # a fix saw the torso upright
+    assert loc._tilt_gate([upright, tipped], rig[0], 0.05) == [upright]
+    assert loc._tilt_gate([tipped], rig[0], 0.1) == []
+    assert loc._tilt_gate([tipped], rig[0], 0.15) == []
+    # The third refusal in a row: the anchor may have been the bad one, so the prior judges (7 deg
+    # is within its 3 deg sigma's gate) and the fix goes through.
+    assert loc._tilt_gate([tipped], rig[0], 0.2) == [tipped]
+    # Against the prior alone, an implausible tilt (12 deg) is still refused.
+    assert loc._tilt_gate([pose(12.0)], rig[0], 0.25) == []

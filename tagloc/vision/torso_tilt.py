@@ -72,16 +72,19 @@ class TiltAxis:
         self.t, self.value, self.var, self.mean = t, v1, max(p1, 0.0), mean
         return v1 - before
 
-    def anchor(self, t: float, mean: float, measured: float, measured_var: float, posture_count: int) -> None:
+    def anchor(
+        self, t: float, mean: float, measured: float, measured_var: float, posture_count: int, posture_prior: int
+    ) -> None:
         """Fuse an absolute measurement ``measured`` (rad, variance ``measured_var``) at time ``t``;
-        the posture offset averages the first ``posture_count`` fixes' departures from the prior
-        mean, then follows them with that weight (0: no posture offset)."""
+        the posture offset averages the fixes' departures from the prior mean, shrunk towards 0
+        as if ``posture_prior`` upright fixes came first, over the last ``posture_count`` or so
+        (0: no posture offset)."""
         v1, p1, _, _ = self._predicted(t, mean)
         gain = p1 / (p1 + measured_var)
         self.t, self.value, self.var, self.mean = t, v1 + gain * (measured - v1), (1.0 - gain) * p1, mean
         if posture_count > 0:
             self.posture_fixes = min(self.posture_fixes + 1, posture_count)
-            self.posture += (measured - mean - self.posture) / self.posture_fixes
+            self.posture += (measured - mean - self.posture) / (self.posture_fixes + posture_prior)
 
 
 @dataclass
@@ -90,7 +93,8 @@ class TorsoTilt:
 
     ``sigma_pitch``, ``sigma_roll``: stationary standard deviations about the prior mean;
     ``tau``: correlation time (s); ``fit_sigma``: one frame's fitted change; ``anchor_sigma``: a
-    sticker fix's tilt; ``posture_fixes``: how many fixes the operator's posture offset averages.
+    sticker fix's tilt; ``posture_fixes``: how many fixes the operator's posture offset averages,
+    ``posture_prior``: as if that many upright fixes came first (one odd fix cannot set it).
     """
 
     sigma_pitch: float
@@ -99,6 +103,7 @@ class TorsoTilt:
     fit_sigma: float
     anchor_sigma: float
     posture_fixes: int
+    posture_prior: int = 30
     pitch: TiltAxis = field(init=False)
     roll: TiltAxis = field(init=False)
 
@@ -112,11 +117,27 @@ class TorsoTilt:
         r = self.fit_sigma**2
         return self.pitch.step(t, 0.0, d_pitch, r), self.roll.step(t, lean_roll, d_roll, r)
 
+    def predict(self, t: float, lean_roll: float) -> tuple[float, float, float, float]:
+        """The expected (pitch, roll) (rad) at time ``t`` and their variances (rad^2), without
+        changing the estimate (before the first step or anchor: the prior)."""
+        p, vp, _, _ = self.pitch._predicted(t, 0.0)
+        r, vr, _, _ = self.roll._predicted(t, lean_roll)
+        return p, r, vp, vr
+
+    def consistent(self, t: float, lean_roll: float, pitch: float, roll: float, chi2: float) -> tuple[bool, float]:
+        """Whether a measured (pitch, roll) (rad) at ``t`` is within ``chi2`` (squared Mahalanobis
+        distance, 2 DoF) of the prediction, counting the measurement's own ``anchor_sigma``; and
+        the distance."""
+        p, r, vp, vr = self.predict(t, lean_roll)
+        m = self.anchor_sigma**2
+        d2 = (pitch - p) ** 2 / (vp + m) + (roll - r) ** 2 / (vr + m)
+        return d2 <= chi2, d2
+
     def anchor(self, t: float, lean_roll: float, pitch: float, roll: float) -> None:
         """Fuse a sticker fix's measured (pitch, roll) (rad) at time ``t``."""
         r = self.anchor_sigma**2
-        self.pitch.anchor(t, 0.0, pitch, r, self.posture_fixes)
-        self.roll.anchor(t, lean_roll, roll, r, self.posture_fixes)
+        self.pitch.anchor(t, 0.0, pitch, r, self.posture_fixes, self.posture_prior)
+        self.roll.anchor(t, lean_roll, roll, r, self.posture_fixes, self.posture_prior)
 
     def reset(self) -> None:
         """Forget the estimate (the posture learned so far is kept)."""
