@@ -15,7 +15,9 @@ OpenCV on one thread:
    and runs ``cv2.aruco.ArucoDetector.detectMarkers`` on each, alternated ``--repeat`` times;
    their CPU times and ratio.
 4. With ``--live``: ``tagloc live``'s loop on the frames decoded ahead into memory, played at the
-   session's rate, each result written to the JSON-lines frame log: grab-to-publication latency.
+   session's rate, each result written to the JSON-lines frame log: grab-to-publication latency,
+   as live runs (least-squares decodes after the frame is published, ``LocaliserConfig.defer_lsq``)
+   and with every decode inside its frame (as a replay does).
 
 Example::
 
@@ -142,8 +144,9 @@ def pipeline_cost(session: Path, repeat: int) -> dict:
     return {"runs": runs, "frames": len(frames)}
 
 
-def live_latency(session: Path) -> dict:
-    """``tagloc live`` on the session's frames decoded ahead into memory, at the session's rate."""
+def live_latency(session: Path, defer_lsq: bool = True) -> dict:
+    """``tagloc live`` on the session's frames decoded ahead into memory, at the session's rate
+    (``defer_lsq``: live's default; False: every decode inside its frame, as a replay does)."""
     import tagloc.apps.live as live
     from tagloc.io.capture import FrameSource
     from tagloc.io.session import SessionReader
@@ -166,14 +169,19 @@ def live_latency(session: Path) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         # Published as JSON lines to a file: a network sink would need a receiver here (tagloc
         # itself never listens), and UDP to a closed port now counts every message as refused.
-        cfg = live.LiveConfig(source="memory", config_dir=session, log=Path(tmp) / "frames.jsonl")
-        summary = live.run_live(cfg, source=MemorySource())
+        cfg = live.LiveConfig(source="memory", config_dir=session, log=Path(tmp) / "frames.jsonl", defer_lsq=defer_lsq)
+        loc = live._make_localiser(cfg)
+        summary = live.run_live(cfg, localiser=loc, source=MemorySource())
+    counts = loc.stats()
     return {
         "frames": summary.frames,
         "dropped": summary.capture.dropped,
         "median_ms": summary.latency(50),
         "p99_ms": summary.latency(99),
         "max_ms": float(np.max(summary.latency_ms)) if len(summary.latency_ms) else float("nan"),
+        "fixes": summary.fixes,
+        "lsq_deferred": counts.get("lsq_deferred", 0),
+        "deferred_named": counts.get("deferred_named", 0),
     }
 
 
@@ -190,6 +198,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--skip-aruco", action="store_true", help="no whole-process replay/ArUco comparison")
     p.add_argument("--live", action="store_true", help="also measure the live loop's latency")
     p.add_argument("--pipeline-only", action="store_true", help="only the per-frame pipeline cost")
+    p.add_argument("--live-only", action="store_true", help="only the live loop's latency (implies --live)")
     p.add_argument(
         "--startup-breakdown",
         action="store_true",
@@ -203,6 +212,10 @@ def main(argv: list[str] | None = None) -> int:
     cv2.setNumThreads(1)
     out: dict = {"session": str(args.session), "core": core}
 
+    if args.live_only:
+        _live(args, out)
+        _write(args.json, out)
+        return 0
     pc = pipeline_cost(args.session, args.repeat)
     runs = pc["runs"]
     print(
@@ -265,15 +278,25 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{'ratio replay / ArUco':<28} {_spread(ratio)}")
 
     if args.live:
-        lat = live_latency(args.session)
-        out["live"] = lat
-        print(
-            f"\nLive loop on raw frames from memory at the session rate: {lat['frames']} frames, {lat['dropped']} "
-            f"dropped; latency grab to publication median {lat['median_ms']:.1f} ms, p99 {lat['p99_ms']:.1f} ms, "
-            f"max {lat['max_ms']:.1f} ms"
-        )
+        _live(args, out)
     _write(args.json, out)
     return 0
+
+
+def _live(args: argparse.Namespace, out: dict) -> None:
+    """The live loop's latency, as live runs and with every decode in its frame, into ``out``."""
+    print("\nLive loop on raw frames from memory at the session rate, latency grab to publication:")
+    out["live"] = {}
+    for defer in (True, False):  # live's default first
+        name = "least-squares decodes deferred" if defer else "every decode in its frame"
+        lats = [live_latency(args.session, defer) for _ in range(args.repeat)]
+        out["live"][name] = lats
+        print(
+            f"  {name:<32} median {_spread([x['median_ms'] for x in lats])} ms, p99 "
+            f"{_spread([x['p99_ms'] for x in lats])} ms, max {_spread([x['max_ms'] for x in lats])} ms; "
+            f"{lats[0]['frames']} frames, {lats[0]['dropped']} dropped, {lats[0]['fixes']} fixes, "
+            f"{lats[0]['lsq_deferred']} deferred decodes, {lats[0]['deferred_named']} of them named"
+        )
 
 
 def _write(path: Path | None, out: dict) -> None:

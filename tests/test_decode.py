@@ -361,3 +361,13 @@ def test_lsq_stage_reads_noisy_simulator_frames():
         if b.sticker_id is not None and a.sticker_id is None:
             assert b.stage == "lsq" and b.verify_score > 0.5
     assert lsq >= 5 and lsq >= base + 2, (base, lsq)
+
+
+def test_symbols_rendered_in_a_batch_are_those_rendered_one_by_one():
+    from tagloc.vision.decode.grid import clean_symbol, clean_symbols
+
+    bits = np.random.default_rng(2).random((20, 10, 10)) < 0.5
+    batch = clean_symbols(bits)
+    assert batch.shape == (20, 56, 56) and batch.dtype == np.uint8 and batch[0].flags.c_contiguous
+    for b, img in zip(bits, batch):
+        np.testing.assert_array_equal(img, clean_symbol(b))

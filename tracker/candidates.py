@@ -107,6 +107,26 @@ def _key(rc: RigCamera, cfg: CandidateConfig) -> bytes:
     )
 
 
+_BORDER_RAYS: dict[bytes, np.ndarray] = {}
+
+
+def _border_rays(cam) -> np.ndarray:
+    """(3, M) camera-frame rays (z = 1) through the image border, cached per intrinsics: the tracker
+    hands :func:`footprint` a new, leaned camera pose each frame (``Tracker.leaned_camera``), which
+    misses the footprint's own cache, but the rays through the border stay the camera's."""
+    key = cam.K.tobytes() + cam.dist.tobytes() + np.array([cam.width, cam.height], float).tobytes()
+    rays = _BORDER_RAYS.get(key)
+    if rays is None:
+        w, h = cam.width - 1.0, cam.height - 1.0
+        s = np.linspace(0.0, 1.0, 17)
+        border = np.vstack(
+            [np.c_[s * w, 0 * s], np.c_[w + 0 * s, s * h], np.c_[(1 - s) * w, h + 0 * s], np.c_[0 * s, (1 - s) * h]]
+        )
+        norm = cv2.undistortPoints(border.reshape(-1, 1, 2), cam.K, cam.dist).reshape(-1, 2)
+        rays = _BORDER_RAYS[key] = np.c_[norm, np.ones(len(norm))].T
+    return rays
+
+
 def footprint(rig_camera: RigCamera, config: CandidateConfig | None = None) -> Footprint:
     """Floor footprint of ``rig_camera`` in the body frame (cached per rig camera and settings)."""
     cfg = config or CandidateConfig()
@@ -114,14 +134,7 @@ def footprint(rig_camera: RigCamera, config: CandidateConfig | None = None) -> F
     hit = _FOOTPRINTS.get(id(rig_camera))
     if hit is not None and hit[0] == key:
         return hit[1]
-    cam = rig_camera.camera
-    w, h = cam.width - 1.0, cam.height - 1.0
-    s = np.linspace(0.0, 1.0, 17)
-    border = np.vstack(
-        [np.c_[s * w, 0 * s], np.c_[w + 0 * s, s * h], np.c_[(1 - s) * w, h + 0 * s], np.c_[0 * s, (1 - s) * h]]
-    )
-    norm = cv2.undistortPoints(border.reshape(-1, 1, 2), cam.K, cam.dist).reshape(-1, 2)
-    rays = rig_camera.T_body_camera[:3, :3] @ np.c_[norm, np.ones(len(norm))].T  # (3, M), body
+    rays = rig_camera.T_body_camera[:3, :3] @ _border_rays(rig_camera.camera)  # (3, M), body
     origin = rig_camera.T_body_camera[:3, 3]
     horiz = np.hypot(rays[0], rays[1])
     # Distance along the floor to where each ray meets it; rays at or above the horizon never do.

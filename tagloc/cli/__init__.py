@@ -17,17 +17,27 @@ from tagloc import __version__
 from tagloc.core.errors import TaglocError
 
 
-def _command_modules() -> list:
-    mods = [importlib.import_module(f"{__name__}.{m.name}") for m in pkgutil.iter_modules(__path__)]
+def _command_modules(only: str | None = None) -> list:
+    """The command modules, by NAME; with ``only``, just the module of that command if there is one
+    (a command's module is its name with '-' as '_')."""
+    names = [m.name for m in pkgutil.iter_modules(__path__)]
+    if only is not None:
+        name = only.replace("-", "_")
+        if name in names:
+            mod = importlib.import_module(f"{__name__}.{name}")
+            if getattr(mod, "NAME", None) == only:
+                return [mod]
+    mods = [importlib.import_module(f"{__name__}.{n}") for n in names]
     return sorted((m for m in mods if hasattr(m, "NAME")), key=lambda m: m.NAME)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser with every subcommand."""
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The argument parser with every subcommand, or only ``command``'s when it names one (what a
+    run of that command needs: building all of them imports and sets up every command module)."""
     parser = argparse.ArgumentParser(prog="tagloc", description="Localise a person from warehouse floor stickers.")
     parser.add_argument("--version", action="version", version=f"tagloc {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for mod in _command_modules():
+    for mod in _command_modules(command):
         p = sub.add_parser(
             mod.NAME,
             help=mod.HELP,
@@ -41,7 +51,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``tagloc`` console script."""
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    # The command is the first argument when it does not start with '-' (the top level takes only
+    # options of its own that end the run: --help, --version).
+    parser = build_parser(argv[0] if argv and not argv[0].startswith("-") else None)
     args = parser.parse_args(argv)
     if not getattr(args, "_run", None):
         parser.print_help()

@@ -486,6 +486,11 @@ class CaptureThread:
         """Wait until the reader has reached the end of the source (frames may still be buffered)."""
         self._thread.join(timeout)
 
+    def has_frame(self) -> bool:
+        """Whether a frame is buffered, waiting for :meth:`get`."""
+        with self._cond:
+            return bool(self._buf)
+
     @property
     def finished(self) -> bool:
         """True once the source is exhausted and the buffer empty."""
@@ -572,6 +577,10 @@ class MultiCapture:
             if timeout is not None and waited >= timeout:
                 return None
             time.sleep(0.001)
+
+    def has_frame(self) -> bool:
+        """Whether any camera has a frame waiting."""
+        return any(p is not None for p in self._pending) or any(t.has_frame() for t in self.threads)
 
     @property
     def finished(self) -> bool:

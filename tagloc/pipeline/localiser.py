@@ -93,6 +93,14 @@ class LocaliserConfig:
             move each sticker's corners to the frame's time with the body's motion (this frame's
             odometry step, else the tracker's prediction) before solving its pose; the odometry's
             own correction is ``odometry_config.rolling_shutter``.
+        defer_lsq: (``tagloc live``) a detection that the quick decoding stages (zxing, grid
+            sampling) leave unread is not sent through the least-squares stage (~6-11 ms), nor
+            identified, within the frame: that work is done after the frame's result is published
+            (:meth:`Localiser.deferred_work`, in the wait for the next frame), exactly as the frame
+            would have done it, and its fix goes to the tracker at the frame's time, before the
+            next frame. Only the published pose of that one frame lacks the fix; the slowest stage
+            leaves the frame's latency. Off for a replay (no wait between frames): results as
+            before. Only with the "zxing" decoder (the stage belongs to it).
         tilt_gate_chi2: a pose solution whose camera tilts the torso further from the odometry's
             filtered tilt than this squared Mahalanobis distance (2 DoF) is dropped before the
             tracker sees it, and a fix with no solution left is refused (counted as
@@ -121,6 +129,7 @@ class LocaliserConfig:
     tracking: TrackingConfig = field(default_factory=lambda: TrackingConfig())
     pose: PoseConfig = field(default_factory=PoseConfig)
     rolling_shutter: bool = True
+    defer_lsq: bool = False
     tilt_gate_chi2: float = 13.8
 
 
@@ -398,6 +407,10 @@ class Localiser:
         self.counts["tracked"] = 0  # detections whose identity came from sticker tracking, not a decode
         self.counts["reverified"] = 0  # of those, re-checked by module correlation when due a re-decode
         self.counts["lsq_skipped"] = 0  # decodes without the least-squares stage (failed there just before)
+        self.counts["lsq_deferred"] = 0  # least-squares decodes run after their frame (defer_lsq)
+        self.counts["deferred_named"] = 0  # of those detections, named then (decoded or identified)
+        self.counts["deferred_fixes"] = 0  # and of those, fixes the tracker accepted
+        self._pending: list[tuple] = []  # this frame's deferred least-squares decodes (defer_lsq)
         self._failed: list[FailedRead] = []  # detections of the previous frame nothing named
         self._tracked: list[Tracked] = []  # decoded stickers of the previous frame whose fixes were accepted
         self.counts.update(refused_timestamps=0, clock_resets=0, wrong_size_frames=0)
@@ -437,6 +450,9 @@ class Localiser:
             return FrameResult(frame.index, t, [], out, timer.finish(), frame.error or "unreadable", frame)
         gray = as_gray(frame.image)
         rig_cam = self.rig[frame.camera]
+        # Deferred decodes not run before this frame are dropped (the detection, still unread here,
+        # queues its decode again).
+        self._pending = []
         if self.config.odometry:
             # This camera's step since its previous frame: the tracker fuses it against its clone of
             # the pose there (tracker.clones), whatever other cameras' frames came in between.
@@ -476,7 +492,10 @@ class Localiser:
         failed: list[FailedRead] = []  # detections neither decoded nor identified, for the next frame
         for det, read, fix, age in zip(detections, reads, fixes, lsq_ages):
             identity = read.identity
-            if identity is None and read.unmapped_id is None and self.config.identify != "off":
+            # A detection whose decode was deferred is identified after the frame too, if that decode
+            # fails (as in the frame): here it would put back the cost the deferral took out.
+            deferred = self.config.defer_lsq and any(job[1] is det for job in self._pending)
+            if identity is None and read.unmapped_id is None and self.config.identify != "off" and not deferred:
                 identity = self._identify(gray, det, rig_cam, timer)
                 if identity is not None:
                     fix = self._fix(det, identity, rig_cam, t, timer)
@@ -528,6 +547,7 @@ class Localiser:
         self._odometry.clear()
         self._tracked = []
         self._failed = []
+        self._pending = []
 
     def _check_size(self, frame: Frame) -> str | None:
         """Why the frame's image cannot be this camera's, or None."""
@@ -541,6 +561,18 @@ class Localiser:
             self.counts["wrong_size_frames"] += 1
             return f"frame {frame.index}: image is {w}x{h}, the calibration is for {cam.width}x{cam.height}"
         return None
+
+    def warm_up(self) -> None:
+        """Do now the set-up the first frames would otherwise pay (a live loop, before its first
+        frame: 0.1 s of it landed on the first frame's latency): each camera's odometry (patch
+        search, remap tables) and, with a reference bank, identification's tables."""
+        if self.config.odometry:
+            for c in range(len(self.rig)):
+                self.floor_odometry(c)
+        if self.config.identify != "off" and self._refs is not None:
+            from tagloc.vision.identify import prepare
+
+            prepare(self._refs)
 
     def floor_odometry(self, camera: int) -> FloorOdometry | None:
         """The floor odometry of rig camera ``camera`` (made on first use), or None if that camera
@@ -629,8 +661,45 @@ class Localiser:
         )
         skip_lsq = self.config.sticker_tracking and prev is not None and prev.age + 1 < cfg.lsq_retry_every
         self.counts["lsq_skipped"] += skip_lsq
-        read = self._decode(gray, det, rig_cam, timer, DecodeConfig(lsq=False) if skip_lsq else None)
+        defer = self.config.defer_lsq and self.config.decoder == "zxing" and not skip_lsq
+        read = self._decode(gray, det, rig_cam, timer, DecodeConfig(lsq=False) if skip_lsq or defer else None)
+        if defer and read.identity is None and read.unmapped_id is None:
+            self._pending.append((gray, det, rig_cam, camera, t))
         return read, prev.age + 1 if skip_lsq else 0
+
+    def deferred_work(self, go_on: Callable[[], bool] | None = None) -> int:
+        """Finish the detections the last frame deferred (``LocaliserConfig.defer_lsq``), each while
+        ``go_on()`` (default: always) says there is time (a live loop: no frame waiting): the whole
+        decode, identification if it fails, and the fix, fused at the frame's time as the frame
+        would have fused it (the filter is still there); a decoded sticker whose fix the tracker
+        accepted is tracked into the next frame. Returns how many ran; the rest are dropped."""
+        jobs, self._pending = self._pending, []
+        ran = 0
+        for gray, det, rig_cam, camera, t in jobs:
+            if go_on is not None and not go_on():
+                break
+            ran += 1
+            timer = StageTimer()  # not reported: the frame's result is already out
+            read = read_sticker(gray, det, rig_cam.camera, self.map, self.config.decoder)
+            identity = read.identity
+            if identity is not None or read.unmapped_id is not None:
+                count_read(self.counts, read)
+            if identity is None and read.unmapped_id is None and self.config.identify != "off":
+                identity = self._identify(gray, det, rig_cam, timer)
+            if identity is None and read.unmapped_id is None:
+                continue
+            # Named after all (or read as an unmapped sticker): not a failed read (see process).
+            self._failed = [f for f in self._failed if not (f.t == t and np.array_equal(f.outer, det.outer))]
+            if identity is None:
+                continue
+            self.counts["deferred_named"] += 1
+            fix = self._fix(det, identity, rig_cam, t, timer)
+            self.counts["deferred_fixes"] += fix.accepted is True
+            # Decoded and accepted: carried into the next frame (see _track).
+            if identity.source == IdSource.DECODED and fix.accepted is True:
+                self._tracked.append(Tracked(det.outer.copy(), identity, camera, t, 0))
+        self.counts["lsq_deferred"] += ran
+        return ran
 
     def _decode(
         self,

@@ -256,6 +256,11 @@ def _appearance_of(bank: ReferenceBank, cfg: IdentifyConfig) -> _Appearance:
     return ap
 
 
+def prepare(bank: ReferenceBank, config: IdentifyConfig | None = None) -> None:
+    """Make the appearance test's per-bank tables now (the first :func:`identify` call would: ~10 ms)."""
+    _appearance_of(bank, config or IdentifyConfig())
+
+
 def appearance_scores(
     gray: np.ndarray,
     detection: Detection,

@@ -434,37 +434,34 @@ def floor_patch(rig_camera: RigCamera, config: OdometryConfig | None = None) -> 
     # One vectorised test per square instead of a pointPolygonTest call per edge point: the search
     # below made 24,000 of those, a visible share of a replay's start-up.
     edge_dir = np.roll(poly, -1, axis=0) - poly  # (K, 2)
-    n = _EDGE_SAMPLES
-    t = np.linspace(0.0, 1.0, n)
+    t = np.linspace(0.0, 1.0, _EDGE_SAMPLES)
 
-    def fits(x0: float, s: float) -> bool:
-        edge = np.vstack(
-            [
-                np.column_stack([x0 + s * t, np.full(n, yc - s / 2)]),
-                np.column_stack([x0 + s * t, np.full(n, yc + s / 2)]),
-                np.column_stack([np.full(n, x0), yc - s / 2 + s * t]),
-                np.column_stack([np.full(n, x0 + s), yc - s / 2 + s * t]),
-            ]
-        )
-        rel = edge[:, None, :] - poly[None, :, :]  # (4 n, K, 2)
-        side = edge_dir[None, :, 0] * rel[..., 1] - edge_dir[None, :, 1] * rel[..., 0]
-        return bool(np.all(side >= 0) or np.all(side <= 0))
+    def fits(x0: np.ndarray, s: np.ndarray) -> np.ndarray:
+        """(k,) whether each square (near edge ``x0`` (k,), side ``s`` (k,)) lies in the footprint."""
+        x0, s = x0[:, None], s[:, None]
+        along, ones = x0 + s * t, np.ones_like(t)
+        across = yc - s / 2 + s * t
+        ex = np.concatenate([along, along, x0 * ones, (x0 + s) * ones], axis=1)  # (k, 4 n)
+        ey = np.concatenate([(yc - s / 2) * ones, (yc + s / 2) * ones, across, across], axis=1)
+        side = edge_dir[:, 0] * (ey[..., None] - poly[:, 1]) - edge_dir[:, 1] * (ex[..., None] - poly[:, 0])
+        return np.all(side >= 0, axis=(1, 2)) | np.all(side <= 0, axis=(1, 2))
 
     xs = floor[ok, 0]
+    # Each near edge's largest square by bisection, all near edges at once (one call per step
+    # instead of one per edge and step: 1,200 calls were a visible share of a replay's start-up).
+    near_edges = np.linspace(xs.min(), xs.max(), _NEAR_EDGE_STEPS)
+    lo, hi = np.zeros(len(near_edges)), np.full(len(near_edges), cfg.max_side_m)
+    for _ in range(_BISECTIONS):
+        mid = 0.5 * (lo + hi)
+        ok_mid = fits(near_edges, mid)
+        lo, hi = np.where(ok_mid, mid, lo), np.where(ok_mid, hi, mid)
     best = (0.0, 0.0)
     # Squares nearest the camera first (of equal size the first found stays): a nearer patch is seen
     # finer. A camera looking back sees its nearest floor at the footprint's largest x, not its least.
     x_cam = float(rig_camera.T_body_camera[0, 3])
-    near_edges = np.linspace(xs.min(), xs.max(), _NEAR_EDGE_STEPS)
-    for x0 in sorted(near_edges, key=lambda x: abs(x + 0.5 * cfg.max_side_m - x_cam)):
-        lo, hi = 0.0, cfg.max_side_m
-        if best[1] >= hi and fits(x0, hi):
-            continue  # a nearer square of full size was already found
-        for _ in range(_BISECTIONS):
-            mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if fits(x0, mid) else (lo, mid)
-        if lo > best[1] + _SIDE_TOL_M:
-            best = (float(x0), lo)
+    for k in sorted(range(len(near_edges)), key=lambda k: abs(near_edges[k] + 0.5 * cfg.max_side_m - x_cam)):
+        if lo[k] > best[1] + _SIDE_TOL_M:
+            best = (float(near_edges[k]), float(lo[k]))
     x0, side = best
     if side < cfg.min_side_m:
         raise CalibrationError(
@@ -561,15 +558,29 @@ class FloorOdometry:
         """The remap maps for one frame: the nominal ones, moved for the rolling shutter when known."""
         if self._rs is None or body_twist is None:
             return self._map_x, self._map_y
-        q, d, J = self._rs
+        q0, q1, d, J00, J01, J10, J11 = self._rs_columns()
         vx, vy, w = (float(a) for a in np.asarray(body_twist, float).ravel()[:3])
         # A floor point fixed in the world, seen d seconds after the frame time, sits at
         # q - d (v + w x q) in the body frame of the frame time.
-        u = np.column_stack([vx - w * q[:, 1], vy + w * q[:, 0]])
-        shift = -(d[:, None] * np.einsum("kij,kj->ki", J, u)).astype(np.float32)
+        u0, u1 = vx - w * q1, vy + w * q0
         n, m = self.config.patch_px, self._map_x.shape[0]
-        fine = cv2.resize(shift.reshape(n, n, 2), (m, m), interpolation=cv2.INTER_LINEAR)
-        return self._map_x + fine[..., 0], self._map_y + fine[..., 1]
+        # x and y apart, from contiguous columns (numpy over a trailing axis of 2, and strided adds
+        # of the interleaved resize, cost more than the arithmetic). One two-channel resize: resized
+        # apart, OpenCV's single-channel path rounds differently in the last bit.
+        shift = np.empty((n * n, 2), np.float32)
+        shift[:, 0] = -(d * (J00 * u0 + J01 * u1))
+        shift[:, 1] = -(d * (J10 * u0 + J11 * u1))
+        fx, fy = cv2.split(cv2.resize(shift.reshape(n, n, 2), (m, m), interpolation=cv2.INTER_LINEAR))
+        return self._map_x + fx, self._map_y + fy
+
+    def _rs_columns(self) -> tuple[np.ndarray, ...]:
+        """The rolling-shutter grid (see :meth:`_rolling_shutter_grid`) as contiguous columns: q_x,
+        q_y, row delays, and the four entries of d pixel / d q, each (n*n,)."""
+        if getattr(self, "_rs_cols", None) is None:
+            q, d, J = self._rs
+            cols = (q[:, 0], q[:, 1], d, J[:, 0, 0], J[:, 0, 1], J[:, 1, 0], J[:, 1, 1])
+            self._rs_cols = tuple(np.ascontiguousarray(c) for c in cols)
+        return self._rs_cols
 
     def birdseye(self, gray: np.ndarray, body_twist: np.ndarray | None = None) -> np.ndarray:
         """The bird's-eye patch (patch_px, patch_px) of a (H, W) uint8 frame, float32, high-passed.

@@ -94,6 +94,18 @@ def _body_from_rt(
     return vest_planar(T_world_camera @ T_camera_body, vest_point)
 
 
+def _rodrigues_batch(r: np.ndarray) -> np.ndarray:
+    """(k, 3, 3) rotation matrices of k rotation vectors ``r`` (k, 3): cv2.Rodrigues's formula
+    (cos I + (1 - cos) n n^T + sin [n]x), one numpy pass instead of a call per vector."""
+    theta = np.sqrt(np.einsum("ki,ki->k", r, r))
+    n = r / np.where(theta > 0, theta, 1.0)[:, None]
+    c, s = np.cos(theta)[:, None, None], np.sin(theta)[:, None, None]
+    nx = np.zeros((len(r), 3, 3))
+    nx[:, 0, 1], nx[:, 0, 2], nx[:, 1, 2] = -n[:, 2], n[:, 1], -n[:, 0]
+    nx[:, 1, 0], nx[:, 2, 0], nx[:, 2, 1] = n[:, 2], -n[:, 1], n[:, 0]
+    return c * np.eye(3) + (1.0 - c) * n[:, :, None] * n[:, None, :] + s * nx
+
+
 def _body_jacobian(
     rvec: np.ndarray,
     tvec: np.ndarray,
@@ -102,18 +114,20 @@ def _body_jacobian(
     vest_point: np.ndarray,
     h: float = 1e-6,
 ) -> np.ndarray:
-    """(3, 6) d body(x, y, yaw) / d (rvec, tvec), central differences."""
-    x0 = np.concatenate([rvec.ravel(), tvec.ravel()])
-    J = np.empty((3, 6))
-    for i in range(6):
-        d = np.zeros(6)
-        d[i] = h
-        bp = _body_from_rt((x0 + d)[:3], (x0 + d)[3:], T_world_sticker, T_camera_body, vest_point)
-        bm = _body_from_rt((x0 - d)[:3], (x0 - d)[3:], T_world_sticker, T_camera_body, vest_point)
-        diff = bp - bm
-        diff[2] = wrap_angle(diff[2])
-        J[:, i] = diff / (2 * h)
-    return J
+    """(3, 6) d body(x, y, yaw) / d (rvec, tvec), central differences (all 12 evaluations of
+    :func:`_body_from_rt` at once: it was 12 calls of a dozen small numpy operations each)."""
+    x = np.concatenate([rvec.ravel(), tvec.ravel()]) + np.concatenate([h * np.eye(6), -h * np.eye(6)])  # (12, 6)
+    R = _rodrigues_batch(x[:, :3])  # R_camera_sticker
+    # T_world_body = T_world_sticker inv(T_camera_sticker) T_camera_body, so the vest point (c in the
+    # camera) lands at R_ws R^T (c - t) + t_ws and the body's x axis along R_ws R^T R_cb[:, 0].
+    R_wc = T_world_sticker[:3, :3] @ R.transpose(0, 2, 1)
+    c = T_camera_body[:3, :3] @ np.asarray(vest_point, float) + T_camera_body[:3, 3]
+    p = np.einsum("kij,kj->ki", R_wc, c - x[:, 3:]) + T_world_sticker[:3, 3]
+    ax = R_wc @ T_camera_body[:3, 0]
+    body = np.column_stack([p[:, 0], p[:, 1], np.arctan2(ax[:, 1], ax[:, 0])])
+    diff = body[:6] - body[6:]
+    diff[:, 2] = wrap_angle(diff[:, 2])
+    return (diff / (2 * h)).T
 
 
 def map_covariance(body: np.ndarray, sticker_xy: np.ndarray, sigma_m: float, sigma_yaw: float) -> np.ndarray:

@@ -96,3 +96,13 @@ def clean_symbol(modules_dark: np.ndarray, scale: int = 4, quiet: int = 2) -> np
     img = np.full((n, n), 255, np.uint8)
     img[quiet : n - quiet, quiet : n - quiet][modules_dark] = 0
     return cv2.resize(img, (n * scale, n * scale), interpolation=cv2.INTER_NEAREST)
+
+
+def clean_symbols(modules_dark: np.ndarray, scale: int = 4, quiet: int = 2) -> np.ndarray:
+    """:func:`clean_symbol` of k symbols (k, m, m) at once: (k, n scale, n scale) uint8, n = m + 2 quiet
+    (an integer nearest-neighbour upscale is a repeat of each module: the same pixels)."""
+    k, m = modules_dark.shape[:2]
+    n = m + 2 * quiet
+    img = np.full((k, n, n), 255, np.uint8)
+    img[:, quiet : n - quiet, quiet : n - quiet][modules_dark] = 0
+    return np.ascontiguousarray(img.repeat(scale, axis=1).repeat(scale, axis=2))

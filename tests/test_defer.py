@@ -1,0 +1,125 @@
+"""Live's deferred least-squares decoding (``LocaliserConfig.defer_lsq``): the work a frame puts off
+is done after it exactly as the frame would have done it, the tracker ends where a replay's does,
+and a replay defers nothing."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tagloc.core.camera import default_camera
+from tagloc.core.geometry import make_T
+from tagloc.core.rig import Rig, RigCamera
+from tagloc.core.stickermap import StickerMap
+from tagloc.core.types import Frame, IdSource
+from tagloc.eval.evaluate import wrong_id_fixes
+from tagloc.eval.metrics import trajectory_metrics
+from tagloc.io.session import SessionReader
+from tagloc.pipeline.localiser import Localiser, LocaliserConfig
+from tagloc.pipeline.run import run_session
+from tagloc.sim.mapgen import GridMapConfig, grid_map
+from tagloc.sim.simulate import SimConfig, simulate_session
+from tests.synth import floor_view, synth_frame
+
+STICKER = 12345
+
+
+def _blurred_scene():
+    """One sticker 1.2 m ahead of a camera pitched 55 deg down, blurred 5 px: zxing and grid sampling
+    fail on it and the least-squares stage reads it. Its map, rig and frame."""
+    cam = default_camera()
+    T_wc = floor_view(cam)
+    smap = StickerMap(np.array([STICKER]), np.array([[1.2, 0.0]]), np.zeros(1))
+    rig = Rig([RigCamera("front", cam, T_wc)])  # the body at the world origin
+    frame = synth_frame(
+        [(STICKER, make_T(np.eye(3), (1.2, 0.0, 0.0)))], cam, T_wc, gamma=2.2, seed=3, blur_px=5, blur_angle_deg=30
+    )
+    return smap, rig, frame.image
+
+
+def test_deferred_work_leaves_the_tracker_where_the_frame_would_have():
+    smap, rig, img = _blurred_scene()
+    replay = Localiser(smap, rig, LocaliserConfig(odometry=False))
+    live = Localiser(smap, rig, LocaliserConfig(odometry=False, defer_lsq=True))
+    r0 = replay.process(Frame(0, 0.0, img))
+    l0 = live.process(Frame(0, 0.0, img))
+    assert r0.observations[0].identity.sticker_id == STICKER  # read by least squares in the frame
+    assert l0.observations[0].identity is None and live.counts["identified"] == 0  # put off
+    assert live.deferred_work() == 1
+    assert live.counts["deferred_named"] == 1 and live.counts["decoded"] == replay.counts["decoded"] == 1
+    assert live.counts["deferred_fixes"] == int(r0.observations[0].accepted is True)
+    r1 = replay.process(Frame(1, 1 / 30, img))
+    l1 = live.process(Frame(1, 1 / 30, img))
+    assert [o.identity for o in l1.observations] == [o.identity for o in r1.observations]
+    assert l1.observations[0].identity.source is IdSource.DECODED
+    np.testing.assert_allclose(l1.output.pose, r1.output.pose, atol=1e-9)
+    np.testing.assert_allclose(l1.output.cov, r1.output.cov, atol=1e-12)
+
+
+def test_undone_deferred_work_is_dropped_and_a_replay_defers_nothing():
+    smap, rig, img = _blurred_scene()
+    live = Localiser(smap, rig, LocaliserConfig(odometry=False, defer_lsq=True))
+    live.process(Frame(0, 0.0, img))
+    assert live.deferred_work(lambda: False) == 0  # a frame is waiting: nothing runs
+    res = live.process(Frame(1, 1 / 30, img))
+    assert res.observations[0].identity is None and live.counts["lsq_deferred"] == 0
+    assert live.tracker.stats["accepted_decoded"] == 0
+    replay = Localiser(smap, rig, LocaliserConfig(odometry=False))
+    replay.process(Frame(0, 0.0, img))
+    assert replay.deferred_work() == 0
+
+
+@pytest.fixture(scope="module")
+def blurred_walk(tmp_path_factory) -> Path:
+    """A 6 s walk at 60 lux: long exposures blur stickers enough that some need least squares."""
+    path = tmp_path_factory.mktemp("defer") / "walk"
+    smap = grid_map(GridMapConfig(width_m=12, depth_m=10, spacing_min_m=1.2, spacing_max_m=1.6, seed=5))
+    simulate_session(smap, path, SimConfig(seconds=6, lux=60, speed_mps=1.4, seed=4), progress=False)
+    return path
+
+
+class _AsLive:
+    """The localiser as the live loop drives it: the deferred work right after each frame."""
+
+    def __init__(self, loc: Localiser):
+        self.loc, self.map, self.rig, self.counts = loc, loc.map, loc.rig, loc.counts
+
+    def process(self, frame):
+        res = self.loc.process(frame)
+        self.loc.deferred_work()
+        return res
+
+    def stats(self):
+        return self.loc.stats()
+
+
+def test_a_walk_with_deferred_decodes_is_tracked_as_in_a_replay(blurred_walk):
+    session = SessionReader(blurred_walk)
+    gt = session.groundtruth()
+    replay = Localiser(session.map, session.rig, LocaliserConfig(), map_path=session.map_path)
+    rlog = run_session(session, localiser=replay)
+    live = Localiser(session.map, session.rig, LocaliserConfig(defer_lsq=True), map_path=session.map_path)
+    llog = run_session(SessionReader(blurred_walk), localiser=_AsLive(live))
+    assert live.counts["lsq_deferred"] >= 3 and live.counts["deferred_named"] >= 1
+    assert wrong_id_fixes(blurred_walk, llog)[0] == 0
+
+    def fused(loc):
+        return sum(v for k, v in loc.tracker.stats.items() if k.startswith("accepted_"))
+
+    assert fused(live) >= fused(replay) - 3
+    r, lv = (trajectory_metrics(g.stamps[g.valid], g.poses[g.valid], g.covs[g.valid], *gt) for g in (rlog, llog))
+    assert lv["rmse_m"] <= r["rmse_m"] + 0.005
+
+
+def test_warm_up_makes_the_first_frames_set_up_before_it():
+    from tagloc.vision.refs import build_refs
+
+    smap, rig, _ = _blurred_scene()
+    bank = build_refs(smap, progress=False)
+    loc = Localiser(smap, rig, refs=bank)
+    assert loc._odometry == {} and not bank.derived
+    loc.warm_up()
+    assert loc._odometry[0] is not None  # the patch and its remap tables
+    assert any(k[0] == "appearance" for k in bank.derived)  # identification's tables
