@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from synth import floor_view, synth_frame
 
 from tagloc.core.camera import default_camera
 from tagloc.core.geometry import make_T
@@ -21,7 +22,6 @@ from tagloc.pipeline.localiser import Localiser, LocaliserConfig
 from tagloc.pipeline.run import run_session
 from tagloc.sim.mapgen import GridMapConfig, grid_map
 from tagloc.sim.simulate import SimConfig, simulate_session
-from tests.synth import floor_view, synth_frame
 
 STICKER = 12345
 
