@@ -112,8 +112,12 @@ def test_the_tilt_gate_keeps_the_upright_solution_and_recovers_from_a_bad_anchor
     assert loc._tilt_gate([upright, tipped], rig[0], 0.05) == [upright]
     assert loc._tilt_gate([tipped], rig[0], 0.1) == []
     assert loc._tilt_gate([tipped], rig[0], 0.15) == []
-    # The third refusal in a row: the anchor may have been the bad one, so the prior judges (7 deg
-    # is within its 3 deg sigma's gate) and the fix goes through.
+    # The third refusal in a row: the anchor may have been the bad one, so the upright prior judges
+    # (2 deg per axis: 7 deg is within its gate of 7.5 deg) and the fix goes through.
     assert loc._tilt_gate([tipped], rig[0], 0.2) == [tipped]
-    # Against the prior alone, an implausible tilt (12 deg) is still refused.
-    assert loc._tilt_gate([pose(12.0)], rig[0], 0.25) == []
+    # Before any estimate: a torso 5 deg forward passes, 12 deg (or the planar pose's other branch,
+    # tens of degrees off) does not.
+    loc2 = Localiser(StickerMap(np.array([1]), np.array([[0.0, 0.0]]), np.array([0.0])), rig)
+    loc2.floor_odometry(0)
+    assert loc2._tilt_gate([pose(12.0)], rig[0], 0.0) == []
+    assert len(loc2._tilt_gate([pose(5.0)], rig[0], 0.0)) == 1

@@ -208,7 +208,14 @@ class OdometryConfig:
     learned as the mean of the fixes' tilts (``tilt_posture_fixes``: averaged over the first 300,
     ~30 s of fixes, then followed with that weight, and shrunk towards upright as if 30 upright
     fixes had come first, so that one odd fix cannot set it). ``tilt_gate_reset``: see
-    ``LocaliserConfig.tilt_gate_chi2`` (3 fixes, a tenth of a second of a sticker in view). Offline on s04 and s00 (anchored at the true
+    ``LocaliserConfig.tilt_gate_chi2`` (3 fixes, a tenth of a second of a sticker in view);
+    ``tilt_gate_prior_sigma``: before any fix, or after a reset, the gate judges against upright
+    (the posture) with 2 deg per axis, the roll also against the lean model with half its lean as
+    extra uncertainty (its first step can be far off). At 2 deg an upright start passes (on a
+    simulated strip walk the true tilt at the first fixes was -1.9 / -1.9 deg while the lean model
+    said -6.2 deg of roll; with 1 deg about the lean model all 26 fixes of the first frames were
+    refused and the walk's error doubled) while a bad first fix on a field walk (6.5 / 5.3 deg, a
+    sticker leaving the image) is refused (with 5 deg it anchored the filter: 3.8 -> 4.3 cm). Offline on s04 and s00 (anchored at the true
     tilt, as a fix does), the forward error summed over 5 s fell from 14.9 / 7.0 cm (raw fits) to
     7.1 / 7.1 cm, and over 1-2 s stayed at 4.8-6.6 / 3.5-4.7 cm.
 
@@ -275,6 +282,7 @@ class OdometryConfig:
     tilt_anchor_sigma: float = math.radians(0.3)
     tilt_posture_fixes: int = 300
     tilt_gate_reset: int = 3
+    tilt_gate_prior_sigma: float = math.radians(2.0)
     tilt_iterations: int = 2
     tilt_grid: int = 6
     homography_point_sigma_m: float = 0.002
@@ -634,7 +642,9 @@ class FloorOdometry:
         if self._torso is None:
             return True, 0.0
         pitch, roll = torso_tilt(T_world_camera, self.rig_camera.T_body_camera)
-        return self._torso.consistent(float(t), self._lean_roll(t), pitch, roll, chi2)
+        return self._torso.consistent(
+            float(t), self._lean_roll(t), pitch, roll, chi2, self.config.tilt_gate_prior_sigma
+        )
 
     def tilt_gate_result(self, passed: bool) -> None:
         """Count fixes refused by the tilt gate in a row; after ``tilt_gate_reset`` of them the tilt
@@ -855,6 +865,9 @@ class FloorOdometry:
         if st is None or not 0.0 < t - st[0] <= self.config.turn_memory * self.config.max_dt:
             # (time, speed, turn rate, roll); a walk starts in balance.
             self._lean_state = [t, v, w, -math.atan(v * w / _G)]
+            if self._torso is not None:
+                # A (re)started lean model is a new prior, not a change of the torso's tilt.
+                self._torso.roll.mean = self._lean_state[3]
             return
         st[0] = t
         st[1], st[2] = v, w

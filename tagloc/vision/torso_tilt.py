@@ -124,11 +124,20 @@ class TorsoTilt:
         r, vr, _, _ = self.roll._predicted(t, lean_roll)
         return p, r, vp, vr
 
-    def consistent(self, t: float, lean_roll: float, pitch: float, roll: float, chi2: float) -> tuple[bool, float]:
+    def consistent(
+        self, t: float, lean_roll: float, pitch: float, roll: float, chi2: float, prior_sigma: float
+    ) -> tuple[bool, float]:
         """Whether a measured (pitch, roll) (rad) at ``t`` is within ``chi2`` (squared Mahalanobis
         distance, 2 DoF) of the prediction, counting the measurement's own ``anchor_sigma``; and
-        the distance."""
-        p, r, vp, vr = self.predict(t, lean_roll)
+        the distance. Before any estimate, the prior judges: within ``prior_sigma`` (rad) of the
+        posture, and of the lean model's roll with half that lean again as its own uncertainty
+        (the model's first step can be far off)."""
+        if self.pitch.t is None or self.roll.t is None:
+            v = prior_sigma**2
+            p, r = self.pitch.posture, self.roll.posture + lean_roll
+            vp, vr = v, v + (0.5 * lean_roll) ** 2
+        else:
+            p, r, vp, vr = self.predict(t, lean_roll)
         m = self.anchor_sigma**2
         d2 = (pitch - p) ** 2 / (vp + m) + (roll - r) ** 2 / (vr + m)
         return d2 <= chi2, d2
