@@ -865,9 +865,6 @@ class FloorOdometry:
         if st is None or not 0.0 < t - st[0] <= self.config.turn_memory * self.config.max_dt:
             # (time, speed, turn rate, roll); a walk starts in balance.
             self._lean_state = [t, v, w, -math.atan(v * w / _G)]
-            if self._torso is not None:
-                # A (re)started lean model is a new prior, not a change of the torso's tilt.
-                self._torso.roll.mean = self._lean_state[3]
             return
         st[0] = t
         st[1], st[2] = v, w
