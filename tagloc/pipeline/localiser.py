@@ -611,13 +611,8 @@ class Localiser:
         """The sticker's map position and survey sigmas: the map's ``sigma_m``/``sigma_deg`` where
         stated, else the pose config's defaults (``map_sigma_m``, ``map_sigma_yaw``)."""
         row = self.map.row(sticker_id)
-        sig_m, sig_yaw = float(self.map.sigma_xy[row]), float(self.map.sigma_yaw[row])
-        pose = self.config.pose
-        return SurveyPrior(
-            np.asarray(self.map.T_world_sticker(sticker_id)[:2, 3], float),
-            sig_m if math.isfinite(sig_m) else pose.map_sigma_m,
-            sig_yaw if math.isfinite(sig_yaw) else pose.map_sigma_yaw,
-        )
+        sig_m, sig_yaw = self.config.pose.survey_sigmas(float(self.map.sigma_xy[row]), float(self.map.sigma_yaw[row]))
+        return SurveyPrior(np.asarray(self.map.T_world_sticker(sticker_id)[:2, 3], float), sig_m, sig_yaw)
 
     def _candidates(self, det: Detection, rig_cam: RigCamera, timer: StageTimer) -> list[int]:
         with timer("candidates"):

@@ -618,22 +618,22 @@ class FloorOdometry:
         if self._torso is not None:
             self._torso.reset()
 
-    def _lean_roll(self, t: float) -> float:
-        """The lean's roll (rad) at time ``t`` (0 when unknown or off)."""
+    def _lean(self, t: float) -> float | None:
+        """The lean's roll (rad) at time ``t`` as the steps up to then say (see
+        :meth:`_update_lean`); None when off, or when no step that recent is known."""
         st = self._lean_state
         if (
             not self.config.lean_correction
             or st is None
             or not 0.0 <= t - st[0] <= self.config.turn_memory * self.config.max_dt
         ):
-            return 0.0
+            return None
         return float(st[3])
 
-    def anchor_tilt(self, t: float, T_world_camera: np.ndarray) -> None:
-        """Fuse the torso tilt that an accepted sticker fix at time ``t`` measured (``T_world_camera``
-        (4, 4): any rig camera's pose, with its own ``T_body_camera``, gives the same torso tilt; pass
-        this odometry's camera pose or use :meth:`anchor_tilt_angles`)."""
-        self.anchor_tilt_angles(t, *torso_tilt(T_world_camera, self.rig_camera.T_body_camera))
+    def _lean_roll(self, t: float) -> float:
+        """The lean's roll (rad) at time ``t`` (0 when unknown or off)."""
+        roll = self._lean(t)
+        return 0.0 if roll is None else roll
 
     def tilt_consistent(self, t: float, T_world_camera: np.ndarray, chi2: float) -> tuple[bool, float]:
         """Whether a camera pose ``T_world_camera`` (4, 4) of this odometry's camera, measured at
@@ -840,13 +840,10 @@ class FloorOdometry:
     def _tilt(self, t: float) -> np.ndarray | None:
         """The torso's lean (3, 3) at time ``t`` as the steps up to then say (see
         :meth:`_update_lean`); None when off, or when no step that recent is known."""
-        cfg = self.config
-        st = self._lean_state
-        if not cfg.lean_correction or st is None or not 0.0 <= t - st[0] <= cfg.turn_memory * cfg.max_dt:
+        roll = self._lean(t)
+        if roll is None or abs(roll) < self.config.lean_min:
             return None
-        if abs(st[3]) < cfg.lean_min:
-            return None
-        cr, sr = math.cos(st[3]), math.sin(st[3])
+        cr, sr = math.cos(roll), math.sin(roll)
         return np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
 
     def _update_lean(self, t: float, delta: np.ndarray, dt: float) -> None:

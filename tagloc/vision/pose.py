@@ -75,6 +75,14 @@ class PoseConfig:
     map_sigma_m: float = 0.015
     map_sigma_yaw: float = math.radians(1.5)
 
+    def survey_sigmas(self, sigma_m: float, sigma_yaw: float) -> tuple[float, float]:
+        """A sticker's survey sigmas (m per axis, rad of yaw): the map's where it states them, else
+        (NaN) ``map_sigma_m`` / ``map_sigma_yaw``."""
+        return (
+            float(sigma_m) if math.isfinite(sigma_m) else self.map_sigma_m,
+            float(sigma_yaw) if math.isfinite(sigma_yaw) else self.map_sigma_yaw,
+        )
+
 
 @dataclass
 class PoseSolution:
@@ -259,9 +267,7 @@ def solve_pose(
     if len(uniq) > 1 and uniq[1][0] - uniq[0][0] < config.ambiguity_chi2 * sigma**2:
         keep.append(uniq[1])
 
-    sig_m, sig_yaw = map_sigma if map_sigma is not None else (0.0, 0.0)
-    sig_m = config.map_sigma_m if not math.isfinite(sig_m) else float(sig_m)
-    sig_yaw = config.map_sigma_yaw if not math.isfinite(sig_yaw) else float(sig_yaw)
+    sig_m, sig_yaw = config.survey_sigmas(*map_sigma) if map_sigma is not None else (0.0, 0.0)
     T_camera_body = invert(rig_camera.T_body_camera)
     poses = []
     for ssr, rvec, tvec, J in keep:
