@@ -162,9 +162,8 @@ class OdometryConfig:
     against the true camera poses of simulated walks). Seen through a homography instead of a
     rigid motion, the two differ: a shift is uniform, a tilt stretches the near and far edges of
     the patch differently. So after the rigid alignment, ECC is run again with
-    ``MOTION_HOMOGRAPHY`` (``homography_iterations``: 3, from the rigid match's alignment; 10 fitted
-    the noise more and cost 0.3 ms more a frame for equal or worse steps on the eval walks, and 3
-    instead of 5 changed the steps chained over 1 s by -3 to +2 mm on three walks for 0.25 ms less;
+    ``MOTION_HOMOGRAPHY`` (``homography_iterations``: 5, like the rigid match; 10 fitted the noise
+    more and cost 0.3 ms more a frame, for equal or worse steps on the eval walks;
     ``homography_eps``), and the step is fitted (``tilt_iterations`` Gauss-Newton steps, each solved
     by :func:`numpy.linalg.lstsq`: the problem is nearly linear for a small tilt and step, and
     scipy's general solver cost 2.5 ms a frame for the same answers) as the rigid motion of the floor
@@ -308,7 +307,7 @@ class OdometryConfig:
     tilt_iterations: int = 2
     tilt_grid: int = 6
     homography_point_sigma_m: float = 0.002
-    homography_iterations: int = 3
+    homography_iterations: int = 5
     homography_eps: float = 1e-3
     lean_correction: bool = True
     lean_com_height_m: float = 0.95
