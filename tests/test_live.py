@@ -317,3 +317,22 @@ def test_live_loop_keeps_going_through_a_broker_restart(session, tmp_path):
     gap = np.diff(got)
     assert got == sorted(got) and gap.max() >= 10  # the outage: dropped, never replayed later
     assert got[-1] >= 75  # publication resumed after the restart
+
+
+@pytest.mark.parametrize("stride", [True, False])
+def test_live_loop_strides_the_odometry_only_when_behind(tmp_path, stride):
+    """Unpaced, every frame is waiting when the last one is done (the computer is "behind"): the
+    odometry then skips frames while walking straight, unless ``stride_when_behind`` is off; a
+    replay (no live loop) never does by default."""
+    from tagloc.pipeline.localiser import Localiser
+
+    path = make_session(tmp_path / "sess", 40, 30.0)
+    r = SessionReader(path)
+    loc = Localiser(r.map, r.rig)
+    summary = run_live(LiveConfig(source=str(path), pace=False, stride_when_behind=stride), localiser=loc)
+    assert summary.frames == 40
+    if stride:
+        assert loc.counts["odometry_strided"] >= 3
+        assert loc.counts["odometry_steps"] + loc.counts["odometry_strided"] >= 36
+    else:
+        assert loc.counts["odometry_strided"] == 0 and loc.counts["odometry_steps"] >= 36

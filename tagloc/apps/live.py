@@ -53,6 +53,11 @@ class LiveConfig:
             the frame's pose is published, while no next frame waits (see
             :attr:`tagloc.pipeline.localiser.LocaliserConfig.defer_lsq`): that stage (6-11 ms)
             set the latency's tail. False: every frame does all its work before publishing.
+        stride_when_behind: while a frame is already waiting when the localiser finishes one (the
+            computer is not keeping up with the camera, e.g. a Pi-class core), let the floor
+            odometry skip every other frame while the operator walks straight (see
+            :attr:`tagloc.pipeline.localiser.Localiser.behind`): it sheds a third of the
+            odometry's work at a small cost in accuracy, instead of the capture dropping whole frames.
     """
 
     source: str
@@ -78,6 +83,7 @@ class LiveConfig:
     record_bag: Path | None = None
     bag_images: bool = False
     defer_lsq: bool = True
+    stride_when_behind: bool = True
 
 
 @dataclass
@@ -336,6 +342,8 @@ class _LiveRun:
                 before = counts.get("deferred_fixes", 0)
                 deferred(self._no_frame_waiting)
                 self.fixes += counts.get("deferred_fixes", 0) - before
+            if self.cfg.stride_when_behind and hasattr(self.localiser, "behind"):
+                self.localiser.behind = not self._no_frame_waiting()
             self.frames += 1
             self.state = result.output.state.value
             if self.bag is not None:

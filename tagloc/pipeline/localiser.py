@@ -80,7 +80,10 @@ class LocaliserConfig:
         candidates: K, the most candidates handed to identification.
         tracker: the EKF's configuration.
         odometry: measure the body's motion between frames from the floor texture and feed it to
-            the tracker; ``odometry_config`` tunes it. ``odometry_cameras``: the rig cameras (indices)
+            the tracker; ``odometry_config`` tunes it. ``odometry_stride``: let the odometry skip
+            every other frame while the operator walks straight (see ``OdometryConfig.max_stride``:
+            load shedding, at some cost in accuracy); False: only while :attr:`Localiser.behind`
+            (set by ``tagloc live`` when frames wait for the localiser). ``odometry_cameras``: the rig cameras (indices)
             that measure it, None: all (each camera's steps run from its own previous frame).
         sticker_tracking: carry a decoded sticker's identity to the next frame instead of decoding
             it again; ``tracking`` tunes it (see :func:`match_tracked`).
@@ -122,6 +125,7 @@ class LocaliserConfig:
     candidates: int = 5
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     odometry: bool = True
+    odometry_stride: bool = False
     odometry_config: OdometryConfig = field(default_factory=OdometryConfig)
     odometry_cameras: tuple[int, ...] | None = None
     clock_reset_frames: int = 5
@@ -403,6 +407,9 @@ class Localiser:
         self._map_path = map_path
         self._odometry: dict[int, FloorOdometry | None] = {}  # per rig camera; None: camera sees too little floor
         self._step = None  # this frame's odometry step, for the rolling-shutter correction
+        # Set by a live loop while frames wait for the localiser (it is falling behind the camera):
+        # the odometry may then skip frames as with odometry_stride.
+        self.behind = False
         self.counts = new_counts()
         self.counts["tracked"] = 0  # detections whose identity came from sticker tracking, not a decode
         self.counts["reverified"] = 0  # of those, re-checked by module correlation when due a re-decode
@@ -445,7 +452,7 @@ class Localiser:
         # straight, see OdometryConfig.max_stride; it cannot read an unreadable one): its next step
         # then starts from its frame before, and the tracker keeps its clone there.
         odo = self.floor_odometry(frame.camera) if self.config.odometry and frame.image is not None else None
-        measure = odo is not None and odo.wants(t)
+        measure = odo is not None and odo.wants(t, self.config.odometry_stride or self.behind)
         if odo is not None and not measure:
             self.counts["odometry_strided"] += 1
         with timer("predict"):

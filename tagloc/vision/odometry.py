@@ -227,13 +227,14 @@ class OdometryConfig:
     ``rolling_shutter``: for a rolling-shutter camera (``RigCamera.readout_s`` > 0), sample each
     frame's patch where each floor point was at its row's time (see the module docstring).
 
-    Stride (``max_stride``, ``stride_max_turn_rate``; :meth:`FloorOdometry.wants`): while the
-    walker goes straight, a step may span two frame intervals, the frame between skipped (its
-    patch is not even made), which saves the odometry's whole cost on that frame (on a 20 s, 300
-    lux walk 27 % of frames, pipeline 8.9 -> 6.9 ms per frame). A step over two intervals has the
-    same image noise over twice the motion: per step 1.6-1.8 times a single step's error, over
-    0.5-1 s of chained steps within 25 % either way (heading better, position slightly worse), and
-    on the eval walks the tracker's RMSE equal or better. A frame is skipped only when the last step
+    Stride (``max_stride``, ``stride_max_turn_rate``; :meth:`FloorOdometry.wants`, used when the
+    localiser allows it: see ``LocaliserConfig.odometry_stride``): while the walker goes straight,
+    a step may span two frame intervals, the frame between skipped (its patch is not even made),
+    which saves the odometry's whole cost on that frame (25-46 % of the frames of the eval walks;
+    the odometry's CPU per frame 2.4-4.2 -> 1.5-3.1 ms). It is load shedding, not free: a step
+    over two intervals has the same image noise over twice the motion (per step 1.6-1.8 times a
+    single step's error), and over 1 s of chained steps the errors are mixed, most walks within
+    25 % either way, a few up to 35 % worse (``benchmarks/odometry_stride.py``). A frame is skipped only when the last step
     was a sure match (strong, and ECC ended near the turn first guessed), no frame was dropped
     since, and the turn rate is below ``stride_max_turn_rate``: 10 deg/s turns 0.67 deg over two
     intervals at 30 Hz, under half of the 1.5 deg that ECC is trusted to move from its guess
@@ -706,15 +707,16 @@ class FloorOdometry:
         if self._torso is not None:
             self._torso.anchor(float(t), self._lean_roll(t), float(pitch), float(roll))
 
-    def wants(self, t: float) -> bool:
+    def wants(self, t: float, stride: bool = True) -> bool:
         """Whether to measure the frame at ``t`` (s), or skip it so that the next step spans two frame
-        intervals (see ``max_stride``). A skipped frame is counted; call :meth:`measure` only for
-        frames this says yes to."""
+        intervals (see ``max_stride``; ``stride`` False: measure every frame). Call :meth:`measure`
+        for a frame this says yes to, :meth:`hold` for one it skips."""
         cfg = self.config
         prev = self._prev
         dt_frame = min(self._intervals) if self._intervals else None
         skip = (
-            cfg.max_stride > 1
+            stride
+            and cfg.max_stride > 1
             and self._skipped < cfg.max_stride - 1
             and prev is not None
             and self._last_ok
