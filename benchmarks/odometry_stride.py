@@ -9,9 +9,14 @@ vest point). Printed per walk and configuration: the share of frames skipped, th
 (process time, the skipped frames included), and the RMS of the windows' forward, sideways (mm) and
 turn (deg) errors.
 
+With ``--localiser`` the sessions go through the whole localiser instead, with
+``LocaliserConfig.odometry_stride`` off and on: per walk and over all walks, the body's RMSE (cm) and
+heading RMSE (deg) against the ground truth, over the frames with a pose.
+
 Run (from the repository root, on sessions made by ``tagloc eval --preset all`` or ``tagloc simulate``)::
 
     PYTHONPATH=$PWD nice python benchmarks/odometry_stride.py SESSION [SESSION ...] [--window 1.0]
+    PYTHONPATH=$PWD nice python benchmarks/odometry_stride.py SESSION [SESSION ...] --localiser
 """
 
 from __future__ import annotations
@@ -79,13 +84,39 @@ def _window_errors(steps: list[OdometryStep], truth: dict[float, np.ndarray], wi
     return np.array(errs)
 
 
+def localiser_errors(path: Path, stride: bool) -> tuple[float, float, int]:
+    """(sum of squared position errors m^2, sum of squared heading errors rad^2, frames) of the
+    localiser over a session, ``LocaliserConfig.odometry_stride`` = ``stride``."""
+    from tagloc.eval.metrics import trajectory_errors
+    from tagloc.pipeline.localiser import LocaliserConfig
+    from tagloc.pipeline.run import run_session
+
+    session = SessionReader(path)
+    log = run_session(session, LocaliserConfig(odometry_stride=stride))
+    v = log.valid
+    e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *session.groundtruth())
+    return float(np.sum(e.position**2)), float(np.sum(e.yaw**2)), len(e.position)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("sessions", nargs="+", type=Path, help="session directories with groundtruth_frames.jsonl")
     ap.add_argument("--window", type=float, default=1.0, help="chain length, s (default 1.0)")
     ap.add_argument("--config", default="{}", help="OdometryConfig overrides as JSON (angles in radians)")
+    ap.add_argument("--localiser", action="store_true", help="the whole localiser, odometry_stride off and on")
     args = ap.parse_args()
     cv2.setNumThreads(1)
+    if args.localiser:
+        print(f"{'walk':10s} {'RMSE cm off -> on':>18s} {'heading deg off -> on':>22s}")
+        total = np.zeros((2, 3))
+        for path in tqdm(args.sessions, desc="sessions", unit="walk", leave=False):
+            r = np.array([localiser_errors(path, stride) for stride in (False, True)])
+            total += r
+            rm, hd = 100 * np.sqrt(r[:, 0] / r[:, 2]), np.degrees(np.sqrt(r[:, 1] / r[:, 2]))
+            tqdm.write(f"{path.name:10s} {rm[0]:8.2f} -> {rm[1]:5.2f} {hd[0]:12.2f} -> {hd[1]:5.2f}")
+        rm, hd = 100 * np.sqrt(total[:, 0] / total[:, 2]), np.degrees(np.sqrt(total[:, 1] / total[:, 2]))
+        print(f"{'all':10s} {rm[0]:8.2f} -> {rm[1]:5.2f} {hd[0]:12.2f} -> {hd[1]:5.2f}")
+        return
     base = json.loads(args.config)
     print(f"{'walk':10s} {'stride':>6s} {'skipped %':>9s} {'ms/frame':>8s}  {'window RMS fwd / lat mm, turn deg':>34s}")
     for path in tqdm(args.sessions, desc="sessions", unit="walk", leave=False):

@@ -55,6 +55,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-seconds", type=float, help="stop after this many seconds")
     p.add_argument("--max-frames", type=int, help="stop after this many processed frames")
     p.add_argument("--no-pace", action="store_true", help="files/sessions: process every frame, as fast as possible")
+    p.add_argument(
+        "--no-stride",
+        action="store_true",
+        help="never let the floor odometry skip frames when processing falls behind the camera",
+    )
     p.add_argument("--buffer", type=int, default=1, help="frames the capture thread keeps (default 1)")
     p.add_argument(
         "--max-age",
@@ -106,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
             max_seconds=args.max_seconds,
             max_frames=args.max_frames,
             pace=not args.no_pace,
+            stride_when_behind=not args.no_stride,
             buffer=args.buffer,
             mode=args.mode,
             record_bag=args.record_bag,
