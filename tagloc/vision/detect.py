@@ -272,7 +272,13 @@ def _outline_quads(
     lo, hi = cfg.min_side_px / ds, cfg.max_side_px / ds
     found: set[tuple[int, ...]] = set()
     blobs = []
+    # An outline round a blob spanning k pixels in x or y goes there and back in steps of at most one
+    # pixel: at least 2 (k - 1) points. Most outlines are specks of floor texture; their length rules
+    # them out before the (costlier) bounding box.
+    min_len = 2 * (math.ceil(0.7 * lo) - 1)
     for c in contours:
+        if len(c) < min_len:
+            continue
         box = cv2.boundingRect(c)
         x0, y0, ww, hh = box
         if (
@@ -367,23 +373,27 @@ def huber_lines(points: np.ndarray, mask: np.ndarray, iterations: int = _HUBER_I
     lines (L, 3) with unit normals; NaN rows for sets of fewer than two points.
     """
     w = mask.astype(float)
-    x, y = points[..., 0], points[..., 1]
-    # The few dozen points per set make numpy's per-call overhead the cost: the loop keeps to the
-    # fewest array operations (the residual from the centred coordinates, the weight as a minimum).
+    # x and y as rows (L, 2, N), so that each pass handles both coordinates in one array operation
+    # (the few dozen points per set make numpy's per-call overhead the cost). The arithmetic is that
+    # of the per-coordinate form: the same products, each summed over a set's points in the same order.
+    xy = np.ascontiguousarray(points.transpose(0, 2, 1), dtype=float)
     with np.errstate(invalid="ignore", divide="ignore"):
         for _ in range(iterations):
+            w3 = w[:, None, :]
             sw = w.sum(axis=1)
-            mx, my = (w * x).sum(axis=1) / sw, (w * y).sum(axis=1) / sw
-            dx, dy = x - mx[:, None], y - my[:, None]
-            wdx = w * dx
-            sxx, syy, sxy = (wdx * dx).sum(axis=1), (w * dy * dy).sum(axis=1), (wdx * dy).sum(axis=1)
+            m = (w3 * xy).sum(axis=2) / sw[:, None]  # (L, 2) weighted centroid
+            d = xy - m[:, :, None]
+            wd = w3 * d
+            sxx, syy = (wd * d).sum(axis=2).T
+            sxy = (wd[:, 0] * d[:, 1]).sum(axis=1)
             theta = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # direction of the principal axis
             nx, ny = -np.sin(theta), np.cos(theta)
-            r = np.abs(dx * nx[:, None] + dy * ny[:, None])
+            r = np.abs(d[:, 0] * nx[:, None] + d[:, 1] * ny[:, None])
             w_new = np.where(mask, np.minimum(1.0, HUBER_C / r), 0.0)  # Huber: 1 within C, C / r beyond
             if float(np.abs(w_new - w).max()) < 1e-3:
                 break
             w = w_new
+    mx, my = m[:, 0], m[:, 1]
     return np.stack([nx, ny, -(nx * mx + ny * my)], axis=1)
 
 
