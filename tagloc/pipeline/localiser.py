@@ -20,6 +20,7 @@ import numpy as np
 from tagloc.core.camera import Camera, load_calibration
 from tagloc.core.errors import CalibrationError, InputError
 from tagloc.core.rig import Rig, RigCamera, default_rig, load_rig, torso_tilt
+from tagloc.core.sticker import SIZE_M
 from tagloc.core.stickermap import StickerMap, load_map
 from tagloc.core.types import (
     Detection,
@@ -38,6 +39,8 @@ from tagloc.vision.detect import detect
 from tagloc.vision.image import as_gray
 from tagloc.vision.odometry import FloorOdometry, OdometryConfig
 from tagloc.vision.pose import PoseConfig, solve_pose
+from tracker.candidates import project_map
+from tracker.ekf import largest_eig_2x2
 from tracker.tracker import Tracker, TrackerConfig
 
 #: The stages whose time is the tracker's: its prediction, candidate choice, updates and output.
@@ -160,6 +163,21 @@ class TrackingConfig:
             off the track) runs the costly least-squares stage (~10-20 ms) only every this many
             frames in a row; the cheap stages (zxing, grid sampling, ~2 ms) and identification
             still run every frame. 1 = always.
+        search_every: the whole image is searched for stickers every this many frames of a camera;
+            in the frames between, while the tracker is TRACKING and the camera's previous frame is
+            recent (``max_gap_s``), only around that frame's detections and the mapped stickers the
+            tracker predicts in view (:func:`tagloc.vision.detect.detect_stickers`' ``regions``: a
+            sticker inside them is found exactly as in a whole-image search). Half the detection
+            stage's cost is that search; what the regions can miss (an unmapped sticker or a stray
+            square coming into view, a sticker the prediction puts far off) is found at most
+            ``search_every - 1`` frames late. 1 = always the whole image.
+        search_rate_rad_s: how fast a sticker's image may move between frames, as a view angle: a
+            region reaches this times the time since the camera's previous frame times the focal
+            length beyond the sticker. Turning at up to 1.5 rad/s sweeps the image by 64 px per frame
+            at 30 fps and a 1286 px focal length, walking at 1.5 m/s moves a floor point 1.5 m away
+            by another ~40 px: 2.8 rad/s (120 px a frame) leaves a margin.
+        search_sigmas: a predicted sticker's region also covers this many standard deviations of the
+            tracker's position and heading uncertainty.
     """
 
     redecode_every: int = 4
@@ -169,6 +187,9 @@ class TrackingConfig:
     reverify: bool = True
     reverify_min_score: float = 0.7
     lsq_retry_every: int = 4
+    search_every: int = 3
+    search_rate_rad_s: float = 2.8
+    search_sigmas: float = 3.0
 
 
 @dataclass(frozen=True)
@@ -413,6 +434,10 @@ class Localiser:
         self._pending: list[tuple] = []  # this frame's deferred least-squares decodes (defer_lsq)
         self._failed: list[FailedRead] = []  # detections of the previous frame nothing named
         self._tracked: list[Tracked] = []  # decoded stickers of the previous frame whose fixes were accepted
+        # Per camera: (time of its previous frame, that frame's detected quads, frames since the
+        # whole image was last searched) for the region search (TrackingConfig.search_every).
+        self._searched: dict[int, tuple[float, list[np.ndarray], int]] = {}
+        self.counts["region_searches"] = 0  # frames searched only around expected stickers
         self.counts.update(refused_timestamps=0, clock_resets=0, wrong_size_frames=0)
         self._last_t: float | None = None  # timestamp of the last frame accepted
         self._refused_run = 0
@@ -459,7 +484,11 @@ class Localiser:
             with timer("odometry"):
                 self._odometry_step(gray, frame.camera, t)
         with timer("detect"):
-            detections = detect(gray, rig_cam.camera, method=self.config.detector)
+            regions = self._search_regions(frame.camera, rig_cam, t)
+            detections = detect(gray, rig_cam.camera, method=self.config.detector, regions=regions)
+        since = 0 if regions is None else self._searched[frame.camera][2] + 1
+        self._searched[frame.camera] = (t, [d.outer for d in detections], since)
+        self.counts["region_searches"] += regions is not None
         self.counts["detections"] += len(detections)
 
         matches = (
@@ -511,6 +540,41 @@ class Localiser:
             out = self.tracker.output(t)
         return FrameResult(frame.index, t, observations, out, timer.finish(), None, frame)
 
+    def _search_regions(self, camera: int, rig_cam: RigCamera, t: float) -> list[tuple[int, int, int, int]] | None:
+        """Where to search this frame for stickers (``TrackingConfig.search_every``): boxes (x0, y0,
+        x1, y1) around the camera's previous detections and the mapped stickers the tracker predicts
+        in view, or None for the whole image."""
+        cfg = self.config.tracking
+        prev = self._searched.get(camera)
+        if cfg.search_every <= 1 or not self.config.sticker_tracking or self.config.detector != "contour":
+            return None
+        if prev is None or prev[2] + 1 >= cfg.search_every or not 0.0 < t - prev[0] <= cfg.max_gap_s:
+            return None
+        prior = self.tracker.prior()
+        if prior is None:
+            return None  # not tracking: nothing to say where stickers are
+        cam = rig_cam.camera
+        reach = cfg.search_rate_rad_s * (t - prev[0]) * cam.fx
+        boxes = [(*(q.min(axis=0) - reach), *(q.max(axis=0) + reach)) for q in prev[1]]
+        mean, cov = prior
+        proj = project_map(mean, self.map, self.tracker.leaned_camera(rig_cam))
+        if len(proj.rows):
+            # Half a sticker's diagonal at its depth, the motion since the previous frame, and the
+            # prior's position and heading uncertainty (as pixels at that depth).
+            pos_sigma = math.sqrt(max(largest_eig_2x2(cov), 0.0))
+            yaw_sigma = math.sqrt(max(float(cov[2, 2]), 0.0))
+            depth = np.maximum(proj.depth, 1e-3)
+            r = (0.75 * SIZE_M + cfg.search_sigmas * pos_sigma) * cam.fx / depth
+            r = r + reach + cfg.search_sigmas * yaw_sigma * cam.fx
+            boxes += [(u - ri, v - ri, u + ri, v + ri) for (u, v), ri in zip(proj.pixels, r)]
+        out = []
+        for x0, y0, x1, y1 in boxes:
+            x0, y0 = max(0, math.floor(x0)), max(0, math.floor(y0))
+            x1, y1 = min(cam.width, math.ceil(x1) + 1), min(cam.height, math.ceil(y1) + 1)
+            if x1 > x0 and y1 > y0:
+                out.append((x0, y0, x1, y1))
+        return out
+
     def _track(self, observations: list[Observation], carried: list[Identity | None], camera: int, t: float) -> None:
         """Keep this frame's decoded (or carried) stickers whose fixes the tracker accepted: only they
         may carry their identity into the next frame."""
@@ -548,6 +612,7 @@ class Localiser:
         self._tracked = []
         self._failed = []
         self._pending = []
+        self._searched = {}
 
     def _check_size(self, frame: Frame) -> str | None:
         """Why the frame's image cannot be this camera's, or None."""
