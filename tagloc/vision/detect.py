@@ -355,7 +355,7 @@ def _candidates(
         # Far enough from a cut edge, a pixel's threshold window and closings see only the cut-out:
         # there its mask is the whole image's.
         interior = _threshold_reach(cfg, ds)
-        for x0, y0, x1, y1 in _merge_boxes(regions):
+        for x0, y0, x1, y1 in merge_boxes(regions):
             # Cut on whole candidate pixels (the downscaled cut-out is then the whole image's).
             cx0, cy0 = max(0, x0 // ds - interior), max(0, y0 // ds - interior)
             cx1, cy1 = min(w // ds, -(-x1 // ds) + interior), min(h // ds, -(-y1 // ds) + interior)
@@ -384,24 +384,24 @@ def _threshold_reach(cfg: DetectConfig, ds: int) -> int:
     return block // 2 + max(cfg.close_px, 0) // 2 + max(cfg.group_px, 0) // 2 + 2
 
 
-def _merge_boxes(boxes: list[tuple[int, int, int, int]]) -> list[tuple[int, int, int, int]]:
+def merge_boxes(boxes: list[tuple[int, int, int, int]]) -> list[tuple[int, int, int, int]]:
     """Boxes (x0, y0, x1, y1) with overlapping ones merged into their bounding box (so that no blob
-    is found twice)."""
-    out = [tuple(int(v) for v in b) for b in boxes]
-    merged = True
-    while merged:
-        merged = False
-        for i in range(len(out)):
-            for j in range(i + 1, len(out)):
-                a, b = out[i], out[j]
-                if a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]:
-                    out[i] = (min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3]))
-                    del out[j]
-                    merged = True
+    is found twice), until none overlap."""
+    out = [[int(v) for v in b] for b in boxes]
+    changed = True
+    while changed:
+        changed = False
+        merged: list[list[int]] = []
+        for b in out:
+            for m in merged:
+                if b[0] <= m[2] and m[0] <= b[2] and b[1] <= m[3] and m[1] <= b[3]:
+                    m[0], m[1], m[2], m[3] = min(m[0], b[0]), min(m[1], b[1]), max(m[2], b[2]), max(m[3], b[3])
+                    changed = True
                     break
-            if merged:
-                break
-    return out  # type: ignore[return-value]
+            else:
+                merged.append(b)
+        out = merged
+    return [(b[0], b[1], b[2], b[3]) for b in out]
 
 
 def _candidates_in(
