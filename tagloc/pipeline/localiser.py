@@ -182,7 +182,8 @@ class TrackingConfig:
             overlap) are not worth cutting out: the whole image is searched. The search's cost
             grows with the area searched plus a cut-out margin and set-up per region; on a walk
             with 3-4 stickers in view (regions over 70 % of the image) cut-outs cost more than the
-            whole image, on one with 1-2 (20 % on average) they save 0.5 ms a frame.
+            whole image, on one with 1-2 (20 % on average) they save 0.5 ms a frame. Regions
+            found crowded are not worked out again before the next scheduled whole-image search.
         search_max_stickers: after a frame with more detections than this the whole image is
             searched without working out the regions (their margins would cover most of it, and
             predicting the mapped stickers in view costs ~0.2 ms).
@@ -445,8 +446,9 @@ class Localiser:
         self._failed: list[FailedRead] = []  # detections of the previous frame nothing named
         self._tracked: list[Tracked] = []  # decoded stickers of the previous frame whose fixes were accepted
         # Per camera: (time of its previous frame, that frame's detected quads, frames since the
-        # whole image was last searched) for the region search (TrackingConfig.search_every).
-        self._searched: dict[int, tuple[float, list[np.ndarray], int]] = {}
+        # last scheduled whole-image search, whether the regions were crowded) for the region
+        # search (TrackingConfig.search_every).
+        self._searched: dict[int, tuple[float, list[np.ndarray], int, bool]] = {}
         self.counts["region_searches"] = 0  # frames searched only around expected stickers
         self.counts.update(refused_timestamps=0, clock_resets=0, wrong_size_frames=0)
         self._last_t: float | None = None  # timestamp of the last frame accepted
@@ -494,10 +496,9 @@ class Localiser:
             with timer("odometry"):
                 self._odometry_step(gray, frame.camera, t)
         with timer("detect"):
-            regions = self._search_regions(frame.camera, rig_cam, t)
+            regions, since, crowded = self._search_plan(frame.camera, rig_cam, t)
             detections = detect(gray, rig_cam.camera, method=self.config.detector, regions=regions)
-        since = 0 if regions is None else self._searched[frame.camera][2] + 1
-        self._searched[frame.camera] = (t, [d.outer for d in detections], since)
+        self._searched[frame.camera] = (t, [d.outer for d in detections], since, crowded)
         self.counts["region_searches"] += regions is not None
         self.counts["detections"] += len(detections)
 
@@ -550,21 +551,24 @@ class Localiser:
             out = self.tracker.output(t)
         return FrameResult(frame.index, t, observations, out, timer.finish(), None, frame)
 
-    def _search_regions(self, camera: int, rig_cam: RigCamera, t: float) -> list[tuple[int, int, int, int]] | None:
+    def _search_plan(
+        self, camera: int, rig_cam: RigCamera, t: float
+    ) -> tuple[list[tuple[int, int, int, int]] | None, int, bool]:
         """Where to search this frame for stickers (``TrackingConfig.search_every``): boxes (x0, y0,
         x1, y1) around the camera's previous detections and the mapped stickers the tracker predicts
-        in view, or None for the whole image."""
+        in view, or None for the whole image; with the frames since the last scheduled whole-image
+        search (0: this one) and whether the regions are crowded (they covered too much of the image:
+        none are worked out again before the next scheduled whole-image search)."""
         cfg = self.config.tracking
         prev = self._searched.get(camera)
         if cfg.search_every <= 1 or not self.config.sticker_tracking or self.config.detector != "contour":
-            return None
+            return None, 0, False
         if prev is None or prev[2] + 1 >= cfg.search_every or not 0.0 < t - prev[0] <= cfg.max_gap_s:
-            return None
-        if len(prev[1]) > cfg.search_max_stickers:
-            return None
+            return None, 0, False
+        since, crowded = prev[2] + 1, prev[3]
         prior = self.tracker.prior()
-        if prior is None:
-            return None  # not tracking: nothing to say where stickers are
+        if crowded or len(prev[1]) > cfg.search_max_stickers or prior is None:
+            return None, since, crowded  # (not tracking: nothing says where stickers are)
         cam = rig_cam.camera
         reach = cfg.search_rate_rad_s * (t - prev[0]) * cam.fx
         boxes = [(*(q.min(axis=0) - reach), *(q.max(axis=0) + reach)) for q in prev[1]]
@@ -587,8 +591,8 @@ class Localiser:
                 out.append((x0, y0, x1, y1))
         out = merge_boxes(out)
         if sum((x1 - x0) * (y1 - y0) for x0, y0, x1, y1 in out) > cfg.search_max_area * cam.width * cam.height:
-            return None
-        return out
+            return None, since, True
+        return out, since, False
 
     def _track(self, observations: list[Observation], carried: list[Identity | None], camera: int, t: float) -> None:
         """Keep this frame's decoded (or carried) stickers whose fixes the tracker accepted: only they
