@@ -249,10 +249,12 @@ class Tracker:
         return leaned
 
     # -- time ---------------------------------------------------------------------------------------
-    def predict(self, t: float, camera: Hashable = None) -> None:
+    def predict(self, t: float, camera: Hashable = None, odometry: bool = True) -> None:
         """Move the filter to frame time ``t`` (s) of a frame of ``camera`` (a key naming the camera, for
         its odometry, e.g. the rig camera's index; None will do for one camera); an older or non-finite
-        ``t`` leaves it unchanged."""
+        ``t`` leaves it unchanged. ``odometry``: the camera's next odometry step starts at this frame
+        (its clone is taken here); False for a frame its odometry skips or cannot read, so the next
+        step, from the frame before, still finds its clone."""
         t = float(t)
         if not math.isfinite(t):
             self._stats["invalid_times"] += 1
@@ -276,7 +278,8 @@ class Tracker:
                 if t - t0 > self.config.gap_s and t0 - self._last_odo_t <= self.config.gap_s:
                     self._gap_noise(t - t0)
             self._here = set()
-        self._here.add(camera)
+        if odometry:
+            self._here.add(camera)
         self._t = t
         self._check_lost()
 

@@ -351,7 +351,7 @@ def read_sticker(
 def new_counts() -> dict[str, int]:
     """The per-run counters a localiser keeps (the baselines keep the same ones)."""
     keys = ("frames", "skipped", "detections", "decoded", "identified", "rejected_reads", "unmapped_reads")
-    return dict.fromkeys((*keys, "odometry_steps", "odometry_unavailable", "tilt_gated"), 0)
+    return dict.fromkeys((*keys, "odometry_steps", "odometry_strided", "odometry_unavailable", "tilt_gated"), 0)
 
 
 def count_read(counts: dict[str, int], read: Read) -> None:
@@ -478,8 +478,15 @@ class Localiser:
             with timer("output"):
                 out = self.tracker.output()
             return FrameResult(frame.index, t, [], out, timer.finish(), refused, frame)
+        # Whether this camera's odometry measures this frame (it may skip one while walking
+        # straight, see OdometryConfig.max_stride; it cannot read an unreadable one): its next step
+        # then starts from its frame before, and the tracker keeps its clone there.
+        odo = self.floor_odometry(frame.camera) if self.config.odometry and frame.image is not None else None
+        measure = odo is not None and odo.wants(t)
+        if odo is not None and not measure:
+            self.counts["odometry_strided"] += 1
         with timer("predict"):
-            self.tracker.predict(t, frame.camera)
+            self.tracker.predict(t, frame.camera, odometry=measure)
         if frame.image is None:
             self.counts["skipped"] += 1
             with timer("output"):
@@ -490,11 +497,13 @@ class Localiser:
         # Deferred decodes not run before this frame are dropped (the detection, still unread here,
         # queues its decode again).
         self._pending = []
-        if self.config.odometry:
+        if measure:
             # This camera's step since its previous frame: the tracker fuses it against its clone of
             # the pose there (tracker.clones), whatever other cameras' frames came in between.
             with timer("odometry"):
                 self._odometry_step(gray, frame.camera, t)
+        elif odo is not None:
+            odo.hold(gray, t)
         with timer("detect"):
             regions, since, crowded = self._search_plan(frame.camera, rig_cam, t)
             detections = detect(gray, rig_cam.camera, method=self.config.detector, regions=regions)

@@ -1,0 +1,112 @@
+"""Floor odometry with and without the stride (``OdometryConfig.max_stride``): cost and accuracy.
+
+Each session's frames go through :class:`tagloc.vision.odometry.FloorOdometry` alone (no tracker),
+once measuring every frame (``max_stride`` 1) and once as the localiser calls it (``wants``, and
+``hold`` for a frame it skips). The steps are chained over consecutive windows of ``--window``
+seconds (the gaps between sticker passes that odometry bridges) and compared with the vest's true
+motion over the same interval (the ground truth's camera pose carried through the nominal rig to the
+vest point). Printed per walk and configuration: the share of frames skipped, the CPU time per frame
+(process time, the skipped frames included), and the RMS of the windows' forward, sideways (mm) and
+turn (deg) errors.
+
+Run (from the repository root, on sessions made by ``tagloc eval --preset all`` or ``tagloc simulate``)::
+
+    PYTHONPATH=$PWD nice python benchmarks/odometry_stride.py SESSION [SESSION ...] [--window 1.0]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from tagloc.core.geometry import planar_from_T, wrap_angle
+from tagloc.io.session import SessionReader
+from tagloc.vision.image import as_gray
+from tagloc.vision.odometry import FloorOdometry, OdometryConfig, OdometryStep
+
+
+def _steps(session: SessionReader, config: OdometryConfig) -> tuple[list[OdometryStep], int, int, float]:
+    """The odometry's steps over the session: (steps, frames skipped, frames, CPU s per frame)."""
+    odo = FloorOdometry(session.rig[0], config)
+    steps: list[OdometryStep] = []
+    skipped = n = 0
+    cpu = 0.0
+    for fr in session.frames():
+        if fr.image is None:
+            continue
+        gray = as_gray(fr.image)
+        n += 1
+        c0 = time.process_time()
+        if odo.wants(fr.timestamp):
+            step = odo.measure(gray, fr.timestamp)
+            if step is not None:
+                steps.append(step)
+        else:
+            odo.hold(gray, fr.timestamp)
+            skipped += 1
+        cpu += time.process_time() - c0
+    return steps, skipped, n, cpu / max(n, 1)
+
+
+def _window_errors(steps: list[OdometryStep], truth: dict[float, np.ndarray], window: float) -> np.ndarray:
+    """Errors (N, 3) (forward m, sideways m, turn rad) of the steps chained over consecutive windows of
+    at most ``window`` s (a chain ends where a step does not start at the previous one's end)."""
+    errs = []
+    i = 0
+    while i < len(steps):
+        pose = np.zeros(3)
+        j = i
+        while j < len(steps) and steps[j].t1 - steps[i].t0 <= window + 1e-6:
+            if j > i and abs(steps[j].t0 - steps[j - 1].t1) > 1e-9:
+                break
+            c, s = math.cos(pose[2]), math.sin(pose[2])
+            d = steps[j].delta
+            pose = pose + np.array([c * d[0] - s * d[1], s * d[0] + c * d[1], d[2]])
+            j += 1
+        T0, T1 = truth[round(steps[i].t0, 6)], truth[round(steps[j - 1].t1, 6)]
+        true = np.array(planar_from_T(np.linalg.inv(T0) @ T1))
+        e = pose - true
+        e[2] = wrap_angle(e[2])
+        errs.append(e)
+        i = j
+    return np.array(errs)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("sessions", nargs="+", type=Path, help="session directories with groundtruth_frames.jsonl")
+    ap.add_argument("--window", type=float, default=1.0, help="chain length, s (default 1.0)")
+    ap.add_argument("--config", default="{}", help="OdometryConfig overrides as JSON (angles in radians)")
+    args = ap.parse_args()
+    cv2.setNumThreads(1)
+    base = json.loads(args.config)
+    print(f"{'walk':10s} {'stride':>6s} {'skipped %':>9s} {'ms/frame':>8s}  {'window RMS fwd / lat mm, turn deg':>34s}")
+    for path in tqdm(args.sessions, desc="sessions", unit="walk", leave=False):
+        session = SessionReader(path)
+        T_camera_body = np.linalg.inv(session.rig[0].T_body_camera)
+        stamps = {fr.index: fr.timestamp for fr in session.frames(with_images=False)}
+        truth = {}
+        with (path / "groundtruth_frames.jsonl").open() as f:
+            for line in f:
+                rec = json.loads(line)
+                if rec["index"] in stamps:
+                    truth[round(stamps[rec["index"]], 6)] = np.array(rec["T_world_camera"]) @ T_camera_body
+        for stride in (1, OdometryConfig().max_stride):
+            steps, skipped, n, cpu = _steps(session, OdometryConfig(**{**base, "max_stride": stride}))
+            e = _window_errors(steps, truth, args.window)
+            rms = np.sqrt(np.mean(e**2, axis=0))
+            tqdm.write(
+                f"{path.name:10s} {stride:6d} {100 * skipped / max(n, 1):9.1f} {1e3 * cpu:8.2f}"
+                f"  {1e3 * rms[0]:10.1f} / {1e3 * rms[1]:5.1f}, {math.degrees(rms[2]):5.2f}  ({len(e)} windows)"
+            )
+
+
+if __name__ == "__main__":
+    main()
