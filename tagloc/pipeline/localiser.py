@@ -507,7 +507,7 @@ class Localiser:
         with timer("detect"):
             regions, since, crowded = self._search_plan(frame.camera, rig_cam, t)
             detections = detect(gray, rig_cam.camera, method=self.config.detector, regions=regions)
-        self._searched[frame.camera] = (t, [d.outer for d in detections], since, crowded)
+        self._searched[frame.camera] = (t, [d.outer.copy() for d in detections], since, crowded)
         self.counts["region_searches"] += regions is not None
         self.counts["detections"] += len(detections)
 
