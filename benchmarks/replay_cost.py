@@ -18,6 +18,9 @@ OpenCV on one thread:
    session's rate, each result written to the JSON-lines frame log: grab-to-publication latency,
    as live runs (least-squares decodes after the frame is published, ``LocaliserConfig.defer_lsq``)
    and with every decode inside its frame (as a replay does).
+5. With ``--vs-whole-image``: the pipeline's detection and total per frame with the region search
+   (the default, ``TrackingConfig.search_every``) and with the whole image searched every frame,
+   runs alternated.
 
 Example::
 
@@ -105,13 +108,16 @@ def _one_frame_copy(session: Path, dest: Path) -> Path:
     return dest
 
 
-def pipeline_cost(session: Path, repeat: int) -> dict:
-    """Mean and p99 CPU per frame of each stage of ``Localiser.process``, over the frames in memory."""
+def pipeline_cost(session: Path, repeat: int, whole_image: bool = False) -> dict:
+    """Mean and p99 CPU per frame of each stage of ``Localiser.process``, over the frames in memory
+    (``whole_image``: every frame searched whole, ``TrackingConfig.search_every`` = 1)."""
+    import dataclasses
+
     from tqdm import tqdm
 
     import tagloc.pipeline.localiser as localiser_mod
     from tagloc.io.session import SessionReader
-    from tagloc.pipeline.localiser import Localiser
+    from tagloc.pipeline.localiser import Localiser, LocaliserConfig
 
     try:
         from tagloc.pipeline.localiser import TRACKER_STAGES
@@ -124,7 +130,10 @@ def pipeline_cost(session: Path, repeat: int) -> dict:
     localiser_mod.time = types.SimpleNamespace(perf_counter=time.thread_time)
     runs = []
     for r in range(repeat):
-        loc = Localiser(reader.map, reader.rig, map_path=session / "map.csv")
+        config = LocaliserConfig()
+        if whole_image:
+            config = dataclasses.replace(config, tracking=dataclasses.replace(config.tracking, search_every=1))
+        loc = Localiser(reader.map, reader.rig, config=config, map_path=session / "map.csv")
         # Set-up, not per-frame work: the identification references and the odometry's remap tables
         # (a replay pays them once, in its start-up, measured below).
         _ = loc.refs
@@ -204,6 +213,11 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="also time the imports start-up is made of, and a replay without filterpy's scipy.stats",
     )
+    p.add_argument(
+        "--vs-whole-image",
+        action="store_true",
+        help="also the pipeline with the whole image searched every frame (no region search), alternated",
+    )
     p.add_argument("--json", type=Path, help="write the figures as JSON")
     args = p.parse_args(argv)
     core = None if args.core < 0 else args.core
@@ -237,6 +251,8 @@ def main(argv: list[str] | None = None) -> int:
         out["by_stickers"][n] = {"frames": int(len(sel[0])), "mean_ms": means, "p99_ms": p99s}
         print(f"{n} stickers ({len(sel[0]):3d} frames): mean {_spread(means)}  p99 {_spread(p99s)}")
 
+    if args.vs_whole_image:
+        _vs_whole_image(args, out)
     if args.pipeline_only:
         _write(args.json, out)
         return 0
@@ -281,6 +297,25 @@ def main(argv: list[str] | None = None) -> int:
         _live(args, out)
     _write(args.json, out)
     return 0
+
+
+def _vs_whole_image(args: argparse.Namespace, out: dict) -> None:
+    """Detection and total per frame with the region search (the default) and with the whole image
+    searched every frame, runs alternated so that both see the same machine load, into ``out``."""
+    res: dict[str, list[tuple[float, float]]] = {"region search": [], "whole image every frame": []}
+    pipeline_cost(args.session, 1)  # warm-up: a process's first run pays one-off set-up
+    order = (("region search", False), ("whole image every frame", True))
+    for k in range(args.repeat):
+        for name, whole in order if k % 2 == 0 else order[::-1]:  # neither always first
+            run = pipeline_cost(args.session, 1, whole_image=whole)["runs"][0]
+            res[name].append((float(run["detect"].mean()), float(run["total"].mean())))
+    print(
+        f"\nRegion search against the whole image every frame, mean ms per frame ({args.repeat} runs each, alternated)"
+    )
+    out["vs_whole_image"] = {}
+    for name, v in res.items():
+        out["vs_whole_image"][name] = {"detect_ms": [d for d, _ in v], "total_ms": [t for _, t in v]}
+        print(f"  {name:<26} detect {_spread([d for d, _ in v])}  total {_spread([t for _, t in v])}")
 
 
 def _live(args: argparse.Namespace, out: dict) -> None:

@@ -339,3 +339,29 @@ def test_batched_huber_lines_minimise_the_huber_loss_as_well_as_opencv():
         # random-subset search stops short of the minimum), and the true side within 0.5 px.
         assert huber_loss(pts[mask], line) <= huber_loss(pts[mask], r) + 1e-6
         assert np.abs(true_pts @ line[:2] + line[2]).max() < 0.5
+
+
+def test_region_search_finds_what_the_whole_image_search_finds():
+    f = _floor_scene(3, seed=21, noise=3, distractors=[(1100, 250, 45, 20)])
+    whole = detect_stickers(f.image, CAM)
+    assert len(whole) == 3
+    h, w = f.image.shape
+
+    def same(a, b):
+        return len(a) == len(b) and all(
+            np.array_equal(x.outer, y.outer) and x.score == y.score and np.array_equal(x.inner, y.inner)
+            for x, y in zip(a, b)
+        )
+
+    # One box over the whole image, and tight boxes (5 px) round each sticker: the same detections,
+    # to the bit (the cut-outs' thresholds match the whole image's away from their cut edges).
+    assert same(detect_stickers(f.image, CAM, regions=[(0, 0, w, h)]), whole)
+    boxes = [(*(d.outer.min(axis=0).astype(int) - 5), *(d.outer.max(axis=0).astype(int) + 6)) for d in whole]
+    assert same(detect_stickers(f.image, CAM, regions=boxes), whole)
+    # A box round one sticker finds that one only; no box, nothing.
+    one = detect_stickers(f.image, CAM, regions=boxes[1:2])
+    assert same(one, whole[1:2])
+    assert detect_stickers(f.image, CAM, regions=[]) == []
+    # Overlapping boxes are merged: no sticker twice.
+    x0, y0, x1, y1 = boxes[0]
+    assert same(detect_stickers(f.image, CAM, regions=[boxes[0], (x0 + 9, y0 - 7, x1 + 9, y1 - 7)]), whole[:1])

@@ -145,6 +145,9 @@ class Tracker:
         self._clones_dropped_t = -math.inf  # when the clones were last dropped (restart, forgetting)
         self._last_odo_t = -math.inf  # end of the last odometry step fused
         self._odo_scale = np.sqrt(np.asarray(cfg.odometry_inflation, float))
+        # The last leaned camera made, with its rig camera and roll: the candidates of each
+        # detection of a frame, and the region search, ask for the same one.
+        self._leaned: tuple[RigCamera, float, RigCamera] | None = None
         self._stats: dict[str, int] = {f"{v}_{s.value}": 0 for s in _SOURCES for v in ("accepted", "rejected")}
         self._stats.update(
             dict.fromkeys(
@@ -233,12 +236,17 @@ class Tracker:
         roll = -math.atan(float(x[motion.V] * x[motion.W]) / self.config.gravity)
         if abs(roll) < 1e-4:
             return rig_camera
+        last = self._leaned
+        if last is not None and last[0] is rig_camera and last[1] == roll:
+            return last[2]
         c, s = math.cos(roll), math.sin(roll)
         T = np.eye(4)
         T[1:3, 1:3] = [[c, -s], [s, c]]
         p = rig_camera.vest_point
         T[:3, 3] = p - T[:3, :3] @ p
-        return dataclasses.replace(rig_camera, T_body_camera=T @ rig_camera.T_body_camera)
+        leaned = dataclasses.replace(rig_camera, T_body_camera=T @ rig_camera.T_body_camera)
+        self._leaned = (rig_camera, roll, leaned)
+        return leaned
 
     # -- time ---------------------------------------------------------------------------------------
     def predict(self, t: float, camera: Hashable = None, odometry: bool = True) -> None:

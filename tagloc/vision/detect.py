@@ -257,12 +257,17 @@ def _outline_quads(
     ds: int,
     skip: set[tuple[int, ...]] | None = None,
     dark_mask: np.ndarray | None = None,
-) -> tuple[list[np.ndarray], set[tuple[int, ...]]]:
+    origin: tuple[int, int] = (0, 0),
+    margins: tuple[int, int, int, int] = (0, 0, 0, 0),
+) -> tuple[list[tuple[float, np.ndarray]], set[tuple[int, ...]]]:
     """Quads (4, 2) in full-resolution pixels of the mask's blobs (outer outlines) that can be stickers.
 
     Blobs whose bounding box (x, y, w, h) is in ``skip`` are ignored. The dark share of a quad is
     counted in ``dark_mask`` (default ``mask``) inside the blob's outline: a widely closed mask fills
-    a sticker's inside. Returns the quads, largest blob first, and the bounding boxes of their blobs.
+    a sticker's inside. ``mask`` may be a cut-out of the candidate image whose top left pixel is
+    ``origin`` there; a blob within ``margins`` (left, top, right, bottom) px of the cut-out's edges is
+    left out (near a cut the cut-out's threshold differs from the whole image's; 0 at an image edge). Returns (blob area, quad) pairs, largest
+    blob first, and the bounding boxes of their blobs (in ``mask``).
     """
     h, w = mask.shape
     # Outer outlines rather than labelled components: the outline is what the quad is fitted to,
@@ -272,15 +277,21 @@ def _outline_quads(
     lo, hi = cfg.min_side_px / ds, cfg.max_side_px / ds
     found: set[tuple[int, ...]] = set()
     blobs = []
+    # An outline round a blob spanning k pixels in x or y goes there and back in steps of at most one
+    # pixel: at least 2 (k - 1) points. Most outlines are specks of floor texture; their length rules
+    # them out before the (costlier) bounding box.
+    min_len = 2 * (math.ceil(0.7 * lo) - 1)
     for c in contours:
+        if len(c) < min_len:
+            continue
         box = cv2.boundingRect(c)
         x0, y0, ww, hh = box
         if (
             not 0.7 * lo <= max(ww, hh) <= 1.2 * hi
-            or x0 <= 0
-            or y0 <= 0
-            or x0 + ww >= w
-            or y0 + hh >= h
+            or x0 <= margins[0]
+            or y0 <= margins[1]
+            or x0 + ww >= w - margins[2]
+            or y0 + hh >= h - margins[3]
             or (skip and box in skip)
         ):
             continue
@@ -325,14 +336,79 @@ def _outline_quads(
         if sides.max() > cfg.max_aspect * max(sides.min(), 1e-6):
             continue
         # Outline pixel centres sit half a pixel inside the blob's edge; refinement corrects the rest.
-        quads.append(clockwise((quad + [x0 + 0.5, y0 + 0.5]) * ds - 0.5))
+        quads.append((float(area), clockwise((quad + [x0 + origin[0] + 0.5, y0 + origin[1] + 0.5]) * ds - 0.5)))
         found.add((x0, y0, ww, hh))
     return quads, found
 
 
-def _candidates(gray: np.ndarray, cfg: DetectConfig) -> list[np.ndarray]:
-    """Coarse quads (4, 2), full-resolution pixels, clockwise, largest first."""
+def _candidates(
+    gray: np.ndarray, cfg: DetectConfig, regions: list[tuple[int, int, int, int]] | None = None
+) -> list[np.ndarray]:
+    """Coarse quads (4, 2), full-resolution pixels, clockwise, largest first: of the whole image, or of
+    the blobs inside ``regions`` (see :func:`detect_stickers`)."""
     ds = max(1, int(cfg.downscale))
+    if regions is None:
+        first, group = _candidates_in(gray, cfg, ds, (0, 0), (0, 0, 0, 0))
+    else:
+        first, group = [], []
+        h, w = gray.shape
+        # Far enough from a cut edge, a pixel's threshold window and closings see only the cut-out:
+        # there its mask is the whole image's.
+        interior = _threshold_reach(cfg, ds)
+        for x0, y0, x1, y1 in merge_boxes(regions):
+            # Cut on whole candidate pixels (the downscaled cut-out is then the whole image's).
+            cx0, cy0 = max(0, x0 // ds - interior), max(0, y0 // ds - interior)
+            cx1, cy1 = min(w // ds, -(-x1 // ds) + interior), min(h // ds, -(-y1 // ds) + interior)
+            if cx1 - cx0 <= 2 * interior or cy1 - cy0 <= 2 * interior:
+                continue
+            # A cut edge keeps blobs off it; an image edge only by the whole image's own rule.
+            margins = (
+                interior if cx0 > 0 else 0,
+                interior if cy0 > 0 else 0,
+                interior if cx1 < w // ds else 0,
+                interior if cy1 < h // ds else 0,
+            )
+            cut = gray[cy0 * ds : cy1 * ds, cx0 * ds : cx1 * ds]
+            f, g = _candidates_in(cut, cfg, ds, (cx0, cy0), margins)
+            first += f
+            group += g
+        first.sort(key=lambda q: -q[0])
+        group.sort(key=lambda q: -q[0])
+    return [q for _, q in first + group]
+
+
+def _threshold_reach(cfg: DetectConfig, ds: int) -> int:
+    """How far (candidate px) the adaptive threshold and closings reach: half the threshold window,
+    half each closing, and a pixel for the outline."""
+    block = max(3, int(round(cfg.block_px / ds)) | 1)
+    return block // 2 + max(cfg.close_px, 0) // 2 + max(cfg.group_px, 0) // 2 + 2
+
+
+def merge_boxes(boxes: list[tuple[int, int, int, int]]) -> list[tuple[int, int, int, int]]:
+    """Boxes (x0, y0, x1, y1) with overlapping ones merged into their bounding box (so that no blob
+    is found twice), until none overlap."""
+    out = [[int(v) for v in b] for b in boxes]
+    changed = True
+    while changed:
+        changed = False
+        merged: list[list[int]] = []
+        for b in out:
+            for m in merged:
+                if b[0] <= m[2] and m[0] <= b[2] and b[1] <= m[3] and m[1] <= b[3]:
+                    m[0], m[1], m[2], m[3] = min(m[0], b[0]), min(m[1], b[1]), max(m[2], b[2]), max(m[3], b[3])
+                    changed = True
+                    break
+            else:
+                merged.append(b)
+        out = merged
+    return [(b[0], b[1], b[2], b[3]) for b in out]
+
+
+def _candidates_in(
+    gray: np.ndarray, cfg: DetectConfig, ds: int, origin: tuple[int, int], margins: tuple[int, int, int, int]
+) -> tuple[list[tuple[float, np.ndarray]], list[tuple[float, np.ndarray]]]:
+    """(blob area, quad) pairs of the first and the grouping pass on ``gray`` (a cut-out whose top
+    left is candidate pixel ``origin``; blobs within ``margins`` of its edges left out)."""
     small = (
         gray if ds == 1 else cv2.resize(gray, (gray.shape[1] // ds, gray.shape[0] // ds), interpolation=cv2.INTER_AREA)
     )
@@ -346,7 +422,8 @@ def _candidates(gray: np.ndarray, cfg: DetectConfig) -> list[np.ndarray]:
     if cfg.close_px > 1:
         # Blur across a thin frame leaves it as dashes; closing rejoins them into one ring.
         mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_RECT, (cfg.close_px,) * 2))
-    quads, boxes = _outline_quads(mask, cfg, ds)
+    quads, boxes = _outline_quads(mask, cfg, ds, origin=origin, margins=margins)
+    group: list[tuple[float, np.ndarray]] = []
     if cfg.group_px > max(cfg.close_px, 1):
         # Heavy blur across a side, or a side seen nearly edge-on at 2-2.5 m, leaves the frame under
         # a pixel wide here and it breaks into pieces that no single blob spans. A wider closing
@@ -354,8 +431,8 @@ def _candidates(gray: np.ndarray, cfg: DetectConfig) -> list[np.ndarray]:
         grouped = cv2.morphologyEx(
             mask, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_RECT, (cfg.group_px,) * 2)
         )
-        quads += _outline_quads(grouped, cfg, ds, skip=boxes, dark_mask=mask)[0]
-    return quads
+        group = _outline_quads(grouped, cfg, ds, skip=boxes, dark_mask=mask, origin=origin, margins=margins)[0]
+    return quads, group
 
 
 def huber_lines(points: np.ndarray, mask: np.ndarray, iterations: int = _HUBER_ITERATIONS) -> np.ndarray:
@@ -367,23 +444,27 @@ def huber_lines(points: np.ndarray, mask: np.ndarray, iterations: int = _HUBER_I
     lines (L, 3) with unit normals; NaN rows for sets of fewer than two points.
     """
     w = mask.astype(float)
-    x, y = points[..., 0], points[..., 1]
-    # The few dozen points per set make numpy's per-call overhead the cost: the loop keeps to the
-    # fewest array operations (the residual from the centred coordinates, the weight as a minimum).
+    # x and y as rows (L, 2, N), so that each pass handles both coordinates in one array operation
+    # (the few dozen points per set make numpy's per-call overhead the cost). The arithmetic is that
+    # of the per-coordinate form: the same products, each summed over a set's points in the same order.
+    xy = np.ascontiguousarray(points.transpose(0, 2, 1), dtype=float)
     with np.errstate(invalid="ignore", divide="ignore"):
         for _ in range(iterations):
+            w3 = w[:, None, :]
             sw = w.sum(axis=1)
-            mx, my = (w * x).sum(axis=1) / sw, (w * y).sum(axis=1) / sw
-            dx, dy = x - mx[:, None], y - my[:, None]
-            wdx = w * dx
-            sxx, syy, sxy = (wdx * dx).sum(axis=1), (w * dy * dy).sum(axis=1), (wdx * dy).sum(axis=1)
+            m = (w3 * xy).sum(axis=2) / sw[:, None]  # (L, 2) weighted centroid
+            d = xy - m[:, :, None]
+            wd = w3 * d
+            sxx, syy = (wd * d).sum(axis=2).T
+            sxy = (wd[:, 0] * d[:, 1]).sum(axis=1)
             theta = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # direction of the principal axis
             nx, ny = -np.sin(theta), np.cos(theta)
-            r = np.abs(dx * nx[:, None] + dy * ny[:, None])
+            r = np.abs(d[:, 0] * nx[:, None] + d[:, 1] * ny[:, None])
             w_new = np.where(mask, np.minimum(1.0, HUBER_C / r), 0.0)  # Huber: 1 within C, C / r beyond
             if float(np.abs(w_new - w).max()) < 1e-3:
                 break
             w = w_new
+    mx, my = m[:, 0], m[:, 1]
     return np.stack([nx, ny, -(nx * mx + ny * my)], axis=1)
 
 
@@ -407,8 +488,9 @@ def _robust_lines(
     keep = mask & (res <= np.maximum(floor_px, sigmas * _MAD_TO_SIGMA * med)[:, None])
     if keep.sum(axis=1).min() < min_points:
         return None
-    lines = huber_lines(points, keep)
-    res = _line_residuals(points, lines)
+    if not np.array_equal(keep, mask):  # else the refit is the fit (usually: no outliers)
+        lines = huber_lines(points, keep)
+        res = _line_residuals(points, lines)
     rms = np.sqrt((np.where(keep, res, 0.0) ** 2).sum(axis=1) / keep.sum(axis=1))
     return lines, rms, keep
 
@@ -694,7 +776,12 @@ def _inside(point: np.ndarray, quad: np.ndarray) -> bool:
     )
 
 
-def detect_stickers(gray: np.ndarray, camera: Camera, config: DetectConfig | None = None) -> list[Detection]:
+def detect_stickers(
+    gray: np.ndarray,
+    camera: Camera,
+    config: DetectConfig | None = None,
+    regions: list[tuple[int, int, int, int]] | None = None,
+) -> list[Detection]:
     """Find stickers in one frame.
 
     Args:
@@ -703,6 +790,10 @@ def detect_stickers(gray: np.ndarray, camera: Camera, config: DetectConfig | Non
         camera: intrinsics of the frame, used to fit edges as straight lines in undistorted space.
         config: tuning; by default :meth:`DetectConfig.for_camera` (sizes scaled to the focal length;
             unchanged for 1296x972 frames with stickers 40-110 px wide).
+        regions: None searches the whole image; else only boxes (x0, y0, x1, y1) of full-resolution
+            pixels (end exclusive) are searched for candidates, each on a cut-out wide enough that a
+            sticker inside the box is found exactly as in a whole-image search (a sticker reaching
+            out of every box may be missed); [] finds nothing.
 
     Returns:
         One Detection per sticker, largest first: outer (4, 2) and inner (4, 2) or None, distorted
@@ -720,7 +811,7 @@ def detect_stickers(gray: np.ndarray, camera: Camera, config: DetectConfig | Non
     coarse_cfg = dataclasses.replace(cfg, profiles_per_side=cfg.coarse_profiles_per_side)
     h, w = img.shape
     out: list[Detection] = []
-    for quad in _candidates(img, cfg):
+    for quad in _candidates(img, cfg, regions):
         area = _polygon_area(quad)
         if any(_inside(quad.mean(axis=0), d.outer) and area < 0.5 * _polygon_area(d.outer) for d in out):
             continue  # a symbol inside an accepted sticker
@@ -754,10 +845,18 @@ def detect_stickers(gray: np.ndarray, camera: Camera, config: DetectConfig | Non
     return sorted(out, key=lambda d: -_polygon_area(d.outer))
 
 
-def detect(gray: np.ndarray, camera: Camera, method: str = "contour", config: object | None = None) -> list[Detection]:
-    """Detect stickers with the named method: "contour" (ours) or "paper" (ORB + k-means, for comparison)."""
+def detect(
+    gray: np.ndarray,
+    camera: Camera,
+    method: str = "contour",
+    config: object | None = None,
+    regions: list[tuple[int, int, int, int]] | None = None,
+) -> list[Detection]:
+    """Detect stickers with the named method: "contour" (ours) or "paper" (ORB + k-means, for
+    comparison). ``regions`` (contour only; the paper's detector searches the whole image): see
+    :func:`detect_stickers`."""
     if method == "contour":
-        return detect_stickers(gray, camera, config)  # type: ignore[arg-type]
+        return detect_stickers(gray, camera, config, regions)  # type: ignore[arg-type]
     if method == "paper":
         from tagloc.vision.paper_detector import detect_stickers_paper
 
