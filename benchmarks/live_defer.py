@@ -1,7 +1,8 @@
 """What ``tagloc live``'s deferred least-squares decoding costs in accuracy: each session replayed
 twice by the same localiser, as a replay runs it (every decode inside its frame) and as ``tagloc
-live`` runs it (``LocaliserConfig(defer_lsq=True)``, the deferred decodes run after each frame, as
-the live loop runs them while it waits for the next frame), with the scores ``tagloc eval`` gives:
+live`` runs it (``LocaliserConfig(defer_lsq=True, defer_odometry=True)``, the deferred decodes and
+the frame's odometry step run after each frame, as the live loop runs them while it waits for the
+next frame), with the scores ``tagloc eval`` gives:
 RMSE, share of frames within 10 cm, heading RMSE, mean NEES, wrong-ID fixes against the simulator's
 ground truth, the fixes the tracker fused, and the accepted fixes of the published frames by source
 (a deferred detection's fix is fused before the next frame but was not in its own frame's output); and the per-frame CPU time (mean, p99) without the
@@ -53,7 +54,11 @@ class _AsLive:
 def run(session: Path, defer: bool) -> dict:
     """Scores of one replay of ``session`` (``defer``: as ``tagloc live`` runs the localiser)."""
     reader = SessionReader(session)
-    loc = _AsLive(Localiser(reader.map, reader.rig, LocaliserConfig(defer_lsq=defer), map_path=session / "map.csv"))
+    loc = _AsLive(
+        Localiser(
+            reader.map, reader.rig, LocaliserConfig(defer_lsq=defer, defer_odometry=defer), map_path=session / "map.csv"
+        )
+    )
     log = run_session(reader, localiser=loc)
     v = log.valid
     m = error_metrics(trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *reader.groundtruth()))

@@ -16,8 +16,9 @@ OpenCV on one thread:
    their CPU times and ratio.
 4. With ``--live``: ``tagloc live``'s loop on the frames decoded ahead into memory, played at the
    session's rate, each result written to the JSON-lines frame log: grab-to-publication latency,
-   as live runs (least-squares decodes after the frame is published, ``LocaliserConfig.defer_lsq``)
-   and with every decode inside its frame (as a replay does).
+   as live runs (least-squares decodes and the frame's odometry step after the frame is published,
+   ``LocaliserConfig.defer_lsq`` and ``defer_odometry``) and with all of a frame's work inside it
+   (as a replay does).
 5. With ``--vs-whole-image``: the pipeline's detection and total per frame with the region search
    (the default, ``TrackingConfig.search_every``) and with the whole image searched every frame,
    runs alternated.
@@ -155,7 +156,8 @@ def pipeline_cost(session: Path, repeat: int, whole_image: bool = False) -> dict
 
 def live_latency(session: Path, defer_lsq: bool = True) -> dict:
     """``tagloc live`` on the session's frames decoded ahead into memory, at the session's rate
-    (``defer_lsq``: live's default; False: every decode inside its frame, as a replay does)."""
+    (``defer_lsq``: live's default, least-squares decodes and the odometry step after publishing;
+    False: all of a frame's work inside it, as a replay does)."""
     import tagloc.apps.live as live
     from tagloc.io.capture import FrameSource
     from tagloc.io.session import SessionReader
@@ -178,7 +180,13 @@ def live_latency(session: Path, defer_lsq: bool = True) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         # Published as JSON lines to a file: a network sink would need a receiver here (tagloc
         # itself never listens), and UDP to a closed port now counts every message as refused.
-        cfg = live.LiveConfig(source="memory", config_dir=session, log=Path(tmp) / "frames.jsonl", defer_lsq=defer_lsq)
+        cfg = live.LiveConfig(
+            source="memory",
+            config_dir=session,
+            log=Path(tmp) / "frames.jsonl",
+            defer_lsq=defer_lsq,
+            defer_odometry=defer_lsq,
+        )
         loc = live._make_localiser(cfg)
         summary = live.run_live(cfg, localiser=loc, source=MemorySource())
     counts = loc.stats()
@@ -323,7 +331,7 @@ def _live(args: argparse.Namespace, out: dict) -> None:
     print("\nLive loop on raw frames from memory at the session rate, latency grab to publication:")
     out["live"] = {}
     for defer in (True, False):  # live's default first
-        name = "least-squares decodes deferred" if defer else "every decode in its frame"
+        name = "decodes and odometry deferred" if defer else "all work in its frame"
         lats = [live_latency(args.session, defer) for _ in range(args.repeat)]
         out["live"][name] = lats
         print(

@@ -53,6 +53,9 @@ class LiveConfig:
             the frame's pose is published, while no next frame waits (see
             :attr:`tagloc.pipeline.localiser.LocaliserConfig.defer_lsq`): that stage (6-11 ms)
             set the latency's tail. False: every frame does all its work before publishing.
+        defer_odometry: likewise the frame's floor-odometry step (see
+            :attr:`tagloc.pipeline.localiser.LocaliserConfig.defer_odometry`): the published pose
+            lacks only that frame's own step.
         stride_when_behind: while a frame is already waiting when the localiser finishes one (the
             computer is not keeping up with the camera, e.g. a Pi-class core), let the floor
             odometry skip every other frame while the operator walks straight (see
@@ -83,6 +86,7 @@ class LiveConfig:
     record_bag: Path | None = None
     bag_images: bool = False
     defer_lsq: bool = True
+    defer_odometry: bool = True
     stride_when_behind: bool = True
 
 
@@ -270,7 +274,7 @@ def _make_localiser(cfg: LiveConfig):
         refs = load_or_build_refs(map_path, progress=True) if map_path else build_refs(smap, progress=True)
     from tagloc.pipeline.localiser import LocaliserConfig
 
-    config = LocaliserConfig(defer_lsq=cfg.defer_lsq) if cfg.mode == "full" else None
+    config = LocaliserConfig(defer_lsq=cfg.defer_lsq, defer_odometry=cfg.defer_odometry) if cfg.mode == "full" else None
     return make_localiser(cfg.mode, smap, rig, config=config, refs=refs, map_path=map_path)
 
 

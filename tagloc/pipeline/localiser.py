@@ -107,6 +107,12 @@ class LocaliserConfig:
             next frame. Only the published pose of that one frame lacks the fix; the slowest stage
             leaves the frame's latency. Off for a replay (no wait between frames): results as
             before. Only with the "zxing" decoder (the stage belongs to it).
+        defer_odometry: (``tagloc live``) the frame's floor-odometry step (2-4 ms) is measured and
+            fused after its pose is published (first thing in :meth:`Localiser.deferred_work`, or
+            at the start of the next frame if none ran), at its own frame's time, and the tilt
+            anchors of that frame's fixes after it, in a replay's order; the published pose of
+            the frame is the filter's prediction plus its fixes, without its own step. Off for a
+            replay.
         tilt_gate_chi2: a pose solution whose camera tilts the torso further from the odometry's
             filtered tilt than this squared Mahalanobis distance (2 DoF) is dropped before the
             tracker sees it, and a fix with no solution left is refused (counted as
@@ -137,6 +143,7 @@ class LocaliserConfig:
     pose: PoseConfig = field(default_factory=PoseConfig)
     rolling_shutter: bool = True
     defer_lsq: bool = False
+    defer_odometry: bool = False
     tilt_gate_chi2: float = 13.8
 
 
@@ -450,6 +457,8 @@ class Localiser:
         self.counts["deferred_named"] = 0  # of those detections, named then (decoded or identified)
         self.counts["deferred_fixes"] = 0  # and of those, fixes the tracker accepted
         self._pending: list[tuple] = []  # this frame's deferred least-squares decodes (defer_lsq)
+        self._pending_odo: tuple[np.ndarray, int, float] | None = None  # (gray, camera, t) (defer_odometry)
+        self._pending_anchors: list[tuple[float, float, float]] = []  # fixes' (t, pitch, roll) held for it
         self._failed: list[FailedRead] = []  # detections of the previous frame nothing named
         self._tracked: list[Tracked] = []  # decoded stickers of the previous frame whose fixes were accepted
         # Per camera: (time of its previous frame, that frame's detected quads, frames since the
@@ -478,6 +487,11 @@ class Localiser:
         timer = StageTimer()
         t = frame.timestamp
         self.counts["frames"] += 1
+        if self._pending_odo is not None:
+            # The last frame's deferred odometry step, not run in the wait (defer_odometry): it ends
+            # at the filter's time, so it is fused before the filter moves on.
+            with timer("odometry"):
+                self._run_pending_odometry()
         refused = self._check_size(frame) or self._check_time(frame)
         if refused:
             # The filter stays where it was: the output is its latest estimate, stamped with its own time.
@@ -504,7 +518,9 @@ class Localiser:
         # Deferred decodes not run before this frame are dropped (the detection, still unread here,
         # queues its decode again).
         self._pending = []
-        if measure:
+        if measure and self.config.defer_odometry:
+            self._pending_odo = (gray, frame.camera, t)
+        elif measure:
             # This camera's step since its previous frame: the tracker fuses it against its clone of
             # the pose there (tracker.clones), whatever other cameras' frames came in between.
             with timer("odometry"):
@@ -768,6 +784,7 @@ class Localiser:
         decode, identification if it fails, and the fix, fused at the frame's time as the frame
         would have fused it (the filter is still there); a decoded sticker whose fix the tracker
         accepted is tracked into the next frame. Returns how many ran; the rest are dropped."""
+        self._run_pending_odometry()
         jobs, self._pending = self._pending, []
         ran = 0
         for gray, det, rig_cam, camera, t in jobs:
@@ -851,10 +868,27 @@ class Localiser:
             # The sticker's plane gives the torso's tilt whatever the map says of the sticker's
             # place: it anchors every camera's odometry tilt (see tagloc.vision.torso_tilt).
             tilt = torso_tilt(poses[res.chosen].T_world_camera, rig_cam.T_body_camera)
-            for odo in self._odometry.values():
-                if odo is not None:
-                    odo.anchor_tilt_angles(t, *tilt)
+            if self._pending_odo is not None:
+                # The frame's odometry step (deferred) comes first: it carries the tilt up to t.
+                self._pending_anchors.append((t, *tilt))
+            else:
+                self._anchor_tilt(t, *tilt)
         return Fix(poses, len(poses) > 1, res.accepted, res.reason)
+
+    def _anchor_tilt(self, t: float, pitch: float, roll: float) -> None:
+        for odo in self._odometry.values():
+            if odo is not None:
+                odo.anchor_tilt_angles(t, pitch, roll)
+
+    def _run_pending_odometry(self) -> None:
+        """The deferred odometry step of the last frame (``defer_odometry``), then the tilt anchors of
+        that frame's fixes, in the order a replay runs them."""
+        job, self._pending_odo = self._pending_odo, None
+        if job is not None:
+            self._odometry_step(*job)
+        anchors, self._pending_anchors = self._pending_anchors, []
+        for anchor in anchors:
+            self._anchor_tilt(*anchor)
 
     def _tilt_gate(self, poses: list[PoseFix], rig_cam: RigCamera, t: float) -> list[PoseFix]:
         """The pose solutions whose camera tilt agrees with this camera's odometry tilt (all of them
