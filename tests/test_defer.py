@@ -95,13 +95,30 @@ class _AsLive:
         return self.loc.stats()
 
 
-def test_a_walk_with_deferred_decodes_is_tracked_as_in_a_replay(blurred_walk):
-    session = SessionReader(blurred_walk)
-    gt = session.groundtruth()
-    replay = Localiser(session.map, session.rig, LocaliserConfig(), map_path=session.map_path)
-    rlog = run_session(session, localiser=replay)
-    live = Localiser(session.map, session.rig, LocaliserConfig(defer_lsq=True), map_path=session.map_path)
-    llog = run_session(SessionReader(blurred_walk), localiser=_AsLive(live))
+def _run(path: Path, config: LocaliserConfig, as_live: bool):
+    """(localiser, run log) of ``path`` through a localiser with ``config``, driven as the live loop
+    drives it (``as_live``: its deferred work right after each frame) or as a replay."""
+    session = SessionReader(path)
+    loc = Localiser(session.map, session.rig, config, map_path=session.map_path)
+    return loc, run_session(session, localiser=_AsLive(loc) if as_live else loc)
+
+
+def _metrics(path: Path, log) -> dict:
+    """``trajectory_metrics`` of a run log's poses against the session's ground truth."""
+    return trajectory_metrics(
+        log.stamps[log.valid], log.poses[log.valid], log.covs[log.valid], *SessionReader(path).groundtruth()
+    )
+
+
+@pytest.fixture(scope="module")
+def blurred_replay(blurred_walk):
+    """The blurred walk replayed (every frame's work inside it): (localiser, run log)."""
+    return _run(blurred_walk, LocaliserConfig(), as_live=False)
+
+
+def test_a_walk_with_deferred_decodes_is_tracked_as_in_a_replay(blurred_walk, blurred_replay):
+    replay, rlog = blurred_replay
+    live, llog = _run(blurred_walk, LocaliserConfig(defer_lsq=True), as_live=True)
     assert live.counts["lsq_deferred"] >= 3 and live.counts["deferred_named"] >= 1
     assert wrong_id_fixes(blurred_walk, llog)[0] == 0
 
@@ -109,8 +126,7 @@ def test_a_walk_with_deferred_decodes_is_tracked_as_in_a_replay(blurred_walk):
         return sum(v for k, v in loc.tracker.stats.items() if k.startswith("accepted_"))
 
     assert fused(live) >= fused(replay) - 3
-    r, lv = (trajectory_metrics(g.stamps[g.valid], g.poses[g.valid], g.covs[g.valid], *gt) for g in (rlog, llog))
-    assert lv["rmse_m"] <= r["rmse_m"] + 0.005
+    assert _metrics(blurred_walk, llog)["rmse_m"] <= _metrics(blurred_walk, rlog)["rmse_m"] + 0.005
 
 
 def test_warm_up_makes_the_first_frames_set_up_before_it():
@@ -125,25 +141,20 @@ def test_warm_up_makes_the_first_frames_set_up_before_it():
     assert any(k[0] == "appearance" for k in bank.derived)  # identification's tables
 
 
-def test_deferred_odometry_fuses_every_step_after_its_frame(blurred_walk):
+def test_deferred_odometry_fuses_every_step_after_its_frame(blurred_walk, blurred_replay):
     """``defer_odometry``: each frame publishes without its own odometry step, which is fused right
     after (or at the start of the next frame when no deferred work ran); every step still reaches
     the tracker, the published track stays as accurate, and a replay defers nothing."""
-    session = SessionReader(blurred_walk)
-    gt = session.groundtruth()
-    replay = Localiser(session.map, session.rig, LocaliserConfig(), map_path=session.map_path)
-    rlog = run_session(session, localiser=replay)
-    live = Localiser(session.map, session.rig, LocaliserConfig(defer_odometry=True), map_path=session.map_path)
-    llog = run_session(SessionReader(blurred_walk), localiser=_AsLive(live))
+    replay, rlog = blurred_replay
+    live, llog = _run(blurred_walk, LocaliserConfig(defer_odometry=True), as_live=True)
     # Without the wait (deferred_work never called), the next frame fuses the step first.
-    nowait = Localiser(session.map, session.rig, LocaliserConfig(defer_odometry=True), map_path=session.map_path)
-    run_session(SessionReader(blurred_walk), localiser=nowait)
+    nowait, _ = _run(blurred_walk, LocaliserConfig(defer_odometry=True), as_live=False)
     steps = replay.counts["odometry_steps"]
     assert steps > 100 and live.counts["odometry_steps"] >= steps - 3 and nowait.counts["odometry_steps"] >= steps - 3
     for loc in (live, nowait):
         assert loc.tracker.stats["odometry_accepted"] >= replay.tracker.stats["odometry_accepted"] - 5
         assert loc.tracker.stats["odometry_unmatched"] == 0
     assert wrong_id_fixes(blurred_walk, llog)[0] == 0
-    r, lv = (trajectory_metrics(g.stamps[g.valid], g.poses[g.valid], g.covs[g.valid], *gt) for g in (rlog, llog))
-    assert lv["rmse_m"] <= r["rmse_m"] + 0.005
+    lv = _metrics(blurred_walk, llog)
+    assert lv["rmse_m"] <= _metrics(blurred_walk, rlog)["rmse_m"] + 0.005
     assert lv["nees_mean"] < 6.0

@@ -455,7 +455,7 @@ def test_a_weak_match_is_kept_with_a_larger_covariance(monkeypatch):
 def _steady(odo: FloorOdometry, rate: float) -> None:
     """Put ``odo`` in the state after a sure step at t = 0 with turn rate ``rate`` (rad/s), at FPS."""
     odo._prev = (0.0, np.zeros((odo.config.patch_px, odo.config.patch_px), np.float32))
-    odo._last_ok = odo._last_sure = True
+    odo._last_sure = True
     odo._intervals.extend([1 / FPS, 1.02 / FPS])
     odo._last_turn = (0.0, rate)
 

@@ -779,11 +779,13 @@ class Localiser:
         return read, prev.age + 1 if skip_lsq else 0
 
     def deferred_work(self, go_on: Callable[[], bool] | None = None) -> int:
-        """Finish the detections the last frame deferred (``LocaliserConfig.defer_lsq``), each while
-        ``go_on()`` (default: always) says there is time (a live loop: no frame waiting): the whole
-        decode, identification if it fails, and the fix, fused at the frame's time as the frame
-        would have fused it (the filter is still there); a decoded sticker whose fix the tracker
-        accepted is tracked into the next frame. Returns how many ran; the rest are dropped."""
+        """Finish what the last frame deferred. First its odometry step (``defer_odometry``) and its
+        fixes' tilt anchors, always (the step must reach the filter before it moves on). Then the
+        detections it deferred (``defer_lsq``), each while ``go_on()`` (default: always) says there
+        is time (a live loop: no frame waiting): the whole decode, identification if it fails, and
+        the fix, fused at the frame's time as the frame would have fused it (the filter is still
+        there); a decoded sticker whose fix the tracker accepted is tracked into the next frame.
+        Returns how many detections ran; the rest are dropped."""
         self._run_pending_odometry()
         jobs, self._pending = self._pending, []
         ran = 0

@@ -552,13 +552,12 @@ class FloorOdometry:
         cx, cy = self._centre
         self._lever = np.array([[1.0, 0.0, cy], [0.0, 1.0, -cx], [0.0, 0.0, 1.0]])
         self._prev: tuple[float, np.ndarray] | None = None
-        self._last_ok = False  # the last frame measured made a step
         self._intervals: deque[float] = deque(maxlen=_STRIDE_INTERVALS)  # recent steps' frame intervals (s)
         self._skipped = 0  # frames skipped since the last one measured (see wants)
-        self._stride_now = 1  # frame intervals the next step spans
         self._held: tuple[float, np.ndarray] | None = None  # the frame skipped last (see hold)
-        self._last_sure = False  # the last step's match was strong and near its turn guess
-        self.strided_remeasured = 0  # two-interval matches in doubt, measured through the skipped frame
+        # The last frame measured made a step from a strong match near its turn guess (not a
+        # composed one): only then may the next frame be skipped.
+        self._last_sure = False
         self._last_turn: tuple[float, float] | None = None  # (time, yaw rate rad/s) of the last step
         self._criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, cfg.ecc_iterations, cfg.ecc_eps)
         self._last_twist: tuple[float, np.ndarray] | None = None  # (time, (vx, vy, w)) of the last step
@@ -654,10 +653,8 @@ class FloorOdometry:
     def reset(self) -> None:
         """Forget the previous frame (the next :meth:`measure` returns None)."""
         self._prev = None
-        self._last_ok = False
         self._intervals.clear()
         self._skipped = 0
-        self._stride_now = 1
         self._held = None
         self._last_sure = False
         self._last_turn = None
@@ -713,13 +710,12 @@ class FloorOdometry:
         for a frame this says yes to, :meth:`hold` for one it skips."""
         cfg = self.config
         prev = self._prev
-        dt_frame = min(self._intervals) if self._intervals else None
+        dt_frame = self._frame_interval()
         skip = (
             stride
             and cfg.max_stride > 1
             and self._skipped < cfg.max_stride - 1
             and prev is not None
-            and self._last_ok
             and self._last_sure
             and dt_frame is not None
             # A frame dropped since the last one measured: the step is long already.
@@ -730,9 +726,12 @@ class FloorOdometry:
         )
         if skip:
             self._skipped += 1
-        else:
-            self._stride_now, self._skipped = self._skipped + 1, 0
         return not skip
+
+    def _frame_interval(self) -> float | None:
+        """The camera's frame interval (s): the shortest of the recent steps' per-interval times (a
+        dropped frame lengthens a step, jitter shortens one a little); None before any step."""
+        return min(self._intervals) if self._intervals else None
 
     def hold(self, gray: np.ndarray, t: float) -> None:
         """Keep the frame (``gray`` (H, W) uint8, time ``t`` s) that :meth:`wants` just skipped: if the
@@ -755,8 +754,8 @@ class FloorOdometry:
         small = self.birdseye(gray, self._twist(t, body_twist))
         prev, self._prev = self._prev, (t, small)
         held, self._held = self._held, None
-        self._last_ok = self._last_sure = False
-        stride, self._stride_now = self._stride_now, 1
+        self._last_sure = False
+        stride, self._skipped = self._skipped + 1, 0  # frame intervals this step spans
         if prev is None:
             return None
         dt = t - prev[0]
@@ -764,7 +763,6 @@ class FloorOdometry:
             return None
         match = self._match(prev, (t, small))
         if held is not None and prev[0] < held[0] < t and (match is None or not match[3]):
-            self.strided_remeasured += 1
             mid = (held[0], self.birdseye(held[1], self._twist(held[0], body_twist)))
             first = self._step(prev, mid, self._match(prev, mid))
             if first is None:
@@ -777,8 +775,7 @@ class FloorOdometry:
             step = self._step(prev, (t, small), match)
             if step is None:
                 return None
-            self._last_sure = match is not None and match[3]
-        self._last_ok = True
+            self._last_sure = match[3]
         self._intervals.append(dt / stride)
         return step
 
@@ -945,7 +942,8 @@ class FloorOdometry:
         sp = cfg.homography_point_sigma_m
         # The prior is per frame interval; a step over more (a skipped or dropped frame) sees the
         # tilt change for longer: the nod and sway change about linearly over a few frames.
-        sig = cfg.tilt_prior_sigma * max(1.0, dt / min(self._intervals)) if self._intervals else cfg.tilt_prior_sigma
+        dt_frame = self._frame_interval()
+        sig = cfg.tilt_prior_sigma * (max(1.0, dt / dt_frame) if dt_frame is not None else 1.0)
 
         def residuals(X: np.ndarray) -> np.ndarray:
             """Residuals (k, m) of k parameter rows X (k, 5): (dx, dy, dyaw, ry, rx)."""
