@@ -57,6 +57,12 @@ def variants() -> dict[str, LocaliserConfig]:
         )
         out["rs-fixes-only"] = replace(base, odometry_config=replace(base.odometry_config, rolling_shutter=False))
         out["rs-odometry-only"] = replace(base, rolling_shutter=False)
+        # The fix's correction before this round: the body's planar motion, to the frame's time.
+        out["rs-fix-frame-time"] = replace(
+            base, rs_image_velocity_max_dt=0.0, pose=replace(base.pose, at_sticker_rows=False)
+        )
+        # The sticker's rows' time, straightened with the body's planar motion only.
+        out["rs-fix-body-twist"] = replace(base, rs_image_velocity_max_dt=0.0)
     out["no-gap-noise"] = replace(base, tracker=replace(base.tracker, gap_yaw_accel_psd=0.0))
     return out
 

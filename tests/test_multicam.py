@@ -72,12 +72,12 @@ def test_camera_subset_keeps_one_cameras_frames(two_cam):
 
 
 def test_two_camera_eval_table(tmp_path, monkeypatch, capsys):
-    cfg = MultiCamConfig(map_path=MAP, out=tmp_path, seeds=(1,), seconds=1.0, fps=10.0, scale=0.5, progress=False)
+    cfg = MultiCamConfig(map_path=MAP, out=tmp_path, seeds=(1,), seconds=2.0, fps=10.0, scale=0.5, progress=False)
     text = run_two_camera(cfg)
     res = json.loads((tmp_path / "results.json").read_text())
     rows = {r["rig"]: r for r in res["rows"]}
     assert set(rows) == {"front", "front+rear"} and all(r["walk"] == "s1" for r in rows.values())
-    assert rows["front"]["frames"] == 10 and rows["front+rear"]["frames"] == 20
+    assert rows["front"]["frames"] == 20 and rows["front+rear"]["frames"] == 40
     assert rows["front+rear"]["sticker_in_view"] >= rows["front"]["sticker_in_view"]
     assert rows["front+rear"]["fixes"] >= rows["front"]["fixes"]
     for r in rows.values():

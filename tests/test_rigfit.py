@@ -137,7 +137,7 @@ def test_rolling_shutter_fixes_are_corrected(tmp_path):
 
     from tagloc.eval.rigfit import camera_fixes
     from tagloc.io.session import SessionReader
-    from tagloc.sim.simulate import read_groundtruth_frames
+    from tagloc.sim.simulate import simulate_walk
 
     rig_path = tmp_path / "true" / "rig.json"
     rig_path.parent.mkdir()
@@ -147,7 +147,8 @@ def test_rolling_shutter_fixes_are_corrected(tmp_path):
     )
     simulate_session(MAP, tmp_path / "rs", cfg, progress=False)
     session = SessionReader(tmp_path / "rs")
-    truth = {round(r["t"], 4): np.array(r["T_world_camera"]) for r in read_groundtruth_frames(tmp_path / "rs")}
+    # A rolling-shutter fix holds when its sticker's rows were read, not at its frame's time.
+    walk, T_body_camera = simulate_walk(load_map(MAP), cfg), cfg.build_rig()[0].T_body_camera
     rc = session.rig[0]
     assert rc.readout_s > 0
 
@@ -155,7 +156,12 @@ def test_rolling_shutter_fixes_are_corrected(tmp_path):
         fixes = camera_fixes(session, rig_camera, RigFitConfig(), progress=False)
         assert len(fixes) >= 5
         return float(
-            np.mean([mount_angles(f.T_world_camera)[1] - mount_angles(truth[round(f.t, 4)])[1] for f in fixes])
+            np.mean(
+                [
+                    mount_angles(f.T_world_camera)[1] - mount_angles(walk.T_world_camera(f.t, T_body_camera))[1]
+                    for f in fixes
+                ]
+            )
         )
 
     raw, corrected = pitch_bias(replace(rc, readout_s=0.0)), pitch_bias(rc)

@@ -225,6 +225,31 @@ def test_vest_drifts_in_roll_while_standing(long_walk):
     assert np.allclose(still.planar(t), walk.planar(t))
 
 
+def test_torso_rates_have_the_body_inertia(long_walk):
+    """The vest's angular velocity is a body's: most of its power below 5 Hz (the gait, the lean and
+    the slow drifts), not a white rate that grows with the walk's 10 ms integration step; a standing
+    person's tilt drifts at under 1 deg/s."""
+    from scipy.signal import welch
+    from scipy.spatial.transform import Rotation
+
+    _, walk = long_walk
+    fs = 1000.0
+    t = np.arange(1.0, 59.0, 1 / fs)
+    R = walk.T_body_vest(t)[:, :3, :3]
+    w = Rotation.from_matrix(np.einsum("kji,kjl->kil", R[:-1], R[1:])).as_rotvec() * fs  # body axes, rad/s
+    for axis in (0, 1):  # roll and pitch rates
+        f, psd = welch(w[:, axis] - w[:, axis].mean(), fs=fs, nperseg=4096)
+        high = psd[f > 5.0].sum() / psd.sum()
+        assert high < 0.15, (axis, high)
+    standing = np.concatenate([np.linspace(a + 0.5, b - 0.1, 200) for a, b in walk.stops if 0 < a and b < 59])
+    Rs = walk.T_body_vest(standing)[:, :3, :3]
+    tilt = np.column_stack([np.arctan2(Rs[:, 2, 1], Rs[:, 2, 2]), -np.arcsin(np.clip(Rs[:, 2, 0], -1, 1))])
+    dt = np.diff(standing)
+    ok = dt < 0.05  # within one stop
+    rate = np.degrees(np.abs(np.diff(tilt, axis=0)[ok]) / dt[ok, None])
+    assert np.sqrt(np.mean(rate**2)) < 1.0
+
+
 # -- floor ----------------------------------------------------------------------------------------
 
 

@@ -390,13 +390,14 @@ class WalkingEKF(ExtendedKalmanFilter):
 
     # -- measurement --------------------------------------------------------------------------
     def _model(self, lag: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(h(x) (3,), H (3, DIM), extra noise (3, 3)) of a vest pose measured ``lag`` s before the state."""
+        """(h(x) (3,), H (3, DIM), extra noise (3, 3)) of a vest pose measured ``lag`` s before the state
+        (negative: after it, a rolling shutter's later rows)."""
         x = self.x[:, 0]
-        if lag <= 0.0:
+        if lag == 0.0:
             # Shared read-only constants: callers only combine them into new arrays.
             return vest_pose(x), M_VEST, _NO_NOISE
         # Retrodiction: the body runs CTRV backwards; a stationary Gauss-Markov offset is one
-        # backwards too (decay a, fresh variance (1 - a^2) F).
+        # backwards too (decay a, fresh variance (1 - a^2) F). Ahead, the same model runs forwards.
         back = motion.propagate(x[: motion.DIM], -lag)
         F, Q = self._transition(x, -lag)
         H = np.zeros((3, DIM))

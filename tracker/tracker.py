@@ -6,7 +6,9 @@ Rules, in one place:
   frame older than the filter does not move it (counted ``out_of_order_frames``). A fix up to
   ``max_lag_s`` older than the filter is fused against the state retrodicted to its time (CTRV run
   backwards, plus the process noise over the lag); an older fix is rejected
-  (``out_of_order_fixes``).
+  (``out_of_order_fixes``). A rolling-shutter camera's fix holds when its sticker's rows were read,
+  ``row_time_s`` after its frame's time (up to half the read-out, either way): it is fused against
+  the state carried to that instant (back, or ahead by the same motion model).
 - A fix measures the vest's pose: the body's plus the vest offset, a state of the filter (see
   :mod:`tracker.ekf`): the torso's sway on the smooth walk (see :class:`TrackerConfig`); the tracker
   reports body + offset, the vest point on the floor.
@@ -359,12 +361,15 @@ class Tracker:
         source: IdSource,
         t: float,
         survey: SurveyPrior | None = None,
+        row_time_s: float = 0.0,
     ) -> UpdateResult:
         """Offer one sticker's pose fix(es) (1, or 2 IPPE alternatives best first) seen at frame time ``t``.
 
         ``survey``: the sticker's map position and survey sigmas; its survey error then becomes a
         state while the sticker is being fixed (see :mod:`tracker.ekf`). None: the map is exact (or
-        the fixes' covariances already carry it).
+        the fixes' covariances already carry it). ``row_time_s``: the fixes hold this long after
+        ``t`` (a rolling shutter's sticker rows, :attr:`tagloc.vision.pose.PoseSolution.row_time_s`);
+        the filter itself stays at the frame's time.
         """
         source = IdSource(source)
         t = float(t)
@@ -379,10 +384,12 @@ class Tracker:
             return UpdateResult(False, "no usable fix (empty, NaN or malformed)")
         if self._t is None or t > self._t:
             self.predict(t)
-        lag = self._t - t
-        if lag > self.config.max_lag_s:
+        late = self._t - t
+        if late > self.config.max_lag_s:
             self._stats["out_of_order_fixes"] += 1
-            return UpdateResult(False, f"out of order: frame {lag:.3f} s older than the filter")
+            return UpdateResult(False, f"out of order: frame {late:.3f} s older than the filter")
+        row_time_s = float(row_time_s) if math.isfinite(row_time_s) else 0.0
+        lag = late - row_time_s  # negative: the sticker's rows were read after the filter's time
 
         if self._state is TrackState.INITIALISING:
             if source is not IdSource.DECODED:
@@ -398,6 +405,8 @@ class Tracker:
         k, nis = self._best(alts, lag)
         if nis <= self._gate[source]:
             self._fuse(alts[k], lag)
+            if late > 0.0:
+                self._stats["late_fixes_fused"] += 1
             self._accept(sticker_id, source, t)
             if source is IdSource.DECODED:
                 self._hyp = None
@@ -448,8 +457,6 @@ class Tracker:
             # The odometry clones follow the fix (see tracker.clones).
             if not self._clones.carry(x0, P0, self._ekf.x[:, 0], self._ekf.P, _ANGLES, self.config.min_eig):
                 self._stats["numeric_errors"] += 1
-        if lag > 0.0:
-            self._stats["late_fixes_fused"] += 1
 
     def _accept(self, sticker_id: int, source: IdSource, t: float) -> None:
         self._stats[f"accepted_{source.value}"] += 1

@@ -152,9 +152,10 @@ RS_ITERATIONS = 3
 def camera_fixes(session: SessionReader, rig_camera: RigCamera, cfg: RigFitConfig, progress: bool = True) -> list:
     """Decoded, unambiguous camera poses of ``cfg.camera`` over the session, in time order.
 
-    With a rolling-shutter camera (``rig_camera.readout_s`` > 0) each pose is solved again with
-    the rows moved to the frame's time (``solve_pose(body_twist=...)``), the motion taken from the
-    first pass's neighbouring fixes (:func:`_twists`).
+    With a rolling-shutter camera (``rig_camera.readout_s`` > 0) each pose holds when its
+    sticker's rows were read (``PoseSolution.row_time_s`` after the frame's time) and is solved
+    again with the rows straightened to that time (``solve_pose(body_twist=...)``), the motion taken
+    from the first pass's neighbouring fixes (:func:`_twists`).
     """
     seen = []
     frames = session.frames()
@@ -169,7 +170,8 @@ def camera_fixes(session: SessionReader, rig_camera: RigCamera, cfg: RigFitConfi
             T_ws = session.map.T_world_sticker(res.sticker_id)
             sol = solve_pose(det, res.rotation, T_ws, rig_camera)
             if sol.poses and not sol.ambiguous:
-                fix = CameraFix(frame.timestamp, int(res.sticker_id), sol.poses[0].T_world_camera)
+                # A rolling-shutter camera's pose holds when the sticker's rows were read.
+                fix = CameraFix(frame.timestamp + sol.row_time_s, int(res.sticker_id), sol.poses[0].T_world_camera)
                 seen.append((fix, det, res.rotation, T_ws))
     if rig_camera.readout_s <= 0 or not seen:
         return [f for f, *_ in seen]

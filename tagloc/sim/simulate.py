@@ -64,8 +64,9 @@ CAMERA_SEED_STEP = 7919
 
 # Bumped whenever the simulated physics change, so that sessions cached by ``tagloc eval`` are made
 # again (2: slow roll drift of the vest; 3: lean into turns and with acceleration, torso rotations
-# about the centre of mass, ground truth at the vest point's vertical projection).
-SIM_REVISION = 3
+# about the centre of mass, ground truth at the vest point's vertical projection; 4: the tilt drift
+# and the walking speed's variation have the body's inertia, so their rates are not white noise).
+SIM_REVISION = 4
 
 
 @dataclass

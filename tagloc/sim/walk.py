@@ -214,6 +214,28 @@ def _ou(rng: np.random.Generator, n: int, tau_s: float) -> np.ndarray:
     return x + rng.standard_normal() * a ** np.arange(n)
 
 
+def _with_inertia(x: np.ndarray, tau_s: float, inertia_s: float) -> np.ndarray:
+    """A slow random drift of the body (its tilt, its walking speed) from :func:`_ou`'s unit-variance
+    noise ``x`` (correlation time ``tau_s``): through a first-order lag of ``inertia_s``, scaled
+    back to unit variance.
+
+    The low-pass noise alone has no defined rate: it takes a fresh random step every ``_DT``, so
+    its rate is white and grows as the step shrinks. For the tilt drift that was about 6 deg/s RMS
+    for 0.5 deg over 1.5 s at a 10 ms step, most of it above 5 Hz; for the speed variation a white
+    acceleration (0.6 m/s^2 RMS), which the lean then turned into a pitch rate just as rough. A body
+    has inertia and is moved by muscles: it cannot tilt faster than it falls (the inverted
+    pendulum's time constant, as for the lean), a standing person sways at under 1 deg/s, and a
+    walker's speed changes over steps, not within a hundredth of a second. Through the lag the
+    drift's rate is continuous and bounded (0.7 deg/s RMS for 0.5 deg of tilt); the gait's own nod,
+    bob and sway are separate.
+    """
+    a, b = math.exp(-_DT / tau_s), math.exp(-_DT / inertia_s)
+    # Stationary variance of an AR(1) (coefficient a, unit variance) through the lag b.
+    var = (1.0 - b) ** 2 * (1.0 + a * b) / ((1.0 - b * b) * (1.0 - a * b))
+    # Started at the first sample (the lag's steady state for it), as the lean is.
+    return lfilter([1.0 - b], [1.0, -b], x, zi=[b * x[0]])[0] / math.sqrt(var)
+
+
 class _Router:
     """Picks the next waypoint along the map's sticker lines (a seeded walk on the sticker graph)."""
 
@@ -308,7 +330,7 @@ def plan_walk(smap: StickerMap, cfg: WalkConfig) -> Walk:
     n = int(math.ceil((t1 - t0) / _DT)) + 1
     t = t0 + _DT * np.arange(n)
     v_nom = cfg.speed_mps
-    speed_cmd = v_nom * (1 + cfg.speed_variation * np.clip(_ou(rng, n, 3.0), -2, 2))
+    speed_cmd = v_nom * (1 + cfg.speed_variation * np.clip(_with_inertia(_ou(rng, n, 3.0), 3.0, cfg.lean_tau_s), -2, 2))
     stop_mask = np.zeros(n, bool)
     stops = []
     if cfg.stop_every_s > 0:
@@ -321,7 +343,7 @@ def plan_walk(smap: StickerMap, cfg: WalkConfig) -> Walk:
             stops.append((s, s + d))
             s += d + rng.exponential(cfg.stop_every_s)
     # Slow pitch drift of the vest (half of the jitter budget), drawn now to keep the RNG order fixed.
-    drift = _ou(rng, n, 1.5)
+    drift = _with_inertia(_ou(rng, n, 1.5), 1.5, cfg.lean_tau_s)
 
     router = _Router(smap, cfg, rng)
     pos, heading, wp = router.start()
@@ -372,7 +394,7 @@ def plan_walk(smap: StickerMap, cfg: WalkConfig) -> Walk:
     sway = cfg.sway_m * g * np.sin(phase / 2)
     tyaw = math.radians(cfg.torso_yaw_deg) * g * np.sin(phase / 2 + 0.4)
     # Drawn from its own stream, so that adding it left every other draw (and so the paths) as it was.
-    roll_drift = _ou(np.random.default_rng([cfg.seed, 8]), n, 1.5)
+    roll_drift = _with_inertia(_ou(np.random.default_rng([cfg.seed, 8]), n, 1.5), 1.5, cfg.lean_tau_s)
     roll = math.radians(cfg.roll_deg) * g * np.sin(phase / 2 - 0.3) + math.radians(cfg.roll_drift_deg) * roll_drift
     pj = math.radians(cfg.pitch_jitter_deg)
     pitch = pj * (0.5 * g * np.sin(phase + 1.0) + 0.5 * drift)
