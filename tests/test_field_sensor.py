@@ -670,3 +670,31 @@ def test_odometry_step_is_not_fooled_by_the_vest_tilting(pitch_deg, roll_deg, le
     # 0.7-3.8 mm.
     assert errs["none"] > 8.0 and errs["fit"] < left * errs["none"], errs
     assert errs["filtered"] < left * errs["none"], errs
+
+
+def test_corner_velocity_comes_from_the_same_sticker_in_the_previous_frame():
+    """A rolling-shutter sticker's corners move by their motion since the previous frame's sight of it;
+    none when that sight is too old, or not where and what the sticker is now (a wrong name)."""
+    from tagloc.core.camera import default_camera
+    from tagloc.core.rig import Rig, RigCamera, looking_forward
+    from tagloc.core.types import Detection, Identity, IdSource
+    from tagloc.pipeline.localiser import Localiser
+
+    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0), readout_s=0.030)
+    loc = Localiser(line_map(), Rig([rc]))
+    quad = np.array([[600.0, 700.0], [700.0, 700.0], [700.0, 800.0], [600.0, 800.0]])
+    ident = Identity(100, 1, IdSource.DECODED)
+
+    def sight(offset, t):
+        return loc._corner_velocity(Detection(quad + offset), ident, rc, 0, t)
+
+    assert sight(np.zeros(2), 0.0) is None  # first sight
+    v = sight(np.array([12.0, -3.0]), 1 / 30)
+    assert v.shape == (4, 2) and np.allclose(v, [360.0, -90.0])
+    assert sight(np.array([24.0, -6.0]), 1 / 30 + 0.08) is None  # 80 ms since: too old
+    assert sight(np.array([600.0, 0.0]), 1 / 30 + 0.11) is None  # six sides away: not the same sticker
+    # Without a rolling shutter there is nothing to straighten.
+    gs = RigCamera("front", default_camera(), looking_forward(1.3, 55.0))
+    still = Localiser(line_map(), Rig([gs]))
+    assert still._corner_velocity(Detection(quad), ident, gs, 0, 0.0) is None
+    assert still._corner_velocity(Detection(quad + 5.0), ident, gs, 0, 1 / 30) is None

@@ -107,7 +107,9 @@ class LocaliserConfig:
             step, else the tracker's prediction). The odometry's own correction is
             ``odometry_config.rolling_shutter``.
         rs_image_velocity_max_dt: the longest gap (s) over which a sticker's corners' motion
-            stands for their velocity: 50 ms, one frame interval at 30 fps and its jitter, not two
+            stands for their velocity (and only if the two sights pass sticker tracking's
+            same-place test, ``tracking.max_centre_shift`` and ``max_shape_change``): 50 ms, one
+            frame interval at 30 fps and its jitter, not two
             (over a dropped frame the gait's bob and nod change the motion too much). Why the image
             velocity: it holds the whole motion of the camera that the rows see (the gait's bob
             and nod, not only the walk on the floor). On the simulator's true corners of the field
@@ -926,6 +928,9 @@ class Localiser:
             # Stickers not seen for a second are of no more use.
             self._sticker_corners = {k: v for k, v in self._sticker_corners.items() if v[-1][0] > t - 1.0}
         if prev is None or not 0.0 < t - prev[0] <= self.config.rs_image_velocity_max_dt:
+            return None
+        if not _same_place(det, prev[1][:4], self.config.tracking):
+            # Not where and what the sticker was (a wrong name in either frame): no motion to take.
             return None
         a, b = prev[1], pts
         if len(a) != len(b):
