@@ -90,8 +90,9 @@ class LocaliserConfig:
             the tracker; ``odometry_config`` tunes it. ``odometry_stride``: let the odometry skip
             every other frame while the operator walks straight (see ``OdometryConfig.max_stride``:
             load shedding, at some cost in accuracy); False: only while :attr:`Localiser.behind`
-            (set by ``tagloc live`` when frames wait for the localiser). ``odometry_cameras``: the rig cameras (indices)
-            that measure it, None: all (each camera's steps run from its own previous frame).
+            (set by ``tagloc live`` when frames wait for the localiser). ``odometry_cameras``: the
+            rig cameras (indices) that measure it, None: all (each camera's steps run from its own
+            previous frame).
         sticker_tracking: carry a decoded sticker's identity to the next frame instead of decoding
             it again; ``tracking`` tunes it (see :func:`match_tracked`).
         clock_reset_frames: a frame whose timestamp is not after the previous frame's is refused
@@ -109,8 +110,8 @@ class LocaliserConfig:
         rs_image_velocity_max_dt: the longest gap (s) over which a sticker's corners' motion
             stands for their velocity (and only if the two sights pass sticker tracking's
             same-place test, ``tracking.max_centre_shift`` and ``max_shape_change``): 50 ms, one
-            frame interval at 30 fps and its jitter, not two
-            (over a dropped frame the gait's bob and nod change the motion too much). Why the image
+            frame interval at 30 fps and its jitter, not two (over a dropped frame the gait's bob
+            and nod change the motion too much). Why the image
             velocity: it holds the whole motion of the camera that the rows see (the gait's bob
             and nod, not only the walk on the floor). On the simulator's true corners of the field
             walk f02 (30 ms read-out, 0.11 px corner noise), camera position RMS 7.8 cm

@@ -265,9 +265,10 @@ def _outline_quads(
     Blobs whose bounding box (x, y, w, h) is in ``skip`` are ignored. The dark share of a quad is
     counted in ``dark_mask`` (default ``mask``) inside the blob's outline: a widely closed mask fills
     a sticker's inside. ``mask`` may be a cut-out of the candidate image whose top left pixel is
-    ``origin`` there; a blob within ``margins`` (left, top, right, bottom) px of the cut-out's edges is
-    left out (near a cut the cut-out's threshold differs from the whole image's; 0 at an image edge). Returns (blob area, quad) pairs, largest
-    blob first, and the bounding boxes of their blobs (in ``mask``).
+    ``origin`` there; a blob within ``margins`` (left, top, right, bottom) px of the cut-out's edges
+    is left out (near a cut the cut-out's threshold differs from the whole image's; 0 at an image
+    edge). Returns (blob area, quad) pairs, largest blob first, and the bounding boxes of their
+    blobs (in ``mask``).
     """
     h, w = mask.shape
     # Outer outlines rather than labelled components: the outline is what the quad is fitted to,

@@ -71,14 +71,14 @@ _NEAR_EDGE_STEPS = 60  # near-edge positions tried across the footprint's depth
 _BISECTIONS = 20  # bisection steps of the side: max_side_m / 2**20, about a micrometre
 _SIDE_TOL_M = 1e-4  # a farther square must be larger by this to win
 _ZNCC_INSET = 6  # the turn guesses are compared on the patch less 1/6 at each border (warped in)
-_SAME_TURN_RAD = 1e-9
+_SAME_TURN_RAD = 1e-9  # a grid guess this close to the one already tried is skipped
 # A frame later than this many of the last step's frame intervals after the last frame measured
 # follows a dropped frame (the timestamps' jitter is a few percent of an interval).
 _STRIDE_DT_SLACK = 1.5
 _STRIDE_INTERVALS = 8  # the frame interval is the shortest of this many recent steps' (a drop lengthens one)
 _G = 9.81  # gravity, m/s^2
 _TILT_GRID = 5  # cells per patch side of the lean's weighted fit (a smooth map; each cell 16 px)
-_LEVEL_ITERATIONS = 2  # corrections of the level motion (the second changes it by under 1e-4 of a step)  # a grid guess this close to the one already tried is skipped
+_LEVEL_ITERATIONS = 2  # corrections of the level motion (the second changes it by under 1e-4 of a step)
 
 
 @dataclass
@@ -234,9 +234,9 @@ class OdometryConfig:
     the odometry's CPU per frame 2.4-4.2 -> 1.5-3.1 ms). It is load shedding, not free: a step
     over two intervals has the same image noise over twice the motion (per step 1.6-1.8 times a
     single step's error), and over 1 s of chained steps the errors are mixed, most walks within
-    25 % either way, a few up to 35 % worse (``benchmarks/odometry_stride.py``). A frame is skipped only when the last step
-    was a sure match (strong, and ECC ended near the turn first guessed), no frame was dropped
-    since, and the turn rate is below ``stride_max_turn_rate``: 10 deg/s turns 0.67 deg over two
+    25 % either way, a few up to 35 % worse (``benchmarks/odometry_stride.py``). A frame is
+    skipped only when the last step was a sure match (strong, and ECC ended near the turn first
+    guessed), no frame was dropped since, and the turn rate is below ``stride_max_turn_rate``: 10 deg/s turns 0.67 deg over two
     intervals at 30 Hz, under half of the 1.5 deg that ECC is trusted to move from its guess
     (``ecc_turn_tolerance``), so a turn starting during the step stays within reach. (At 20-30
     deg/s a turn starting in dim light, blur 6-10 px, was matched near the old rate with ECC

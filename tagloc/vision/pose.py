@@ -274,14 +274,15 @@ def solve_pose(
     obj = ALL_CORNERS if use8 else OUTER_CORNERS
 
     row_time = 0.0
-    if rig_camera.readout_s > 0 and config.at_sticker_rows:
-        row_time = float(np.mean(row_delay_s(img[:, 1], cam.height, rig_camera.readout_s)))
+    if rig_camera.readout_s > 0:
+        delays = row_delay_s(img[:, 1], cam.height, rig_camera.readout_s)
+        if config.at_sticker_rows:
+            row_time = float(np.mean(delays))
     if corner_velocity is not None and rig_camera.readout_s > 0:
         vel = np.asarray(corner_velocity, float)
         if vel.shape[0] < len(img) or not np.all(np.isfinite(vel)):
             raise InputError(f"solve_pose: corner_velocity {vel.shape} does not cover the {len(img)} corners")
-        delay = row_delay_s(img[:, 1], cam.height, rig_camera.readout_s) - row_time
-        img = img - delay[:, None] * vel[: len(img)]
+        img = img - (delays - row_time)[:, None] * vel[: len(img)]
         outer = img[:4]
         body_twist = None
     uniq = _ippe_solutions(outer, img, obj, use8, K, dist)
