@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tagloc.core.stickermap import StickerMap
 from tagloc.eval.evaluate import wrong_id_fixes
 from tagloc.eval.metrics import trajectory_errors
 from tagloc.io.session import SessionReader
@@ -67,15 +68,24 @@ def variants() -> dict[str, LocaliserConfig]:
     return out
 
 
-def make(path: Path, seed: int, seconds: float, condition: str) -> Path:
+def sim_config(seed: int, seconds: float, condition: str) -> SimConfig:
+    """The simulator's settings of seed ``seed``'s walk under ``condition``."""
     kw = {"lux": 150.0, **CONDITIONS[condition]}
-    cfg = SimConfig(seconds=seconds, speed_mps=1.3, seed=seed, pitch_deg=55.0, **kw)
+    return SimConfig(seconds=seconds, speed_mps=1.3, seed=seed, pitch_deg=55.0, **kw)
+
+
+def walk_map(seed: int) -> StickerMap:
+    """The grid map (true sticker poses) of seed ``seed``'s walk, the same under every condition."""
+    return grid_map(GridMapConfig(width_m=24.0, depth_m=14.0, spacing_min_m=1.4, spacing_max_m=1.6, seed=seed))
+
+
+def make(path: Path, seed: int, seconds: float, condition: str) -> Path:
+    cfg = sim_config(seed, seconds, condition)
     stamp = {"sim": SIM_REVISION, "config": cfg.to_json()}
     meta = path / "made.json"
     if meta.exists() and json.loads(meta.read_text()) == json.loads(json.dumps(stamp)):
         return path
-    smap = grid_map(GridMapConfig(width_m=24.0, depth_m=14.0, spacing_min_m=1.4, spacing_max_m=1.6, seed=seed))
-    simulate_session(smap, path, cfg, progress=False)
+    simulate_session(walk_map(seed), path, cfg, progress=False)
     meta.write_text(json.dumps(stamp))
     return path
 
