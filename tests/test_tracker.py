@@ -694,3 +694,43 @@ def test_candidates_see_the_camera_rolled_by_the_turns_lean():
     x[motion.W] = 0.0
     tr.filter.set(x, tr.filter.cov)
     assert tr.leaned_camera(rc) is rc
+
+
+def test_decoded_fix_overrules_its_frames_odometry_step():
+    """A precise odometry step 4 degrees off (the first step of a turn the walking model could not
+    foresee) passes the odometry gate of a young track, and the true decoded fix of the same frame
+    then fails the gate; it passes against the filter before the step, so it overrules the step and
+    the heading is the fix's. An identified fix (its name a guess) cannot overrule, nor can a decoded
+    one with the rule off."""
+    import dataclasses
+
+    from tagloc.vision.odometry import OdometryStep
+
+    here = np.array([2.0, 1.0, 0.4])
+    step_cov = np.diag([0.005**2, 0.005**2, math.radians(0.1) ** 2])
+    bad_turn = OdometryStep(0.0, 1 / 30, np.array([0.0, 0.0, math.radians(4.0)]), step_cov, 0.5)
+
+    def run(source, overrule=True):
+        tr = Tracker(dataclasses.replace(TrackerConfig(), overrule_odometry=overrule))
+        tr.predict(0.0, "cam")
+        assert tr.update([make_fix(here)], 11, IdSource.DECODED, 0.0).accepted
+        tr.predict(1 / 30, "cam")
+        assert tr.update_odometry(bad_turn, "cam").accepted
+        yaw_after_step = tr.output().pose[2]
+        return tr, tr.update([make_fix(here)], 11, source, 1 / 30), yaw_after_step
+
+    tr, res, yaw_after_step = run(IdSource.DECODED)
+    assert abs(math.degrees(wrap(yaw_after_step - here[2]))) > 3.0  # the step did move the track
+    assert res.accepted and "overruled" in res.reason
+    assert tr.stats["odometry_overruled"] == 1
+    assert abs(math.degrees(wrap(tr.output().pose[2] - here[2]))) < 0.5
+    assert_spd(tr.filter.P)
+    # The step's camera starts its next step at this frame, from the filter without the bad step.
+    tr.predict(2 / 30, "cam")
+    assert tr.update_odometry(OdometryStep(1 / 30, 2 / 30, np.zeros(3), step_cov, 0.5), "cam").accepted
+    assert abs(math.degrees(wrap(tr.output().pose[2] - here[2]))) < 0.5
+
+    for source, overrule in ((IdSource.ORB, True), (IdSource.DECODED, False)):
+        tr, res, _ = run(source, overrule)
+        assert not res.accepted and res.reason.startswith("gated")
+        assert tr.stats["odometry_overruled"] == 0

@@ -59,6 +59,13 @@ class CloneSet:
         self.P = np.zeros((0, 0))
         self.X = np.zeros((self.dim, 0))
 
+    def copy(self) -> CloneSet:
+        """An independent copy."""
+        other = CloneSet(self.dim)
+        other.keys = list(self.keys)
+        other.t0, other.x, other.P, other.X = self.t0.copy(), self.x.copy(), self.P.copy(), self.X.copy()
+        return other
+
     def __len__(self) -> int:
         return len(self.keys)
 

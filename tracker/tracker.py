@@ -146,6 +146,9 @@ class Tracker:
         self._here: set[Hashable] = set()  # cameras whose frames are at the filter's time
         self._clones_dropped_t = -math.inf  # when the clones were last dropped (restart, forgetting)
         self._last_odo_t = -math.inf  # end of the last odometry step fused
+        # The filter (mean, covariance, clones, _last_odo_t) just before the odometry step fused at
+        # the filter's current time, while no fix has been fused after it (see overrule_odometry).
+        self._before_step: tuple[float, Hashable, np.ndarray, np.ndarray, CloneSet, float] | None = None
         self._odo_scale = np.sqrt(np.asarray(cfg.odometry_inflation, float))
         # The last leaned camera made, with its rig camera and roll: the candidates of each
         # detection of a frame, and the region search, ask for the same one.
@@ -171,6 +174,7 @@ class Tracker:
                     "odometry_rejected",
                     "odometry_unmatched",
                     "odometry_ignored",
+                    "odometry_overruled",
                     "frame_gaps",
                 ),
                 0,
@@ -280,6 +284,7 @@ class Tracker:
                 if t - t0 > self.config.gap_s and t0 - self._last_odo_t <= self.config.gap_s:
                     self._gap_noise(t - t0)
             self._here = set()
+            self._before_step = None
         if odometry:
             self._here.add(camera)
         self._t = t
@@ -391,26 +396,21 @@ class Tracker:
         row_time_s = float(row_time_s) if math.isfinite(row_time_s) else 0.0
         lag = late - row_time_s  # negative: the sticker's rows were read after the filter's time
 
-        if self._state is TrackState.INITIALISING:
-            if source is not IdSource.DECODED:
-                self._stats["ignored_initialising"] += 1
-                return UpdateResult(False, "initialising: only a decoded sticker starts the track")
-            self._start(alts[0], sticker_id, source, t)
-            self._stats["initialisations"] += 1
-            return UpdateResult(True, "initialised", chosen=0)
-        if self._state is TrackState.LOST and source is not IdSource.DECODED:
-            self._stats["ignored_lost"] += 1
-            return UpdateResult(False, "lost: only decoded stickers are taken")
+        early = self._without_track(alts, sticker_id, source, t)
+        if early is not None:
+            return early
 
         k, nis = self._best(alts, lag)
+        k, nis, how = self._overrule_step(alts, lag, source, k, nis)
         if nis <= self._gate[source]:
+            self._before_step = None
             self._fuse(alts[k], lag)
             if late > 0.0:
                 self._stats["late_fixes_fused"] += 1
             self._accept(sticker_id, source, t)
             if source is IdSource.DECODED:
                 self._hyp = None
-            return UpdateResult(True, "fused", nis, k)
+            return UpdateResult(True, how, nis, k)
 
         reason = f"gated: NIS {nis:.1f} > {self._gate[source]:.1f}"
         if source is IdSource.DECODED and self._state is TrackState.LOST:
@@ -428,6 +428,45 @@ class Tracker:
             )
         self._stats[f"rejected_{source.value}"] += 1
         return UpdateResult(False, reason, nis, k)
+
+    def _without_track(self, alts, sticker_id: int, source: IdSource, t: float) -> UpdateResult | None:
+        """What becomes of a fix while there is no track to gate it against (initialising: a decoded
+        one starts it; lost: only decoded ones are taken), or None when there is a track."""
+        if self._state is TrackState.INITIALISING:
+            if source is not IdSource.DECODED:
+                self._stats["ignored_initialising"] += 1
+                return UpdateResult(False, "initialising: only a decoded sticker starts the track")
+            self._start(alts[0], sticker_id, source, t)
+            self._stats["initialisations"] += 1
+            return UpdateResult(True, "initialised", chosen=0)
+        if self._state is TrackState.LOST and source is not IdSource.DECODED:
+            self._stats["ignored_lost"] += 1
+            return UpdateResult(False, "lost: only decoded stickers are taken")
+        return None
+
+    def _overrule_step(self, alts, lag: float, source: IdSource, k: int, nis: float) -> tuple[int, float, str]:
+        """A decoded fix that the gate refuses right after this frame's odometry step, but that passes
+        against the filter before that step, overrules the step: the filter goes back to before it.
+        Returns (best alternative, its NIS, how it is fused if it passes) (see ``overrule_odometry``)."""
+        b = self._before_step
+        if nis <= self._gate[source] or source is not IdSource.DECODED:
+            return k, nis, "fused"
+        if not self.config.overrule_odometry or b is None or b[0] != self._t:
+            return k, nis, "fused"
+        t, camera, mean, cov, clones, last_odo_t = b
+        after = (self._ekf.x, self._ekf.P)
+        self._ekf.x, self._ekf.P = mean.reshape(-1, 1), cov
+        k0, nis0 = self._best(alts, lag)
+        if not nis0 <= self._gate[IdSource.DECODED]:
+            self._ekf.x, self._ekf.P = after
+            return k, nis, "fused"
+        # The step's interval is spent either way: its camera's next step starts at this frame.
+        self._clones = clones
+        self._clones.drop(camera)
+        self._last_odo_t = last_odo_t
+        self._before_step = None
+        self._stats["odometry_overruled"] += 1
+        return k0, nis0, f"fused (NIS {nis:.1f} after this frame's odometry step, which it overruled)"
 
     def _best(self, alts, lag: float) -> tuple[int, float]:
         """Index and NIS of the alternative closest to the prediction."""
@@ -590,6 +629,7 @@ class Tracker:
             self._clones.absorb(xa, Pa)
 
         clones_before = (self._clones.x, self._clones.P, self._clones.X)
+        before = (self._t, camera, self._ekf.mean, self._ekf.cov, self._clones.copy(), self._last_odo_t)
         if not self._guarded(fuse):
             self._clones.x, self._clones.P, self._clones.X = clones_before
             return UpdateResult(False, "numerical failure fusing odometry", nis)
@@ -597,6 +637,7 @@ class Tracker:
         self._clones.drop(camera)
         self._stats["odometry_accepted"] += 1
         self._last_odo_t = t1
+        self._before_step = before
         return UpdateResult(True, "fused", nis)
 
     # -- output -------------------------------------------------------------------------------------
