@@ -1,0 +1,144 @@
+"""Localiser settings compared on the walks of ``tagloc eval``: one row per (variant, walk), pooled per preset.
+
+Run (from the repository root, on the output directory of ``tagloc eval --preset all``)::
+
+    PYTHONPATH=$PWD python benchmarks/eval_variants.py out/eval \\
+        --variant 'no-overrule={"tracker.overrule_odometry": false}' \\
+        --variant 'homography-5={"odometry_config.homography_iterations": 5}' [--jobs 2] [--json F]
+
+The cached sessions under ``OUT/<preset>/sessions/*`` are replayed as they are (nothing is
+rendered) through :class:`tagloc.pipeline.localiser.Localiser` with the default
+:class:`tagloc.pipeline.localiser.LocaliserConfig` (variant ``default``, always run) and with each
+``--variant NAME=JSON``: a JSON object of dotted field paths into the configuration (``tracker.``,
+``odometry_config.``, ``pose.``, ...) and their values. Per walk: horizontal RMSE, heading RMSE,
+mean position NEES, share of all frames within 10 cm (a frame without a pose is a miss), fixes
+fused and wrong-ID fixes (as ``tagloc eval`` counts them). Per preset, pooled by frame like
+``tagloc eval``'s summary: RMSE, heading, NEES and its verdict against the effective-sample bound.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from tagloc.eval.consistency import nees_blocks, nees_test
+from tagloc.eval.evaluate import wrong_id_fixes
+from tagloc.eval.metrics import error_metrics, trajectory_errors
+from tagloc.io.session import SessionReader
+from tagloc.pipeline.localiser import LocaliserConfig
+from tagloc.pipeline.run import run_session
+
+
+def configure(overrides: dict) -> LocaliserConfig:
+    """The default configuration with ``overrides`` ({"a.b.c": value}) applied (nested dataclasses)."""
+
+    def put(obj, path: list[str], value):
+        if not dataclasses.is_dataclass(obj) or path[0] not in {f.name for f in dataclasses.fields(obj)}:
+            raise SystemExit(f"eval_variants: no setting {path[0]!r} in {type(obj).__name__}")
+        if len(path) == 1:
+            old = getattr(obj, path[0])
+            if isinstance(old, tuple):
+                value = tuple(value)
+            return dataclasses.replace(obj, **{path[0]: value})
+        return dataclasses.replace(obj, **{path[0]: put(getattr(obj, path[0]), path[1:], value)})
+
+    cfg = LocaliserConfig()
+    for key, value in overrides.items():
+        cfg = put(cfg, key.split("."), value)
+    return cfg
+
+
+def run_walk(job: tuple[str, dict, str]) -> dict:
+    """Replay one session with one variant; its row (errors kept for pooling)."""
+    import cv2
+
+    cv2.setNumThreads(1)
+    name, overrides, path = job
+    session = SessionReader(path)
+    log = run_session(session, configure(overrides))
+    v = log.valid
+    e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *session.groundtruth())
+    m = error_metrics(e)
+    return {
+        "variant": name,
+        "preset": Path(path).parent.parent.name,
+        "walk": Path(path).name,
+        "rmse_cm": 100 * m["rmse_m"],
+        "heading_deg": m["heading_rmse_deg"],
+        "nees": m["nees_mean"],
+        "within_10cm_all": m["within_10cm"] * m["frames"] / max(len(v), 1),
+        "fixes": len(log.fixes),
+        "wrong_ids": wrong_id_fixes(Path(path), log)[0],
+        "sq_position": float(np.sum(e.position**2)),
+        "sq_heading": float(np.sum(np.degrees(e.yaw) ** 2)),
+        "frames": int(len(e.position)),
+        "nees_blocks": nees_blocks(e.stamps, e.nees).tolist(),
+    }
+
+
+def pooled(rows: list[dict]) -> dict:
+    """Per-preset figures pooled by frame."""
+    n = sum(r["frames"] for r in rows)
+    test = nees_test(np.array([b for r in rows for b in r["nees_blocks"]], float).reshape(-1, 3))
+    return {
+        "rmse_cm": 100 * math.sqrt(sum(r["sq_position"] for r in rows) / max(n, 1)),
+        "heading_deg": math.sqrt(sum(r["sq_heading"] for r in rows) / max(n, 1)),
+        "nees": sum(r["nees"] * r["frames"] for r in rows) / max(n, 1),
+        "nees_verdict": test.verdict,
+        "wrong_ids": sum(r["wrong_ids"] for r in rows),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("eval_dir", type=Path, help="output directory of `tagloc eval` (holds <preset>/sessions/*)")
+    ap.add_argument("--variant", action="append", default=[], help='NAME={"dotted.field": value, ...}')
+    ap.add_argument("--jobs", type=int, default=1, help="processes (default 1)")
+    ap.add_argument("--json", type=Path, help="write the rows and the pooled figures here")
+    args = ap.parse_args()
+    variants = {"default": {}}
+    for spec in args.variant:
+        name, _, text = spec.partition("=")
+        try:
+            variants[name] = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise SystemExit(f"eval_variants: --variant {name}: not JSON ({exc})") from None
+        configure(variants[name])  # refuse a misspelt setting before any work
+    walks = sorted(str(p) for p in args.eval_dir.glob("*/sessions/*") if (p / "session.json").exists())
+    if not walks:
+        raise SystemExit(f"eval_variants: no sessions under {args.eval_dir}/*/sessions")
+    jobs = [(name, ov, w) for name, ov in variants.items() for w in walks]
+    with ProcessPoolExecutor(max(1, args.jobs)) as ex:
+        rows = list(ex.map(run_walk, jobs))
+    print(
+        f"{'variant':24s} {'walk':10s} {'RMSE cm':>8s} {'hdg deg':>8s} {'NEES':>6s} {'<10 cm':>7s} {'fixes':>6s} {'wrong':>6s}"
+    )
+    for r in rows:
+        print(
+            f"{r['variant']:24s} {r['walk']:10s} {r['rmse_cm']:8.2f} {r['heading_deg']:8.2f} {r['nees']:6.2f}"
+            f" {100 * r['within_10cm_all']:6.1f}% {r['fixes']:6d} {r['wrong_ids']:6d}"
+        )
+    summary = {}
+    print(
+        f"\n{'variant':24s} {'preset':10s} {'RMSE cm':>8s} {'hdg deg':>8s} {'NEES':>6s} {'verdict':>14s} {'wrong':>6s}"
+    )
+    for name in variants:
+        for preset in dict.fromkeys(r["preset"] for r in rows):
+            p = pooled([r for r in rows if r["variant"] == name and r["preset"] == preset])
+            summary[f"{name}/{preset}"] = p
+            print(
+                f"{name:24s} {preset:10s} {p['rmse_cm']:8.2f} {p['heading_deg']:8.2f} {p['nees']:6.2f}"
+                f" {p['nees_verdict']:>14s} {p['wrong_ids']:6d}"
+            )
+    if args.json:
+        args.json.write_text(json.dumps({"variants": variants, "rows": rows, "summary": summary}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
