@@ -710,14 +710,14 @@ def test_decoded_fix_overrules_its_frames_odometry_step():
     step_cov = np.diag([0.005**2, 0.005**2, math.radians(0.1) ** 2])
     bad_turn = OdometryStep(0.0, 1 / 30, np.array([0.0, 0.0, math.radians(4.0)]), step_cov, 0.5)
 
-    def run(source, overrule=True):
+    def run(source, overrule=True, seen=here):
         tr = Tracker(dataclasses.replace(TrackerConfig(), overrule_odometry=overrule))
         tr.predict(0.0, "cam")
         assert tr.update([make_fix(here)], 11, IdSource.DECODED, 0.0).accepted
         tr.predict(1 / 30, "cam")
         assert tr.update_odometry(bad_turn, "cam").accepted
         yaw_after_step = tr.output().pose[2]
-        return tr, tr.update([make_fix(here)], 11, source, 1 / 30), yaw_after_step
+        return tr, tr.update([make_fix(seen)], 11, source, 1 / 30), yaw_after_step
 
     tr, res, yaw_after_step = run(IdSource.DECODED)
     assert abs(math.degrees(wrap(yaw_after_step - here[2]))) > 3.0  # the step did move the track
@@ -734,3 +734,7 @@ def test_decoded_fix_overrules_its_frames_odometry_step():
         tr, res, _ = run(source, overrule)
         assert not res.accepted and res.reason.startswith("gated")
         assert tr.stats["odometry_overruled"] == 0
+    # A decoded fix of the wrong place (a misread name, a moved sticker) fails both gates: the step stands.
+    tr, res, yaw_after_step = run(IdSource.DECODED, seen=here + np.array([0.5, 0.0, 0.0]))
+    assert not res.accepted and tr.stats["odometry_overruled"] == 0
+    assert tr.output().pose[2] == pytest.approx(yaw_after_step)
