@@ -359,9 +359,11 @@ def test_tracker_odometry_bookkeeping(rng):
 # -- torso lean (issue 14) --------------------------------------------------------------------------
 
 
-def _leaning_turn(turn_deg: float, fwd_m: float, frames: int = 16) -> tuple[RigCamera, list[np.ndarray]]:
+def _leaning_turn(
+    turn_deg: float, fwd_m: float, frames: int = 16, pitch_deg: float = 0.0
+) -> tuple[RigCamera, list[np.ndarray]]:
     """Static renders (no blur) of a walk on a circle, the torso leaning into it as a walker in
-    balance does: roll -atan(v omega / g) about the vest point."""
+    balance does: roll -atan(v omega / g) about the vest point, then ``pitch_deg`` (forward positive)."""
     from scipy.spatial.transform import Rotation
 
     from tagloc.core.geometry import planar_T
@@ -371,7 +373,7 @@ def _leaning_turn(turn_deg: float, fwd_m: float, frames: int = 16) -> tuple[RigC
     rc = rig_camera(60.0)
     v, w = fwd_m * FPS, math.radians(turn_deg) * FPS
     T_lean = np.eye(4)
-    T_lean[:3, :3] = Rotation.from_euler("x", -math.atan(v * w / 9.81)).as_matrix()
+    T_lean[:3, :3] = Rotation.from_euler("xyz", [-math.atan(v * w / 9.81), math.radians(pitch_deg), 0.0]).as_matrix()
     pv = rc.vest_point
     T_lean[:3, 3] = pv - T_lean[:3, :3] @ pv  # about the vest point
     smap = grid_map(GridMapConfig(width_m=10, depth_m=10, spacing_min_m=1.6, spacing_max_m=2.0, seed=4))
@@ -410,6 +412,32 @@ def test_lean_into_a_turn_does_not_shrink_the_turn(turn_deg):
     assert forward[False] > 0.047
     assert forward[True] == pytest.approx(0.0433, abs=0.002)
     assert abs(ratios[True] - 1.0) < 0.03  # 1.001-1.020 measured
+
+
+def test_pitch_lean_of_braking_keeps_the_step_length():
+    """A walker braking at 0.8 m/s^2 leans back atan(0.8 / g) = 4.7 degrees (3 within
+    ``pitch_lean_max``); rendered with the torso pitched back 3 degrees, the nominal bird's-eye patch
+    reads the 4.33 cm steps 6 % short. With the pitch lean taken from the walk's falling speed (as the
+    tracker would predict it; the frames here hold the speed, only the lean is under test), the steps
+    come out within 2 % once the lean's lag has settled."""
+    fwd = 0.0433
+    rc, imgs = _leaning_turn(0.0, fwd, frames=24, pitch_deg=-3.0)
+    mean_fwd = {}
+    for pitch_lean in (False, True):
+        odo = FloorOdometry(rc, OdometryConfig(pitch_lean=pitch_lean, tilt_correction=False))
+        steps = [odo.measure(img, k / FPS, walk_speed=1.3 - 0.8 * k / FPS) for k, img in enumerate(imgs)]
+        d = np.array([s.delta for s in steps[1:] if s is not None])
+        assert len(d) == len(imgs) - 1
+        mean_fwd[pitch_lean] = float(np.mean(d[12:, 0]))
+        if pitch_lean:
+            assert math.degrees(odo._pitch(23 / FPS)) == pytest.approx(-3.0)
+    assert mean_fwd[False] < 0.96 * fwd  # 0.0406 measured
+    assert mean_fwd[True] == pytest.approx(fwd, rel=0.02)  # 0.0436 measured
+    # Without a speed (not tracking) there is no pitch lean.
+    odo = FloorOdometry(rc, OdometryConfig(tilt_correction=False))
+    for k, img in enumerate(imgs[:6]):
+        odo.measure(img, k / FPS)
+    assert odo._pitch(5 / FPS) == 0.0
 
 
 def test_a_weak_match_is_kept_with_a_larger_covariance(monkeypatch):

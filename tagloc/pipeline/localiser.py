@@ -731,8 +731,10 @@ class Localiser:
 
     def _odometry_step(self, gray: np.ndarray, camera: int, t: float) -> None:
         odo = self.floor_odometry(camera)
-        twist = self.tracker.velocity() if self.rig[camera].readout_s > 0 else None
-        step = odo.measure(gray, t, twist) if odo is not None else None
+        velocity = self.tracker.velocity()
+        twist = velocity if self.rig[camera].readout_s > 0 else None
+        speed = None if velocity is None else float(velocity[0])
+        step = odo.measure(gray, t, twist, speed) if odo is not None else None
         self._step = step
         if step is not None:
             self.counts["odometry_steps"] += 1
