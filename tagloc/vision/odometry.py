@@ -882,7 +882,7 @@ class FloorOdometry:
         else:
             level = self.level_motion(W[:, :2], W[:, 2], R_tilt, small)
         self._update_lean(t, level, dt)
-        self._update_pitch(t, dt)
+        self._update_pitch(t)
         # The rigid match guides the next frame (turn guess, rolling-shutter remap); the step
         # reported also has the tilt's change between the two frames taken out.
         self._last_turn = (t, float(level[2]) / dt)
@@ -1026,8 +1026,8 @@ class FloorOdometry:
         pitch = math.atan((ps[1] - ps[2]) / (self._lean_tau * _G))
         return max(-cfg.pitch_lean_max, min(cfg.pitch_lean_max, pitch))
 
-    def _update_pitch(self, t: float, dt: float) -> None:
-        """Follow the walk's speed for the pitch lean at the step ending at ``t`` (s), ``dt`` s long:
+    def _update_pitch(self, t: float) -> None:
+        """Follow the walk's speed for the pitch lean at the step ending at ``t`` (s):
         the speed the tracker predicted for that frame (:meth:`measure`'s ``walk_speed``) and its
         pendulum lag, whose difference over the lag's time constant is the lagged acceleration. A step
         through a skipped frame leaves it as it was; a frame without a speed forgets it."""
@@ -1041,8 +1041,11 @@ class FloorOdometry:
         if ps is None or not 0.0 < t - ps[0] <= self.config.turn_memory * self.config.max_dt:
             self._pitch_state = [t, ws[1], ws[1]]
             return
+        # The lag runs over the time since its last update: after frames the odometry could not
+        # match (a burst of drops), more than this step's own interval.
+        elapsed = t - ps[0]
         ps[0], ps[1] = t, ws[1]
-        ps[2] += (1.0 - math.exp(-dt / self._lean_tau)) * (ws[1] - ps[2])
+        ps[2] += (1.0 - math.exp(-elapsed / self._lean_tau)) * (ws[1] - ps[2])
 
     def _update_lean(self, t: float, delta: np.ndarray, dt: float) -> None:
         """Follow the torso's lean with the step ``delta`` (3,) over ``dt`` s ending at ``t``.
