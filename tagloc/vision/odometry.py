@@ -261,9 +261,10 @@ class OdometryConfig:
     the same pendulum lag as the roll, so no differentiation of a noisy speed. Not the odometry's own
     steps: their speed feeds back through the geometry it shapes (tried: on a fast turn at 60 lux the
     field walk f01 diverged by 112 cm). ``pitch_lean_max`` bounds it (3 degrees: the lower end of
-    braking's lean, so a wrong speed change costs at most ~2 % of a turn); with 5 degrees the field
-    walk f01 became overconfident (NEES 2.46 against its bound 2.39), with 2 degrees it kept less of
-    the gain (field preset 3.84 against 3.68 cm).
+    braking's lean, so a wrong speed change costs at most ~2 % of a turn). On the eleven eval walks
+    (``benchmarks/eval_variants.py``, standard / field RMSE): 3 degrees 4.02 / 3.64 cm, 5 degrees
+    4.23 / 3.58, 2 degrees 3.94 / 4.05; the last is all f01 (6.36 cm, NEES 3.12), which a clamp
+    1.5e-9 rad off 2 degrees also gives: one identified fix at its gate's edge decides that walk.
 
     Calibration (tagloc's simulator, revision 3 with the leaning walker: the six 20 s walks of
     ``tagloc eval --preset standard``, 56-265 lux, 0.9-1.5 m/s, pitch 46-66 deg, tilt correction on),
