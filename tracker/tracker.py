@@ -453,7 +453,7 @@ class Tracker:
             return k, nis, "fused"
         if not self.config.overrule_odometry or b is None or b[0] != self._t:
             return k, nis, "fused"
-        t, camera, mean, cov, clones, last_odo_t = b
+        _, camera, mean, cov, clones, last_odo_t = b
         after = (self._ekf.x, self._ekf.P)
         self._ekf.x, self._ekf.P = mean.reshape(-1, 1), cov
         k0, nis0 = self._best(alts, lag)
@@ -628,10 +628,11 @@ class Tracker:
             self._ekf.set(xa[:n], 0.5 * (Pa[:n, :n] + Pa[:n, :n].T))
             self._clones.absorb(xa, Pa)
 
-        clones_before = (self._clones.x, self._clones.P, self._clones.X)
+        # The filter before the step: restored if the fusion fails, and kept for a fix of this frame
+        # that may overrule the step (see overrule_odometry).
         before = (self._t, camera, self._ekf.mean, self._ekf.cov, self._clones.copy(), self._last_odo_t)
         if not self._guarded(fuse):
-            self._clones.x, self._clones.P, self._clones.X = clones_before
+            self._clones = before[4]
             return UpdateResult(False, "numerical failure fusing odometry", nis)
         # One step per interval: a second one would reuse the same frames.
         self._clones.drop(camera)

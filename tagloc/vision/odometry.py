@@ -564,7 +564,6 @@ class FloorOdometry:
         gc, gr = np.meshgrid(g5, g5)
         self._grid = np.column_stack([gc.ravel(), gr.ravel()])  # patch pixels carried through the lean
         self._lean_state: list[float] | None = None  # see _update_lean
-        self._walk_speed: tuple[float, float] | None = None  # (time, m/s) handed to measure
         self._pitch_state: list[float] | None = None  # (time, speed, lagged speed), see _update_pitch
         self._lean_tau = math.sqrt(cfg.lean_com_height_m / _G)
         self._centre = p.centre
@@ -679,7 +678,6 @@ class FloorOdometry:
         self._last_turn = None
         self._last_twist = None
         self._lean_state = None
-        self._walk_speed = None
         self._pitch_state = None
         if self._torso is not None:
             self._torso.reset()
@@ -775,8 +773,6 @@ class FloorOdometry:
         for this frame by the tracker, for the pitch lean (see ``pitch_lean``); None: not tracking.
         """
         t = float(t)
-        ok = walk_speed is not None and math.isfinite(walk_speed)
-        self._walk_speed = (t, float(walk_speed)) if ok else None
         small = self.birdseye(gray, self._twist(t, body_twist))
         prev, self._prev = self._prev, (t, small)
         held, self._held = self._held, None
@@ -803,6 +799,7 @@ class FloorOdometry:
                 return None
             self._last_sure = match[3]
         self._intervals.append(dt / stride)
+        self._update_pitch(t, walk_speed)
         return step
 
     def _twist(self, t: float, body_twist: np.ndarray | None) -> np.ndarray | None:
@@ -883,7 +880,6 @@ class FloorOdometry:
         else:
             level = self.level_motion(W[:, :2], W[:, 2], R_tilt, small)
         self._update_lean(t, level, dt)
-        self._update_pitch(t)
         # The rigid match guides the next frame (turn guess, rolling-shutter remap); the step
         # reported also has the tilt's change between the two frames taken out.
         self._last_turn = (t, float(level[2]) / dt)
@@ -1027,26 +1023,23 @@ class FloorOdometry:
         pitch = math.atan((ps[1] - ps[2]) / (self._lean_tau * _G))
         return max(-cfg.pitch_lean_max, min(cfg.pitch_lean_max, pitch))
 
-    def _update_pitch(self, t: float) -> None:
-        """Follow the walk's speed for the pitch lean at the step ending at ``t`` (s):
-        the speed the tracker predicted for that frame (:meth:`measure`'s ``walk_speed``) and its
-        pendulum lag, whose difference over the lag's time constant is the lagged acceleration. A step
-        through a skipped frame leaves it as it was; a frame without a speed forgets it."""
-        ws = self._walk_speed
-        if ws is None:
+    def _update_pitch(self, t: float, speed: float | None) -> None:
+        """Follow the walk's speed for the pitch lean after a step measured to the frame at ``t`` (s):
+        ``speed`` (m/s), what the tracker predicted for that frame (:meth:`measure`'s ``walk_speed``),
+        and its pendulum lag, whose difference over the lag's time constant is the lagged
+        acceleration. A frame without a speed (or a non-finite one) forgets it."""
+        if speed is None or not math.isfinite(speed):
             self._pitch_state = None
-            return
-        if ws[0] != t:
             return
         ps = self._pitch_state
         if ps is None or not 0.0 < t - ps[0] <= self.config.turn_memory * self.config.max_dt:
-            self._pitch_state = [t, ws[1], ws[1]]
+            self._pitch_state = [t, float(speed), float(speed)]
             return
         # The lag runs over the time since its last update: after frames the odometry could not
         # match (a burst of drops), more than this step's own interval.
         elapsed = t - ps[0]
-        ps[0], ps[1] = t, ws[1]
-        ps[2] += (1.0 - math.exp(-elapsed / self._lean_tau)) * (ws[1] - ps[2])
+        ps[0], ps[1] = t, float(speed)
+        ps[2] += (1.0 - math.exp(-elapsed / self._lean_tau)) * (ps[1] - ps[2])
 
     def _update_lean(self, t: float, delta: np.ndarray, dt: float) -> None:
         """Follow the torso's lean with the step ``delta`` (3,) over ``dt`` s ending at ``t``.
