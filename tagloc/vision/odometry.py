@@ -50,13 +50,14 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
 from tagloc.core.errors import CalibrationError, InputError
 from tagloc.core.rig import RigCamera, row_delay_s, torso_tilt
+from tagloc.vision.floor_flow import FloorFlow, FloorFlowConfig, FlowStep
 from tagloc.vision.image import require_gray
 from tagloc.vision.torso_tilt import TorsoTilt
 
@@ -227,6 +228,17 @@ class OdometryConfig:
     ``rolling_shutter``: for a rolling-shutter camera (``RigCamera.readout_s`` > 0), sample each
     frame's patch where each floor point was at its row's time (see the module docstring).
 
+    ``flow``: refine each step at the camera's full resolution (:mod:`tagloc.vision.floor_flow`,
+    tuned by ``flow_config``): a grid of image points tracked from where the patch's step puts
+    them gives the step, the tilt change and the bobbing together. The tilt change goes to the
+    tilt filter in place of the patch's homography fit (with ``flow_config.tilt_sigma``), and the
+    step reported is the flow's, corrected by the filtered change less the flow's own. On the
+    standard walk s00, odometry alone, the forward / sideways error summed over 1 s fell from 49 /
+    24 mm to 18 / 30 mm and the turn's from 0.79 to 0.42 deg (the patch's tilt-change fit followed
+    25 % of the true change, the flow's 77-82 %). A refused fit (see the module) leaves the patch's
+    step as before; so does a step through a skipped frame (stride), whose two frames' flow is not
+    tracked.
+
     Stride (``max_stride``, ``stride_max_turn_rate``; :meth:`FloorOdometry.wants`, used when the
     localiser allows it: see ``LocaliserConfig.odometry_stride``): while the walker goes straight,
     a step may span two frame intervals, the frame between skipped (its patch is not even made),
@@ -332,6 +344,8 @@ class OdometryConfig:
     lean_min: float = math.radians(0.25)
     max_stride: int = 2
     stride_max_turn_rate: float = math.radians(10.0)
+    flow: bool = True
+    flow_config: FloorFlowConfig = field(default_factory=FloorFlowConfig)
 
 
 @dataclass
@@ -590,6 +604,10 @@ class FloorOdometry:
         rs = cfg.rolling_shutter and rig_camera.readout_s > 0
         self._rs = self._rolling_shutter_grid(n, ss, T_cb) if rs else None
         self.tilt_gated_in_row = 0  # sticker fixes refused by the tilt gate in a row (see tilt_gate_result)
+        self._flow = FloorFlow(rig_camera, cfg.flow_config, rolling_shutter=cfg.rolling_shutter) if cfg.flow else None
+        self._prev_gray: np.ndarray | None = None  # the frame of _prev, for the flow
+        self.flow_steps = 0  # steps the flow refined
+        self.flow_refused = 0  # steps whose flow fit was refused (the patch's step stands)
         self._torso = (
             TorsoTilt(
                 cfg.tilt_sigma_pitch,
@@ -671,6 +689,7 @@ class FloorOdometry:
     def reset(self) -> None:
         """Forget the previous frame (the next :meth:`measure` returns None)."""
         self._prev = None
+        self._prev_gray = None
         self._intervals.clear()
         self._skipped = 0
         self._held = None
@@ -775,6 +794,8 @@ class FloorOdometry:
         t = float(t)
         small = self.birdseye(gray, self._twist(t, body_twist))
         prev, self._prev = self._prev, (t, small)
+        # Kept by reference: frame sources hand over a new array per frame.
+        prev_gray, self._prev_gray = self._prev_gray, (gray if self._flow is not None else None)
         held, self._held = self._held, None
         self._last_sure = False
         stride, self._skipped = self._skipped + 1, 0  # frame intervals this step spans
@@ -794,7 +815,8 @@ class FloorOdometry:
                 return None
             step = _compose_steps(first, second)
         else:
-            step = self._step(prev, (t, small), match)
+            grays = (prev_gray, gray) if prev_gray is not None else None
+            step = self._step(prev, (t, small), match, grays)
             if step is None:
                 return None
             self._last_sure = match[3]
@@ -862,9 +884,11 @@ class FloorOdometry:
         prev: tuple[float, np.ndarray],
         cur: tuple[float, np.ndarray],
         match: tuple[float, np.ndarray, float, bool] | None,
+        grays: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> OdometryStep | None:
         """The step from ``prev`` to ``cur`` (time, patch) from ECC's ``match`` (see :meth:`_match`), or
-        None; follows the lean, the turn and the tilt to ``cur``'s time."""
+        None; follows the lean, the turn and the tilt to ``cur``'s time. ``grays``: the two frames
+        themselves, for the flow's refinement (``flow``); None: the patch's step alone."""
         cfg = self.config
         if match is None:
             return None
@@ -884,7 +908,17 @@ class FloorOdometry:
         # reported also has the tilt's change between the two frames taken out.
         self._last_turn = (t, float(level[2]) / dt)
         self._last_twist = (t, level / dt)
-        delta = self._untilted_step(small, psmall, W, level, t0, t, R_tilt) if cfg.tilt_correction else level
+        flow = None
+        if grays is not None and self._flow is not None:
+            flow = self._flow.refine(grays[0], grays[1], level, dt, R_tilt)
+            if flow is None:
+                self.flow_refused += 1
+            else:
+                self.flow_steps += 1
+        if cfg.tilt_correction:
+            delta = self._untilted_step(small, psmall, W, level, t0, t, R_tilt, flow)
+        else:
+            delta = level if flow is None else flow.delta
         cov = self.covariance(delta) * (1.0 if rho >= cfg.min_ecc else cfg.weak_ecc_cov_scale)
         return OdometryStep(t0, t, delta, cov, float(response))
 
@@ -897,11 +931,18 @@ class FloorOdometry:
         t0: float,
         t1: float,
         R_tilt: np.ndarray | None = None,
+        flow: FlowStep | None = None,
     ) -> np.ndarray:
         """The step ``delta`` (3,) from ``t0`` to ``t1`` (s) with the vest's tilt change taken out
         (see ``tilt_correction`` and ``tilt_filter``), on top of the lean ``R_tilt`` (3, 3; None:
-        level) both frames share."""
-        fit = self._tilt_fit(small, psmall, W, delta, t1 - t0, R_tilt)
+        level) both frames share. With the ``flow``'s fit, its tilt change is the measurement and
+        its step (which has that change taken out) is corrected by the filtered change less it."""
+        if flow is not None:
+            fit: tuple[float, float | None] | None = (flow.d_pitch, flow.d_roll)
+            fit_sigma = self.config.flow_config.tilt_sigma
+        else:
+            fit = self._tilt_fit(small, psmall, W, delta, t1 - t0, R_tilt)
+            fit_sigma = None
         torso = self._torso
         if torso is None:
             if fit is None:
@@ -912,7 +953,9 @@ class FloorOdometry:
             if torso.pitch.t is None or torso.pitch.t < t0:
                 # First step, or steps were missed: start from the prior, or carry the estimate, to t0.
                 torso.step(t0, lean, None, None)
-            d_pitch, d_roll = torso.step(t1, lean, *(fit or (None, None)))
+            d_pitch, d_roll = torso.step(t1, lean, *(fit or (None, None)), fit_sigma=fit_sigma)
+        if flow is not None:
+            return self._tilt_corrected(flow.delta, R_tilt, d_pitch - flow.d_pitch, d_roll - flow.d_roll)
         return self._tilt_corrected(delta, R_tilt, d_pitch, d_roll)
 
     def _tilt_geometry(self, R_tilt: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:

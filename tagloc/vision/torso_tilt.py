@@ -111,10 +111,13 @@ class TorsoTilt:
         self.pitch = TiltAxis(self.sigma_pitch, self.tau)
         self.roll = TiltAxis(self.sigma_roll, self.tau)
 
-    def step(self, t: float, lean_roll: float, d_pitch: float | None, d_roll: float | None) -> tuple[float, float]:
+    def step(
+        self, t: float, lean_roll: float, d_pitch: float | None, d_roll: float | None, fit_sigma: float | None = None
+    ) -> tuple[float, float]:
         """Advance to ``t`` with the lean's roll ``lean_roll`` (rad) as the roll's prior and the
-        fitted changes (rad; None: not fitted). Returns the estimated (pitch, roll) changes."""
-        r = self.fit_sigma**2
+        fitted changes (rad; None: not fitted), each of standard deviation ``fit_sigma`` (rad; None:
+        the configured ``fit_sigma``). Returns the estimated (pitch, roll) changes."""
+        r = (self.fit_sigma if fit_sigma is None else fit_sigma) ** 2
         return self.pitch.step(t, 0.0, d_pitch, r), self.roll.step(t, lean_roll, d_roll, r)
 
     def predict(self, t: float, lean_roll: float) -> tuple[float, float, float, float]:

@@ -1,0 +1,283 @@
+"""The step between two frames from sparse optical flow at the camera's own resolution.
+
+The floor odometry's bird's-eye patch (:mod:`tagloc.vision.odometry`) matches 12.5 mm pixels: fine
+for the step's rigid part, too coarse for the torso's tilt change between frames, which it reads
+from the patch's perspective (a 0.2 degree pitch change moves the near and far edges of the patch
+by a fifth of a patch pixel apart). Fitted there, the change came out 0.29 degrees off per frame
+against a true change of 0.18 degrees RMS (simulated walks, standard eval preset), and over a
+second between stickers its sum was a few degrees off: 2.6-3.3 cm of floor per degree at the
+patch. The camera itself resolves 1-2 mm of floor. This module tracks a fixed grid of image points
+with pyramidal Lucas-Kanade (:func:`cv2.calcOpticalFlowPyrLK`) from where the patch's step predicts
+them, and fits the whole motion of the camera to them:
+
+- the points' floor positions come from their rays in the earlier frame, the torso tilted by the
+  lean ``R_tilt`` the odometry assumes;
+- the later camera is the earlier one moved by the body's step (dx, dy, dyaw, the vest point's
+  motion in the body frame), tilted further by (d_pitch, d_roll) about the vest point, and raised
+  by dz (the gait's bobbing, which the patch reads as scale);
+- robust Gauss-Newton (Huber weights on the reprojection error, in undistorted pixels) fits the six.
+
+Rolling shutter: each row is exposed at its own time (:func:`tagloc.core.rig.row_delay_s`), so a
+floor point seen at row r0 in the earlier frame and row r1 in the later one moved over dt + d(r1)
+- d(r0). At constant velocity over the two frames, its motion is the frame interval's motion
+times that over dt, which the fit applies point by point (its reference is the earlier camera at
+the point's own row time, the same for the point's ray and its motion).
+
+A fit is refused (None) when too few points track, when their median reprojection error says the
+model does not hold (heavy motion blur in a fast turn in dim light: 5-7 px against ~1 px), or when
+it lands far from the patch's step (a gross mistracking).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from tagloc.core.rig import RigCamera, row_delay_s
+
+__all__ = ["FlowStep", "FloorFlow", "FloorFlowConfig"]
+
+
+@dataclass(frozen=True)
+class FloorFlowConfig:
+    """Choices of the floor flow (pixels of the full frame, metres, radians).
+
+    - ``grid``: (columns, rows) of the tracked points, evenly over the image inside ``margin_px``;
+      points whose rays dip less than ``min_depression`` below the horizon are left out. 10 x 8:
+      on the standard walk s00, 7 x 5 points gave a pitch change 0.094 degrees off per frame
+      against 0.079 with 10 x 8, for 0.6 ms less (most of the cost is the pyramids, not the points).
+    - ``window_px``, ``levels``: Lucas-Kanade's window and pyramid levels. The patch's step leaves
+      the points up to ~10 px from where they are (its own error, the tilt change, the bobbing);
+      with 1 level and a 21 px window the fitted pitch change followed 17-32 % of the true change
+      on s00 and f00, with 2 levels 78-82 % (s00) and 54 % (f00, rolling shutter at 150 lux).
+    - ``iterations``: Lucas-Kanade's per level; ``lk_eps``: its stop (pixels).
+    - ``fit_iterations``: Gauss-Newton steps of the six-parameter fit from the patch's step.
+    - ``huber_k``: points further than this many robust sigmas (1.4826 median absolute residual)
+      are down-weighted in proportion.
+    - ``min_points``: fewer tracked points than this: no fit.
+    - ``max_residual_px``: a median reprojection error above this refuses the fit (1 px is
+      typical; fast turns in dim light with heavy blur gave 5-7 px and steps 2-4 cm off).
+    - ``max_disagreement_m``, ``max_disagreement_rad``: the fit's step further than this from the
+      patch's (whose own error is ~4 mm and 0.11 degrees per frame) is a mistracking: refused.
+    - ``tilt_sigma``: the fitted tilt change's standard deviation, which the torso's tilt filter
+      weighs it by (:class:`tagloc.vision.torso_tilt.TorsoTilt`): measured 0.08-0.15 degrees per
+      frame on the standard and field walks s00 and f00, against 0.29 for the patch's homography.
+    """
+
+    grid: tuple[int, int] = (10, 8)
+    tile_px: int = 0
+    margin_px: float = 60.0
+    min_depression: float = math.radians(20.0)
+    window_px: int = 21
+    levels: int = 2
+    iterations: int = 10
+    lk_eps: float = 0.01
+    fit_iterations: int = 3
+    huber_k: float = 2.5
+    min_points: int = 12
+    max_residual_px: float = 2.5
+    max_disagreement_m: float = 0.03
+    max_disagreement_rad: float = math.radians(1.0)
+    tilt_sigma: float = math.radians(0.12)
+
+
+@dataclass(frozen=True)
+class FlowStep:
+    """One fitted step: ``delta`` (3,) (dx, dy, dyaw) of the vest point, body frame at the earlier
+    frame (m, rad); the torso's tilt change ``d_pitch``, ``d_roll`` (rad, on top of the lean both
+    frames were seen through); ``dz`` the vest's rise (m); ``residual_px`` the median reprojection
+    error; ``points`` how many points tracked."""
+
+    delta: np.ndarray
+    d_pitch: float
+    d_roll: float
+    dz: float
+    residual_px: float
+    points: int
+
+
+# Central differences of the fit's Jacobian: 0.1 mm, 0.6 mdeg (far below the noise, far above
+# float rounding at these magnitudes).
+_H = np.array([1e-4, 1e-4, 1e-5, 1e-5, 1e-5, 1e-4])
+
+
+class FloorFlow:
+    """Full-resolution step and tilt change of one rig camera between two frames (see the module)."""
+
+    def __init__(self, rig_camera: RigCamera, config: FloorFlowConfig | None = None, rolling_shutter: bool = True):
+        self.config = cfg = config or FloorFlowConfig()
+        self.rig_camera = rig_camera
+        cam = rig_camera.camera
+        nx, ny = cfg.grid
+        xs = np.linspace(cfg.margin_px, cam.width - 1 - cfg.margin_px, nx)
+        ys = np.linspace(cfg.margin_px, cam.height - 1 - cfg.margin_px, ny)
+        px = np.rint(np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2))  # whole pixels: tiles are crops
+        n = cv2.undistortPoints(px.reshape(-1, 1, 2), cam.K, cam.dist).reshape(-1, 2)
+        self._rays_c = np.column_stack([n, np.ones(len(n))])  # camera frame
+        self._px = px.astype(np.float32)
+        self._px_int = np.rint(px).astype(np.int64)
+        self._readout = rig_camera.readout_s if rolling_shutter else 0.0
+        self._delay0 = np.asarray(row_delay_s(px[:, 1], cam.height, self._readout), float)
+        T = np.asarray(rig_camera.T_body_camera, float)
+        self._R_bc, self._c_nom = T[:3, :3], T[:3, 3]
+        self._vp = np.asarray(rig_camera.vest_point, float)
+        self._criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, cfg.iterations, cfg.lk_eps)
+        self._sin_min = math.sin(cfg.min_depression)
+
+    def refine(
+        self,
+        gray0: np.ndarray,
+        gray1: np.ndarray,
+        guess: np.ndarray,
+        dt: float,
+        R_tilt: np.ndarray | None = None,
+    ) -> FlowStep | None:
+        """The step from frame ``gray0`` to ``gray1`` ((H, W) uint8, ``dt`` s apart), tracked from the patch's step ``guess`` (3,) (dx, dy, dyaw) with the torso
+        tilted by ``R_tilt`` (3, 3; None: level) in the earlier frame; None when refused (see the
+        module docstring)."""
+        cfg = self.config
+        if not dt > 0.0:
+            return None
+        R0 = np.eye(3) if R_tilt is None else np.asarray(R_tilt, float)
+        M0 = R0 @ self._R_bc  # camera axes in the level body frame
+        c0 = self._vp + R0 @ (self._c_nom - self._vp)
+        rays = self._rays_c @ M0.T
+        down = rays[:, 2] < -self._sin_min * np.linalg.norm(rays, axis=1)
+        if int(down.sum()) < cfg.min_points:
+            return None
+        X = c0 + (-c0[2] / rays[down, 2])[:, None] * rays[down]  # floor points (N, 3)
+        lever = R0 @ (self._c_nom - self._vp)
+        model = _Model(X, lever, self._vp, M0)
+        x = np.array([*np.asarray(guess, float)[:3], 0.0, 0.0, 0.0])
+        cam = self.rig_camera.camera
+        start = model.project(x[None], np.ones(len(X)))[0]
+        p_guess = cv2.projectPoints(
+            np.column_stack([start, np.ones(len(start))]), np.zeros(3), np.zeros(3), cam.K, cam.dist
+        )[0].reshape(-1, 2)
+        tracked, ok = self._track(gray0, gray1, down, p_guess)
+        if int(ok.sum()) < cfg.min_points:
+            return None
+        p1 = tracked[ok]
+        seen = cv2.undistortPoints(p1.reshape(-1, 1, 2), cam.K, cam.dist).reshape(-1, 2)
+        model = _Model(X[ok], lever, self._vp, M0)
+        # Each point's interval, in frame intervals (rolling shutter; 1 for a global shutter).
+        scale = 1.0 + (np.asarray(row_delay_s(p1[:, 1], cam.height, self._readout)) - self._delay0[down][ok]) / dt
+        E = np.vstack([np.zeros(6), np.diag(_H)])
+        f = cam.fx
+        for i in range(cfg.fit_iterations + 1):
+            P = model.project(x[None] + E if i < cfg.fit_iterations else x[None], scale) - seen[None]
+            # Huber weights from the residuals at the current estimate (all 1 at the start).
+            res = f * np.hypot(P[0, :, 0], P[0, :, 1])
+            if i == cfg.fit_iterations:
+                break
+            sigma = 1.4826 * float(np.median(res)) + 1e-3
+            w = np.minimum(1.0, cfg.huber_k * sigma / np.maximum(res, 1e-9)) if i else np.ones(len(res))
+            r = P[0].ravel()
+            J = ((P[1:] - P[0]).reshape(6, -1) / _H[:, None]).T
+            sw = np.repeat(np.sqrt(w), 2)
+            step = np.linalg.lstsq(J * sw[:, None], -r * sw, rcond=None)[0]
+            if not np.all(np.isfinite(step)):
+                return None
+            x += step
+        med = float(np.median(res))
+        g = np.asarray(guess, float)
+        if (
+            not np.all(np.isfinite(x))
+            or med > cfg.max_residual_px
+            or math.hypot(x[0] - g[0], x[1] - g[1]) > cfg.max_disagreement_m
+            or abs(x[2] - g[2]) > cfg.max_disagreement_rad
+        ):
+            return None
+        return FlowStep(x[:3].copy(), float(x[3]), float(x[4]), float(x[5]), med, int(ok.sum()))
+
+    def _track(
+        self, gray0: np.ndarray, gray1: np.ndarray, use: np.ndarray, guess: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Lucas-Kanade of the grid points ``use`` (bool, per grid point) from ``gray0`` into ``gray1``,
+        starting from ``guess`` (M, 2): (tracked (M, 2), ok (M,) bool)."""
+        cfg = self.config
+        T = cfg.tile_px
+        if T <= 0:
+            tracked, status, _ = cv2.calcOpticalFlowPyrLK(
+                gray0,
+                gray1,
+                self._px[use].reshape(-1, 1, 2),
+                guess.astype(np.float32).reshape(-1, 1, 2),
+                winSize=(cfg.window_px, cfg.window_px),
+                maxLevel=cfg.levels,
+                criteria=self._criteria,
+                flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+            )
+            return tracked.reshape(-1, 2).astype(np.float64), status.ravel() == 1
+        # Only the tiles around the points: LK's pyramids and gradients over a mosaic of them
+        # instead of the whole frame (a quarter of the pixels).
+        h = T // 2
+        H, W = gray1.shape
+        c0 = self._px_int[use]
+        c1 = np.rint(guess).astype(np.int64)
+        inside = (c1[:, 0] >= h) & (c1[:, 0] <= W - h) & (c1[:, 1] >= h) & (c1[:, 1] <= H - h)
+        c1 = np.where(inside[:, None], c1, c0)
+        n = len(c0)
+        cols = int(math.ceil(math.sqrt(n)))
+        rows = int(math.ceil(n / cols))
+        win0 = np.lib.stride_tricks.sliding_window_view(gray0, (T, T))
+        win1 = np.lib.stride_tricks.sliding_window_view(gray1, (T, T))
+        t0 = np.zeros((rows * cols, T, T), np.uint8)
+        t1 = np.zeros((rows * cols, T, T), np.uint8)
+        t0[:n] = win0[c0[:, 1] - h, c0[:, 0] - h]
+        t1[:n] = win1[c1[:, 1] - h, c1[:, 0] - h]
+        m0 = t0.reshape(rows, cols, T, T).transpose(0, 2, 1, 3).reshape(rows * T, cols * T)
+        m1 = t1.reshape(rows, cols, T, T).transpose(0, 2, 1, 3).reshape(rows * T, cols * T)
+        k = np.arange(n)
+        origin = np.column_stack([(k % cols) * T + h, (k // cols) * T + h]).astype(np.float64)
+        start = origin + (guess - c1)
+        tracked, status, _ = cv2.calcOpticalFlowPyrLK(
+            m0,
+            m1,
+            origin.astype(np.float32).reshape(-1, 1, 2),
+            start.astype(np.float32).reshape(-1, 1, 2),
+            winSize=(cfg.window_px, cfg.window_px),
+            maxLevel=cfg.levels,
+            criteria=self._criteria,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        )
+        out = tracked.reshape(-1, 2).astype(np.float64) - origin + c1
+        # A point that left its tile was tracked on its neighbour's texture.
+        within = np.all(np.abs(tracked.reshape(-1, 2) - origin) < h - cfg.window_px // 2, axis=1)
+        return out, (status.ravel() == 1) & inside & within
+
+
+class _Model:
+    """Normalised image coordinates of floor points seen after a step (see :meth:`project`)."""
+
+    def __init__(self, X: np.ndarray, lever: np.ndarray, vest_point: np.ndarray, M0: np.ndarray):
+        self.X = X  # (N, 3) floor points, level body frame of the earlier frame
+        self.lever = lever  # (3,) vest point -> camera under the earlier tilt
+        self.vp = vest_point
+        self.M0t = M0.T  # level body -> camera axes of the earlier tilt
+
+    def project(self, params: np.ndarray, scale: np.ndarray) -> np.ndarray:
+        """(k, N, 2) normalised coordinates for k parameter rows ``params`` (k, 6): (dx, dy, dyaw,
+        d_pitch, d_roll, dz), each point's motion times its ``scale`` (N,)."""
+        P = params[:, None, :] * scale[None, :, None]
+        dx, dy, dyaw, dp, dr, dz = (P[..., i] for i in range(6))
+        cp, sp, cr, sr = np.cos(dp), np.sin(dp), np.cos(dr), np.sin(dr)
+        # The tilt change dR = Ry(dp) Rx(dr) on the lever: the later camera centre about the vest point.
+        lx, ly, lz = self.lever
+        ay, az = cr * ly - sr * lz, sr * ly + cr * lz  # Rx(dr) lever
+        vx, vz = cp * lx + sp * az, -sp * lx + cp * az  # then Ry(dp)
+        vx, vy, vz = vx + self.vp[0], ay + self.vp[1], vz + self.vp[2]
+        cy, sy = np.cos(dyaw), np.sin(dyaw)
+        cx1 = dx + cy * vx - sy * vy
+        cy1 = dy + sy * vx + cy * vy
+        cz1 = dz + vz
+        qx, qy, qz = self.X[:, 0] - cx1, self.X[:, 1] - cy1, self.X[:, 2] - cz1
+        # Into the later level body frame (Rz(dyaw)^T), then undo the tilt change (dR^T).
+        bx, by = cy * qx + sy * qy, -sy * qx + cy * qy
+        ux, uz = cp * bx - sp * qz, sp * bx + cp * qz  # Ry(dp)^T
+        uy, uz = cr * by + sr * uz, -sr * by + cr * uz  # Rx(dr)^T
+        pc = np.stack([ux, uy, uz], axis=-1) @ self.M0t.T
+        return pc[..., :2] / pc[..., 2:]
