@@ -50,10 +50,11 @@ class FloorFlowConfig:
       points whose rays dip less than ``min_depression`` below the horizon are left out. 10 x 8:
       on the standard walk s00, 7 x 5 points gave a pitch change 0.094 degrees off per frame
       against 0.079 with 10 x 8, for 0.6 ms less (most of the cost is the pyramids, not the points).
-    - ``window_px``, ``levels``: Lucas-Kanade's window and pyramid levels. The patch's step leaves
-      the points up to ~10 px from where they are (its own error, the tilt change, the bobbing);
-      with 1 level and a 21 px window the fitted pitch change followed 17-32 % of the true change
-      on s00 and f00, with 2 levels 78-82 % (s00) and 54 % (f00, rolling shutter at 150 lux).
+    - ``window_px``, ``levels``: Lucas-Kanade's window and pyramid levels above full resolution
+      (``maxLevel``). The patch's step leaves the points up to ~10 px from where they are (its own
+      error, the tilt change, the bobbing); with 1 level and a 21 px window the fitted pitch change
+      followed 17-32 % of the true change on s00 and f00, with 2 levels 78-82 % (s00) and 54 %
+      (f00, rolling shutter at 150 lux).
     - ``iterations``: Lucas-Kanade's per level; ``lk_eps``: its stop (pixels).
     - ``fit_iterations``: Gauss-Newton steps of the six-parameter fit from the patch's step.
     - ``huber_k``: points further than this many robust sigmas (1.4826 median absolute residual)
@@ -77,7 +78,6 @@ class FloorFlowConfig:
     """
 
     grid: tuple[int, int] = (10, 8)
-    tile_px: int = 0
     margin_px: float = 60.0
     min_depression: float = math.radians(20.0)
     window_px: int = 21
@@ -109,8 +109,8 @@ class FlowStep:
     points: int
 
 
-# Central differences of the fit's Jacobian: 0.1 mm, 0.6 mdeg (far below the noise, far above
-# float rounding at these magnitudes).
+# Forward differences of the fit's Jacobian: 0.1 mm, 0.6 mdeg (far below the noise, far above
+# float rounding at these magnitudes; the problem is nearly linear over them).
 _H = np.array([1e-4, 1e-4, 1e-5, 1e-5, 1e-5, 1e-4])
 
 
@@ -124,11 +124,10 @@ class FloorFlow:
         nx, ny = cfg.grid
         xs = np.linspace(cfg.margin_px, cam.width - 1 - cfg.margin_px, nx)
         ys = np.linspace(cfg.margin_px, cam.height - 1 - cfg.margin_px, ny)
-        px = np.rint(np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2))  # whole pixels: tiles are crops
+        px = np.rint(np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2))  # whole pixels (as measured)
         n = cv2.undistortPoints(px.reshape(-1, 1, 2), cam.K, cam.dist).reshape(-1, 2)
         self._rays_c = np.column_stack([n, np.ones(len(n))])  # camera frame
         self._px = px.astype(np.float32)
-        self._px_int = np.rint(px).astype(np.int64)
         self._readout = rig_camera.readout_s if rolling_shutter else 0.0
         self._delay0 = np.asarray(row_delay_s(px[:, 1], cam.height, self._readout), float)
         T = np.asarray(rig_camera.T_body_camera, float)
@@ -209,55 +208,17 @@ class FloorFlow:
         """Lucas-Kanade of the grid points ``use`` (bool, per grid point) from ``gray0`` into ``gray1``,
         starting from ``guess`` (M, 2): (tracked (M, 2), ok (M,) bool)."""
         cfg = self.config
-        T = cfg.tile_px
-        if T <= 0:
-            tracked, status, _ = cv2.calcOpticalFlowPyrLK(
-                gray0,
-                gray1,
-                self._px[use].reshape(-1, 1, 2),
-                guess.astype(np.float32).reshape(-1, 1, 2),
-                winSize=(cfg.window_px, cfg.window_px),
-                maxLevel=cfg.levels,
-                criteria=self._criteria,
-                flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-            )
-            return tracked.reshape(-1, 2).astype(np.float64), status.ravel() == 1
-        # Only the tiles around the points: LK's pyramids and gradients over a mosaic of them
-        # instead of the whole frame (a quarter of the pixels).
-        h = T // 2
-        H, W = gray1.shape
-        c0 = self._px_int[use]
-        c1 = np.rint(guess).astype(np.int64)
-        inside = (c1[:, 0] >= h) & (c1[:, 0] <= W - h) & (c1[:, 1] >= h) & (c1[:, 1] <= H - h)
-        c1 = np.where(inside[:, None], c1, c0)
-        n = len(c0)
-        cols = int(math.ceil(math.sqrt(n)))
-        rows = int(math.ceil(n / cols))
-        win0 = np.lib.stride_tricks.sliding_window_view(gray0, (T, T))
-        win1 = np.lib.stride_tricks.sliding_window_view(gray1, (T, T))
-        t0 = np.zeros((rows * cols, T, T), np.uint8)
-        t1 = np.zeros((rows * cols, T, T), np.uint8)
-        t0[:n] = win0[c0[:, 1] - h, c0[:, 0] - h]
-        t1[:n] = win1[c1[:, 1] - h, c1[:, 0] - h]
-        m0 = t0.reshape(rows, cols, T, T).transpose(0, 2, 1, 3).reshape(rows * T, cols * T)
-        m1 = t1.reshape(rows, cols, T, T).transpose(0, 2, 1, 3).reshape(rows * T, cols * T)
-        k = np.arange(n)
-        origin = np.column_stack([(k % cols) * T + h, (k // cols) * T + h]).astype(np.float64)
-        start = origin + (guess - c1)
         tracked, status, _ = cv2.calcOpticalFlowPyrLK(
-            m0,
-            m1,
-            origin.astype(np.float32).reshape(-1, 1, 2),
-            start.astype(np.float32).reshape(-1, 1, 2),
+            gray0,
+            gray1,
+            self._px[use].reshape(-1, 1, 2),
+            guess.astype(np.float32).reshape(-1, 1, 2),
             winSize=(cfg.window_px, cfg.window_px),
             maxLevel=cfg.levels,
             criteria=self._criteria,
             flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
         )
-        out = tracked.reshape(-1, 2).astype(np.float64) - origin + c1
-        # A point that left its tile was tracked on its neighbour's texture.
-        within = np.all(np.abs(tracked.reshape(-1, 2) - origin) < h - cfg.window_px // 2, axis=1)
-        return out, (status.ravel() == 1) & inside & within
+        return tracked.reshape(-1, 2).astype(np.float64), status.ravel() == 1
 
 
 class _Model:
