@@ -130,7 +130,8 @@ class FloorFlow:
         nx, ny = cfg.grid
         xs = np.linspace(cfg.margin_px, cam.width - 1 - cfg.margin_px, nx)
         ys = np.linspace(cfg.margin_px, cam.height - 1 - cfg.margin_px, ny)
-        px = np.rint(np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2))  # whole pixels (as measured)
+        # Whole pixels: the figures in the README were measured with this grid.
+        px = np.rint(np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2))
         n = cv2.undistortPoints(px.reshape(-1, 1, 2), cam.K, cam.dist).reshape(-1, 2)
         self._rays_c = np.column_stack([n, np.ones(len(n))])  # camera frame
         self._px = px.astype(np.float32)
@@ -150,12 +151,13 @@ class FloorFlow:
         dt: float,
         R_tilt: np.ndarray | None = None,
     ) -> FlowStep | None:
-        """The step from frame ``gray0`` to ``gray1`` ((H, W) uint8, ``dt`` s apart), tracked from the patch's step ``guess`` (3,) (dx, dy, dyaw) with the torso
-        tilted by ``R_tilt`` (3, 3; None: level) in the earlier frame; None when refused (see the
-        module docstring)."""
+        """The step from frame ``gray0`` to ``gray1`` ((H, W) uint8, ``dt`` s apart), tracked from the
+        patch's step ``guess`` (3,) (dx, dy, dyaw) with the torso tilted by ``R_tilt`` (3, 3; None:
+        level) in the earlier frame; None when refused (see the module docstring)."""
         cfg = self.config
         if not dt > 0.0:
             return None
+        g = np.asarray(guess, float)[:3]
         R0 = np.eye(3) if R_tilt is None else np.asarray(R_tilt, float)
         M0 = R0 @ self._R_bc  # camera axes in the level body frame
         c0 = self._vp + R0 @ (self._c_nom - self._vp)
@@ -166,16 +168,26 @@ class FloorFlow:
         X = c0 + (-c0[2] / rays[down, 2])[:, None] * rays[down]  # floor points (N, 3)
         lever = R0 @ (self._c_nom - self._vp)
         model = _Model(X, lever, self._vp, M0)
-        x = np.array([*np.asarray(guess, float)[:3], 0.0, 0.0, 0.0])
+        x = np.array([*g, 0.0, 0.0, 0.0])
         cam = self.rig_camera.camera
         start = model.project(x[None], np.ones(len(X)))[0]
         p_guess = cv2.projectPoints(
             np.column_stack([start, np.ones(len(start))]), np.zeros(3), np.zeros(3), cam.K, cam.dist
         )[0].reshape(-1, 2)
-        tracked, ok = self._track(gray0, gray1, down, p_guess)
+        tracked, status, _ = cv2.calcOpticalFlowPyrLK(
+            gray0,
+            gray1,
+            self._px[down].reshape(-1, 1, 2),
+            p_guess.astype(np.float32).reshape(-1, 1, 2),
+            winSize=(cfg.window_px, cfg.window_px),
+            maxLevel=cfg.levels,
+            criteria=self._criteria,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        )
+        ok = status.ravel() == 1
         if int(ok.sum()) < cfg.min_points:
             return None
-        p1 = tracked[ok]
+        p1 = tracked.reshape(-1, 2)[ok].astype(np.float64)
         seen = cv2.undistortPoints(p1.reshape(-1, 1, 2), cam.K, cam.dist).reshape(-1, 2)
         model = _Model(X[ok], lever, self._vp, M0)
         # Each point's interval, in frame intervals (rolling shutter; 1 for a global shutter).
@@ -198,34 +210,15 @@ class FloorFlow:
                 return None
             x += step
         med = float(np.median(res))
-        g = np.asarray(guess, float)
+        fast = abs(g[2]) > cfg.max_turn_rate * dt
         if (
             not np.all(np.isfinite(x))
-            or med
-            > (cfg.max_residual_px if abs(float(guess[2])) <= cfg.max_turn_rate * dt else cfg.fast_turn_max_residual_px)
+            or med > (cfg.fast_turn_max_residual_px if fast else cfg.max_residual_px)
             or math.hypot(x[0] - g[0], x[1] - g[1]) > cfg.max_disagreement_m
             or abs(x[2] - g[2]) > cfg.max_disagreement_rad
         ):
             return None
         return FlowStep(x[:3].copy(), float(x[3]), float(x[4]), float(x[5]), med, int(ok.sum()))
-
-    def _track(
-        self, gray0: np.ndarray, gray1: np.ndarray, use: np.ndarray, guess: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Lucas-Kanade of the grid points ``use`` (bool, per grid point) from ``gray0`` into ``gray1``,
-        starting from ``guess`` (M, 2): (tracked (M, 2), ok (M,) bool)."""
-        cfg = self.config
-        tracked, status, _ = cv2.calcOpticalFlowPyrLK(
-            gray0,
-            gray1,
-            self._px[use].reshape(-1, 1, 2),
-            guess.astype(np.float32).reshape(-1, 1, 2),
-            winSize=(cfg.window_px, cfg.window_px),
-            maxLevel=cfg.levels,
-            criteria=self._criteria,
-            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-        )
-        return tracked.reshape(-1, 2).astype(np.float64), status.ravel() == 1
 
 
 class _Model:
