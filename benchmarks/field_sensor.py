@@ -29,6 +29,7 @@ from tagloc.sim.mapgen import GridMapConfig, grid_map
 from tagloc.sim.simulate import SIM_REVISION, SimConfig, simulate_session
 from tagloc.sim.survey import FIELD_SURVEY
 from tagloc.sim.timing import FIELD_TIMING
+from tagloc.sim.walk import WalkConfig
 
 CONDITIONS = {
     "clean": {},
@@ -38,6 +39,9 @@ CONDITIONS = {
     "dim": {"sensor_preset": "ov5647"},
     "dim-50lux": {"sensor_preset": "ov5647", "lux": 50.0},
     "standard-50lux": {"lux": 50.0},
+    # Not a field condition but a check on the localiser's own assumptions: a walker who does not
+    # lean at all, against the lean into turns and with acceleration the odometry models.
+    "upright": {"walk": WalkConfig(lean=False)},
 }
 
 
