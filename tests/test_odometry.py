@@ -417,24 +417,27 @@ def test_lean_into_a_turn_does_not_shrink_the_turn(turn_deg):
 
 
 def test_lean_is_carried_through_frames_the_odometry_missed():
-    """A burst of 9 dropped frames (0.3 s) while the walker swings into a turn (the turn rate ramping
+    """A burst of 8 dropped frames (0.3 s) while the walker swings into a turn (the turn rate ramping
     from 0 to 145 deg/s at 1.3 m/s, as in the field_sensor timing walk that showed it). The lean
     after the burst is the lag run through a demand that moved linearly over the gap: within a
     degree of the same lag run on every frame, where restarting in balance at the new turn's
-    demand overstated it by about 10 degrees (and put steps 3-7 cm off sideways)."""
+    demand overstated it by about 8 degrees (and put steps 3-7 cm off sideways)."""
     odo = FloorOdometry(rig_camera(), OdometryConfig())
     tau, dt, v = odo._lean_tau, 1.0 / FPS, 1.3
-    w_of = lambda t: math.radians(145.0) * min(max((t - 0.5) / 0.5, 0.0), 1.0)  # noqa: E731
+
+    def w_of(t: float) -> float:
+        return math.radians(145.0) * min(max((t - 0.5) / 0.5, 0.0), 1.0)
+
     truth = 0.0
     for k in range(1, 40):
         t = k * dt
         truth += (1.0 - math.exp(-dt / tau)) * (-math.atan(v * w_of(t) / 9.81) - truth)
-        if 18 <= k < 27:  # the burst: no step measured
+        if 18 <= k < 26:  # the burst: no step measured
             continue
         odo._update_lean(t, np.array([v * dt, 0.0, w_of(t) * dt]), dt)
-        if k == 27:
+        if k == 26:
             after_gap, truth_after = odo._lean_state[3], truth
-    in_balance = -math.atan(v * w_of(27 * dt) / 9.81)
+    in_balance = -math.atan(v * w_of(26 * dt) / 9.81)
     assert math.degrees(abs(after_gap - truth_after)) < 1.0
     assert math.degrees(abs(in_balance - truth_after)) > 5.0  # what restarting would have said
     # The ramp's closed form against a fine integration.
