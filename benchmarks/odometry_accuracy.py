@@ -4,6 +4,7 @@ Run (from the repository root, on sessions made by ``tagloc eval --preset all`` 
 
     PYTHONPATH=$PWD python benchmarks/odometry_accuracy.py SESSION [SESSION ...] [--config '{"lean_correction": false}']
     PYTHONPATH=$PWD python benchmarks/odometry_accuracy.py SESSION ... --calibrate
+    PYTHONPATH=$PWD python benchmarks/odometry_accuracy.py SESSION ... --by-residual
 
 ``--reference apparent`` compares with the motion the nominal bird's-eye patch appears to make given
 the true (tilted) camera: the vest's motion plus the tilt change's apparent motion, which the
@@ -16,6 +17,11 @@ odometry measures. Per walk: share of steps measured, per-step RMS error (forwar
 the turn's scale error (slope of the turn error regressed on the true turn: -6 % means turns come
 out 6 % short), the summed turn error over the walk, the summed forward error against the distance
 walked, and the mean CPU time per ``measure`` call (process time: robust to other load).
+
+``--by-residual`` adds the steps binned by the floor flow's median reprojection error (see
+:class:`tagloc.vision.floor_flow.FloorFlow`), for the steps the flow measured and the patch's steps
+where its fit was refused: RMS error, RMS stated sigma, and the 3-DoF NEES against each step's
+covariance (3 if consistent).
 
 ``--calibrate`` fits the step covariance as :class:`tagloc.vision.odometry.OdometryConfig` describes:
 the errors are carried to the patch centre (where they are independent), summed over windows of 15,
@@ -85,12 +91,13 @@ def run_session(path: Path, config: OdometryConfig, reference: str = "vest") -> 
         for line in f:
             rec = json.loads(line)
             gt[rec["index"]] = np.array(rec["T_world_camera"])
-    true, meas, t1 = [], [], []
+    true, meas, t1, covs, flow = [], [], [], [], []
     prev = None
     cost = 0.0
     n = 0
     for fr in session.frames():
         gray = as_gray(fr.image)
+        flow_steps = odo.flow_steps
         t0 = time.process_time()
         step = odo.measure(gray, fr.timestamp)
         cost += time.process_time() - t0
@@ -102,10 +109,22 @@ def run_session(path: Path, config: OdometryConfig, reference: str = "vest") -> 
         if prev is not None and fr.index == prev[0] + 1:
             true.append(_relative(prev[1], vest))
             meas.append(step.delta if step is not None else np.full(3, np.nan))
+            covs.append(step.cov if step is not None else np.full((3, 3), np.nan))
+            residual = odo.last_flow_residual
+            flow.append((np.nan if residual is None else residual, odo.flow_steps > flow_steps))
             t1.append(fr.timestamp)
         prev = (fr.index, vest)
     true, meas = np.array(true), np.array(meas)
-    return {"true": true, "meas": meas, "t": np.array(t1), "odo": odo, "cost_s": cost / max(n, 1)}
+    return {
+        "true": true,
+        "meas": meas,
+        "cov": np.array(covs).reshape(-1, 3, 3),
+        "flow_residual": np.array([f[0] for f in flow], float),
+        "flow_used": np.array([f[1] for f in flow], bool),
+        "t": np.array(t1),
+        "odo": odo,
+        "cost_s": cost / max(n, 1),
+    }
 
 
 def _patch_motion(odo: FloorOdometry, delta: np.ndarray) -> np.ndarray:
@@ -129,6 +148,41 @@ def summary_row(name: str, r: dict) -> str:
         f"  {100 * slope:+6.2f}  {math.degrees(e[:, 2].sum()):+7.2f} / {math.degrees(np.abs(tr[:, 2]).sum()):4.0f}"
         f"  {100 * e[:, 0].sum():+6.1f} / {tr[:, 0].sum():5.1f}  {1e3 * r['cost_s']:5.2f}"
     )
+
+
+RESIDUAL_BINS = (0.0, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 4.0, 6.0, math.inf)  # px
+
+
+def residual_table(results: list[dict]) -> str:
+    """The steps of all ``results`` binned by the floor flow's median reprojection error, apart for
+    steps the flow measured and the patch's steps where its fit was refused: count, RMS error
+    (forward, sideways mm, turn deg), RMS stated sigma, and the mean and median 3-DoF NEES against
+    the step's covariance (3 if consistent)."""
+    keep = [np.all(np.isfinite(r["meas"]), axis=1) & np.isfinite(r["flow_residual"]) for r in results]
+    e = np.vstack([r["meas"][k] - r["true"][k] for r, k in zip(results, keep)])
+    e[:, 2] = (e[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    cov = np.concatenate([r["cov"][k] for r, k in zip(results, keep)])
+    res = np.concatenate([r["flow_residual"][k] for r, k in zip(results, keep)])
+    used = np.concatenate([r["flow_used"][k] for r, k in zip(results, keep)])
+    nees = np.einsum("ni,ni->n", e, np.linalg.solve(cov, e[:, :, None])[:, :, 0])
+    sig = np.sqrt(np.diagonal(cov, axis1=1, axis2=2))
+    lines = [
+        f"{'step':8s} {'residual px':>11s} {'steps':>6s}  {'rms fwd/lat mm, yaw deg':>24s}"
+        f"  {'stated sigma':>20s}  {'NEES mean / median':>18s}"
+    ]
+    for name, which in (("flow", used), ("patch", ~used)):
+        for lo, hi in zip(RESIDUAL_BINS[:-1], RESIDUAL_BINS[1:]):
+            m = which & (res >= lo) & (res < hi)
+            if m.sum() < 3:
+                continue
+            rms = np.sqrt(np.mean(e[m] ** 2, axis=0))
+            s = np.sqrt(np.mean(sig[m] ** 2, axis=0))
+            lines.append(
+                f"{name:8s} {f'{lo:g}-{hi:g}':>11s} {int(m.sum()):6d}  {1e3 * rms[0]:7.1f} {1e3 * rms[1]:6.1f}"
+                f" {math.degrees(rms[2]):6.2f}   {1e3 * s[0]:6.1f} {1e3 * s[1]:6.1f} {math.degrees(s[2]):5.2f}"
+                f"  {np.mean(nees[m]):8.2f} / {np.median(nees[m]):5.2f}"
+            )
+    return "\n".join(lines)
 
 
 HEADER = (
@@ -176,6 +230,11 @@ def main() -> None:
     ap.add_argument("--config", default="{}", help="OdometryConfig overrides as JSON (angles in radians)")
     ap.add_argument("--calibrate", action="store_true", help="fit the step sigmas on these sessions")
     ap.add_argument(
+        "--by-residual",
+        action="store_true",
+        help="also bin the steps by the floor flow's median reprojection error (error and NEES)",
+    )
+    ap.add_argument(
         "--reference",
         choices=("vest", "apparent"),
         default="vest",
@@ -190,6 +249,8 @@ def main() -> None:
         r = run_session(path, config, args.reference)
         results.append(r)
         tqdm.write(summary_row(path.name, r))
+    if args.by_residual:
+        print(residual_table(results))
     if args.calibrate:
         for k, v in calibrate(results).items():
             current = getattr(config, k)

@@ -153,17 +153,21 @@ def test_odometry_uses_the_flow_for_the_tilt_change(floor):
     errs = {}
     for flow in (True, False):
         odo = FloorOdometry(rc, OdometryConfig(flow=flow))
-        steps = []
+        steps, residuals = [], []
         for k, img in enumerate(imgs):
             if k == 0:
                 odo.anchor_tilt_angles(0.0, 0.0, 0.0)  # a sticker fix saw the torso upright
             steps.append(odo.measure(img, k / FPS))
+            residuals.append(odo.last_flow_residual)
         d = np.array([s.delta for s in steps[1:] if s is not None])
         assert len(d) == len(imgs) - 1
         errs[flow] = float(np.max(np.abs(d[:, 0] - fwd)))
         if flow:
             assert odo.flow_steps == len(imgs) - 1 and odo.flow_refused == 0
+            # Each step's fit reports how well the frames fitted (noise-free: 0.05-0.10 px
+            # measured), the first frame none.
+            assert residuals[0] is None and all(0.0 <= r < 0.3 for r in residuals[1:])
         else:
-            assert odo.flow_steps == 0
+            assert odo.flow_steps == 0 and residuals == [None] * len(imgs)
     assert errs[True] < 0.0015
     assert errs[False] > 2 * errs[True]

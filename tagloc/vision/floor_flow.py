@@ -142,6 +142,11 @@ class FloorFlow:
         self._vp = np.asarray(rig_camera.vest_point, float)
         self._criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, cfg.iterations, cfg.lk_eps)
         self._sin_min = math.sin(cfg.min_depression)
+        # The last fit's median reprojection error (px), kept or refused; None when the last call
+        # made no fit (too few points, no interval). How far a frame pair is from the rigid-floor
+        # model: the odometry's step error grows with it (benchmarks/odometry_accuracy.py
+        # --by-residual).
+        self.last_residual: float | None = None
 
     def refine(
         self,
@@ -155,6 +160,7 @@ class FloorFlow:
         patch's step ``guess`` (3,) (dx, dy, dyaw) with the torso tilted by ``R_tilt`` (3, 3; None:
         level) in the earlier frame; None when refused (see the module docstring)."""
         cfg = self.config
+        self.last_residual = None
         if not dt > 0.0:
             return None
         g = np.asarray(guess, float)[:3]
@@ -209,7 +215,7 @@ class FloorFlow:
             if not np.all(np.isfinite(step)):
                 return None
             x += step
-        med = float(np.median(res))
+        med = self.last_residual = float(np.median(res))
         fast = abs(g[2]) > cfg.max_turn_rate * dt
         if (
             not np.all(np.isfinite(x))

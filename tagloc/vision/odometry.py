@@ -618,6 +618,9 @@ class FloorOdometry:
         self._prev_gray: np.ndarray | None = None  # the frame of _prev, for the flow
         self.flow_steps = 0  # steps the flow refined
         self.flow_refused = 0  # steps whose flow fit was refused (the patch's step stands)
+        # The flow fit's median reprojection error (px) in the last measure, kept or refused; None
+        # when it made none (see FloorFlow.last_residual).
+        self.last_flow_residual: float | None = None
         self._torso = (
             TorsoTilt(
                 cfg.tilt_sigma_pitch,
@@ -802,6 +805,7 @@ class FloorOdometry:
         for this frame by the tracker, for the pitch lean (see ``pitch_lean``); None: not tracking.
         """
         t = float(t)
+        self.last_flow_residual = None
         small = self.birdseye(gray, self._twist(t, body_twist))
         prev, self._prev = self._prev, (t, small)
         # Kept by reference: frame sources hand over a new array per frame.
@@ -921,6 +925,7 @@ class FloorOdometry:
         flow = None
         if grays is not None and self._flow is not None:
             flow = self._flow.refine(grays[0], grays[1], level, dt, R_tilt)
+            self.last_flow_residual = self._flow.last_residual
             if flow is None:
                 self.flow_refused += 1
             else:
