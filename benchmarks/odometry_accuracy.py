@@ -139,7 +139,7 @@ def summary_row(name: str, r: dict) -> str:
     ok = np.all(np.isfinite(r["meas"]), axis=1)
     tr, me = r["true"][ok], r["meas"][ok]
     e = me - tr
-    e[:, 2] = (e[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    e[:, 2] = wrap_angle(e[:, 2])
     A = np.column_stack([tr[:, 2], np.ones(len(tr))])
     slope = np.linalg.lstsq(A, e[:, 2], rcond=None)[0][0]
     rms = np.sqrt(np.mean(e**2, axis=0))
@@ -160,7 +160,7 @@ def residual_table(results: list[dict]) -> str:
     the step's covariance (3 if consistent)."""
     keep = [np.all(np.isfinite(r["meas"]), axis=1) & np.isfinite(r["flow_residual"]) for r in results]
     e = np.vstack([r["meas"][k] - r["true"][k] for r, k in zip(results, keep)])
-    e[:, 2] = (e[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    e[:, 2] = wrap_angle(e[:, 2])
     cov = np.concatenate([r["cov"][k] for r, k in zip(results, keep)])
     res = np.concatenate([r["flow_residual"][k] for r, k in zip(results, keep)])
     used = np.concatenate([r["flow_used"][k] for r, k in zip(results, keep)])

@@ -436,7 +436,7 @@ def test_lean_is_carried_through_frames_the_odometry_missed():
             continue
         odo._update_lean(t, np.array([v * dt, 0.0, w_of(t) * dt]), dt)
         if k == 26:
-            after_gap, truth_after = odo._lean_state[3], truth
+            after_gap, truth_after = odo._lean_state[2], truth
     in_balance = -math.atan(v * w_of(26 * dt) / 9.81)
     assert math.degrees(abs(after_gap - truth_after)) < 1.0
     assert math.degrees(abs(in_balance - truth_after)) > 5.0  # what restarting would have said

@@ -724,7 +724,7 @@ class FloorOdometry:
             or not 0.0 <= t - st[0] <= self.config.turn_memory * self.config.max_dt
         ):
             return None
-        return float(st[3])
+        return float(st[2])
 
     def _lean_roll(self, t: float) -> float:
         """The lean's roll (rad) at time ``t`` (0 when unknown or off)."""
@@ -1113,8 +1113,8 @@ class FloorOdometry:
         demand = -math.atan(v * w / _G)
         st = self._lean_state
         if st is None or not 0.0 < t - st[0]:
-            # (time, speed, turn rate, roll); a walk starts in balance.
-            self._lean_state = [t, v, w, demand]
+            # (time, the roll's demand atan(v omega / g) then, roll); a walk starts in balance.
+            self._lean_state = [t, demand, demand]
             return
         elapsed = t - st[0]
         if elapsed > self.config.turn_memory * self.config.max_dt:
@@ -1124,11 +1124,10 @@ class FloorOdometry:
             # and the lag is integrated over it. Restarting in balance instead, at the demand of a
             # turn already under way, overstated the lean: a 0.3 s burst of drops into a 145 deg/s
             # turn gave -22 degrees of roll against -10 true, and steps 3-7 cm off sideways.
-            st[3] = _lag_through_ramp(st[3], -math.atan(st[1] * st[2] / _G), demand, elapsed, self._lean_tau)
+            st[2] = _lag_through_ramp(st[2], st[1], demand, elapsed, self._lean_tau)
         else:
-            st[3] += (1.0 - math.exp(-dt / self._lean_tau)) * (demand - st[3])
-        st[0] = t
-        st[1], st[2] = v, w
+            st[2] += (1.0 - math.exp(-dt / self._lean_tau)) * (demand - st[2])
+        st[0], st[1] = t, demand
 
     def _turn_grid(self, skip: float) -> list[float]:
         """Turn guesses (rad) every ``rotation_step`` up to ``max_rotation`` either way, less ``skip``."""
