@@ -15,6 +15,7 @@ from tagloc.core.geometry import make_T
 from tagloc.core.rig import Rig, RigCamera
 from tagloc.core.stickermap import StickerMap
 from tagloc.core.types import Frame, IdSource
+from tagloc.eval.baselines import LiveOrderLocaliser, make_localiser
 from tagloc.eval.evaluate import wrong_id_fixes
 from tagloc.eval.metrics import trajectory_metrics
 from tagloc.io.session import SessionReader
@@ -80,27 +81,12 @@ def blurred_walk(tmp_path_factory) -> Path:
     return path
 
 
-class _AsLive:
-    """The localiser as the live loop drives it: the deferred work right after each frame."""
-
-    def __init__(self, loc: Localiser):
-        self.loc, self.map, self.rig, self.counts = loc, loc.map, loc.rig, loc.counts
-
-    def process(self, frame):
-        res = self.loc.process(frame)
-        self.loc.deferred_work()
-        return res
-
-    def stats(self):
-        return self.loc.stats()
-
-
 def _run(path: Path, config: LocaliserConfig, as_live: bool):
     """(localiser, run log) of ``path`` through a localiser with ``config``, driven as the live loop
-    drives it (``as_live``: its deferred work right after each frame) or as a replay."""
+    drives it (``as_live``: its deferred work before the next frame) or as a replay."""
     session = SessionReader(path)
     loc = Localiser(session.map, session.rig, config, map_path=session.map_path)
-    return loc, run_session(session, localiser=_AsLive(loc) if as_live else loc)
+    return loc, run_session(session, localiser=LiveOrderLocaliser(loc) if as_live else loc)
 
 
 def _metrics(path: Path, log) -> dict:
@@ -158,3 +144,16 @@ def test_deferred_odometry_fuses_every_step_after_its_frame(blurred_walk, blurre
     lv = _metrics(blurred_walk, llog)
     assert lv["rmse_m"] <= _metrics(blurred_walk, rlog)["rmse_m"] + 0.005
     assert lv["nees_mean"] < 6.0
+
+
+def test_eval_mode_full_live_runs_tagloc_in_live_order(blurred_walk, blurred_replay):
+    """``tagloc eval --modes full-live``: live's config (both stages deferred), each frame's deferred
+    work done before the next; as accurate as the replay, no wrong sticker accepted."""
+    replay, rlog = blurred_replay
+    session = SessionReader(blurred_walk)
+    loc = make_localiser("full-live", session.map, session.rig, map_path=session.map_path)
+    assert loc.localiser.config.defer_lsq and loc.localiser.config.defer_odometry
+    log = run_session(session, localiser=loc)
+    assert loc.counts["lsq_deferred"] >= 3 and loc.counts["odometry_steps"] >= replay.counts["odometry_steps"] - 3
+    assert wrong_id_fixes(blurred_walk, log)[0] == 0
+    assert _metrics(blurred_walk, log)["rmse_m"] <= _metrics(blurred_walk, rlog)["rmse_m"] + 0.005

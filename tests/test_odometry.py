@@ -222,6 +222,40 @@ def test_fast_turn_between_frames_is_measured(turns_deg):
     assert all(np.hypot(s.delta[0] - 0.01, s.delta[1]) < 0.015 for s in steps)
 
 
+def test_a_turn_that_slowed_in_a_smeared_patch_is_not_locked_to_the_last_one():
+    """In a fast turn at 60 lux the patch is smeared along the turn, ECC's correlation is flat in the
+    turn and it stops near where it starts: from the last frame's 7 degrees it measured 7.0 where
+    the body turned 3 (the lock that ran a live track 6 m off on the field walk f01). Starts a grid
+    step either side of the turn under way compete (``turn_check_rate``) and find the 3."""
+    from tagloc.core.geometry import planar_T
+    from tagloc.sim.floor import Floor, FloorConfig
+    from tagloc.sim.simulate import render_view
+
+    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0))
+    smap = grid_map(GridMapConfig(width_m=8, depth_m=8, spacing_min_m=1.6, spacing_max_m=2.0, seed=4))
+    floor = Floor(smap, FloorConfig(), seed=4)
+    turn = math.radians(3.0)
+    poses = [planar_T(3.1, 2.3, 0.4)]
+    poses.append(poses[0] @ planar_T(0.03, 0.0, turn))
+    spin = np.array([0.0, 0.0, turn * FPS])  # turning through each exposure too: the smear
+    imgs = [
+        render_view(floor, rc.camera, T @ rc.T_body_camera, lux=60, angular_velocity=spin, seed=k).image
+        for k, T in enumerate(poses)
+    ]
+
+    def measured_turn(check_rate: float) -> float:
+        # Upright renders (no lean) and the patch's own step (the flow refines, it does not search).
+        odo = FloorOdometry(rc, OdometryConfig(lean_correction=False, flow=False, turn_check_rate=check_rate))
+        odo.measure(imgs[0], 0.0)
+        odo._last_turn = (0.0, math.radians(7.0) * FPS)  # the turn under way: 7 degrees a frame
+        step = odo.measure(imgs[1], 1 / FPS)
+        assert step is not None
+        return float(step.delta[2])
+
+    assert abs(measured_turn(math.inf) - math.radians(7.0)) < math.radians(0.5)  # locked without the check
+    assert abs(measured_turn(OdometryConfig().turn_check_rate) - turn) < math.radians(0.3)
+
+
 def test_gaps_and_bad_input_are_refused(stop_walk):
     session = SessionReader(stop_walk)
     frames = [f for f, _ in zip(session.frames(), range(4))]

@@ -442,6 +442,7 @@ def test_6_a_truncated_reference_cache_is_an_input_error_and_rebuilt(tmp_path):
         (["map", "grid", "--width", "1e6", "-o", "{tmp}/m.csv"], "--width"),
         (["map", "grid", "--width", "5000", "--depth", "5000", "-o", "{tmp}/m.csv"], "IDs there are"),
         (["eval", "--sessions", "0", "-o", "{tmp}/e"], "--sessions"),
+        (["eval", "--modes", "full,fastest", "-o", "{tmp}/e"], "--modes"),
         (["live", "--camera", "0", "--map", "maps/demo.csv", "--max-age", "0"], "--max-age"),
     ],
 )

@@ -36,7 +36,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--modes",
         default="full,decoded-only,orb-all",
-        help="comma-separated localiser modes (default: full,decoded-only,orb-all)",
+        help="comma-separated localiser modes (default: full,decoded-only,orb-all; also full-live: "
+        "tagloc in tagloc live's order, each frame's odometry step and least-squares decodes after "
+        "its pose is published)",
     )
     p.add_argument("--no-hard", action="store_true", help="no missing/unmapped stickers in the odd sessions (standard)")
     p.add_argument("-o", "--out", type=Path, default=Path("out/eval"), help="output directory (default out/eval)")
@@ -45,10 +47,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from tagloc.cli import checks
+    from tagloc.core.errors import InputError
+    from tagloc.eval.baselines import EVAL_MODES
     from tagloc.eval.evaluate import EvalConfig, run_presets
 
     checks.number(args.sessions, "--sessions", 1, 1000)
     checks.number(args.seconds, "--seconds", 0, 3600, lo_open=True)
+    modes = tuple(m.strip() for m in args.modes.split(",") if m.strip())
+    unknown = [m for m in modes if m not in EVAL_MODES]
+    if unknown or not modes:
+        raise InputError(
+            f"--modes: unknown mode {', '.join(unknown) or '(none given)'} (want some of {', '.join(EVAL_MODES)})"
+        )
     checks.output_dir(args.out, "-o")
 
     cfg = EvalConfig(
@@ -56,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
         seconds=args.seconds,
         seed=args.seed,
         out=args.out,
-        modes=tuple(m.strip() for m in args.modes.split(",") if m.strip()),
+        modes=modes,
         hard=not args.no_hard,
         progress=not args.quiet,
     )

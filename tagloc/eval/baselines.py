@@ -9,10 +9,13 @@ pose is this frame's best fix (least reprojection error), else the last one held
 
 :func:`make_localiser` builds tagloc's :class:`~tagloc.pipeline.localiser.Localiser` or a baseline
 from a mode name, for ``tagloc replay --mode``, ``tagloc live --mode`` and ``tagloc eval --modes``.
+``tagloc eval`` also has ``full-live`` (:class:`LiveOrderLocaliser`): tagloc in ``tagloc live``'s
+order, where a frame's odometry step and least-squares decodes come after its pose is published.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +40,8 @@ from tagloc.vision.pose import solve_pose
 
 #: tagloc ("full") and the paper's baselines.
 MODES = ("full", "decoded-only", "orb-all")
+#: What ``tagloc eval --modes`` accepts: the modes and tagloc in live's order (:class:`LiveOrderLocaliser`).
+EVAL_MODES = (*MODES, "full-live")
 
 #: Pose reported before the first fix: none, with a covariance that says so (1000 m, pi rad).
 _NO_POSE_COV = np.diag([1e6, 1e6, np.pi**2])
@@ -146,6 +151,36 @@ class BaselineLocaliser:
         return TrackerOutput(t, h.pose, h.cov, h.state, t - (h.t - h.since_fix), h.last_id, h.last_source)
 
 
+class LiveOrderLocaliser:
+    """A :class:`~tagloc.pipeline.localiser.Localiser` driven in ``tagloc live``'s order, on recorded frames.
+
+    Live publishes a frame's pose before the work its config defers (``LocaliserConfig.defer_odometry``,
+    ``defer_lsq``: the frame's floor-odometry step, its least-squares decodes) and runs that work
+    while it waits for the next frame (:meth:`~tagloc.pipeline.localiser.Localiser.deferred_work`).
+    Here the work always gets its time (a live loop that keeps up), so the filter sees what live's
+    does, in the same order, deterministically. :func:`make_localiser` ("full-live") gives it
+    live's config; a replay (mode ``full``) does each frame's work inside it.
+    """
+
+    def __init__(self, localiser: Localiser):
+        self.localiser = localiser
+        self.map, self.rig = localiser.map, localiser.rig
+
+    @property
+    def counts(self) -> dict[str, int]:
+        """The localiser's counters."""
+        return self.localiser.counts
+
+    def process(self, frame: Frame) -> FrameResult:
+        """The previous frame's deferred work, then this frame (its result as live publishes it)."""
+        self.localiser.deferred_work()
+        return self.localiser.process(frame)
+
+    def stats(self) -> dict[str, int]:
+        """The localiser's counters with the tracker's (see :meth:`~tagloc.pipeline.localiser.Localiser.stats`)."""
+        return self.localiser.stats()
+
+
 def make_localiser(
     mode: str,
     smap: StickerMap,
@@ -154,9 +189,14 @@ def make_localiser(
     refs=None,
     map_path: str | Path | None = None,
 ) -> FrameProcessor:
-    """tagloc's Localiser for ``mode`` "full", else the named baseline (see :data:`MODES`)."""
+    """tagloc's Localiser for ``mode`` "full" ("full-live": in live's order, see
+    :class:`LiveOrderLocaliser`), else the named baseline (see :data:`EVAL_MODES`)."""
     if mode == "full":
         return Localiser(smap, rig, config, refs=refs, map_path=map_path)
+    if mode == "full-live":
+        # tagloc live's defaults (tagloc.apps.live.LiveConfig): both stages after the frame.
+        live = dataclasses.replace(config or LocaliserConfig(), defer_lsq=True, defer_odometry=True)
+        return LiveOrderLocaliser(Localiser(smap, rig, live, refs=refs, map_path=map_path))
     if mode not in MODES:
-        raise InputError(f"unknown localiser mode {mode!r} (want one of {', '.join(MODES)})")
+        raise InputError(f"unknown localiser mode {mode!r} (want one of {', '.join(EVAL_MODES)})")
     return BaselineLocaliser(mode, smap, rig, config, refs=refs, map_path=map_path)

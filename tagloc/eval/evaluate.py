@@ -122,7 +122,8 @@ class EvalConfig:
         sessions: number of scenarios; conditions are drawn from ``seed``.
         seconds: length of each walk, s.
         out: directory for sessions (cached by scenario), report and plots.
-        modes: localiser modes to run ("full" and the baselines).
+        modes: localiser modes to run ("full", the baselines, "full-live"; see
+            :data:`tagloc.eval.baselines.EVAL_MODES`).
         hard: add sessions' pathologies: stickers missing from the floor, stickers not in the map.
         preset: "standard" (``sessions`` walks of ``seconds`` drawn from ``seed``) or "field" (the
             fixed :data:`FIELD_WALKS`; ``sessions``, ``seconds``, ``seed`` and ``hard`` do not apply).

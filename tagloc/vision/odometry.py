@@ -128,6 +128,15 @@ class OdometryConfig:
     - ``ecc_turn_tolerance``: ECC ending further than this fraction of ``rotation_step`` from the
       guessed turn may have found a wrong optimum, so the grid of guesses is tried too (half a
       step: beyond it another grid guess is nearer).
+    - ``turn_check_rate``: while the turn under way is faster than this (rad/s), ECC also starts a
+      ``rotation_step`` either side of it and the best correlation wins. A fast turn smears the
+      patch along the turn, its correlation is then nearly flat in the turn, and ECC's few
+      iterations stop near wherever they started: on the field walk f01 (60 lux), from a guess of
+      7 deg a frame ECC ended at 6.7 deg while the true turn had slowed to 3.8 (rho 0.852, against
+      0.880 at 3.0 deg from a start at 3), each locked step became the next guess, and in live's
+      order (``LocaliserConfig.defer_odometry``) the track ran 6 m off with its heading 70 deg
+      wrong. 45 deg/s is where the floor flow stops trusting blurred frames too
+      (``FloorFlowConfig.max_turn_rate``); below it a frame's turn is within 1.5 deg of the guess.
     - ``ecc_shift_allowance``: ECC may move the alignment this many times further than
       ``max_shift_frac`` before the step is refused (its sub-pixel refinement and the turn's
       lever arm add to phase correlation's shift).
@@ -309,6 +318,7 @@ class OdometryConfig:
     max_rotation: float = math.radians(9.0)
     turn_memory: float = 2.0
     ecc_turn_tolerance: float = 0.5
+    turn_check_rate: float = math.radians(45.0)
     ecc_shift_allowance: float = 1.5
     min_camera_height: float = 0.05
     min_side_m: float = 0.2
@@ -873,25 +883,49 @@ class FloorOdometry:
             rounds = ([g0] + self._turn_grid(g0),)
         best: tuple[float, np.ndarray, float, bool] | None = None
         for guesses in rounds:
-            start = self._initial_alignment(psmall, small, guesses)
-            if start is None:
+            found = self._ecc_from(psmall, small, guesses)
+            if found is None:
                 continue
-            try:
-                rho, W = cv2.findTransformECC(small, psmall, start[0], cv2.MOTION_EUCLIDEAN, self._criteria, None, 1)
-            except cv2.error:
-                continue
-            if not (math.isfinite(rho) and rho >= min(cfg.min_ecc, cfg.weak_ecc)):
-                continue
+            rho, W, response = found
             # ECC that had to turn far from the guess may have stopped at a wrong optimum (the
             # turn changed fast), and a weak match may have a better one elsewhere: then compare
             # with the grid's start before trusting it.
             near = abs(self._turn(W[:, :2].astype(np.float64)) - g0) <= cfg.ecc_turn_tolerance * cfg.rotation_step
             sure = near and rho >= cfg.min_ecc and len(guesses) == 1
+            if sure and abs(g0) >= cfg.turn_check_rate * dt:
+                # In a fast turn the patch is smeared along the turn and its correlation is nearly
+                # flat there: ECC's few iterations end near wherever they started, so a turn that
+                # changed is not found from the last one. Starts a grid step either side compete.
+                for g in (g0 - cfg.rotation_step, g0 + cfg.rotation_step):
+                    alt = self._ecc_from(psmall, small, [g])
+                    if alt is not None and alt[0] > rho:
+                        rho, W, response = alt
+                        sure = abs(self._turn(W[:, :2].astype(np.float64)) - g0) <= (
+                            cfg.ecc_turn_tolerance * cfg.rotation_step
+                        )
             if best is None or rho > best[0]:
-                best = (float(rho), W, start[1], sure)
+                best = (float(rho), W, response, sure)
             if near and rho >= cfg.min_ecc:
                 break
         return best
+
+    def _ecc_from(
+        self, psmall: np.ndarray, small: np.ndarray, guesses: list[float]
+    ) -> tuple[float, np.ndarray, float] | None:
+        """ECC from the best of the turn ``guesses`` (see :meth:`_initial_alignment`): (rho, W (2, 3)
+        current -> earlier patch pixels, phase-correlation response), or None (no start, ECC
+        failed, or rho below ``weak_ecc``/``min_ecc``)."""
+        cfg = self.config
+        start = self._initial_alignment(psmall, small, guesses)
+        if start is None:
+            return None
+        try:
+            rho, W = cv2.findTransformECC(small, psmall, start[0], cv2.MOTION_EUCLIDEAN, self._criteria, None, 1)
+        except cv2.error:
+            return None
+        if not (math.isfinite(rho) and rho >= min(cfg.min_ecc, cfg.weak_ecc)):
+            return None
+        return float(rho), W, start[1]
 
     def _step(
         self,
