@@ -136,7 +136,8 @@ class OdometryConfig:
       0.880 at 3.0 deg from a start at 3), each locked step became the next guess, and in live's
       order (``LocaliserConfig.defer_odometry``) the track ran 6 m off with its heading 70 deg
       wrong. 45 deg/s is where the floor flow stops trusting blurred frames too
-      (``FloorFlowConfig.max_turn_rate``); below it a frame's turn is within 1.5 deg of the guess.
+      (``FloorFlowConfig.max_turn_rate``); below it the whole turn under way is under 1.5 deg a
+      frame, half a grid step.
     - ``ecc_shift_allowance``: ECC may move the alignment this many times further than
       ``max_shift_frac`` before the step is refused (its sub-pixel refinement and the turn's
       lever arm add to phase correlation's shift).
