@@ -9,8 +9,9 @@ OpenCV on one thread:
    busy machine's other processes do not count), and the total by number of stickers in view.
    "tracker" sums its prediction, candidate choice, updates and output.
 2. Start-up: the whole ``tagloc replay`` process on a one-frame copy of the session (imports,
-   set-up, one frame, outputs), CPU and wall time; with ``--startup-breakdown`` also what its
-   imports cost, step by step, and the replay with filterpy's scipy.stats import stubbed out.
+   set-up, one frame, outputs), CPU and wall time, with tagloc's modules compiled to bytecode
+   first (as any run after the first finds them); with ``--startup-breakdown`` also what its
+   imports cost, step by step, and what scipy.stats would add.
 3. The whole ``tagloc replay`` process on the session beside a process that reads the same frames
    and runs ``cv2.aruco.ArucoDetector.detectMarkers`` on each, alternated ``--repeat`` times;
    their CPU times and ratio.
@@ -57,25 +58,16 @@ _ARUCO = (
     + "for f in sorted((s / 'frames').iterdir()):\n"
     + "    det.detectMarkers(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE))\n"
 )
-# Start-up, broken down: each line a separate process, cumulative. filterpy's package __init__
-# imports filterpy.stats, which imports scipy.stats (for its own distributions), so no import path
-# into filterpy avoids it; the last line replays with filterpy.stats replaced by a stub (a
-# measurement of what the rest costs, not a way to run: the stub raises if it is ever called).
+# Start-up, broken down: each line a separate process, cumulative. The tracker imports filterpy's
+# Kalman filters without scipy.stats (see tracker.filterpy_kalman); the last line adds what
+# importing scipy.stats would cost on top, as filterpy's own import of it did.
 _STARTUP_STEPS = (
     ("python", "pass"),
     ("+ numpy, cv2", "import numpy, cv2"),
     ("+ scipy.spatial (the map's KD-tree)", "import numpy, cv2, scipy.spatial"),
-    ("+ filterpy.kalman (scipy.stats)", "import numpy, cv2, scipy.spatial, filterpy.kalman"),
+    ("+ the tracker (filterpy.kalman)", "import numpy, cv2, scipy.spatial, tracker.tracker"),
+    ("+ scipy.stats (not imported by a replay)", "import numpy, cv2, scipy.spatial, tracker.tracker, scipy.stats"),
 )
-_STUB_STATS = (
-    "import types\n"
-    + "m = types.ModuleType('filterpy.stats')\n"
-    + "def logpdf(*a, **k):\n"
-    + "    raise RuntimeError('filterpy.stats is stubbed for a start-up measurement')\n"
-    + "m.logpdf = logpdf\n"
-    + "sys.modules['filterpy.stats'] = m\n"
-)
-_REPLAY_STUBBED = "import sys\n" + _STUB_STATS + _REPLAY
 _STAGES = ("odometry", "detect", "decode", "identify", "pose", "tracker", "total")
 
 
@@ -92,6 +84,19 @@ def _child(code: str, arg: str, core: int | None) -> tuple[float, float]:
 
 
 _ROOT = Path(__file__).resolve().parent.parent
+
+
+def _compile_bytecode() -> str:
+    """Compile tagloc's and the tracker's modules to bytecode (``__pycache__``), as any run after the
+    first has them (pip compiles the dependencies' at install); a line saying so."""
+    import compileall
+
+    for pkg in ("tagloc", "tracker"):
+        compileall.compile_dir(str(_ROOT / pkg), quiet=1)
+    note = " (this machine sets PYTHONDONTWRITEBYTECODE: without it every run would compile them again)"
+    return "tagloc's and tracker's bytecode compiled first, as a run after the first finds it" + (
+        note if sys.dont_write_bytecode else ""
+    )
 
 
 def _one_frame_copy(session: Path, dest: Path) -> Path:
@@ -219,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--startup-breakdown",
         action="store_true",
-        help="also time the imports start-up is made of, and a replay without filterpy's scipy.stats",
+        help="also time the imports start-up is made of, step by step",
     )
     p.add_argument(
         "--vs-whole-image",
@@ -264,6 +269,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.pipeline_only:
         _write(args.json, out)
         return 0
+    print("\n" + _compile_bytecode())
     with tempfile.TemporaryDirectory() as tmp:
         one = _one_frame_copy(args.session, Path(tmp) / "one")
         starts = [_child(_REPLAY, str(one), core) for _ in range(args.repeat)]
@@ -279,11 +285,6 @@ def main(argv: list[str] | None = None) -> int:
             cpu = [_child(code, "", core)[0] for _ in range(args.repeat)]
             out["startup_breakdown"][label] = cpu
             print(f"  {label:<44} {_spread(cpu)}")
-        with tempfile.TemporaryDirectory() as tmp:
-            one = _one_frame_copy(args.session, Path(tmp) / "one")
-            cpu = [_child(_REPLAY_STUBBED, str(one), core)[0] for _ in range(args.repeat)]
-        out["startup_breakdown"]["replay, filterpy.stats stubbed"] = cpu
-        print(f"  {'one-frame replay, filterpy.stats stubbed':<44} {_spread(cpu)}")
 
     if not args.skip_aruco:
         rep, aru = [], []

@@ -154,9 +154,10 @@ class TrackerConfig:
       a camera's clone of its last frame is kept, see :mod:`tracker.clones`).
 
     Frame gaps (dropped frames: the driver loses single frames and bursts of 3-8): the filter
-    predicts across a gap like across any interval, but floor odometry cannot bridge one longer
-    than ``gap_s`` (the 0.12 s of :class:`tagloc.vision.odometry.OdometryConfig`: the patch moves
-    too far), so what the walker did in it went unobserved. The narrow yaw model above then
+    predicts across a gap like across any interval, and what the walker did in a gap longer than
+    ``gap_s`` (the 0.12 s of :class:`tagloc.vision.odometry.OdometryConfig`'s ``max_dt``) is known
+    only from the one step that bridges it, if the odometry finds one (its ``bridge_max_dt``,
+    0.35 s; ``odometry_max_dt`` is as long). The narrow yaw model above then
     claims too much: a spin on the spot that starts in the gap (3 rad/s within 0.5 s, about
     6 rad/s^2) leaves the heading off by several sigma, and the odometry steps after the gap,
     turning fast, are gated against a stale yaw rate. A prediction over a longer interval, when
@@ -210,7 +211,7 @@ class TrackerConfig:
     max_steps: int = 50
     odometry_inflation: tuple[float, float, float] = (1.0, 1.0, 1.0)
     odometry_gate_prob: float = 0.999
-    odometry_max_dt: float = 0.25
+    odometry_max_dt: float = 0.35
     gap_s: float = 0.12
     gap_yaw_accel_psd: float = 2.5
 

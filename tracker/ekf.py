@@ -44,12 +44,12 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from filterpy.kalman import ExtendedKalmanFilter
 from scipy.linalg.lapack import dpotrf
 
 from tagloc.core.geometry import wrap_angle
 from tracker import motion
 from tracker.config import TrackerConfig
+from tracker.filterpy_kalman import ExtendedKalmanFilter
 
 # Stickers whose survey error is a state at once: two or three are in view at a time (10 cm stickers
 # 1.2-2 m apart under a ~1 x 1.5 m footprint), and a slot should outlive a short pass of another.

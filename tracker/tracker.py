@@ -48,7 +48,6 @@ from dataclasses import dataclass
 from typing import TypeVar
 
 import numpy as np
-from filterpy.kalman import update as kf_update
 
 from tagloc.core.geometry import map_error_jacobian, wrap_angle
 from tagloc.core.rig import RigCamera
@@ -72,6 +71,7 @@ from tracker.ekf import (
     vest_cov,
     vest_pose,
 )
+from tracker.filterpy_kalman import update as kf_update
 
 __all__ = ["Tracker", "TrackerConfig", "UpdateResult"]
 

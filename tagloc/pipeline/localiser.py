@@ -381,7 +381,9 @@ def read_sticker(
 def new_counts() -> dict[str, int]:
     """The per-run counters a localiser keeps (the baselines keep the same ones)."""
     keys = ("frames", "skipped", "detections", "decoded", "identified", "rejected_reads", "unmapped_reads")
-    return dict.fromkeys((*keys, "odometry_steps", "odometry_strided", "odometry_unavailable", "tilt_gated"), 0)
+    return dict.fromkeys(
+        (*keys, "odometry_steps", "odometry_bridged", "odometry_strided", "odometry_unavailable", "tilt_gated"), 0
+    )
 
 
 def count_read(counts: dict[str, int], read: Read) -> None:
@@ -734,10 +736,12 @@ class Localiser:
         velocity = self.tracker.velocity()
         twist = velocity if self.rig[camera].readout_s > 0 else None
         speed = None if velocity is None else float(velocity[0])
+        bridged = odo.bridged if odo is not None else 0
         step = odo.measure(gray, t, twist, speed) if odo is not None else None
         self._step = step
         if step is not None:
             self.counts["odometry_steps"] += 1
+            self.counts["odometry_bridged"] += odo.bridged - bridged  # over dropped frames (bridge_max_dt)
             self.tracker.update_odometry(step, camera)
 
     def _body_twist(self, rig_cam: RigCamera, t: float) -> np.ndarray | None:

@@ -48,6 +48,7 @@ state takes that part (see :mod:`tracker.config`), so the step covariance (see
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import deque
 from dataclasses import dataclass, field
@@ -78,6 +79,7 @@ _SAME_TURN_RAD = 1e-9  # a grid guess this close to the one already tried is ski
 _STRIDE_DT_SLACK = 1.5
 _STRIDE_INTERVALS = 8  # the frame interval is the shortest of this many recent steps' (a drop lengthens one)
 _G = 9.81  # gravity, m/s^2
+_BRIDGE_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-3)
 _TILT_GRID = 5  # cells per patch side of the lean's weighted fit (a smooth map; each cell 16 px)
 _LEVEL_ITERATIONS = 2  # corrections of the level motion (the second changes it by under 1e-4 of a step)
 
@@ -105,7 +107,21 @@ class OdometryConfig:
 
     Acceptance (otherwise :meth:`FloorOdometry.measure` returns None):
 
-    - ``max_dt``: a longer gap between frames (skipped frames) is not measured.
+    - ``max_dt``: a longer gap between frames (dropped frames) is not measured as an ordinary step:
+      the patch moves too far for phase correlation from no prior, and the turn in it is unknown.
+    - ``bridge_max_dt``, ``bridge_yaw_accel``: a gap up to ``bridge_max_dt`` (a burst of 8 frames
+      dropped at 30 Hz is 0.3 s between the frames either side; the driver loses bursts of 3-8) is
+      bridged instead: the step is predicted from the walk just before (this odometry's last step,
+      else the tracker's velocity: a constant-rate arc), the earlier patch is warped by it, and
+      turns either side of the predicted one, up to half ``bridge_yaw_accel`` times the gap
+      squared (8 rad/s^2: trunk yaw rate builds up to ~150-200 deg/s within 0.3-0.5 s in a brisk
+      turn), compete as starts for ECC (:meth:`FloorOdometry._bridge`). A bridged match must reach
+      ``min_ecc``; its covariance is generous (see :meth:`FloorOdometry._bridge`). Measured on
+      the three field_sensor ``timing`` walks and the field walks f00, f02, f04 (odometry alone):
+      5 of 8 gaps bridged, 1.3 / 1.0 cm (forward / sideways) and 0.5 deg RMS; the three refused
+      were two in 25-33 degree turns (the patch ahead swings away, 34 % of it overlaps, and the
+      lean into the turn changes its perspective: no correlation is left even at the true
+      motion), and one at 0.27 (below ``min_ecc``).
     - ``min_response``: phase-correlation peak. Independent sensor noise on a blank floor gives
       0.04 (median; up to 0.1 in 40 trials); consecutive frames of simulated concrete 0.3-0.6
       (median per session, lux 50-300), down to ~0.05 only under the heaviest blur.
@@ -310,6 +326,8 @@ class OdometryConfig:
     supersample: int = 4
     highpass_sigma_px: float = 2.5
     max_dt: float = 0.12
+    bridge_max_dt: float = 0.35
+    bridge_yaw_accel: float = 8.0
     min_response: float = 0.1
     min_ecc: float = 0.3
     weak_ecc: float = 0.25
@@ -422,6 +440,16 @@ def _kabsch(p1: np.ndarray, p0: np.ndarray) -> np.ndarray:
     yaw = math.atan2(H[0, 1] - H[1, 0], H[0, 0] + H[1, 1])
     t = m0 - _rot2(yaw) @ m1
     return np.array([t[0], t[1], yaw])
+
+
+def _arc(v: np.ndarray, turn: float, dt: float) -> np.ndarray:
+    """Body step (3,) ``(dx, dy, dyaw)`` over ``dt`` s at body-frame velocity ``v`` (2,) m/s while
+    turning steadily by ``turn`` rad: the velocity turns with the body, int_0^dt R(turn s/dt) v ds."""
+    if abs(turn) < 1e-6:
+        return np.array([v[0] * dt, v[1] * dt, turn])
+    s, c = math.sin(turn), math.cos(turn)
+    M = (dt / turn) * np.array([[s, c - 1.0], [1.0 - c, s]])
+    return np.array([*(M @ np.asarray(v, float)), turn])
 
 
 def _compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -628,6 +656,7 @@ class FloorOdometry:
         self._flow = FloorFlow(rig_camera, cfg.flow_config, rolling_shutter=cfg.rolling_shutter) if cfg.flow else None
         self._prev_gray: np.ndarray | None = None  # the frame of _prev, for the flow
         self.flow_steps = 0  # steps the flow refined
+        self.bridged = 0  # steps that bridged dropped frames (see bridge_max_dt)
         self.flow_refused = 0  # steps whose flow fit was refused (the patch's step stands)
         # The flow fit's median reprojection error (px) in the last measure, kept or refused; None
         # when it made none (see FloorFlow.last_residual).
@@ -827,8 +856,16 @@ class FloorOdometry:
         if prev is None:
             return None
         dt = t - prev[0]
-        if not (0.0 < dt <= self.config.max_dt):
+        if not (0.0 < dt <= max(self.config.max_dt, self.config.bridge_max_dt)):
             return None
+        if dt > self.config.max_dt:
+            # Frames were dropped: bridge the gap from the walk predicted through it.
+            grays = (prev_gray, gray) if prev_gray is not None else None
+            step = self._bridge(prev, (t, small), body_twist, grays)
+            if step is not None:
+                self.bridged += 1
+                self._update_pitch(t, walk_speed)
+            return step
         match = self._match(prev, (t, small))
         if held is not None and prev[0] < held[0] < t and (match is None or not match[3]):
             mid = (held[0], self.birdseye(held[1], self._twist(held[0], body_twist)))
@@ -934,10 +971,13 @@ class FloorOdometry:
         cur: tuple[float, np.ndarray],
         match: tuple[float, np.ndarray, float, bool] | None,
         grays: tuple[np.ndarray, np.ndarray] | None = None,
+        predicted_shift: np.ndarray | None = None,
     ) -> OdometryStep | None:
         """The step from ``prev`` to ``cur`` (time, patch) from ECC's ``match`` (see :meth:`_match`), or
         None; follows the lean, the turn and the tilt to ``cur``'s time. ``grays``: the two frames
-        themselves, for the flow's refinement (``flow``); None: the patch's step alone."""
+        themselves, for the flow's refinement (``flow``); None: the patch's step alone.
+        ``predicted_shift``: the patch shift (2,) (pixels) the match started from when it bridged
+        a gap (:meth:`_bridge`); the shift limit then applies to the match's departure from it."""
         cfg = self.config
         if match is None:
             return None
@@ -945,7 +985,8 @@ class FloorOdometry:
         dt = t - t0
         rho, W, response, _ = match
         W = W.astype(np.float64)
-        if np.hypot(*W[:, 2]) > cfg.max_shift_frac * cfg.patch_px * cfg.ecc_shift_allowance:
+        shift = W[:, 2] if predicted_shift is None else W[:, 2] - predicted_shift
+        if np.hypot(*shift) > cfg.max_shift_frac * cfg.patch_px * cfg.ecc_shift_allowance:
             return None
         R_tilt = self._tilt(t0)
         if R_tilt is None:
@@ -1173,7 +1214,11 @@ class FloorOdometry:
         return [j * cfg.rotation_step for j in range(-k, k + 1) if abs(j * cfg.rotation_step - skip) > _SAME_TURN_RAD]
 
     def _initial_alignment(
-        self, psmall: np.ndarray, small: np.ndarray, guesses: list[float]
+        self,
+        psmall: np.ndarray,
+        small: np.ndarray,
+        guesses: list[float],
+        steps: list[np.ndarray] | None = None,
     ) -> tuple[np.ndarray, float] | None:
         """Start for ECC: the best of the turn ``guesses`` (rad), each completed by phase correlation.
 
@@ -1184,6 +1229,10 @@ class FloorOdometry:
         with several guesses the alignment that correlates best (zero-mean normalised, over the
         patch centre) wins.
 
+        ``steps``: instead of turns about the patch centre, whole predicted body steps (3,) ``(dx,
+        dy, dyaw)``, one per guess (a bridged gap, :meth:`_bridge`): phase correlation then adds
+        the shift left over.
+
         Returns ECC's start ``W`` (2, 3) (current -> earlier patch pixels) and the
         winner's phase-correlation peak, or None when no guess has a peak of ``min_response``.
         """
@@ -1193,15 +1242,18 @@ class FloorOdometry:
         c = np.full(2, (m - 1) / 2.0)
         lo, hi = m // _ZNCC_INSET, m - m // _ZNCC_INSET
         best: tuple[float, float, np.ndarray] | None = None
-        for g in guesses:
-            # Body turn g in patch pixels (the scale of A cancels), about the patch centre: the
-            # rest of the turn's lever arm is a shift, which phase correlation finds.
-            R = _rot2(g)
-            Wl = self._A_inv @ R @ A
-            Wg = np.hstack([Wl, (c - Wl @ c)[:, None]])
+        for k, g in enumerate(guesses):
+            if steps is None:
+                # Body turn g in patch pixels (the scale of A cancels), about the patch centre: the
+                # rest of the turn's lever arm is a shift, which phase correlation finds.
+                Wl = self._A_inv @ _rot2(g) @ A
+                Wg = np.hstack([Wl, (c - Wl @ c)[:, None]])
+            else:
+                Wg = self.patch_map(steps[k])
+                Wl = Wg[:, :2]
             warped = (
                 psmall
-                if g == 0.0
+                if g == 0.0 and steps is None
                 else cv2.warpAffine(
                     psmall, Wg.astype(np.float32), (m, m), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
                 )
@@ -1223,6 +1275,76 @@ class FloorOdometry:
         if best is None:
             return None
         return best[2].astype(np.float32), best[1]
+
+    def patch_map(self, delta: np.ndarray) -> np.ndarray:
+        """The patch-pixel map ``W`` (2, 3), q0 = W [q1, 1], of a body step ``delta`` (3,) ``(dx, dy,
+        dyaw)``: the inverse of :meth:`body_motion`."""
+        A, b = self.patch.A, self.patch.origin
+        R = _rot2(float(delta[2]))
+        Wl = self._A_inv @ R @ A
+        wt = self._A_inv @ (R @ b + np.asarray(delta[:2], float) - b)
+        return np.hstack([Wl, wt[:, None]])
+
+    def _bridge(
+        self,
+        prev: tuple[float, np.ndarray],
+        cur: tuple[float, np.ndarray],
+        body_twist: np.ndarray | None,
+        grays: tuple[np.ndarray, np.ndarray] | None,
+    ) -> OdometryStep | None:
+        """The step across dropped frames from ``prev`` to ``cur`` (time, patch), or None (see
+        ``bridge_max_dt``). The walk before the gap (this odometry's last step when it ended at
+        most ``turn_memory`` frame gaps before ``prev``, else ``body_twist``) predicts a
+        constant-rate arc; arcs turning by up to half ``bridge_yaw_accel`` dt^2 more or less, a
+        ``rotation_step`` apart, compete as starts for ECC, which must reach ``min_ecc``."""
+        cfg = self.config
+        (t0, _), (t, _) = prev, cur
+        dt = t - t0
+        lt = self._last_twist
+        if lt is not None and 0.0 <= t0 - lt[0] <= cfg.turn_memory * cfg.max_dt:
+            twist = np.asarray(lt[1], float)
+        elif body_twist is not None and np.all(np.isfinite(body_twist)):
+            twist = np.asarray(body_twist, float).ravel()[:3]
+        else:
+            return None  # nothing predicts the gap: a search from nothing could settle anywhere
+        if not (cfg.rotation_step > 0):
+            return None
+        v, w = twist[:2], float(twist[2])
+        k = int(math.ceil(0.5 * cfg.bridge_yaw_accel * dt * dt / cfg.rotation_step))
+        turns = [w * dt + j * cfg.rotation_step for j in range(-k, k + 1)]
+        steps = [_arc(v, turn, dt) for turn in turns]
+        found = self._bridge_ecc(prev[1], cur[1], turns, steps)
+        if found is None:
+            return None
+        rho, W, response, start = found
+        step = self._step(prev, cur, (rho, W, response, False), grays, predicted_shift=start[:, 2])
+        if step is None:
+            return None
+        # Too few bursts to calibrate a bridged step's error, so its covariance is deliberately
+        # generous: the ordinary one for the distance moved (as if one long step) plus that of the k
+        # ordinary steps it stands for (k frame intervals; standing still, the first is tiny while
+        # the torso's sway and tilt still change over the gap: 9 mm and 0.9 deg off over 0.3 s on
+        # a field_sensor timing walk).
+        k = max(1.0, dt / (self._frame_interval() or dt))
+        return dataclasses.replace(step, cov=step.cov + k * self.covariance(step.delta / k))
+
+    def _bridge_ecc(
+        self, psmall: np.ndarray, small: np.ndarray, turns: list[float], steps: list[np.ndarray]
+    ) -> tuple[float, np.ndarray, float, np.ndarray] | None:
+        """ECC from the best of the predicted ``steps``: (rho, W, phase-correlation response, the
+        start W), or None when no start is found or ECC ends below ``min_ecc``."""
+        start = self._initial_alignment(psmall, small, turns, steps)
+        if start is None:
+            return None
+        try:
+            rho, W = cv2.findTransformECC(
+                small, psmall, start[0].copy(), cv2.MOTION_EUCLIDEAN, _BRIDGE_CRITERIA, None, 1
+            )
+        except cv2.error:
+            return None
+        if not (math.isfinite(rho) and rho >= self.config.min_ecc):
+            return None
+        return float(rho), W, start[1], start[0].astype(np.float64)
 
     def _turn(self, Wl: np.ndarray) -> float:
         """Body turn (rad) of the patch-pixel linear map ``Wl`` (2, 2): the angle of A Wl A^-1."""
