@@ -48,3 +48,20 @@ def test_filterpy_likelihoods_still_come_from_filterpy_stats():
         """
     )
     assert out.split() == ["True", "True", "True"]
+
+
+def test_a_filterpy_that_needs_more_of_filterpy_stats_is_imported_plainly():
+    """A stand-in without ``logpdf`` makes filterpy.kalman's import fail, as a filterpy taking other
+    names would: the import falls back to the real filterpy.stats (scipy.stats and all)."""
+    out = _run(
+        """
+        import importlib, sys
+        import tracker.filterpy_kalman as fk
+        for m in [m for m in sys.modules if m.startswith("filterpy")]:
+            del sys.modules[m]
+        kalman = fk._import_kalman(offer_logpdf=False)
+        import filterpy.stats
+        print(hasattr(kalman, "ExtendedKalmanFilter"), hasattr(filterpy.stats, "multivariate_gaussian"))
+        """
+    )
+    assert out.split() == ["True", "True"]

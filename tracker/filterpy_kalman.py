@@ -11,7 +11,8 @@ So ``filterpy.kalman`` is imported with a stand-in ``filterpy.stats`` in place w
 imports the real module on its first call and hands the call on: the filters behave exactly as
 filterpy's, likelihoods included. The stand-in is removed from ``sys.modules`` once
 ``filterpy.kalman`` is imported, so anyone importing ``filterpy.stats`` afterwards gets the real
-module. If ``filterpy.stats`` or ``filterpy.kalman`` was imported already, nothing is stood in.
+module. If ``filterpy.stats`` or ``filterpy.kalman`` was imported already, nothing is stood in; if
+a later filterpy takes more than ``logpdf`` from it, the import falls back to the plain one.
 """
 
 from __future__ import annotations
@@ -31,13 +32,24 @@ def _logpdf(*args: Any, **kwargs: Any) -> Any:
     return _real_stats().logpdf(*args, **kwargs)
 
 
-def _import_kalman() -> types.ModuleType:
+def _import_kalman(offer_logpdf: bool = True) -> types.ModuleType:
+    """``filterpy.kalman``, imported with a stand-in ``filterpy.stats`` (offering ``logpdf`` unless
+    told not to, for the test of the fallback); if that import fails (a filterpy that takes more
+    from ``filterpy.stats``), imported plainly."""
     if "filterpy.stats" in sys.modules or "filterpy.kalman" in sys.modules:
         return importlib.import_module("filterpy.kalman")
     stand_in = types.ModuleType("filterpy.stats", "stand-in while filterpy.kalman imports (tracker.filterpy_kalman)")
-    stand_in.logpdf = _logpdf  # type: ignore[attr-defined]
+    if offer_logpdf:
+        stand_in.logpdf = _logpdf  # type: ignore[attr-defined]
     sys.modules["filterpy.stats"] = stand_in
     try:
+        return importlib.import_module("filterpy.kalman")
+    except ImportError:
+        # Forget the half-imported package and import it the plain way, scipy.stats and all.
+        for mod in [m for m in sys.modules if m == "filterpy.kalman" or m.startswith("filterpy.kalman.")]:
+            del sys.modules[mod]
+        if sys.modules.get("filterpy.stats") is stand_in:
+            del sys.modules["filterpy.stats"]
         return importlib.import_module("filterpy.kalman")
     finally:
         if sys.modules.get("filterpy.stats") is stand_in:
