@@ -736,12 +736,12 @@ class Localiser:
         velocity = self.tracker.velocity()
         twist = velocity if self.rig[camera].readout_s > 0 else None
         speed = None if velocity is None else float(velocity[0])
-        bridged = odo.bridged if odo is not None else 0
         step = odo.measure(gray, t, twist, speed) if odo is not None else None
         self._step = step
         if step is not None:
             self.counts["odometry_steps"] += 1
-            self.counts["odometry_bridged"] += odo.bridged - bridged  # over dropped frames (bridge_max_dt)
+            # Only a step over dropped frames spans more than max_dt (see OdometryConfig.bridge_max_dt).
+            self.counts["odometry_bridged"] += int(step.t1 - step.t0 > odo.config.max_dt)
             self.tracker.update_odometry(step, camera)
 
     def _body_twist(self, rig_cam: RigCamera, t: float) -> np.ndarray | None:

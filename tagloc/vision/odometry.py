@@ -862,9 +862,9 @@ class FloorOdometry:
         dt = t - prev[0]
         if not (0.0 < dt <= max(self.config.max_dt, self.config.bridge_max_dt)):
             return None
+        grays = (prev_gray, gray) if prev_gray is not None else None
         if dt > self.config.max_dt:
             # Frames were dropped: bridge the gap from the walk predicted through it.
-            grays = (prev_gray, gray) if prev_gray is not None else None
             step = self._bridge(prev, (t, small), body_twist, grays)
             if step is not None:
                 self.bridged += 1
@@ -881,7 +881,6 @@ class FloorOdometry:
                 return None
             step = _compose_steps(first, second)
         else:
-            grays = (prev_gray, gray) if prev_gray is not None else None
             step = self._step(prev, (t, small), match, grays)
             if step is None:
                 return None
@@ -928,7 +927,7 @@ class FloorOdometry:
             found = self._ecc_from(psmall, small, guesses)
             if found is None:
                 continue
-            rho, W, response = found
+            rho, W, response, _ = found
             # ECC that had to turn far from the guess may have stopped at a wrong optimum (the
             # turn changed fast), and a weak match may have a better one elsewhere: then compare
             # with the grid's start before trusting it.
@@ -941,7 +940,7 @@ class FloorOdometry:
                 for g in (g0 - cfg.rotation_step, g0 + cfg.rotation_step):
                     alt = self._ecc_from(psmall, small, [g])
                     if alt is not None and alt[0] > rho:
-                        rho, W, response = alt
+                        rho, W, response, _ = alt
                         sure = abs(self._turn(W[:, :2].astype(np.float64)) - g0) <= (
                             cfg.ecc_turn_tolerance * cfg.rotation_step
                         )
@@ -952,22 +951,32 @@ class FloorOdometry:
         return best
 
     def _ecc_from(
-        self, psmall: np.ndarray, small: np.ndarray, guesses: list[float]
-    ) -> tuple[float, np.ndarray, float] | None:
-        """ECC from the best of the turn ``guesses`` (see :meth:`_initial_alignment`): (rho, W (2, 3)
-        current -> earlier patch pixels, phase-correlation response), or None (no start, ECC
-        failed, or rho below ``weak_ecc``/``min_ecc``)."""
+        self,
+        psmall: np.ndarray,
+        small: np.ndarray,
+        guesses: list[float],
+        steps: list[np.ndarray] | None = None,
+        bridge: bool = False,
+    ) -> tuple[float, np.ndarray, float, np.ndarray] | None:
+        """ECC from the best of the turn ``guesses`` (``steps``: whole predicted body steps, see
+        :meth:`_initial_alignment`): (rho, W (2, 3) current -> earlier patch pixels,
+        phase-correlation response, the start W), or None (no start, ECC failed, or rho below
+        ``weak_ecc``/``min_ecc``). ``bridge``: a gap's match (:meth:`_bridge`), which runs ECC
+        longer (``_BRIDGE_CRITERIA``) and must reach ``min_ecc``."""
         cfg = self.config
-        start = self._initial_alignment(psmall, small, guesses)
+        start = self._initial_alignment(psmall, small, guesses, steps)
         if start is None:
             return None
+        criteria, min_rho = (
+            (_BRIDGE_CRITERIA, cfg.min_ecc) if bridge else (self._criteria, min(cfg.min_ecc, cfg.weak_ecc))
+        )
         try:
-            rho, W = cv2.findTransformECC(small, psmall, start[0], cv2.MOTION_EUCLIDEAN, self._criteria, None, 1)
+            rho, W = cv2.findTransformECC(small, psmall, start[0].copy(), cv2.MOTION_EUCLIDEAN, criteria, None, 1)
         except cv2.error:
             return None
-        if not (math.isfinite(rho) and rho >= min(cfg.min_ecc, cfg.weak_ecc)):
+        if not (math.isfinite(rho) and rho >= min_rho):
             return None
-        return float(rho), W, start[1]
+        return float(rho), W, start[1], start[0].astype(np.float64)
 
     def _step(
         self,
@@ -1317,7 +1326,7 @@ class FloorOdometry:
         k = int(math.ceil(0.5 * cfg.bridge_yaw_accel * dt * dt / cfg.rotation_step))
         turns = [w * dt + j * cfg.rotation_step for j in range(-k, k + 1)]
         steps = [_arc(v, turn, dt) for turn in turns]
-        found = self._bridge_ecc(prev[1], cur[1], turns, steps)
+        found = self._ecc_from(prev[1], cur[1], turns, steps, bridge=True)
         if found is None:
             return None
         rho, W, response, start = found
@@ -1331,24 +1340,6 @@ class FloorOdometry:
         # on a field_sensor timing walk).
         n = max(1.0, dt / (self._frame_interval() or dt))
         return dataclasses.replace(step, cov=step.cov + n * self.covariance(step.delta / n))
-
-    def _bridge_ecc(
-        self, psmall: np.ndarray, small: np.ndarray, turns: list[float], steps: list[np.ndarray]
-    ) -> tuple[float, np.ndarray, float, np.ndarray] | None:
-        """ECC from the best of the predicted ``steps``: (rho, W, phase-correlation response, the
-        start W), or None when no start is found or ECC ends below ``min_ecc``."""
-        start = self._initial_alignment(psmall, small, turns, steps)
-        if start is None:
-            return None
-        try:
-            rho, W = cv2.findTransformECC(
-                small, psmall, start[0].copy(), cv2.MOTION_EUCLIDEAN, _BRIDGE_CRITERIA, None, 1
-            )
-        except cv2.error:
-            return None
-        if not (math.isfinite(rho) and rho >= self.config.min_ecc):
-            return None
-        return float(rho), W, start[1], start[0].astype(np.float64)
 
     def _turn(self, Wl: np.ndarray) -> float:
         """Body turn (rad) of the patch-pixel linear map ``Wl`` (2, 2): the angle of A Wl A^-1."""
