@@ -42,7 +42,16 @@ CONDITIONS = {
     # Not a field condition but a check on the localiser's own assumptions: a walker who does not
     # lean at all, against the lean into turns and with acceleration the odometry models.
     "upright": {"walk": WalkConfig(lean=False)},
+    # A rig fitted on a taller operator: the camera is worn 4 cm lower than the session's rig.json
+    # says (see STATED_RIG_RAISE_M); the floor odometry's steps then read 3 % long.
+    "stature": {"height_m": 1.26},
 }
+
+#: Conditions whose session states its rig this much higher (m) than it was simulated: camera
+#: and vest height. 4 cm: chest height spreads by about +-5 cm over operators of 1.60-1.90 m
+#: (about 0.72 of stature: 1.15-1.37 m), so a vest worn by a colleague of another height is
+#: a few centimetres off the rig fitted on the first.
+STATED_RIG_RAISE_M = {"stature": 0.04}
 
 
 def variants() -> dict[str, LocaliserConfig]:
@@ -69,6 +78,10 @@ def variants() -> dict[str, LocaliserConfig]:
         # The sticker's rows' time, straightened with the body's planar motion only.
         out["rs-fix-body-twist"] = replace(base, rs_image_velocity_max_dt=0.0)
     out["no-gap-noise"] = replace(base, tracker=replace(base.tracker, gap_yaw_accel_psd=0.0))
+    if "odometry_scale_sigma" in {f.name for f in base.tracker.__dataclass_fields__.values()}:
+        out["no-odometry-scale"] = replace(
+            base, tracker=replace(base.tracker, odometry_scale_sigma=0.0, odometry_scale_rw=0.0)
+        )
     return out
 
 
@@ -85,11 +98,19 @@ def walk_map(seed: int) -> StickerMap:
 
 def make(path: Path, seed: int, seconds: float, condition: str) -> Path:
     cfg = sim_config(seed, seconds, condition)
-    stamp = {"sim": SIM_REVISION, "config": cfg.to_json()}
+    raise_m = STATED_RIG_RAISE_M.get(condition, 0.0)
+    stamp = {"sim": SIM_REVISION, "config": cfg.to_json()} | ({"stated_rig_raise_m": raise_m} if raise_m else {})
     meta = path / "made.json"
     if meta.exists() and json.loads(meta.read_text()) == json.loads(json.dumps(stamp)):
         return path
     simulate_session(walk_map(seed), path, cfg, progress=False)
+    if raise_m:
+        rig_path = path / "rig.json"
+        rig = json.loads(rig_path.read_text())
+        rig["vest_height_m"] += raise_m
+        for cam in rig["cameras"]:
+            cam["T_body_camera"][2][3] += raise_m
+        rig_path.write_text(json.dumps(rig, indent=1))
     meta.write_text(json.dumps(stamp))
     return path
 

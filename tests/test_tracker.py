@@ -738,3 +738,60 @@ def test_decoded_fix_overrules_its_frames_odometry_step():
     tr, res, yaw_after_step = run(IdSource.DECODED, seen=here + np.array([0.5, 0.0, 0.0]))
     assert not res.accepted and tr.stats["odometry_overruled"] == 0
     assert tr.output().pose[2] == pytest.approx(yaw_after_step)
+
+
+def _scaled_odometry_walk(rng, scale: float, cfg: TrackerConfig, t_end: float = 24.0):
+    """A straight 1.3 m/s walk at 30 Hz: odometry steps read ``scale`` times the true motion (plus
+    their stated noise), and a sticker is passed every 1.5 m (fixes for 0.2 s of each 1.15 s).
+    Returns the tracker and the position errors (m) of the frames more than 0.5 s after a fix."""
+    from tagloc.vision.odometry import OdometryStep
+
+    tr = Tracker(cfg)
+    cov = np.diag([0.002**2, 0.002**2, math.radians(0.05) ** 2])
+    dt, late = 1 / 30, []
+    t = np.arange(0.0, t_end, dt)
+    for k, tk in enumerate(t):
+        tr.predict(tk, "cam")
+        if k > 0:
+            d = np.array([scale * 1.3 * dt, 0.0, 0.0]) + rng.multivariate_normal(np.zeros(3), cov)
+            tr.update_odometry(OdometryStep(t[k - 1], tk, d, cov, 0.5), "cam")
+        if tk % (1.5 / 1.3) < 0.2:
+            tr.update([noisy_fix(straight(tk), rng, cfg)], 100 + int(tk * 1.3 / 1.5), IdSource.DECODED, tk)
+        out = tr.output(tk)
+        if out.since_fix > 0.5:
+            late.append(np.hypot(*(out.pose[:2] - straight(tk)[:2])))
+    return tr, np.array(late)
+
+
+def test_odometry_scale_is_learned_between_stickers(rng):
+    """Odometry 3 % long (a camera worn 4 cm below its rig's height): the filter's scale error
+    state learns it from the fixes at both ends of each gap, and the walk between stickers is then
+    closer to the truth than with no such state. Odometry at its true scale leaves it near 0."""
+    import dataclasses
+
+    from tracker.ekf import SCALE
+
+    cfg = TrackerConfig()
+    tr, late_on = _scaled_odometry_walk(rng, 1.03, cfg)
+    assert tr.filter.x[SCALE, 0] == pytest.approx(0.03, abs=0.006)
+    assert math.sqrt(tr.filter.P[SCALE, SCALE]) < 0.01
+    off = dataclasses.replace(cfg, odometry_scale_sigma=0.0, odometry_scale_rw=0.0)
+    _, late_off = _scaled_odometry_walk(rng, 1.03, off)
+    rms_on, rms_off = (float(np.sqrt(np.mean(e**2))) for e in (late_on, late_off))
+    assert rms_on < 0.7 * rms_off, (rms_on, rms_off)
+    tr, _ = _scaled_odometry_walk(rng, 1.0, cfg)
+    assert abs(tr.filter.x[SCALE, 0]) < 0.006
+    assert_spd(tr.filter.P)
+
+
+def test_odometry_scale_stays_within_its_bound():
+    """However the steps disagree with the fixes, the scale error's mean stays within
+    ``odometry_scale_max`` and its variance within the prior's."""
+    from tracker.ekf import SCALE
+
+    rng = np.random.default_rng(5)
+    cfg = TrackerConfig()
+    tr, _ = _scaled_odometry_walk(rng, 1.5, cfg, t_end=8.0)
+    assert abs(tr.filter.x[SCALE, 0]) <= cfg.odometry_scale_max + 1e-12
+    assert tr.filter.P[SCALE, SCALE] <= cfg.odometry_scale_sigma**2 + 1e-12
+    assert_spd(tr.filter.P)

@@ -102,6 +102,19 @@ class TrackerConfig:
     odometry source that does not. ``gravity`` (m/s^2) gives the lean into a turn that candidate
     selection expects, atan(v omega / g) (:meth:`tracker.tracker.Tracker.leaned_camera`).
 
+    Odometry scale: floor odometry measures the floor's motion through the camera's height, so a
+    camera worn higher or lower than the rig states scales every step (an operator's stature moves
+    a chest-worn camera by +-5 cm about the 1.3 m a rig was fitted at: +-4 %), and the full-frame
+    flow's fit reads motion long under sensor noise (rendered pure forward steps at 165-200 lux:
+    +0.7-1.1 %, none at 5x the light; the gait's noise-driven fits in the walks, 1.5-2 %). The state
+    carries the relative error ``e`` of the odometry's translation (a step measures ``1 + e`` times
+    the vest's), zero mean with ``odometry_scale_sigma`` (3 %: the stature spread and the flow's
+    bias in quadrature) and a random walk of ``odometry_scale_rw`` per sqrt(s) (0.2 %: the light,
+    and with it the noise, changes along aisles; 1 % over 25 s). Fixes at both ends of a gap
+    between stickers tell it apart from the walk: one 1.5 m gap with fixes good to 1-2 cm pins it to
+    about 1 %. 0 for both: no such state. ``odometry_scale_max`` bounds its mean (10 %: a camera
+    13 cm off the height its rig was fitted at is a wrong rig, for ``tagloc rig fit`` to correct).
+
     Gates (squared Mahalanobis distance of the innovation over x, y, yaw, 3 DoF):
 
     - ``gate_prob`` 0.999 for decoded fixes (the brief's bound, 16.27).
@@ -192,6 +205,9 @@ class TrackerConfig:
     tilt_sigma_forward: float = 0.0
     tilt_sigma_lateral: float = 0.0
     tilt_corr_s: float = 1.0
+    odometry_scale_sigma: float = 0.03
+    odometry_scale_rw: float = 0.002
+    odometry_scale_max: float = 0.1
     gravity: float = 9.81
     gate_prob: float = 0.999
     gate_prob_identified: float = 0.99

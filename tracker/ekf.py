@@ -22,6 +22,12 @@ odometry integrates is bounded instead of accumulating: the filter separates the
 (body) from the ~1 Hz wobble (offset) by their dynamics. The operator's pose is the vest's,
 body + offset (:func:`vest_pose`, :func:`vest_cov`).
 
+The odometry's scale error ``e`` (one number, a slow random walk about 0) multiplies the translation
+of every odometry step (a step measures ``1 + e`` times the vest's motion): the camera's height off
+the rig's, and the floor flow's own bias, scale the floor's motion (see
+:class:`TrackerConfig`). Fixes at both ends of a gap pin it, so between stickers the walk is
+measured with the scale the last gaps showed.
+
 Survey error of the map: a fix is its sticker's map pose composed with what the camera measured, so
 a sticker surveyed ``e`` = (dx, dy, dyaw) off moves every one of its fixes by ``J e`` (``J``:
 :func:`tagloc.core.geometry.map_error_jacobian`, the turn acting on the lever from the sticker to
@@ -57,8 +63,9 @@ MAP_SLOTS = 4
 POSE = slice(0, 3)
 OFF = slice(motion.DIM, motion.DIM + 3)
 TILT = slice(motion.DIM + 3, motion.DIM + 5)
-MAP0 = motion.DIM + 5
-DIM = MAP0 + 3 * MAP_SLOTS  # walking body + vest offset + odometry's tilt offset + map errors
+SCALE = motion.DIM + 5  # the odometry's relative scale error (see TrackerConfig.odometry_scale_sigma)
+MAP0 = motion.DIM + 6
+DIM = MAP0 + 3 * MAP_SLOTS  # walking body + vest offset + odometry's tilt offset and scale + map errors
 M_VEST = np.zeros((3, DIM))  # body + offset
 M_VEST[:, POSE] = np.eye(3)
 M_VEST[:, OFF] = np.eye(3)
@@ -124,21 +131,25 @@ def odometry_model(x: np.ndarray, clone: np.ndarray) -> tuple[np.ndarray, np.nda
     """Measurement model of a floor-odometry step, beside the fix model (:meth:`WalkingEKF.innovation`).
 
     The step is the odometry pose now (the vest pose plus the tilt offset, :func:`odometry_pose`)
-    seen from the odometry pose ``clone`` (3,) at the earlier frame:
-    ``h = (R(yaw0)^T (v1 - c)[:2], v1.yaw - yaw0)`` with ``v1`` the odometry pose of the state mean
-    ``x`` (DIM,). Returns h (3,) and its Jacobian H (3, DIM + 3) over the joint state [x, clone (3)]
-    (stochastic cloning).
+    seen from the odometry pose ``clone`` (3,) at the earlier frame, its translation scaled by the
+    odometry's scale error ``e`` (``x[SCALE]``):
+    ``h = ((1 + e) R(yaw0)^T (v1 - c)[:2], v1.yaw - yaw0)`` with ``v1`` the odometry pose of the
+    state mean ``x`` (DIM,). Returns h (3,) and its Jacobian H (3, DIM + 3) over the joint state
+    [x, clone (3)] (stochastic cloning).
     """
     v1 = odometry_pose(x)
     yaw0 = clone[2]
     co, si = math.cos(yaw0), math.sin(yaw0)
+    k = 1.0 + float(x[SCALE])
     Rt = np.array([[co, si], [-si, co]])  # world -> body at t0
     d = v1[:2] - clone[:2]
-    hx = np.append(Rt @ d, wrap_angle(float(v1[2] - yaw0)))
+    body_d = Rt @ d
+    hx = np.append(k * body_d, wrap_angle(float(v1[2] - yaw0)))
     H = np.zeros((3, DIM + 3))
-    H[:2, :DIM] = Rt @ M_ODO[:2]
-    H[:2, DIM : DIM + 2] = -Rt
-    H[:2, DIM + 2] = np.array([[-si, co], [-co, -si]]) @ d
+    H[:2, :DIM] = k * (Rt @ M_ODO[:2])
+    H[:2, SCALE] = body_d
+    H[:2, DIM : DIM + 2] = -k * Rt
+    H[:2, DIM + 2] = k * (np.array([[-si, co], [-co, -si]]) @ d)
     H[2, :DIM] = M_ODO[2]
     H[2, DIM + 2] = -1.0
     return hx, H
@@ -207,6 +218,8 @@ class WalkingEKF(ExtendedKalmanFilter):
             4.0 * np.array([big, big, full[2, 2]]),
             # (a floor above min_eig: with the tilt offset off, its variance sits at that floor)
             np.full(2, max(4.0 * big_tilt, 1e-6)),
+            # The scale's random walk must not outgrow its prior while nothing pins it (a long gap).
+            max(config.odometry_scale_sigma**2, 1e-6),
             # Map errors have no process noise: the cap only guards against numerical growth.
             np.full(3 * MAP_SLOTS, 1.0),
         ]
@@ -224,7 +237,8 @@ class WalkingEKF(ExtendedKalmanFilter):
     # -- state access -------------------------------------------------------------------------
     @property
     def mean(self) -> np.ndarray:
-        """(DIM,) state mean: body (x, y, yaw, v, w), vest offset (dx, dy, dyaw), tilt offset (tx, ty)."""
+        """(DIM,) state mean: body (x, y, yaw, v, w), vest offset (dx, dy, dyaw), tilt offset (tx, ty),
+        odometry scale error, map errors (3 per slot)."""
         return self.x[:, 0].copy()
 
     @property
@@ -249,6 +263,7 @@ class WalkingEKF(ExtendedKalmanFilter):
         P[POSE, OFF] = -F
         P[OFF, POSE] = -F
         P[TILT, TILT] = self.cfg.tilt_cov(float(pose[2]))
+        P[SCALE, SCALE] = self.cfg.odometry_scale_sigma**2
         P[motion.V, motion.V] = self.cfg.init_v_sigma**2
         P[motion.W, motion.W] = self.cfg.init_w_sigma**2
         for k in range(MAP_SLOTS):
@@ -288,7 +303,7 @@ class WalkingEKF(ExtendedKalmanFilter):
         x = self.x[:, 0]
         body = motion.propagate(x[: motion.DIM], self._dt)
         # The offsets are linear: their blocks of F (set by ``advance`` for this step) are their decays.
-        self.x = np.concatenate((body, self.F[OFF, OFF] @ x[OFF], self.F[TILT, TILT] @ x[TILT], x[MAP0:])).reshape(
+        self.x = np.concatenate((body, self.F[OFF, OFF] @ x[OFF], self.F[TILT, TILT] @ x[TILT], x[SCALE:])).reshape(
             DIM, 1
         )
 
@@ -306,8 +321,9 @@ class WalkingEKF(ExtendedKalmanFilter):
         Q[OFF, OFF] = (1.0 - a * a) * cfg.floor_cov(float(x[motion.YAW]), float(x[motion.V]))
         b = self._tilt_decay(h)
         F[TILT, TILT] = b * np.eye(2)
-        F[MAP0:, MAP0:] = np.eye(DIM - MAP0)  # a sticker's survey error does not change
+        F[SCALE:, SCALE:] = np.eye(DIM - SCALE)  # the scale random-walks; a survey error does not change
         Q[TILT, TILT] = (1.0 - b * b) * cfg.tilt_cov(float(x[motion.YAW]), float(x[motion.V]))
+        Q[SCALE, SCALE] = cfg.odometry_scale_rw**2 * abs(h)
         return F, Q
 
     def advance(self, dt: float) -> np.ndarray:
@@ -442,6 +458,7 @@ class WalkingEKF(ExtendedKalmanFilter):
         x[OFF.stop - 1] = wrap_angle(float(x[OFF.stop - 1]))
         x[motion.V] = min(max(x[motion.V], cfg.v_min), cfg.v_max)
         x[motion.W] = min(max(x[motion.W], -cfg.w_max), cfg.w_max)
+        x[SCALE] = min(max(x[SCALE], -cfg.odometry_scale_max), cfg.odometry_scale_max)
         self.x = x.reshape(DIM, 1)
         P = self.P
         if not math.isfinite(float(P.sum())):
