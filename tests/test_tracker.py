@@ -795,3 +795,25 @@ def test_odometry_scale_stays_within_its_bound():
     assert abs(tr.filter.x[SCALE, 0]) <= cfg.odometry_scale_max + 1e-12
     assert tr.filter.P[SCALE, SCALE] <= cfg.odometry_scale_sigma**2 + 1e-12
     assert_spd(tr.filter.P)
+
+
+def test_odometry_scale_survives_a_restarted_track(rng):
+    """The scale is the vest's and its wearer's, not the track's: after a kidnap re-initialises the
+    track, the new one starts from the scale learnt so far (with its prior's variance, so a value
+    learnt on a wrong track is relearnt quickly)."""
+    from tracker.ekf import SCALE
+
+    cfg = TrackerConfig()
+    tr, _ = _scaled_odometry_walk(rng, 1.03, cfg)
+    learnt = tr.filter.x[SCALE, 0]
+    assert learnt == pytest.approx(0.03, abs=0.006)
+    t0 = tr.time
+    results = []
+    for i, t in enumerate(np.arange(t0 + 0.1, t0 + 1.2, 0.25)):
+        tr.predict(t)
+        far = straight(t) + np.array([0.0, 5.0, 0.0])
+        results.append(tr.update([noisy_fix(far, rng, cfg)], 900 + i, IdSource.DECODED, t))
+    assert any(r.reason.startswith("reinitialised") for r in results)
+    assert tr.stats["reinitialisations"] == 1
+    assert tr.filter.x[SCALE, 0] == pytest.approx(learnt, abs=1e-3)
+    assert tr.filter.P[SCALE, SCALE] == pytest.approx(cfg.odometry_scale_sigma**2, rel=0.05)

@@ -112,7 +112,8 @@ class TrackerConfig:
     bias in quadrature) and a random walk of ``odometry_scale_rw`` per sqrt(s) (0.2 %: the light,
     and with it the noise, changes along aisles; 1 % over 25 s). Fixes at both ends of a gap
     between stickers tell it apart from the walk: one 1.5 m gap with fixes good to 1-2 cm pins it to
-    about 1 %. 0 for both: no such state. ``odometry_scale_max`` bounds its mean (10 %: a camera
+    about 1 %. A restarted track starts from the scale learnt so far (with the prior's variance). 0
+    for both: no such state. ``odometry_scale_max`` bounds its mean (10 %: a camera
     13 cm off the height its rig was fitted at is a wrong rig, for ``tagloc rig fit`` to correct).
 
     Gates (squared Mahalanobis distance of the innovation over x, y, yaw, 3 DoF):

@@ -286,6 +286,17 @@ class WalkingEKF(ExtendedKalmanFilter):
         P[POSE, POSE] = P[POSE, POSE] + JS @ term.J.T
         self.set(self.x[:, 0], P)
 
+    def odometry_scale(self) -> float:
+        """The odometry's relative scale error now (mean of ``x[SCALE]``)."""
+        return float(self.x[SCALE, 0])
+
+    def adopt_odometry_scale(self, mean: float) -> None:
+        """Start the scale error at ``mean`` (a restarted track's: the vest and its wearer are the same)
+        with its prior variance, so a value learnt on a track that went wrong is relearnt quickly."""
+        x = self.mean
+        x[SCALE] = mean
+        self.set(x, self.cov)
+
     def forget_motion(self) -> None:
         """Drop what is known about speed and yaw rate (zero mean, initial variance, uncorrelated)."""
         x, P = self.mean, self.cov
