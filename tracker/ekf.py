@@ -252,10 +252,12 @@ class WalkingEKF(ExtendedKalmanFilter):
         self.P = np.asarray(cov, float).copy()
         self._tidy()
 
-    def reset(self, pose: np.ndarray, R: np.ndarray) -> None:
+    def reset(self, pose: np.ndarray, R: np.ndarray, scale: float = 0.0) -> None:
         """Start from a fix of the vest pose (3,) with its own covariance R (3, 3): the body is the fix
         less an offset of covariance F (so body and offset are anti-correlated); speed and yaw rate
-        unknown, zero mean."""
+        unknown, zero mean. The odometry's scale error starts at ``scale`` (a restarted track's:
+        the vest and its wearer are the same) with its prior variance, so a value learnt on a track
+        that went wrong is relearnt quickly."""
         F = self.cfg.floor_cov(float(pose[2]))
         P = np.zeros((DIM, DIM))
         P[POSE, POSE] = R + F
@@ -270,12 +272,14 @@ class WalkingEKF(ExtendedKalmanFilter):
             P[map_slot(k), map_slot(k)] = self._free_slot_cov()
         self.slots = [None] * MAP_SLOTS
         self._used = [-math.inf] * MAP_SLOTS
-        self.set(np.r_[np.asarray(pose, float), np.zeros(DIM - 3)], P)
+        x = np.r_[np.asarray(pose, float), np.zeros(DIM - 3)]
+        x[SCALE] = scale
+        self.set(x, P)
 
-    def reset_from_fix(self, pose: np.ndarray, R: np.ndarray, term: MapTerm | None) -> None:
+    def reset_from_fix(self, pose: np.ndarray, R: np.ndarray, term: MapTerm | None, scale: float = 0.0) -> None:
         """:meth:`reset` from a fix whose sticker's survey error is ``term`` (None: an exact map): the
         vest is the fix less ``J e``, so it starts correlated with that error's new state."""
-        self.reset(pose, R)
+        self.reset(pose, R, scale)
         if term is None:
             return
         s = map_slot(self.claim_slot(term)[0])
@@ -289,13 +293,6 @@ class WalkingEKF(ExtendedKalmanFilter):
     def odometry_scale(self) -> float:
         """The odometry's relative scale error now (mean of ``x[SCALE]``)."""
         return float(self.x[SCALE, 0])
-
-    def adopt_odometry_scale(self, mean: float) -> None:
-        """Start the scale error at ``mean`` (a restarted track's: the vest and its wearer are the same)
-        with its prior variance, so a value learnt on a track that went wrong is relearnt quickly."""
-        x = self.mean
-        x[SCALE] = mean
-        self.set(x, self.cov)
 
     def forget_motion(self) -> None:
         """Drop what is known about speed and yaw rate (zero mean, initial variance, uncorrelated)."""

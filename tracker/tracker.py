@@ -511,20 +511,19 @@ class Tracker:
         """(Re)start the track from one fix: pose from it, speed and yaw rate unknown."""
         self._hyp = None
         self._drop_clones()
-        scale = self._carried_scale()
-        self._ekf = WalkingEKF(self.config)
-        self._ekf.reset_from_fix(*alt)
-        if scale is not None:
-            self._ekf.adopt_odometry_scale(scale)
+        self._ekf = self._new_filter(alt)
         # A fresh track: its sticker set and last-fix time start from this fix alone.
         self._track_ids = set()
         self._last_fix_t = -math.inf
         self._accept(sticker_id, source, t)
 
-    def _carried_scale(self) -> float | None:
-        """The odometry scale error a restarted track starts from: the current track's (the same vest
-        on the same operator), None before the first track."""
-        return None if self._state is TrackState.INITIALISING else self._ekf.odometry_scale()
+    def _new_filter(self, alt: tuple[np.ndarray, np.ndarray, MapTerm | None]) -> WalkingEKF:
+        """A filter started from one fix; its odometry scale error is the current track's (the same
+        vest on the same operator), 0 before the first track."""
+        scale = 0.0 if self._state is TrackState.INITIALISING else self._ekf.odometry_scale()
+        ekf = WalkingEKF(self.config)
+        ekf.reset_from_fix(*alt, scale=scale)
+        return ekf
 
     def _feed_hypothesis(self, alts, sticker_id: int, t: float) -> bool:
         """Add a rejected decoded fix to the competing hypothesis; True when it replaced the track."""
@@ -538,12 +537,7 @@ class Tracker:
             if not fused:
                 h = None
         if h is None:
-            ekf = WalkingEKF(cfg)
-            ekf.reset_from_fix(*alts[0])
-            scale = self._carried_scale()
-            if scale is not None:
-                ekf.adopt_odometry_scale(scale)
-            h = _Hypothesis(ekf, t, t, {int(sticker_id)}, 1)
+            h = _Hypothesis(self._new_filter(alts[0]), t, t, {int(sticker_id)}, 1)
         self._hyp = h
         # Several stickers are needed to overrule a track that other stickers support; a track that
         # rests only on stickers now disagreeing with it (one just after it started, say, when a

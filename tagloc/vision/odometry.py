@@ -1334,8 +1334,8 @@ class FloorOdometry:
         if step is None:
             return None
         # Too few bursts to calibrate a bridged step's error, so its covariance is deliberately
-        # generous: the ordinary one for the distance moved (as if one long step) plus that of the k
-        # ordinary steps it stands for (n frame intervals; standing still, the first is tiny while
+        # generous: the ordinary one for the distance moved (as if one long step) plus that of the n
+        # ordinary steps it stands for (one per frame interval; standing still, the first is tiny while
         # the torso's sway and tilt still change over the gap: 2.7 cm and 0.9 deg off over 0.3 s
         # on a field_sensor timing walk).
         n = max(1.0, dt / (self._frame_interval() or dt))
