@@ -171,3 +171,44 @@ def test_odometry_uses_the_flow_for_the_tilt_change(floor):
             assert odo.flow_steps == 0 and residuals == [None] * len(imgs)
     assert errs[True] < 0.0015
     assert errs[False] > 2 * errs[True]
+
+
+def test_tracking_on_the_kept_half_frame_equals_one_pyramid_call(floor):
+    """The flow tracks its coarse levels on each frame's half-resolution level, built once per frame
+    (OpenCV's Python binding takes no pyramid made before); the points must be those of one
+    ``calcOpticalFlowPyrLK`` call with the same levels, from guesses up to 8 px off."""
+    import cv2
+
+    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0))
+    P0 = planar_T(4.0, 4.0, 0.3)
+    frames = [
+        render_view(
+            floor, rc.camera, P0 @ planar_T(0.04 * k, 0.002 * k, 0.01 * k) @ rc.T_body_camera, lux=200, seed=k
+        ).image
+        for k in range(3)
+    ]
+    flow = FloorFlow(rc)
+    cfg = flow.config
+    p0 = flow._px.reshape(-1, 1, 2)
+    rng = np.random.default_rng(3)
+    moved = 0
+    for g0, g1 in zip(frames[:-1], frames[1:]):
+        guess = (p0 + rng.uniform(-8.0, 8.0, p0.shape)).astype(np.float32)
+        want, want_status, _ = cv2.calcOpticalFlowPyrLK(
+            g0,
+            g1,
+            p0,
+            guess.copy(),
+            winSize=(cfg.window_px, cfg.window_px),
+            maxLevel=cfg.levels,
+            criteria=flow._criteria,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        )
+        got, status = flow._track(g0, g1, p0, guess)
+        ok = want_status.ravel() == 1
+        assert ok.sum() >= 60
+        np.testing.assert_array_equal(status.ravel(), want_status.ravel())
+        np.testing.assert_allclose(got.reshape(-1, 2)[ok], want.reshape(-1, 2)[ok], atol=1e-3)
+        moved += int(np.sum(np.linalg.norm((want - p0).reshape(-1, 2)[ok], axis=1) > 10.0))
+    assert moved > 50  # the step moved the points far enough that the coarse levels mattered
+    assert len(flow._halves) == 2  # each frame's half level built once and kept for the next pair
