@@ -45,12 +45,25 @@ def test_a_detection_far_from_or_unlike_the_tracked_sticker_is_decoded():
     assert match_tracked([bigger], [_tracked()], 0, 1 / 30, CFG, only(7)) == [None]
 
 
-def test_the_prediction_must_allow_that_sticker_and_no_other():
+def test_the_prediction_must_find_that_sticker_the_most_likely_here():
     det = [Detection(SQUARE + 5.0)]
-    assert match_tracked(det, [_tracked()], 0, 1 / 30, CFG, lambda d: [7, 9]) == [None]  # 9 fits too
+    # A neighbour inside the gate too (a dense floor, a wide covariance): the tracked one still leads.
+    assert match_tracked(det, [_tracked()], 0, 1 / 30, CFG, lambda d: [7, 9])[0] is not None
+    assert match_tracked(det, [_tracked()], 0, 1 / 30, CFG, lambda d: [9, 7]) == [None]  # 9 is likelier here
     assert match_tracked(det, [_tracked()], 0, 1 / 30, CFG, lambda d: [9]) == [None]  # 7 is not predicted here
     assert match_tracked(det, [_tracked()], 0, 1 / 30, CFG, lambda d: []) == [None]  # tracker not tracking
     assert match_tracked(det, [_tracked()], 0, 1 / 30, CFG, only(7))[0] is not None
+
+
+def test_the_predicted_image_motion_carries_a_sticker_through_a_fast_turn():
+    # Turning at 1.5 rad/s sweeps the image by ~60 px a frame: 1.5 sides of this 60 px sticker.
+    det = [Detection(SQUARE + [90.0, 4.0])]
+    assert match_tracked(det, [_tracked()], 0, 1 / 30, CFG, only(7)) == [None]  # too far for the bare gate
+    (ident,) = match_tracked(det, [_tracked()], 0, 1 / 30, CFG, only(7), lambda tr: np.array([88.0, 0.0]))
+    assert ident is not None and ident.sticker_id == 7 and ident.rotation == 1
+    # A prediction that moved elsewhere, or none at all, carries nothing.
+    assert match_tracked(det, [_tracked()], 0, 1 / 30, CFG, only(7), lambda tr: np.array([-88.0, 0.0])) == [None]
+    assert match_tracked(det, [_tracked()], 0, 1 / 30, CFG, only(7), lambda tr: None) == [None]
 
 
 def test_stale_other_camera_or_due_tracks_are_not_carried():
@@ -78,7 +91,8 @@ def test_ambiguous_matches_carry_nothing():
     assert match_tracked(dets, [_tracked()], 0, 1 / 30, CFG, only(7)) == [None, None]
 
 
-def test_tracking_saves_decodes_without_changing_fixes_or_taking_a_wrong_id(tmp_path):
+@pytest.mark.parametrize("spacing", [(1.2, 1.6), (0.7, 0.9)], ids=["sparse", "dense"])
+def test_tracking_saves_decodes_without_changing_fixes_or_taking_a_wrong_id(tmp_path, spacing):
     from tagloc.eval.evaluate import wrong_id_fixes
     from tagloc.eval.metrics import trajectory_metrics
     from tagloc.io.session import SessionReader
@@ -86,7 +100,7 @@ def test_tracking_saves_decodes_without_changing_fixes_or_taking_a_wrong_id(tmp_
     from tagloc.sim.mapgen import GridMapConfig, grid_map
     from tagloc.sim.simulate import SimConfig, simulate_session
 
-    smap = grid_map(GridMapConfig(width_m=12, depth_m=10, spacing_min_m=1.2, spacing_max_m=1.6, seed=5))
+    smap = grid_map(GridMapConfig(width_m=12, depth_m=10, spacing_min_m=spacing[0], spacing_max_m=spacing[1], seed=5))
     path = tmp_path / "walk"
     simulate_session(smap, path, SimConfig(seconds=3, lux=150, speed_mps=1.3, seed=4, unmapped=15), progress=False)
     logs = {}
@@ -99,6 +113,9 @@ def test_tracking_saves_decodes_without_changing_fixes_or_taking_a_wrong_id(tmp_
     (off, m_off, wrong_off, _), (on, m_on, wrong_on, checked_on) = logs[False], logs[True]
     assert wrong_on == 0 and wrong_off == 0 and checked_on >= 20
     assert on.counts["tracked"] >= 0.5 * off.counts["decoded"]  # most decodes are carried
+    # Nearly all: measured 3 of 92 (sparse) and 9 of 127 (dense, where neighbours share the
+    # tracker's gate; 17 of 127 when the tracked sticker had to be the only candidate).
+    assert on.counts["decoded"] <= 0.1 * off.counts["decoded"]
     assert on.counts["reverified"] >= 1  # stickers due a re-decode were re-checked instead
     assert on.counts["tracked"] - on.counts["reverified"] <= 3 * (on.counts["decoded"] + on.counts["reverified"])
     assert on.counts["decoded"] + on.counts["tracked"] >= off.counts["decoded"]

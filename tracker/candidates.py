@@ -210,6 +210,17 @@ def project_map(
     return Projection(rows, smap.ids[rows], pix, depth, inside)
 
 
+def centre_pixels(
+    mean: np.ndarray, smap: StickerMap, rig_camera: RigCamera, rows: np.ndarray, config: CandidateConfig | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Distorted pixels (N, 2) of the centres of map ``rows`` seen from body pose ``mean`` (3,), with
+    the rows kept (N,): those in front of the camera and near the image."""
+    cfg = config or CandidateConfig()
+    mean = np.asarray(mean, float).ravel()
+    rows, pix, _, _, _ = _project(mean, smap, rig_camera, np.asarray(rows, np.int64), cfg, jacobians=False)
+    return rows, pix
+
+
 def predicted_pixels(
     mean: np.ndarray,
     cov: np.ndarray,

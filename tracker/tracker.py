@@ -54,7 +54,7 @@ from tagloc.core.rig import RigCamera
 from tagloc.core.stickermap import StickerMap
 from tagloc.core.types import IdSource, PoseFix, SurveyPrior, TrackerOutput, TrackState
 from tracker import motion
-from tracker.candidates import select_candidates
+from tracker.candidates import centre_pixels, select_candidates
 from tracker.clones import CloneSet
 from tracker.config import TrackerConfig
 from tracker.ekf import (
@@ -232,6 +232,18 @@ class Tracker:
         if prior is None:
             return []
         return select_candidates(prior[0], prior[1], smap, self.leaned_camera(rig_camera), observed_px, k=k)
+
+    def sticker_pixels(self, smap: StickerMap, rig_camera: RigCamera, sticker_ids: list[int]) -> dict[int, np.ndarray]:
+        """Where the centres of the mapped stickers ``sticker_ids`` are predicted in ``rig_camera``'s
+        image (distorted px (2,)) from the mean pose, through the leaned camera; {} unless TRACKING.
+        Stickers behind the camera or far outside the image, or not in the map, are left out."""
+        prior = self.prior()
+        ids = [i for i in sticker_ids if i in smap]
+        if prior is None or not ids:
+            return {}
+        rows = np.array([smap.row(i) for i in ids], np.int64)
+        kept, pix = centre_pixels(prior[0], smap, self.leaned_camera(rig_camera), rows)
+        return {int(smap.ids[r]): p for r, p in zip(kept, pix)}
 
     def leaned_camera(self, rig_camera: RigCamera) -> RigCamera:
         """``rig_camera`` rolled by the lean the walk's state predicts, atan(v omega / g) into the turn,

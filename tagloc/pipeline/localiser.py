@@ -7,6 +7,7 @@ the paper's baselines, which share the stages but not the tracker, in :mod:`tagl
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Iterator
@@ -176,8 +177,10 @@ class TrackingConfig:
             Decoding is the most expensive stage after detection; 4 keeps three of four decodes
             off a steadily seen sticker while every identity is re-read within 0.13 s at 30 fps.
         max_centre_shift: the detection's centre must be within this many sticker sides of the
-            tracked sticker's centre in the previous frame. Walking at 1.5 m/s moves a floor point
-            5 cm (half a sticker side) per frame at 30 fps; turning moves it less at this range.
+            tracked sticker's centre in the previous frame, moved by the image motion the tracker
+            predicts for it (:func:`match_tracks`). Walking at 1.5 m/s moves a floor point 5 cm
+            (half a sticker side) per frame at 30 fps; turning sweeps the image by up to ~60 px
+            a frame, more than a far sticker's side, which the prediction takes out.
         max_shape_change: with both centred, every corner must be within this share of a side of
             its previous place (the sticker's image turns ~3 deg and scales a few % per frame).
         max_gap_s: the previous frame must be this recent (no carrying over a dropped frame run).
@@ -237,13 +240,16 @@ class TrackingConfig:
 class Tracked:
     """A sticker identified by decoding whose fix the tracker accepted, as seen in one frame.
 
-    ``outer`` (4, 2) distorted px as detected; ``age``: frames since it was last decoded."""
+    ``outer`` (4, 2) distorted px as detected; ``age``: frames since it was last decoded;
+    ``predicted_px`` (2,): where the tracker put the sticker's centre in that frame, after its fixes
+    (None: not known), from which the next frame's prediction tells how far its image moved."""
 
     outer: np.ndarray
     identity: Identity
     camera: int
     t: float
     age: int
+    predicted_px: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -285,17 +291,18 @@ def match_tracked(
     t: float,
     config: TrackingConfig,
     candidates: Callable[[Detection], list[int]],
+    image_motion: Callable[[Tracked], np.ndarray | None] | None = None,
 ) -> list[Identity | None]:
     """The carried identity of each detection (None: decode it).
 
     A detection takes a tracked sticker's identity only when (1) that sticker was decoded, or
     carried, in the previous frame of this camera (``max_gap_s``) and is due no re-decode
     (``redecode_every``); (2) the detection is where and what that sticker was (``max_centre_shift``,
-    ``max_shape_change``), and the pairing is one to one; (3) the tracker's prediction, through
-    ``candidates(detection)`` (gated map stickers, most likely first), allows that sticker and no
-    other here. The rotation follows the canonical corner through the corners' cyclic shift.
+    ``max_shape_change``; moved by the image motion the tracker predicts, see :func:`match_tracks`),
+    and the pairing is one to one; (3) the tracker's prediction, through ``candidates(detection)``
+    (gated map stickers, most likely first), finds that sticker the most likely one here. The rotation follows the canonical corner through the corners' cyclic shift.
     """
-    matches = match_tracks(detections, tracked, camera, t, config, candidates)
+    matches = match_tracks(detections, tracked, camera, t, config, candidates, image_motion)
     return [m.identity if m is not None and not m.due else None for m in matches]
 
 
@@ -315,16 +322,26 @@ def match_tracks(
     t: float,
     config: TrackingConfig,
     candidates: Callable[[Detection], list[int]],
+    image_motion: Callable[[Tracked], np.ndarray | None] | None = None,
 ) -> list[TrackMatch | None]:
     """:func:`match_tracked`, with the stickers due for re-decoding matched too (``due`` True), so
     that they can be re-checked against their tracked identity instead of decoded from scratch.
-    Every track of the previous frame takes part in the one-to-one pairing, due or not."""
+    Every track of the previous frame takes part in the one-to-one pairing, due or not.
+
+    ``image_motion(track)``: how far (px (2,)) the tracker predicts the track's sticker moved in
+    the image since its frame, or None; the detection is then compared with the tracked outline
+    moved by it. Turning at 1.5 rad/s sweeps the image by ~60 px a frame, more than the side of a
+    sticker a few metres away, while the relative prediction is good to a few pixels."""
     live = [k for k, tr in enumerate(tracked) if tr.camera == camera and 0.0 < t - tr.t <= config.max_gap_s]
+    expected = {}
+    for k in live:
+        moved_px = image_motion(tracked[k]) if image_motion is not None else None
+        expected[k] = tracked[k].outer if moved_px is None else tracked[k].outer + moved_px
     pairs: list[tuple[int, int, int]] = []  # (detection, tracked, shift)
     for i, det in enumerate(detections):
         for k in live:
             side = min(_shortest_side(det.outer), _shortest_side(tracked[k].outer))
-            shift, moved, change = _shape_match(det.outer, tracked[k].outer)
+            shift, moved, change = _shape_match(det.outer, expected[k])
             if moved <= config.max_centre_shift * side and change <= config.max_shape_change * side:
                 pairs.append((i, k, shift))
     out: list[TrackMatch | None] = [None] * len(detections)
@@ -332,7 +349,11 @@ def match_tracks(
         if sum(p[0] == i for p in pairs) != 1 or sum(p[1] == k for p in pairs) != 1:
             continue
         ident = tracked[k].identity
-        if candidates(detections[i]) == [ident.sticker_id]:
+        # The tracker's most likely sticker here must be the tracked one. Its gate may admit
+        # neighbours too (0.7 m apart on a dense floor, under a conservative covariance): the
+        # detection's continuity from the previous frame already tells them apart.
+        cands = candidates(detections[i])
+        if cands and cands[0] == ident.sticker_id:
             carried = Identity(ident.sticker_id, (ident.rotation + shift) % 4, ident.source)
             out[i] = TrackMatch(carried, tracked[k].age + 1 >= config.redecode_every)
     return out
@@ -566,6 +587,7 @@ class Localiser:
                 t,
                 self.config.tracking,
                 lambda det: self._candidates(det, rig_cam, timer),
+                lambda tr: self._image_motion(tr, rig_cam),
             )
             if self.config.sticker_tracking
             else [None] * len(detections)
@@ -663,6 +685,27 @@ class Localiser:
                 continue
             age = ages.get(ident.sticker_id, 0) + 1 if c is not None else 0
             self._tracked.append(Tracked(obs.detection.outer.copy(), ident, camera, t, age))
+        self._predict_tracked()
+
+    def _predict_tracked(self) -> None:
+        """Note where the tracker now puts each tracked sticker (:attr:`Tracked.predicted_px`)."""
+        if not self._tracked:
+            return
+        by_cam: dict[int, list[int]] = {}
+        for tr in self._tracked:
+            by_cam.setdefault(tr.camera, []).append(tr.identity.sticker_id)
+        pix = {c: self.tracker.sticker_pixels(self.map, self.rig[c], ids) for c, ids in by_cam.items()}
+        self._tracked = [
+            dataclasses.replace(tr, predicted_px=pix[tr.camera].get(tr.identity.sticker_id)) for tr in self._tracked
+        ]
+
+    def _image_motion(self, tr: Tracked, rig_cam: RigCamera) -> np.ndarray | None:
+        """How far the tracker predicts ``tr``'s sticker moved in the image since its frame (px (2,)),
+        or None (not known then or now)."""
+        if tr.predicted_px is None:
+            return None
+        now = self.tracker.sticker_pixels(self.map, rig_cam, [tr.identity.sticker_id]).get(tr.identity.sticker_id)
+        return None if now is None else now - tr.predicted_px
 
     def _check_time(self, frame: Frame) -> str | None:
         """Why the frame's timestamp is refused, or None (then it becomes the last accepted time)."""
@@ -843,6 +886,7 @@ class Localiser:
             # Decoded and accepted: carried into the next frame (see _track).
             if identity.source == IdSource.DECODED and fix.accepted is True:
                 self._tracked.append(Tracked(det.outer.copy(), identity, camera, t, 0))
+                self._predict_tracked()
         self.counts["lsq_deferred"] += ran
         return ran
 
