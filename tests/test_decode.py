@@ -371,3 +371,20 @@ def test_symbols_rendered_in_a_batch_are_those_rendered_one_by_one():
     assert batch.shape == (20, 56, 56) and batch.dtype == np.uint8 and batch[0].flags.c_contiguous
     for b, img in zip(bits, batch):
         np.testing.assert_array_equal(img, clean_symbol(b))
+
+
+def test_prepared_blur_models_leave_no_model_to_make_in_a_decode():
+    """``blur.prepare`` (run by ``Localiser.warm_up`` before a live loop's first frame) makes every edge
+    model a sticker between 1 and 12 raster px per image px needs: a blur estimate then makes none."""
+    from tagloc.vision.decode import blur
+
+    blur._level_bases.cache_clear()
+    blur.prepare()
+    made = blur._level_bases.cache_info().misses
+    assert made == len(blur._PREPARED_SCALES) * len(blur._OPTICS_SIGMAS)
+    rng = np.random.default_rng(0)
+    for scale in (1.2, 3.3, 7.9, 11.7):
+        blur._edge_fit(rng.uniform(0, 255, (2, blur._PROFILE_PX)), scale, blur._OPTICS_SIGMAS[0])
+    assert blur._level_bases.cache_info().misses == made
+    blur._edge_fit(rng.uniform(0, 255, (2, blur._PROFILE_PX)), 20.5, blur._OPTICS_SIGMAS[0])  # beyond: made then
+    assert blur._level_bases.cache_info().misses == made + 1

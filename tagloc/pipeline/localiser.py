@@ -751,7 +751,12 @@ class Localiser:
     def warm_up(self) -> None:
         """Do now the set-up the first frames would otherwise pay (a live loop, before its first
         frame: 0.1 s of it landed on the first frame's latency): each camera's odometry (patch
-        search, remap tables) and, with a reference bank, identification's tables."""
+        search, remap tables), the least-squares decoder's blur models and, with a reference bank,
+        identification's tables."""
+        if self.config.decoder in ("zxing", "both"):
+            from tagloc.vision.decode import blur
+
+            blur.prepare()
         if self.config.odometry:
             for c in range(len(self.rig)):
                 self.floor_odometry(c)
