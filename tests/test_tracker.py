@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -817,3 +818,30 @@ def test_odometry_scale_survives_a_restarted_track(rng):
     assert tr.stats["reinitialisations"] == 1
     assert tr.filter.x[SCALE, 0] == pytest.approx(learnt, abs=1e-3)
     assert tr.filter.P[SCALE, SCALE] == pytest.approx(cfg.odometry_scale_sigma**2, rel=0.05)
+
+
+@pytest.mark.parametrize(
+    ("change", "named"),
+    [
+        ({"accel_psd": float("nan")}, "accel_psd=nan is not a finite number"),
+        ({"floor_sigma_lateral": -0.01}, "floor_sigma_lateral=-0.01 is negative"),
+        ({"lost_after_s": math.inf}, "lost_after_s=inf is not a finite number"),
+        ({"gate_prob": 1.0}, "probabilities in (0, 1)"),
+        ({"v_min": 3.0}, "v_min 3.0 must be below v_max 2.5"),
+        ({"odometry_scale_max": 1.0}, "odometry_scale_max 1.0 must be < 1"),
+        ({"odometry_inflation": (1.0, 0.0, 1.0)}, "odometry_inflation: 3 values > 0"),
+        ({"min_eig": 0.0}, "min_eig and the variance caps must be > 0"),
+        ({"max_steps": 0}, "max_steps, reinit_fixes and reinit_min_ids must be >= 1"),
+    ],
+)
+def test_a_config_the_filter_cannot_run_with_is_refused_naming_the_field(change, named):
+    from tagloc.core.errors import TaglocError
+
+    with pytest.raises(TaglocError, match=re.escape(named)):
+        TrackerConfig(**change)
+
+
+def test_configs_in_use_are_accepted():
+    TrackerConfig()
+    TrackerConfig(v_min=-50, v_max=50, w_max=50, lost_sigma_m=1e3)  # the wide prior of a test below
+    TrackerConfig(floor_corr_s=0.0, tilt_sigma_forward=0.0, odometry_scale_sigma=0.0, odometry_scale_rw=0.0)

@@ -7,10 +7,12 @@ vest, not by fitting a test. Units: metres, seconds, radians.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from functools import lru_cache
 
 import numpy as np
+
+from tagloc.core.errors import InputError
 
 
 @lru_cache(maxsize=64)
@@ -22,6 +24,10 @@ def chi2_bound(prob: float, dof: int) -> float:
     from scipy.special import chdtri
 
     return float(chdtri(dof, 1.0 - prob))
+
+
+#: Fields of :class:`TrackerConfig` that may be negative (every other number must be >= 0).
+_MAY_BE_NEGATIVE = frozenset({"v_min"})
 
 
 @dataclass
@@ -231,6 +237,49 @@ class TrackerConfig:
     odometry_max_dt: float = 0.35
     gap_s: float = 0.12
     gap_yaw_accel_psd: float = 2.5
+
+    def __post_init__(self) -> None:
+        """Refuse values the filter cannot run with (a config is set in code: a typo there must
+        fail at once, naming the field, not as a NaN pose or a silent gate later)."""
+        bad: list[str] = []
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, bool):
+                continue
+            values = v if isinstance(v, tuple) else (v,)
+            if not all(isinstance(x, (int, float)) and math.isfinite(x) for x in values):
+                bad.append(f"{f.name}={v!r} is not a finite number")
+            elif f.name not in _MAY_BE_NEGATIVE and min(values) < 0:
+                bad.append(f"{f.name}={v!r} is negative")
+        if bad:
+            raise InputError("TrackerConfig: " + "; ".join(bad))
+        checks = (
+            (self.v_min < self.v_max, f"v_min {self.v_min} must be below v_max {self.v_max}"),
+            (
+                all(0.0 < p < 1.0 for p in (self.gate_prob, self.gate_prob_identified, self.odometry_gate_prob)),
+                "gate_prob, gate_prob_identified and odometry_gate_prob must be probabilities in (0, 1)",
+            ),
+            (
+                all(x > 0 for x in (self.min_eig, self.pos_var_cap, self.yaw_var_cap, self.v_var_cap, self.w_var_cap)),
+                "min_eig and the variance caps must be > 0",
+            ),
+            (self.odometry_scale_max < 1.0, f"odometry_scale_max {self.odometry_scale_max} must be < 1"),
+            (
+                len(self.odometry_inflation) == 3 and min(self.odometry_inflation) > 0,
+                "odometry_inflation: 3 values > 0",
+            ),
+            (
+                all(x > 0 for x in (self.gravity, self.max_step_s, self.odometry_max_dt, self.floor_walk_speed)),
+                "gravity, max_step_s, odometry_max_dt and floor_walk_speed must be > 0",
+            ),
+            (
+                self.max_steps >= 1 and self.reinit_fixes >= 1 and self.reinit_min_ids >= 1,
+                "max_steps, reinit_fixes and reinit_min_ids must be >= 1",
+            ),
+        )
+        bad = [why for ok, why in checks if not ok]
+        if bad:
+            raise InputError("TrackerConfig: " + "; ".join(bad))
 
     def _gait(self, speed: float | None) -> float:
         """Share of the gait wobble at ``speed`` (m/s; None: unknown, taken as walking)."""
