@@ -1,0 +1,117 @@
+"""How well would the tracker's most likely candidate, checked by module correlation, name the
+stickers that go to decoding? A study for a change not made yet (see the README's Speed section).
+
+Replays each session with the localiser as it is. Every detection that goes to decoding while the
+tracker has a pose is also, on the side, checked against the tracker's most likely candidate:
+the rectified raster's data modules are correlated with that sticker's in each of the four
+rotations (:func:`tagloc.vision.decode.verify_id`, the check a tracked sticker's re-verification
+uses). The simulator's ground truth (``groundtruth_frames.jsonl``: the stickers in view, by frame
+index) says which sticker the detection is. Nothing the localiser does is changed.
+
+Prints, for the events whose most likely candidate is the true sticker, the best rotation's score
+and the other rotations' highest, and for the events whose candidate is wrong (another or an
+unmapped sticker in view), the highest score over the four rotations: how far apart they lie,
+and what share of true events a threshold would name.
+
+Example::
+
+    python benchmarks/candidate_check.py out/eval/standard/sessions/* out/eval/field/sessions/*
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+import tagloc.pipeline.localiser as localiser_mod
+from tagloc.io.session import SessionReader
+from tagloc.vision.decode import verify_id
+from tagloc.vision.decode.grid import RASTER_PX
+from tagloc.vision.rectify import rectify
+
+_TRUTH_RADIUS_PX = 40.0  # a detection is the sticker in view whose true centre is this close
+
+
+def _truth(session: Path) -> dict[int, list[tuple[int, np.ndarray]]]:
+    out = {}
+    with (session / "groundtruth_frames.jsonl").open(encoding="utf-8") as f:
+        for line in f:
+            rec = json.loads(line)
+            out[int(rec["index"])] = [
+                (int(v["id"]), np.mean(np.asarray(v["corners"], float), axis=0)) for v in rec.get("visible", [])
+            ]
+    return out
+
+
+def study(session: Path) -> list[dict]:
+    """One record per detection decoded while tracking: true ID (None: no sticker within the radius),
+    the most likely candidate, its four rotations' scores and what decoding named."""
+    reader = SessionReader(session)
+    truth = _truth(session)
+    loc = localiser_mod.Localiser(
+        reader.map, reader.rig, config=localiser_mod.LocaliserConfig(), map_path=session / "map.csv"
+    )
+    events: list[dict] = []
+    frame = {"index": -1}
+    decode_gated = loc._decode_gated
+
+    def observed(gray, det, rig_cam, camera, t, timer):
+        read, age = decode_gated(gray, det, rig_cam, camera, t, timer)
+        cands = loc._candidates(det, rig_cam, timer)
+        if cands:
+            rect = rectify(gray, det, rig_cam.camera, RASTER_PX)
+            c = det.outer.mean(axis=0)
+            near = [sid for sid, cc in truth.get(frame["index"], []) if np.hypot(*(cc - c)) < _TRUTH_RADIUS_PX]
+            events.append(
+                {
+                    "true": near[0] if near else None,
+                    "candidate": cands[0],
+                    "scores": [float(verify_id(rect, cands[0], r, search_px=4)) for r in range(4)],
+                    "decoded": read.identity is not None,
+                }
+            )
+        return read, age
+
+    loc._decode_gated = observed
+    for f in tqdm(reader.frames(), desc=session.name, unit="frame", leave=False):
+        frame["index"] = f.index
+        loc.process(f)
+    return events
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("sessions", type=Path, nargs="+", help="simulated sessions (with groundtruth_frames.jsonl)")
+    args = p.parse_args(argv)
+    events = [e for s in args.sessions for e in study(s)]
+    right = [e for e in events if e["true"] is not None and e["true"] == e["candidate"]]
+    wrong = [e for e in events if e["true"] is not None and e["true"] != e["candidate"]]
+    unknown = [e for e in events if e["true"] is None]
+    best = np.array([max(e["scores"]) for e in right])
+    others = np.array([sorted(e["scores"])[-2] for e in right])
+    wrong_max = np.array([max(e["scores"]) for e in wrong])
+    print(f"{len(events)} detections decoded while tracking, {len(args.sessions)} sessions")
+    print(f"  candidate is the true sticker:  {len(right)}")
+    if len(right):
+        q = np.percentile(best, [5, 25, 50, 75])
+        print(f"    best rotation's score, 5/25/50/75 %: {q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f} / {q[3]:.2f}")
+        print(f"    the other rotations' highest: {others.max():.2f} (99 %: {np.percentile(others, 99):.2f})")
+        undecoded = [max(e["scores"]) for e in right if not e["decoded"]]
+        print(f"    decoding named nothing in {len(undecoded)} of them")
+    pairs = len({(e["true"], e["candidate"]) for e in wrong})
+    top = wrong_max.max() if len(wrong) else float("nan")
+    print(f"  candidate is another sticker:   {len(wrong)} ({pairs} distinct pairs), highest score {top:.2f}")
+    print(f"  no sticker within {_TRUTH_RADIUS_PX:.0f} px in the truth: {len(unknown)}")
+    print("\nthreshold  true events named  wrong events named")
+    for th in (0.4, 0.45, 0.5, 0.6, 0.7):
+        named = float(np.mean(best >= th)) if len(best) else float("nan")
+        print(f"{th:9.2f}  {named:16.2f}  {int(np.sum(wrong_max >= th)):18d}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
