@@ -300,7 +300,8 @@ def match_tracked(
     (``redecode_every``); (2) the detection is where and what that sticker was (``max_centre_shift``,
     ``max_shape_change``; moved by the image motion the tracker predicts, see :func:`match_tracks`),
     and the pairing is one to one; (3) the tracker's prediction, through ``candidates(detection)``
-    (gated map stickers, most likely first), finds that sticker the most likely one here. The rotation follows the canonical corner through the corners' cyclic shift.
+    (gated map stickers, most likely first), finds that sticker the most likely one here. The
+    rotation follows the canonical corner through the corners' cyclic shift.
     """
     matches = match_tracks(detections, tracked, camera, t, config, candidates, image_motion)
     return [m.identity if m is not None and not m.due else None for m in matches]
