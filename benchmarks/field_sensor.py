@@ -78,7 +78,7 @@ def variants() -> dict[str, LocaliserConfig]:
         # The sticker's rows' time, straightened with the body's planar motion only.
         out["rs-fix-body-twist"] = replace(base, rs_image_velocity_max_dt=0.0)
     out["no-gap-noise"] = replace(base, tracker=replace(base.tracker, gap_yaw_accel_psd=0.0))
-    if "odometry_scale_sigma" in {f.name for f in base.tracker.__dataclass_fields__.values()}:
+    if hasattr(base.tracker, "odometry_scale_sigma"):  # absent in a tracker before the scale state
         out["no-odometry-scale"] = replace(
             base, tracker=replace(base.tracker, odometry_scale_sigma=0.0, odometry_scale_rw=0.0)
         )

@@ -237,12 +237,12 @@ class Tracker:
         """Where the centres of the mapped stickers ``sticker_ids`` are predicted in ``rig_camera``'s
         image (distorted px (2,)) from the mean pose, through the leaned camera; {} unless TRACKING.
         Stickers behind the camera or far outside the image, or not in the map, are left out."""
-        prior = self.prior()
         ids = [i for i in sticker_ids if i in smap]
-        if prior is None or not ids:
+        if self._state is not TrackState.TRACKING or not ids:
             return {}
         rows = np.array([smap.row(i) for i in ids], np.int64)
-        kept, pix = centre_pixels(prior[0], smap, self.leaned_camera(rig_camera), rows)
+        # The mean alone (prior() would also work out the covariance, which a projection does not use).
+        kept, pix = centre_pixels(vest_pose(self._ekf.x[:, 0]), smap, self.leaned_camera(rig_camera), rows)
         return {int(smap.ids[r]): p for r, p in zip(kept, pix)}
 
     def leaned_camera(self, rig_camera: RigCamera) -> RigCamera:

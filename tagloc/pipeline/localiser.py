@@ -333,6 +333,8 @@ def match_tracks(
     the image since its frame, or None; the detection is then compared with the tracked outline
     moved by it. Turning at 1.5 rad/s sweeps the image by ~60 px a frame, more than the side of a
     sticker a few metres away, while the relative prediction is good to a few pixels."""
+    if not detections:
+        return []
     live = [k for k, tr in enumerate(tracked) if tr.camera == camera and 0.0 < t - tr.t <= config.max_gap_s]
     expected = {}
     for k in live:
