@@ -1,12 +1,14 @@
-"""How well would the tracker's most likely candidate, checked by module correlation, name the
-stickers that go to decoding? A study for a change not made yet (see the README's Speed section).
+"""How well does the tracker's most likely candidate, checked by module correlation, name the
+stickers that go to decoding? The study behind ``LocaliserConfig.check_expected`` and its
+thresholds (``DecodeConfig.expected_min_score``, ``expected_min_margin``; README, Speed).
 
-Replays each session with the localiser as it is. Every detection that goes to decoding while the
+Replays each session with the localiser without that check (every detection it would see still
+goes to decoding, as before the check was made). Every detection that goes to decoding while the
 tracker has a pose is also, on the side, checked against the tracker's most likely candidate:
 the rectified raster's data modules are correlated with that sticker's in each of the four
 rotations (:func:`tagloc.vision.decode.verify_id`, the check a tracked sticker's re-verification
 uses). The simulator's ground truth (``groundtruth_frames.jsonl``: the stickers in view, by frame
-index) says which sticker the detection is. Nothing the localiser does is changed.
+index) says which sticker the detection is. Nothing else the localiser does is changed.
 
 Prints, for the events whose most likely candidate is the true sticker, the best rotation's score
 and the other rotations' highest, and for the events whose candidate is wrong (another or an
@@ -53,7 +55,7 @@ def study(session: Path) -> list[dict]:
     reader = SessionReader(session)
     truth = _truth(session)
     loc = localiser_mod.Localiser(
-        reader.map, reader.rig, config=localiser_mod.LocaliserConfig(), map_path=session / "map.csv"
+        reader.map, reader.rig, config=localiser_mod.LocaliserConfig(check_expected=False), map_path=session / "map.csv"
     )
     events: list[dict] = []
     frame = {"index": -1}

@@ -388,3 +388,39 @@ def test_prepared_blur_models_leave_no_model_to_make_in_a_decode():
     assert blur._level_bases.cache_info().misses == made
     blur._edge_fit(rng.uniform(0, 255, (2, blur._PROFILE_PX)), 20.5, blur._OPTICS_SIGMAS[0])  # beyond: made then
     assert blur._level_bases.cache_info().misses == made + 1
+
+
+def test_the_expected_id_names_an_unread_sticker_and_no_other_id_is_named():
+    """``decode(expected=...)``: when stages 1-2 read nothing, the tracker's expected ID is named
+    (stage "expected", in the right rotation) only if its modules match; its decade neighbour
+    (the same first two data codewords) and an unrelated ID never are. The expectation is asked for
+    only when stages 1-2 fail."""
+    cam = default_camera()
+    quick = DecodeConfig(lsq=False)
+    asked = []
+
+    def expect(sid):
+        def f():
+            asked.append(sid)
+            return sid
+
+        return f
+
+    named = unread = 0
+    for k in range(10):
+        gray, det, r = _sim_case(900 + k, 1.9, 4.0)
+        if decode(gray, det, cam, config=quick).sticker_id is not None:
+            continue
+        unread += 1
+        res = decode(gray, det, cam, config=quick, expected=expect(52817))
+        if res.sticker_id is not None:
+            assert (res.sticker_id, res.rotation, res.stage) == (52817, r, "expected")
+            assert res.verify_score >= quick.expected_min_score
+            named += 1
+        for other in (52818, 10000):
+            assert decode(gray, det, cam, config=quick, expected=expect(other)).sticker_id is None
+            assert decode(gray, det, cam, expected=expect(other)).sticker_id in (None, 52817)
+    assert unread >= 8 and named == unread, (unread, named)
+    asked.clear()
+    gray, det, _ = _sim_case(3, 1.5, 0.0)  # sharp: zxing reads it
+    assert decode(gray, det, cam, expected=expect(52817)).stage in ("zxing", "grid") and not asked

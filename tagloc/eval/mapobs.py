@@ -175,9 +175,13 @@ def collect_walk(
     """Localise session ``session_dir`` with ``smap`` (not the session's own map) and record every sighting.
 
     ``map_path``: the file ``smap`` came from, so the identification's reference cache is kept beside it.
+    ``config`` defaults to the localiser's without the expected-ID check
+    (``LocaliserConfig.check_expected``): what the map is audited and refined with are decoded
+    sightings, whose identity does not come from the map's word on where a sticker is, and that
+    check would name some stickers by it instead of reading them.
     """
     session = SessionReader(session_dir)
-    config = config or LocaliserConfig()
+    config = config or LocaliserConfig(check_expected=False)
     loc = Localiser(smap, session.rig, config, map_path=map_path)
     odometry = _Odometry(session.rig, config.odometry_config)
     frames: list[FrameRecord] = []

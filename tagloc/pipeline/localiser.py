@@ -145,6 +145,15 @@ class LocaliserConfig:
             tracker's own gate level. A tilt filter that refuses ``odometry_config.tilt_gate_reset``
             fixes in a row is forgotten (it may itself have been anchored by a bad fix), and the
             fix is judged against the upright prior alone.
+        check_expected: a detection that the quick decoding stages (zxing, grid sampling) leave
+            unread is first checked against the tracker's most likely sticker there: its data
+            modules, already sampled, correlated in each rotation (``DecodeConfig``'s
+            ``expected_min_score``, ``expected_min_margin``). A match names it as an APPEARANCE
+            identity (the tracker gates its fix as identified, never starts a track with it) and
+            saves the least-squares stage (3-5 ms): the first sight of a sticker the track
+            predicts no longer costs a frame's budget. Such a sticker is carried to the next
+            frames as a decoded one is (sticker tracking, re-checked when due). Only with a track
+            (the tracker's candidates) and the "zxing" or "both" decoder.
     """
 
     detector: str = "contour"
@@ -165,6 +174,7 @@ class LocaliserConfig:
     defer_lsq: bool = False
     defer_odometry: bool = False
     tilt_gate_chi2: float = 13.8
+    check_expected: bool = True
 
 
 @dataclass
@@ -238,7 +248,8 @@ class TrackingConfig:
 
 @dataclass(frozen=True)
 class Tracked:
-    """A sticker identified by decoding whose fix the tracker accepted, as seen in one frame.
+    """A sticker named by decoding (or the expected-ID check) whose fix the tracker accepted, as seen
+    in one frame.
 
     ``outer`` (4, 2) distorted px as detected; ``age``: frames since it was last decoded;
     ``predicted_px`` (2,): where the tracker put the sticker's centre in that frame, after its fixes
@@ -387,12 +398,17 @@ def read_sticker(
     backend: str,
     candidates: list[int] | None = None,
     config: DecodeConfig | None = None,
+    expected: Callable[[], int | None] | None = None,
 ) -> Read:
     """Decode one detection against the map (``candidates``: the tracker's, which may confirm a lone
-    libdmtx read; see :func:`tagloc.vision.decode.decode`)."""
-    res = decode(gray, detection, camera, backend=backend, candidates=candidates, config=config)
+    libdmtx read; ``expected``: gives the tracker's most likely one, whose module check may name an
+    unread sticker, as an APPEARANCE identity; see :func:`tagloc.vision.decode.decode`)."""
+    res = decode(gray, detection, camera, backend=backend, candidates=candidates, config=config, expected=expected)
     if res.sticker_id is None:
         return Read(rejected=res.rejected)
+    if res.stage == "expected":
+        # Named by matching the tracker's expectation, not read: the tracker gates it as identified.
+        return Read(Identity(res.sticker_id, res.rotation, IdSource.APPEARANCE, res.verify_score or 0.0))
     if res.sticker_id not in smap:
         return Read(
             rejected=f"decoded {res.sticker_id}, not in the map",
@@ -404,15 +420,16 @@ def read_sticker(
 
 def new_counts() -> dict[str, int]:
     """The per-run counters a localiser keeps (the baselines keep the same ones)."""
-    keys = ("frames", "skipped", "detections", "decoded", "identified", "rejected_reads", "unmapped_reads")
+    keys = ("frames", "skipped", "detections", "decoded", "checked", "identified", "rejected_reads", "unmapped_reads")
     return dict.fromkeys(
         (*keys, "odometry_steps", "odometry_bridged", "odometry_strided", "odometry_unavailable", "tilt_gated"), 0
     )
 
 
 def count_read(counts: dict[str, int], read: Read) -> None:
-    """Add one decode outcome to ``counts``."""
-    counts["decoded"] += read.identity is not None
+    """Add one decode outcome to ``counts`` ("checked": named by the expected ID's module check)."""
+    counts["decoded"] += read.identity is not None and read.identity.source is IdSource.DECODED
+    counts["checked"] += read.identity is not None and read.identity.source is IdSource.APPEARANCE
     counts["unmapped_reads"] += read.unmapped_id is not None
     counts["rejected_reads"] += read.rejected is not None and read.unmapped_id is None
 
@@ -627,7 +644,7 @@ class Localiser:
             observations.append(
                 Observation(det, frame.camera, identity, fix, read.rejected, read.unmapped_id, read.unmapped_rotation)
             )
-        self._track(observations, carried, frame.camera, t)
+        self._track(observations, carried, [r.identity is not None for r in reads], frame.camera, t)
         self._failed = failed
 
         with timer("output"):
@@ -677,14 +694,22 @@ class Localiser:
             return None, since, True
         return out, since, False
 
-    def _track(self, observations: list[Observation], carried: list[Identity | None], camera: int, t: float) -> None:
-        """Keep this frame's decoded (or carried) stickers whose fixes the tracker accepted: only they
-        may carry their identity into the next frame."""
+    def _track(
+        self,
+        observations: list[Observation],
+        carried: list[Identity | None],
+        read: list[bool],
+        camera: int,
+        t: float,
+    ) -> None:
+        """Keep this frame's stickers named by reading them (decoded, matched by the expected-ID
+        check, or carried; ``read``: per observation) whose fixes the tracker accepted: only they
+        may carry their identity into the next frame. Identification among candidates does not."""
         ages = {tr.identity.sticker_id: tr.age for tr in self._tracked}
         self._tracked = []
-        for obs, c in zip(observations, carried):
+        for obs, c, r in zip(observations, carried, read):
             ident = obs.identity
-            if ident is None or ident.source != IdSource.DECODED or obs.fix is None or obs.fix.accepted is not True:
+            if ident is None or not r or obs.fix is None or obs.fix.accepted is not True:
                 continue
             age = ages.get(ident.sticker_id, 0) + 1 if c is not None else 0
             self._tracked.append(Tracked(obs.detection.outer.copy(), ident, camera, t, age))
@@ -908,8 +933,16 @@ class Localiser:
     ) -> Read:
         # Only libdmtx can need the tracker's word: zxing reads stand or fall on their own.
         cands = self._candidates(det, rig_cam, timer) if self.config.decoder != "zxing" else None
+        expected = None
+        if self.config.check_expected:
+
+            def expected() -> int | None:
+                # Asked only when the quick stages read nothing; timed as decoding, which it is part of.
+                best = self.tracker.candidates(self.map, rig_cam, det.outer.mean(axis=0), k=1)
+                return best[0] if best else None
+
         with timer("decode"):
-            read = read_sticker(gray, det, rig_cam.camera, self.map, self.config.decoder, cands, config)
+            read = read_sticker(gray, det, rig_cam.camera, self.map, self.config.decoder, cands, config, expected)
         count_read(self.counts, read)
         return read
 

@@ -25,6 +25,15 @@ class DecodeConfig:
         lsq_ridge: regularisation of the module estimates (see :func:`module_estimates`).
         lsq_flips: how many of a symbol's least certain modules may be flipped (2**n zxing attempts,
             each ~10 us; Reed-Solomon still decides, and symbols must agree and verify).
+        expected_min_score, expected_min_margin: when :func:`decode` is given the ID the tracker
+            expects and stages 1-2 read nothing, that ID's data modules (already sampled by stage
+            2) are correlated with the raster in each rotation (:func:`verify_id`); the best
+            rotation at or above ``expected_min_score``, leading the other three by
+            ``expected_min_margin``, names the sticker without the least-squares stage. 0.5 is the
+            decode's own final check (``min_verify``): on the eval and dense walks
+            (``benchmarks/candidate_check.py``) the expected sticker's best rotation scored 0.63
+            (median), its other rotations <= 0.31 and another sticker <= 0.22. The margin 0.2
+            is identification's own (:class:`tagloc.vision.identify.IdentifyConfig`).
     """
 
     grid_sampling: bool = True
@@ -38,6 +47,8 @@ class DecodeConfig:
     lsq_gamma: float = 2.2
     lsq_ridge: float = 0.02
     lsq_flips: int = 6
+    expected_min_score: float = 0.5
+    expected_min_margin: float = 0.2
 
 
 @dataclass
@@ -51,7 +62,8 @@ class DecodeResult:
             ones of a rejected read (so a caller can corroborate them itself).
         rejected: why symbols that were read did not give an ID (None if accepted or nothing read).
         verify_score: :func:`verify_id` of the accepted (or rejected-by-verification) ID, else None.
-        stage: which stage decided ("zxing", "grid", "lsq", "libdmtx"), or None.
+        stage: which stage decided ("zxing", "grid", "lsq", "libdmtx", or "expected": no symbol was
+            read, the expected ID's modules matched; not a Data Matrix read), or None.
     """
 
     sticker_id: int | None = None
