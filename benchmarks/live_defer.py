@@ -16,6 +16,7 @@ Run (on sessions made by ``tagloc eval`` or ``tagloc simulate``)::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 import types
@@ -41,11 +42,12 @@ class _AsLive:
         self.frame_cpu_ms: list[float] = []
 
     def process(self, frame):
+        late = self.loc.late  # what the previous frame's deferred work finished (see run_session)
         c0 = time.thread_time()
         res = self.loc.process(frame)
         self.frame_cpu_ms.append((time.thread_time() - c0) * 1e3)
         self.loc.deferred_work()
-        return res
+        return dataclasses.replace(res, late=late)
 
     def stats(self) -> dict[str, int]:
         return self.loc.stats()

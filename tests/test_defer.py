@@ -113,6 +113,11 @@ def test_a_walk_with_deferred_decodes_is_tracked_as_in_a_replay(blurred_walk):
         return sum(v for k, v in loc.tracker.stats.items() if k.startswith("accepted_"))
 
     assert fused(live) >= fused(replay) - 3
+    # Every fix the tracker accepted is in the run log, those deferred work made too (as their
+    # frames' late observations), so that the wrong-ID count above sees them all.
+    assert live.counts["deferred_fixes"] >= 1 and len(llog.fixes) == fused(live)
+    misdated = [f for f in llog.fixes if f["t"] != llog.stamps[f["frame"]]]
+    assert not misdated  # recorded with their own frames' times
     assert _metrics(blurred_walk, llog)["rmse_m"] <= _metrics(blurred_walk, rlog)["rmse_m"] + 0.005
 
 

@@ -245,3 +245,6 @@ class FrameResult:
     times_ms: dict[str, float] = field(default_factory=dict)
     skipped: str | None = None  # why the frame was skipped (corrupt image), else None
     frame: Frame | None = None  # the frame itself, for a viewer (so it is read and decoded once)
+    # Observations of earlier frames finished after those frames were published (live's deferred
+    # decodes), as (frame index, observation): their fixes are fused at their own frames' times.
+    late: list[tuple[int, Observation]] = field(default_factory=list)

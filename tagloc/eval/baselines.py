@@ -172,9 +172,11 @@ class LiveOrderLocaliser:
         return self.localiser.counts
 
     def process(self, frame: Frame) -> FrameResult:
-        """The previous frame's deferred work, then this frame (its result as live publishes it)."""
+        """The previous frame's deferred work, then this frame (its result as live publishes it,
+        with the deferred work's observations as its ``late`` ones)."""
         self.localiser.deferred_work()
-        return self.localiser.process(frame)
+        late = self.localiser.late
+        return dataclasses.replace(self.localiser.process(frame), late=late)
 
     def stats(self) -> dict[str, int]:
         """The localiser's counters with the tracker's (see :meth:`~tagloc.pipeline.localiser.Localiser.stats`)."""

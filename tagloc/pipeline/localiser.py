@@ -519,6 +519,9 @@ class Localiser:
         self.counts["deferred_named"] = 0  # of those detections, named then (decoded or identified)
         self.counts["deferred_fixes"] = 0  # and of those, fixes the tracker accepted
         self._pending: list[tuple] = []  # this frame's deferred least-squares decodes (defer_lsq)
+        # Observations that deferred work finished since the last frame began: (frame index, observation).
+        self.late: list[tuple[int, Observation]] = []
+        self._index = -1  # the index of the frame being processed
         self._pending_odo: tuple[np.ndarray, int, float] | None = None  # (gray, camera, t) (defer_odometry)
         self._pending_anchors: list[tuple[float, float, float]] = []  # fixes' (t, pitch, roll) held for it
         self._failed: list[FailedRead] = []  # detections of the previous frame nothing named
@@ -552,6 +555,7 @@ class Localiser:
         timer = StageTimer()
         t = frame.timestamp
         self.counts["frames"] += 1
+        self._index, self.late = frame.index, []
         if self._pending_odo is not None:
             # The last frame's deferred odometry step, not run in the wait (defer_odometry): it ends
             # at the filter's time, so it is fused before the filter moves on.
@@ -882,7 +886,7 @@ class Localiser:
         defer = self.config.defer_lsq and self.config.decoder == "zxing" and not skip_lsq
         read = self._decode(gray, det, rig_cam, timer, DecodeConfig(lsq=False) if skip_lsq or defer else None)
         if defer and read.identity is None and read.unmapped_id is None:
-            self._pending.append((gray, det, rig_cam, camera, t))
+            self._pending.append((gray, det, rig_cam, camera, t, self._index))
         return read, prev.age + 1 if skip_lsq else 0
 
     def deferred_work(self, go_on: Callable[[], bool] | None = None) -> int:
@@ -892,11 +896,13 @@ class Localiser:
         is time (a live loop: no frame waiting): the whole decode, identification if it fails, and
         the fix, fused at the frame's time as the frame would have fused it (the filter is still
         there); a decoded sticker whose fix the tracker accepted is tracked into the next frame.
-        Returns how many detections ran; the rest are dropped."""
+        Each named detection is added to :attr:`late` with its frame's index (cleared when the next
+        frame starts), so that a caller can count its fix with that frame's. Returns how many
+        detections ran; the rest are dropped."""
         self._run_pending_odometry()
         jobs, self._pending = self._pending, []
         ran = 0
-        for gray, det, rig_cam, camera, t in jobs:
+        for gray, det, rig_cam, camera, t, index in jobs:
             if go_on is not None and not go_on():
                 break
             ran += 1
@@ -916,6 +922,7 @@ class Localiser:
             self.counts["deferred_named"] += 1
             fix = self._fix(det, identity, rig_cam, camera, t, timer)
             self.counts["deferred_fixes"] += fix.accepted is True
+            self.late.append((index, Observation(det, camera, identity, fix)))
             # Decoded and accepted: carried into the next frame (see _track).
             if identity.source == IdSource.DECODED and fix.accepted is True:
                 self._tracked.append(Tracked(det.outer.copy(), identity, camera, t, 0))

@@ -29,7 +29,8 @@ class RunLog:
             by ``valid``.
         covs: (N, 3, 3) covariances.
         valid: (N,) bool, False while the localiser had no pose yet.
-        fixes: list of dicts, one per accepted fix: frame index, sticker id, source, corners centre.
+        fixes: list of dicts, one per accepted fix (one a frame's deferred work made too, with that
+            frame's index and time): frame index, sticker id, source, corners centre.
         counts: counters from the localiser and tracker.
         frame_ms: (N,) wall time per frame, ms; tracker_ms, odometry_ms: (N,) of which in the
             tracker (``TRACKER_STAGES``: predict, candidates, update, output) and in the floor odometry.
@@ -86,7 +87,9 @@ def run_session(
     )
     stamps, poses, covs, valid, frame_ms, tracker_ms, odometry_ms = [], [], [], [], [], [], []
     fixes, rejected = [], []
+    frame_t: dict[int, float] = {}  # frame index -> timestamp, for observations finished late
     for res in iterate_results(session, loc, progress=progress, realtime=realtime):
+        frame_t[res.index] = res.timestamp
         out = res.output
         stamps.append(res.timestamp)
         poses.append(out.pose)
@@ -95,11 +98,12 @@ def run_session(
         frame_ms.append(res.times_ms.get("total", 0.0))
         tracker_ms.append(sum(res.times_ms.get(k, 0.0) for k in TRACKER_STAGES))
         odometry_ms.append(res.times_ms.get("odometry", 0.0))
-        for obs in res.observations:
+        # A frame's own observations, then those of earlier frames finished since (live's order).
+        for index, obs in [(res.index, o) for o in res.observations] + res.late:
             if obs.poses and obs.sticker_id is not None:
                 rec = {
-                    "frame": res.index,
-                    "t": res.timestamp,
+                    "frame": index,
+                    "t": frame_t.get(index, res.timestamp),
                     "id": obs.sticker_id,
                     "source": obs.source.value,
                     "centre": obs.detection.outer.mean(axis=0).tolist(),
