@@ -324,11 +324,11 @@ def test_wrong_id_fix_rejected(rng):
     rel = truth - A
     c, s = math.cos(B[2] - A[2]), math.sin(B[2] - A[2])
     wrong = np.array([B[0] + c * rel[0] - s * rel[1], B[1] + s * rel[0] + c * rel[1], wrap(truth[2] + B[2] - A[2])])
-    for source in (IdSource.ORB, IdSource.APPEARANCE, IdSource.DECODED):
+    for source in (IdSource.ORB, IdSource.APPEARANCE, IdSource.CHECKED, IdSource.DECODED):
         res = tr.update([make_fix(wrong)], 77, source, t)
         assert not res.accepted and res.reason.startswith("gated")
     st = tr.stats
-    assert (st["rejected_orb"], st["rejected_appearance"], st["rejected_decoded"]) == (1, 1, 1)
+    assert (st["rejected_orb"], st["rejected_appearance"], st["rejected_checked"], st["rejected_decoded"]) == (1,) * 4
     # The right identity from ORB passes.
     assert tr.update([noisy_fix(truth, rng, tr.config)], 76, IdSource.ORB, t).accepted
     assert tr.stats["accepted_orb"] == 1
@@ -353,17 +353,19 @@ def test_identified_gate_is_stricter():
     tr2.predict(0.1)
     r_orb = tr2.update([make_fix(d)], 2, IdSource.ORB, 0.1)
     assert not r_orb.accepted and cfg.gate_identified < r_orb.nis < cfg.gate
-    assert tr2.update([make_fix(d)], 2, IdSource.DECODED, 0.1).accepted
+    # A checked fix (the expected ID, its modules matched) is gated as a decoded one.
+    r_checked = tr2.update([make_fix(d)], 2, IdSource.CHECKED, 0.1)
+    assert r_checked.accepted and cfg.gate_identified < r_checked.nis < cfg.gate
 
 
 def test_orb_fix_ignored_while_initialising():
     tr = Tracker()
     tr.predict(0.0)
-    for source in (IdSource.ORB, IdSource.APPEARANCE):
+    for source in (IdSource.ORB, IdSource.APPEARANCE, IdSource.CHECKED):
         res = tr.update([make_fix([1, 2, 0.3])], 5, source, 0.0)
         assert not res.accepted
     assert tr.state is TrackState.INITIALISING
-    assert tr.stats["ignored_initialising"] == 2
+    assert tr.stats["ignored_initialising"] == 3
     assert tr.prior() is None
     out = tr.output(0.5)
     assert out.state is TrackState.INITIALISING and np.all(out.pose == 0) and out.since_fix == math.inf
@@ -701,8 +703,8 @@ def test_decoded_fix_overrules_its_frames_odometry_step():
     """A precise odometry step 4 degrees off (the first step of a turn the walking model could not
     foresee) passes the odometry gate of a young track, and the true decoded fix of the same frame
     then fails the gate; it passes against the filter before the step, so it overrules the step and
-    the heading is the fix's. An identified fix (its name a guess) cannot overrule, nor can a decoded
-    one with the rule off."""
+    the heading is the fix's (a checked one's too). An identified fix (its name a guess) cannot
+    overrule, nor can a decoded one with the rule off."""
     import dataclasses
 
     from tagloc.vision.odometry import OdometryStep
@@ -724,6 +726,9 @@ def test_decoded_fix_overrules_its_frames_odometry_step():
     assert abs(math.degrees(wrap(yaw_after_step - here[2]))) > 3.0  # the step did move the track
     assert res.accepted and "overruled" in res.reason
     assert tr.stats["odometry_overruled"] == 1
+    # A checked fix (the expected ID, its data modules matched) overrules it as a decoded one does.
+    tr_checked, res_checked, _ = run(IdSource.CHECKED)
+    assert res_checked.accepted and tr_checked.stats["odometry_overruled"] == 1
     assert abs(math.degrees(wrap(tr.output().pose[2] - here[2]))) < 0.5
     assert_spd(tr.filter.P)
     # The step's camera starts its next step at this frame, from the filter without the bad step.

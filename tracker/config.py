@@ -124,7 +124,9 @@ class TrackerConfig:
 
     Gates (squared Mahalanobis distance of the innovation over x, y, yaw, 3 DoF):
 
-    - ``gate_prob`` 0.999 for decoded fixes (the brief's bound, 16.27).
+    - ``gate_prob`` 0.999 for decoded fixes (the brief's bound, 16.27), and checked ones (the
+      prior's most likely sticker, its data modules matched as a decode's own final check matches
+      them: another ID scores <= 0.22 against the 0.5 needed, so a wrong pick is refused there).
     - ``gate_prob_identified`` 0.99 (11.34) for ORB/appearance fixes: their identity was picked among
       candidates chosen from this very prior, so agreement with it is weaker evidence, and a wrong
       pick (a neighbouring sticker, one spacing away) must not pull the track; losing 1% of good

@@ -17,7 +17,9 @@ Rules, in one place:
 - Two IPPE alternatives (ambiguous pose): while tracking, the one with the smaller Mahalanobis
   distance to the prediction is used; when (re)initialising, the first (best reprojection).
 - INITIALISING: only a DECODED fix starts the track. TRACKING: fixes must pass the chi-square gate
-  (stricter for ORB/appearance). LOST (position sigma > ``lost_sigma_m`` or no fix for
+  (stricter for ORB/appearance; a CHECKED fix, the tracker's expected ID whose data modules matched
+  as a decode's final check does, is gated as decoded: a wrong pick fails that check, so agreeing
+  with this prior is not all its evidence). LOST (position sigma > ``lost_sigma_m`` or no fix for
   ``lost_after_s``; after ``lost_after_s`` speed and yaw rate are also forgotten): only decoded
   fixes are taken; one that passes the gate is fused, one that does not re-initialises the track.
 - ``reinit_fixes`` gated-out DECODED fixes that agree with each other re-initialise the track.
@@ -104,7 +106,7 @@ class _Hypothesis:
     count: int
 
 
-_SOURCES = (IdSource.DECODED, IdSource.ORB, IdSource.APPEARANCE)
+_SOURCES = (IdSource.DECODED, IdSource.CHECKED, IdSource.ORB, IdSource.APPEARANCE)
 _ANGLES = (motion.YAW, OFF.stop - 1)  # the state's angles: body yaw, the vest offset's yaw
 
 R = TypeVar("R")
@@ -128,6 +130,7 @@ class Tracker:
         cfg = self.config
         self._gate = {
             IdSource.DECODED: cfg.gate,
+            IdSource.CHECKED: cfg.gate,
             IdSource.ORB: cfg.gate_identified,
             IdSource.APPEARANCE: cfg.gate_identified,
         }
@@ -457,11 +460,12 @@ class Tracker:
         return None
 
     def _overrule_step(self, alts, lag: float, source: IdSource, k: int, nis: float) -> tuple[int, float, str]:
-        """A decoded fix that the gate refuses right after this frame's odometry step, but that passes
-        against the filter before that step, overrules the step: the filter goes back to before it.
+        """A decoded (or checked) fix that the gate refuses right after this frame's odometry step, but
+        that passes against the filter before that step, overrules the step: the filter goes back to
+        before it.
         Returns (best alternative, its NIS, how it is fused if it passes) (see ``overrule_odometry``)."""
         b = self._before_step
-        if nis <= self._gate[source] or source is not IdSource.DECODED:
+        if nis <= self._gate[source] or source not in (IdSource.DECODED, IdSource.CHECKED):
             return k, nis, "fused"
         if not self.config.overrule_odometry or b is None or b[0] != self._t:
             return k, nis, "fused"

@@ -35,6 +35,7 @@ class IdSource(str, Enum):
     """How a sticker's identity was obtained."""
 
     DECODED = "decoded"  # Data Matrix symbols read and agreeing
+    CHECKED = "checked"  # no symbol read; the tracker's expected ID's data modules matched (decode's check)
     ORB = "orb"  # ORB matching against tracker-chosen candidates
     APPEARANCE = "appearance"  # template correlation against tracker-chosen candidates
     NONE = "none"  # unidentified

@@ -50,6 +50,7 @@ log = logging.getLogger(__name__)
 
 SOURCE_COLOURS: dict[IdSource, tuple[int, int, int]] = {
     IdSource.DECODED: (40, 200, 60),
+    IdSource.CHECKED: (150, 210, 40),
     IdSource.ORB: (40, 140, 255),
     IdSource.APPEARANCE: (230, 140, 20),
     IdSource.NONE: (220, 40, 40),

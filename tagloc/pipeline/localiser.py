@@ -148,12 +148,13 @@ class LocaliserConfig:
         check_expected: a detection that the quick decoding stages (zxing, grid sampling) leave
             unread is first checked against the tracker's most likely sticker there: its data
             modules, already sampled, correlated in each rotation (``DecodeConfig``'s
-            ``expected_min_score``, ``expected_min_margin``). A match names it as an APPEARANCE
-            identity (the tracker gates its fix as identified, never starts a track with it) and
-            saves the least-squares stage (3-5 ms): the first sight of a sticker the track
-            predicts no longer costs a frame's budget. Such a sticker is carried to the next
-            frames as a decoded one is (sticker tracking, re-checked when due). Only with a track
-            (the tracker's candidates) and the "zxing" or "both" decoder.
+            ``expected_min_score``, ``expected_min_margin``). A match names it as a CHECKED
+            identity (the tracker gates its fix as a decoded one's, as the check that refuses a
+            wrong pick is a decode's own final one, but never starts a track with it) and saves
+            the least-squares stage (3-5 ms): the first sight of a sticker the track predicts no
+            longer costs a frame's budget. Such a sticker is carried to the next frames as a
+            decoded one is (sticker tracking, re-checked when due). Only with a track (the
+            tracker's candidates) and the "zxing" or "both" decoder.
     """
 
     detector: str = "contour"
@@ -402,13 +403,13 @@ def read_sticker(
 ) -> Read:
     """Decode one detection against the map (``candidates``: the tracker's, which may confirm a lone
     libdmtx read; ``expected``: gives the tracker's most likely one, whose module check may name an
-    unread sticker, as an APPEARANCE identity; see :func:`tagloc.vision.decode.decode`)."""
+    unread sticker, as a CHECKED identity; see :func:`tagloc.vision.decode.decode`)."""
     res = decode(gray, detection, camera, backend=backend, candidates=candidates, config=config, expected=expected)
     if res.sticker_id is None:
         return Read(rejected=res.rejected)
     if res.stage == "expected":
-        # Named by matching the tracker's expectation, not read: the tracker gates it as identified.
-        return Read(Identity(res.sticker_id, res.rotation, IdSource.APPEARANCE, res.verify_score or 0.0))
+        # Named by matching the tracker's expectation, not read from its symbols.
+        return Read(Identity(res.sticker_id, res.rotation, IdSource.CHECKED, res.verify_score or 0.0))
     if res.sticker_id not in smap:
         return Read(
             rejected=f"decoded {res.sticker_id}, not in the map",
@@ -429,7 +430,7 @@ def new_counts() -> dict[str, int]:
 def count_read(counts: dict[str, int], read: Read) -> None:
     """Add one decode outcome to ``counts`` ("checked": named by the expected ID's module check)."""
     counts["decoded"] += read.identity is not None and read.identity.source is IdSource.DECODED
-    counts["checked"] += read.identity is not None and read.identity.source is IdSource.APPEARANCE
+    counts["checked"] += read.identity is not None and read.identity.source is IdSource.CHECKED
     counts["unmapped_reads"] += read.unmapped_id is not None
     counts["rejected_reads"] += read.rejected is not None and read.unmapped_id is None
 
