@@ -255,7 +255,7 @@ def test_tagloc_live_publishes_poses_over_udp(session, video):
     est = np.array([[m["x"], m["y"]] for m in tracked])
     errs = np.hypot(*(est - truth_xy(session, [m["t"] for m in tracked])).T)
     assert np.median(errs) < 0.10
-    assert all(m["last_source"] in ("decoded", "orb", "appearance") for m in tracked)
+    assert all(m["last_source"] in ("decoded", "checked", "orb", "appearance") for m in tracked)
 
 
 def test_recording_killed_mid_run_replays_every_written_frame(session, video, tmp_path):

@@ -784,12 +784,14 @@ class Localiser:
     def warm_up(self) -> None:
         """Do now the set-up the first frames would otherwise pay (a live loop, before its first
         frame: 0.1 s of it landed on the first frame's latency): each camera's odometry (patch
-        search, remap tables), the least-squares decoder's blur models and, with a reference bank,
-        identification's tables."""
+        search, remap tables), the least-squares decoder's blur models, the expected-ID check's
+        module masks and, with a reference bank, identification's tables."""
         if self.config.decoder in ("zxing", "both"):
-            from tagloc.vision.decode import blur
+            from tagloc.vision.decode import blur, verify
 
             blur.prepare()
+            if self.config.check_expected:
+                verify.prepare()
         if self.config.odometry:
             for c in range(len(self.rig)):
                 self.floor_odometry(c)

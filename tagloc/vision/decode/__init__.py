@@ -172,7 +172,8 @@ def _check_expected(
     if sticker_id is None:
         return False
     samples = grid()[0]
-    scores = np.array([verify_id(rect, sticker_id, r, samples=samples) for r in range(4)])
+    # On the modules that tell the ID from its decade: a neighbour's symbols share the rest.
+    scores = np.array([verify_id(rect, sticker_id, r, samples=samples, distinct=True) for r in range(4)])
     best = int(np.argmax(scores))
     margin = float(scores[best] - np.delete(scores, best).max())
     if scores[best] < config.expected_min_score or margin < config.expected_min_margin:
