@@ -172,14 +172,19 @@ def _check_expected(
     if sticker_id is None:
         return False
     samples = grid()[0]
-    # On the modules that tell the ID from its decade: a neighbour's symbols share the rest.
+    # On the modules that tell the ID from its decade (a neighbour's symbols share the rest) ...
     scores = np.array([verify_id(rect, sticker_id, r, samples=samples, distinct=True) for r in range(4)])
     best = int(np.argmax(scores))
     margin = float(scores[best] - np.delete(scores, best).max())
     if scores[best] < config.expected_min_score or margin < config.expected_min_margin:
         return False
+    # ... and on all of them, as a decode's final check: a sticker blurred past that is not named
+    # (its corners, hence its fix, are as poor as its modules).
+    whole = verify_id(rect, sticker_id, best, samples=samples)
+    if whole < config.expected_min_score:
+        return False
     result.sticker_id, result.rotation, result.stage = int(sticker_id), best, "expected"
-    result.verify_score, result.rejected = float(scores[best]), None
+    result.verify_score, result.rejected = float(min(scores[best], whole)), None
     return True
 
 

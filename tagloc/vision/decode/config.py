@@ -30,9 +30,12 @@ class DecodeConfig:
             2) are correlated with the raster in each rotation (:func:`verify_id`), on the modules
             that tell it from the other IDs of its decade (``distinct``: a decade shares each
             symbol's first two data codewords); the best rotation at or above
-            ``expected_min_score``, leading the other three by ``expected_min_margin``, names the
-            sticker without the least-squares stage. 0.5 is the decode's own final check
-            (``min_verify``). On the eval and dense walks (``benchmarks/candidate_check.py``) the
+            ``expected_min_score``, leading the other three by ``expected_min_margin``, and at or
+            above ``expected_min_score`` on all 256 modules too (the decode's own final check,
+            ``min_verify``: a sticker blurred past that has poor corners too; on the standard walk
+            s01, one named at 0.51 distinct but 0.44 on all modules gave four fixes ~10 cm off,
+            accepted, and the track stayed 8 cm off for 3 s), names the sticker without the
+            least-squares stage. On the eval and dense walks (``benchmarks/candidate_check.py``) the
             expected sticker's best rotation scored 0.64 (median; 90 % of events >= 0.5), its
             other rotations <= 0.25, another sticker <= 0.29; on the same walks with every third
             sticker mapped under its decade neighbour's ID, the 2013 neighbour events scored
