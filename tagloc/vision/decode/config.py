@@ -35,11 +35,12 @@ class DecodeConfig:
             ``min_verify``: a sticker blurred past that has poor corners too; on the standard walk
             s01, one named at 0.51 distinct but 0.44 on all modules gave four fixes ~10 cm off,
             accepted, and the track stayed 8 cm off for 3 s), names the sticker without the
-            least-squares stage. On the eval and dense walks (``benchmarks/candidate_check.py``) the
-            expected sticker's best rotation scored 0.64 (median; 90 % of events >= 0.5), its
-            other rotations <= 0.25, another sticker <= 0.29; on the same walks with every third
-            sticker mapped under its decade neighbour's ID, the 2013 neighbour events scored
-            <= 0.23 (<= 0.42 on all 256 modules, hence ``distinct``). The margin 0.2 is
+            least-squares stage. On the eval and dense walks (``benchmarks/candidate_check.py``,
+            the lower of the two scores) the expected sticker's best rotation scored 0.62
+            (median; 88 % of events >= 0.5), its other rotations <= 0.20, another sticker <=
+            0.22; on the same walks with every third sticker mapped under its decade neighbour's
+            ID, the 2013 neighbour events scored <= 0.23 (<= 0.42 on all 256 modules, hence
+            ``distinct``). The margin 0.2 is
             identification's own (:class:`tagloc.vision.identify.IdentifyConfig`).
     """
 
