@@ -947,8 +947,13 @@ class Localiser:
         if self.config.check_expected:
 
             def expected() -> int | None:
-                # Asked only when the quick stages read nothing; timed as decoding, which it is part of.
-                best = self.tracker.candidates(self.map, rig_cam, det.outer.mean(axis=0), k=1)
+                # Asked only when the quick stages read nothing; timed as decoding, which it is part
+                # of. With libdmtx the candidates are already there, most likely first.
+                best = (
+                    cands
+                    if cands is not None
+                    else self.tracker.candidates(self.map, rig_cam, det.outer.mean(axis=0), k=1)
+                )
                 return best[0] if best else None
 
         with timer("decode"):

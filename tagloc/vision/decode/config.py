@@ -40,8 +40,8 @@ class DecodeConfig:
             (median; 88 % of events >= 0.5), its other rotations <= 0.20, another sticker <=
             0.22; on the same walks with every third sticker mapped under its decade neighbour's
             ID, the 2013 neighbour events scored <= 0.23 (<= 0.42 on all 256 modules, hence
-            ``distinct``). The margin 0.2 is
-            identification's own (:class:`tagloc.vision.identify.IdentifyConfig`).
+            ``distinct``). The margin 0.2 is identification's own
+            (:class:`tagloc.vision.identify.IdentifyConfig`).
     """
 
     grid_sampling: bool = True
