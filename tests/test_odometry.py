@@ -17,7 +17,7 @@ from tagloc.core.rig import RigCamera, looking_forward
 from tagloc.core.types import IdSource, PoseFix, TrackState
 from tagloc.eval.metrics import trajectory_metrics
 from tagloc.io.session import SessionReader
-from tagloc.pipeline.localiser import LocaliserConfig
+from tagloc.pipeline.localiser import Localiser, LocaliserConfig
 from tagloc.pipeline.run import run_session
 from tagloc.sim.mapgen import GridMapConfig, grid_map
 from tagloc.sim.simulate import SimConfig, simulate_session
@@ -346,7 +346,10 @@ def test_localiser_with_odometry_follows_the_stop(stop_walk):
     m_on, states, counts = results[True]
     # A replay measures every frame (the stride is load shedding for a live loop falling behind),
     # and the steps are fused.
-    assert counts["odometry_strided"] == 0 and counts["odometry_steps"] > 0.95 * counts["frames"]
+    # (A step without the flow's refinement in a frame a read fix placed is not fused: see
+    # test_the_flow_is_skipped_only_where_read_fixes_place_the_frames.)
+    assert counts["odometry_strided"] == 0
+    assert counts["odometry_steps"] + counts["odometry_unfused"] > 0.95 * counts["frames"]
     assert counts["tracker_odometry_accepted"] > 0.9 * counts["odometry_steps"]
     assert m_on["rmse_m"] < 0.03
     # Stickers pass every second here and each fix measures the vest point itself (1.7 cm RMSE
@@ -359,6 +362,60 @@ def test_localiser_with_odometry_follows_the_stop(stop_walk):
     assert 0.1 < m_on["nees_mean"] < 6.0
     first = next(i for i, s in enumerate(states) if s is not TrackState.INITIALISING)
     assert np.mean([s is TrackState.TRACKING for s in states[first:]]) > 0.95
+
+
+def test_a_step_without_the_flows_refinement_is_the_patchs_alone(stop_walk):
+    """``refine=False`` measures the patch's step without the floor flow (its counters stay put),
+    and the frame still serves the next step's flow."""
+    session = SessionReader(stop_walk)
+    frames = [f for f, _ in zip(session.frames(), range(4))]
+    odo = FloorOdometry(session.rig[0])
+    odo.measure(frames[0].image, frames[0].timestamp)
+    assert odo.measure(frames[1].image, frames[1].timestamp, refine=False) is not None
+    assert odo.flow_steps + odo.flow_refused == 0 and odo.last_flow_residual is None
+    assert odo.measure(frames[2].image, frames[2].timestamp) is not None
+    assert odo.flow_steps + odo.flow_refused == 1 and odo.last_flow_residual is not None
+
+
+def test_the_flow_is_skipped_only_where_read_fixes_place_the_frames(stop_walk):
+    """skip_flow_after_fix: after a frame placed by a read fix whose sticker stays well in view, the
+    step is the patch's alone, and fused only if the frame's own fixes do not place it; the track is
+    as good as with the flow on every frame."""
+    session = SessionReader(stop_walk)
+    gt = session.groundtruth()
+    runs = {}
+    for skip in (False, True):
+        loc = Localiser(session.map, session.rig, LocaliserConfig(skip_flow_after_fix=skip))
+        fused_in_fixed = []
+        for frame in session.frames():
+            before = loc.tracker.stats["odometry_accepted"] + loc.tracker.stats["odometry_ignored"]
+            flows = loc.counts["flow_skipped"]
+            res = loc.process(frame)
+            unrefined = loc.counts["flow_skipped"] - flows
+            fused = loc.tracker.stats["odometry_accepted"] + loc.tracker.stats["odometry_ignored"] - before
+            read_fix = any(
+                o.identity is not None
+                and o.identity.source in (IdSource.DECODED, IdSource.CHECKED)
+                and o.fix is not None
+                and o.fix.accepted is True
+                for o in res.observations
+            )
+            fused_in_fixed.append(bool(unrefined and fused and read_fix))
+        runs[skip] = (loc.counts, loc.tracker.stats, fused_in_fixed)
+    c_off, _, _ = runs[False]
+    c_on, st_on, fused_in_fixed = runs[True]
+    assert c_off["flow_skipped"] == 0 and c_off["odometry_unfused"] == 0
+    assert c_on["flow_skipped"] > 0.3 * c_on["frames"] and c_on["odometry_unfused"] > 0.3 * c_on["frames"]
+    # Every step handed to the tracker is counted; no unrefined step was fused in a read-fixed frame.
+    assert st_on["odometry_accepted"] + st_on["odometry_ignored"] == c_on["odometry_steps"]
+    assert not any(fused_in_fixed)
+    m = {}
+    for skip in (False, True):
+        log = run_session(session, LocaliserConfig(skip_flow_after_fix=skip))
+        v = log.valid
+        m[skip] = trajectory_metrics(log.stamps[v], log.poses[v], log.covs[v], *gt)
+    assert m[True]["rmse_m"] < 1.15 * m[False]["rmse_m"] + 0.002
+    assert m[True]["nees_mean"] < 6.0
 
 
 # -- tracker fusion (synthetic) ---------------------------------------------------------------------

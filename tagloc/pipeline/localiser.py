@@ -38,7 +38,7 @@ from tagloc.io.session import CAMERA_FILE, MAP_FILE, RIG_FILE
 from tagloc.vision.decode import DecodeConfig, decode, verify_detection
 from tagloc.vision.detect import detect, merge_boxes
 from tagloc.vision.image import as_gray
-from tagloc.vision.odometry import FloorOdometry, OdometryConfig
+from tagloc.vision.odometry import FloorOdometry, OdometryConfig, OdometryStep
 from tagloc.vision.pose import PoseConfig, solve_pose
 from tracker.candidates import project_map
 from tracker.ekf import largest_eig_2x2
@@ -155,6 +155,22 @@ class LocaliserConfig:
             longer costs a frame's budget. Such a sticker is carried to the next frames as a
             decoded one is (sticker tracking, re-checked when due). Only with a track (the
             tracker's candidates) and the "zxing" or "both" decoder.
+        skip_flow_after_fix: when the camera's last frame was placed by a read fix (a sticker
+            decoded, checked or carried, its fix accepted) and the tracker predicts that sticker at
+            least ``skip_flow_margin_px`` inside this frame, the frame will very likely be placed
+            by its fixes too, and its odometry step is the patch's alone (``refine`` of
+            :meth:`FloorOdometry.measure`: no floor flow, no homography tilt fit; about 2 of the
+            odometry's ~4 ms). Such a step is fused only if the frame's own read fixes do not
+            place it after all (``odometry_unfused`` counts the others): a placed frame needs no
+            step (leaving out the refined steps of placed frames moved walk300's RMSE by 0.01
+            cm), and the patch's cruder step fused next to the fixes pulled them (0.96 -> 1.18
+            cm). It is still measured because the odometry's memory of the turn and the lean
+            must follow every frame into the next gap: taking the frame without any step, that
+            memory set from the tracker's motion instead, the next gaps drifted 2.7 -> 4.5 cm at
+            0.5-1 s after the last fix on walk300. 80 px: half a 10 cm sticker's diagonal at
+            1.3-1.6 m (57-70 px at the Pi camera's 1286 px focal length) and a little for the
+            prediction's error, so that the sticker stays readable. The cost and accuracy
+            measured are in the README's Speed section.
     """
 
     detector: str = "contour"
@@ -176,6 +192,8 @@ class LocaliserConfig:
     defer_odometry: bool = False
     tilt_gate_chi2: float = 13.8
     check_expected: bool = True
+    skip_flow_after_fix: bool = True
+    skip_flow_margin_px: float = 80.0
 
 
 @dataclass
@@ -423,7 +441,17 @@ def new_counts() -> dict[str, int]:
     """The per-run counters a localiser keeps (the baselines keep the same ones)."""
     keys = ("frames", "skipped", "detections", "decoded", "checked", "identified", "rejected_reads", "unmapped_reads")
     return dict.fromkeys(
-        (*keys, "odometry_steps", "odometry_bridged", "odometry_strided", "odometry_unavailable", "tilt_gated"), 0
+        (
+            *keys,
+            "odometry_steps",
+            "odometry_bridged",
+            "odometry_strided",
+            "odometry_unavailable",
+            "flow_skipped",
+            "odometry_unfused",
+            "tilt_gated",
+        ),
+        0,
     )
 
 
@@ -523,7 +551,12 @@ class Localiser:
         # Observations that deferred work finished since the last frame began: (frame index, observation).
         self.late: list[tuple[int, Observation]] = []
         self._index = -1  # the index of the frame being processed
-        self._pending_odo: tuple[np.ndarray, int, float] | None = None  # (gray, camera, t) (defer_odometry)
+        # (gray, camera, t, refine) (defer_odometry)
+        self._pending_odo: tuple[np.ndarray, int, float, bool] | None = None
+        # A step without the flow's refinement, held until the frame's fixes say whether to fuse it
+        # (see skip_flow_after_fix): (step, camera).
+        self._unrefined: tuple[OdometryStep, int] | None = None
+        self._fixes_done = True  # the current frame's fixes are known (its deferred work may run)
         self._pending_anchors: list[tuple[float, float, float]] = []  # fixes' (t, pitch, roll) held for it
         self._failed: list[FailedRead] = []  # detections of the previous frame nothing named
         self._tracked: list[Tracked] = []  # decoded stickers of the previous frame whose fixes were accepted
@@ -531,6 +564,9 @@ class Localiser:
         # last scheduled whole-image search, whether the regions were crowded) for the region
         # search (TrackingConfig.search_every).
         self._searched: dict[int, tuple[float, list[np.ndarray], int, bool]] = {}
+        # Per camera: whether its last frame had a sticker read (decoded, checked or carried) whose
+        # fix the tracker accepted (see skip_flow_after_fix).
+        self._read_fixed: dict[int, bool] = {}
         self.counts["region_searches"] = 0  # frames searched only around expected stickers
         self.counts.update(refused_timestamps=0, clock_resets=0, wrong_size_frames=0)
         self._last_t: float | None = None  # timestamp of the last frame accepted
@@ -562,6 +598,7 @@ class Localiser:
             # at the filter's time, so it is fused before the filter moves on.
             with timer("odometry"):
                 self._run_pending_odometry()
+        self._fixes_done = False  # this frame's fixes are not yet known (see _odometry_step)
         refused = self._check_size(frame) or self._check_time(frame)
         if refused:
             # The filter stays where it was: the output is its latest estimate, stamped with its own time.
@@ -578,6 +615,7 @@ class Localiser:
             self.counts["odometry_strided"] += 1
         with timer("predict"):
             self.tracker.predict(t, frame.camera, odometry=measure)
+        refine = self._flow_needed(frame.camera)
         if frame.image is None:
             self.counts["skipped"] += 1
             with timer("output"):
@@ -589,12 +627,12 @@ class Localiser:
         # queues its decode again).
         self._pending = []
         if measure and self.config.defer_odometry:
-            self._pending_odo = (gray, frame.camera, t)
+            self._pending_odo = (gray, frame.camera, t, refine)
         elif measure:
             # This camera's step since its previous frame: the tracker fuses it against its clone of
             # the pose there (tracker.clones), whatever other cameras' frames came in between.
             with timer("odometry"):
-                self._odometry_step(gray, frame.camera, t)
+                self._odometry_step(gray, frame.camera, t, refine)
         elif odo is not None:
             odo.hold(gray, t)
         with timer("detect"):
@@ -649,8 +687,14 @@ class Localiser:
             observations.append(
                 Observation(det, frame.camera, identity, fix, read.rejected, read.unmapped_id, read.unmapped_rotation)
             )
-        self._track(observations, carried, [r.identity is not None for r in reads], frame.camera, t)
+        read_flags = [r.identity is not None for r in reads]
+        self._track(observations, carried, read_flags, frame.camera, t)
         self._failed = failed
+        self._read_fixed[frame.camera] = any(
+            r and o.fix is not None and o.fix.accepted is True for o, r in zip(observations, read_flags)
+        )
+        self._fuse_unrefined()
+        self._fixes_done = True
 
         with timer("output"):
             out = self.tracker.output(t)
@@ -766,6 +810,7 @@ class Localiser:
         self._failed = []
         self._pending = []
         self._searched = {}
+        self._read_fixed = {}
         self._sticker_corners = {}
 
     def _check_size(self, frame: Frame) -> str | None:
@@ -814,17 +859,53 @@ class Localiser:
                 self.counts["odometry_unavailable"] += 1
         return self._odometry[camera]
 
-    def _odometry_step(self, gray: np.ndarray, camera: int, t: float) -> None:
+    def _odometry_step(self, gray: np.ndarray, camera: int, t: float, refine: bool = True) -> None:
+        """Measure this camera's step to the frame at ``t`` and fuse it; a step without the flow's
+        refinement (``refine`` False) is fused only if the frame has no read fix (see
+        ``skip_flow_after_fix``): when the step runs before the frame's fixes, it is held
+        (:attr:`_unrefined`) until they are known (:meth:`_fuse_unrefined`)."""
         odo = self.floor_odometry(camera)
         velocity = self.tracker.velocity()
         twist = velocity if self.rig[camera].readout_s > 0 else None
         speed = None if velocity is None else float(velocity[0])
-        step = odo.measure(gray, t, twist, speed) if odo is not None else None
+        self.counts["flow_skipped"] += odo is not None and not refine
+        step = odo.measure(gray, t, twist, speed, refine) if odo is not None else None
         self._step = step
         if step is not None:
-            self.counts["odometry_steps"] += 1
             # Only a step over dropped frames spans more than max_dt (see OdometryConfig.bridge_max_dt).
             self.counts["odometry_bridged"] += int(step.t1 - step.t0 > odo.config.max_dt)
+            if refine:
+                self.counts["odometry_steps"] += 1
+                self.tracker.update_odometry(step, camera)
+            else:
+                self._unrefined = (step, camera)
+                if self._fixes_done:
+                    self._fuse_unrefined()
+
+    def _flow_needed(self, camera: int) -> bool:
+        """Whether this frame's odometry step needs the floor flow's refinement: False only when
+        ``skip_flow_after_fix`` and the camera's last frame was placed by a read fix whose sticker the
+        tracker now predicts at least ``skip_flow_margin_px`` inside the image (so that this frame
+        will very likely be placed by it too)."""
+        cfg = self.config
+        if not (cfg.skip_flow_after_fix and self._read_fixed.get(camera, False)):
+            return True
+        rig_cam = self.rig[camera]
+        ids = [tr.identity.sticker_id for tr in self._tracked if tr.camera == camera]
+        m, w, h = cfg.skip_flow_margin_px, rig_cam.camera.width, rig_cam.camera.height
+        pix = self.tracker.sticker_pixels(self.map, rig_cam, ids).values()
+        return not any(m <= u <= w - 1 - m and m <= v <= h - 1 - m for u, v in pix)
+
+    def _fuse_unrefined(self) -> None:
+        """Fuse the held unrefined step unless its frame was placed by a read fix."""
+        held, self._unrefined = self._unrefined, None
+        if held is None:
+            return
+        step, camera = held
+        if self._read_fixed.get(camera, False):
+            self.counts["odometry_unfused"] += 1
+        else:
+            self.counts["odometry_steps"] += 1
             self.tracker.update_odometry(step, camera)
 
     def _body_twist(self, rig_cam: RigCamera, t: float) -> np.ndarray | None:

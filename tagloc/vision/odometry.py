@@ -658,6 +658,7 @@ class FloorOdometry:
         self._rs = self._rolling_shutter_grid(n, ss, T_cb) if rs else None
         self.tilt_gated_in_row = 0  # sticker fixes refused by the tilt gate in a row (see tilt_gate_result)
         self._flow = FloorFlow(rig_camera, cfg.flow_config, rolling_shutter=cfg.rolling_shutter) if cfg.flow else None
+        self._refine = True  # the step being measured is refined (see measure's refine)
         self._prev_gray: np.ndarray | None = None  # the frame of _prev, for the flow
         self.flow_steps = 0  # steps the flow refined
         self.bridged = 0  # steps that bridged dropped frames (see bridge_max_dt)
@@ -834,7 +835,12 @@ class FloorOdometry:
         self._held = (float(t), gray)
 
     def measure(
-        self, gray: np.ndarray, t: float, body_twist: np.ndarray | None = None, walk_speed: float | None = None
+        self,
+        gray: np.ndarray,
+        t: float,
+        body_twist: np.ndarray | None = None,
+        walk_speed: float | None = None,
+        refine: bool = True,
     ) -> OdometryStep | None:
         """Body motion from the previous frame measured to this one (``gray`` (H, W) uint8, time ``t``
         s), or None.
@@ -847,6 +853,10 @@ class FloorOdometry:
         weak or ended far from the turn guessed (the turn changed) is replaced by the two steps
         through the skipped frame, composed. ``walk_speed``: the walk's forward speed (m/s) predicted
         for this frame by the tracker, for the pitch lean (see ``pitch_lean``); None: not tracking.
+        ``refine`` False: the patch's step alone, for a frame that sticker fixes will very likely
+        place (``LocaliserConfig.skip_flow_after_fix``): neither the flow's refinement (``flow``)
+        nor the homography's tilt fit (``tilt_correction``) is made, and the torso's tilt filter
+        only predicts through the step (the fixes' tilt anchors it at the frame).
         """
         t = float(t)
         self.last_flow_residual = None
@@ -862,7 +872,8 @@ class FloorOdometry:
         dt = t - prev[0]
         if not (0.0 < dt <= max(self.config.max_dt, self.config.bridge_max_dt)):
             return None
-        grays = (prev_gray, gray) if prev_gray is not None else None
+        grays = (prev_gray, gray) if prev_gray is not None and refine else None
+        self._refine = refine
         if dt > self.config.max_dt:
             # Frames were dropped: bridge the gap from the walk predicted through it.
             step = self._bridge(prev, (t, small), body_twist, grays)
@@ -1044,6 +1055,9 @@ class FloorOdometry:
         if flow is not None:
             fit: tuple[float, float | None] | None = (flow.d_pitch, flow.d_roll)
             fit_sigma = self.config.flow_config.tilt_sigma
+        elif not self._refine:
+            # (see measure's refine: the frame's sticker fixes anchor the tilt instead)
+            fit, fit_sigma = None, None
         else:
             fit = self._tilt_fit(small, psmall, W, delta, t1 - t0, R_tilt)
             fit_sigma = None
