@@ -322,8 +322,9 @@ def test_live_loop_keeps_going_through_a_broker_restart(session, tmp_path):
 @pytest.mark.parametrize("stride", [True, False])
 def test_live_loop_strides_the_odometry_only_when_behind(tmp_path, stride):
     """Unpaced, every frame is waiting when the last one is done (the computer is "behind"): the
-    odometry then skips frames while walking straight, unless ``stride_when_behind`` is off; a
-    replay (no live loop) never does by default."""
+    odometry then skips frames while walking straight, and the floor flow after frames that read
+    fixes placed, unless ``stride_when_behind`` is off; a replay (no live loop) never does by
+    default."""
     from tagloc.pipeline.localiser import Localiser
 
     path = make_session(tmp_path / "sess", 40, 30.0)
@@ -336,5 +337,7 @@ def test_live_loop_strides_the_odometry_only_when_behind(tmp_path, stride):
     if stride:
         assert loc.counts["odometry_strided"] >= 3
         assert steps + loc.counts["odometry_strided"] >= 36
+        assert loc.counts["flow_skipped"] >= 3  # and the flow after frames read fixes placed
     else:
         assert loc.counts["odometry_strided"] == 0 and steps >= 36
+        assert loc.counts["flow_skipped"] == 0

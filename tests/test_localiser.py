@@ -183,15 +183,13 @@ def test_baseline_holds_its_last_fix_over_an_unreadable_frame(walk):
 
 def test_region_search_between_whole_image_searches_keeps_the_track(walk, full_log):
     """Searching only round expected stickers two frames in three (the default) fixes the same
-    stickers as searching every whole frame on this walk, and does search regions (in a tenth of its
-    frames: at 150 lux the prior's 3 sigma often makes the regions too wide to be worth cutting out,
-    the more so since frames that read fixes place fuse no odometry step, see
-    LocaliserConfig.skip_flow_after_fix: a quarter of them before that)."""
+    stickers as searching every whole frame on this walk, and does search regions (in a quarter of its
+    frames: at 150 lux the prior's 3 sigma often makes the regions too wide to be worth cutting out)."""
     import dataclasses
 
     cfg = LocaliserConfig()
     every = LocaliserConfig(tracking=dataclasses.replace(cfg.tracking, search_every=1))
     base = run_session(SessionReader(walk), every)
-    assert full_log.counts["region_searches"] > 0.07 * len(full_log.stamps)
+    assert full_log.counts["region_searches"] > 0.2 * len(full_log.stamps)
     assert base.counts["region_searches"] == 0
     np.testing.assert_allclose(full_log.poses[full_log.valid], base.poses[base.valid], atol=1e-9)

@@ -169,8 +169,13 @@ class LocaliserConfig:
             memory set from the tracker's motion instead, the next gaps drifted 2.7 -> 4.5 cm at
             0.5-1 s after the last fix on walk300. 80 px: half a 10 cm sticker's diagonal at
             1.3-1.6 m (57-70 px at the Pi camera's 1286 px focal length) and a little for the
-            prediction's error, so that the sticker stays readable. The cost and accuracy
-            measured are in the README's Speed section.
+            prediction's error, so that the sticker stays readable. Off by default: it takes
+            about 2 ms off a frame's mean (walk300 6.6 -> 4.6 ms), but over the eval presets its
+            accuracy is mixed (field 3.05 -> 3.12 cm in a replay, 98.9 % of the frames within 10
+            cm instead of 99.2; standard 1.79 -> 1.88 cm in live's order, s01 2.76 -> 3.08), so
+            it is load shedding: ``tagloc live`` turns it on while it falls behind the camera
+            (:attr:`Localiser.behind`, with the odometry's stride). See the README's Speed
+            section.
     """
 
     detector: str = "contour"
@@ -192,7 +197,7 @@ class LocaliserConfig:
     defer_odometry: bool = False
     tilt_gate_chi2: float = 13.8
     check_expected: bool = True
-    skip_flow_after_fix: bool = True
+    skip_flow_after_fix: bool = False
     skip_flow_margin_px: float = 80.0
 
 
@@ -538,7 +543,8 @@ class Localiser:
         self._odometry: dict[int, FloorOdometry | None] = {}  # per rig camera; None: camera sees too little floor
         self._step = None  # this frame's odometry step, for the rolling-shutter correction
         # Set by a live loop while frames wait for the localiser (it is falling behind the camera):
-        # the odometry may then skip frames as with odometry_stride.
+        # the odometry may then skip frames as with odometry_stride, and the floor flow after
+        # frames that read fixes placed as with skip_flow_after_fix.
         self.behind = False
         self.counts = new_counts()
         self.counts["tracked"] = 0  # detections whose identity came from sticker tracking, not a decode
@@ -884,11 +890,11 @@ class Localiser:
 
     def _flow_needed(self, camera: int) -> bool:
         """Whether this frame's odometry step needs the floor flow's refinement: False only when
-        ``skip_flow_after_fix`` and the camera's last frame was placed by a read fix whose sticker the
+        ``skip_flow_after_fix`` (or :attr:`behind`) and the camera's last frame was placed by a read fix whose sticker the
         tracker now predicts at least ``skip_flow_margin_px`` inside the image (so that this frame
         will very likely be placed by it too)."""
         cfg = self.config
-        if not (cfg.skip_flow_after_fix and self._read_fixed.get(camera, False)):
+        if not ((cfg.skip_flow_after_fix or self.behind) and self._read_fixed.get(camera, False)):
             return True
         rig_cam = self.rig[camera]
         ids = [tr.identity.sticker_id for tr in self._tracked if tr.camera == camera]
