@@ -58,7 +58,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--no-stride",
         action="store_true",
-        help="never let the floor odometry skip frames when processing falls behind the camera",
+        help="never let the floor odometry skip frames, or its flow after frames sticker fixes placed, "
+        "when processing falls behind the camera",
     )
     p.add_argument("--buffer", type=int, default=1, help="frames the capture thread keeps (default 1)")
     p.add_argument(

@@ -621,7 +621,7 @@ class Localiser:
             self.counts["odometry_strided"] += 1
         with timer("predict"):
             self.tracker.predict(t, frame.camera, odometry=measure)
-        refine = self._flow_needed(frame.camera)
+        refine = self._flow_needed(frame.camera) if measure else True
         if frame.image is None:
             self.counts["skipped"] += 1
             with timer("output"):
