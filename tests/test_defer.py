@@ -4,6 +4,7 @@ and a replay defers nothing."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -170,3 +171,34 @@ def test_eval_mode_full_live_runs_tagloc_in_live_order(blurred_walk, blurred_rep
     assert _measured(loc) >= _measured(replay) - 3
     assert wrong_id_fixes(blurred_walk, log)[0] == 0
     assert _metrics(blurred_walk, log)["rmse_m"] <= _metrics(blurred_walk, rlog)["rmse_m"] + 0.005
+
+
+def test_the_live_loops_frame_log_holds_the_fixes_deferred_work_made(blurred_walk, tmp_path):
+    """``tagloc live --log``: a sticker named after its frame went out is logged on a ``"late"`` line
+    after that frame's, so that the log's accepted fixes are exactly the tracker's."""
+    from tagloc.apps.live import LiveConfig, run_live
+    from tagloc.io.sinks import late_observations_json
+
+    session = SessionReader(blurred_walk)
+    loc = Localiser(
+        session.map, session.rig, LocaliserConfig(defer_lsq=True, check_expected=False), map_path=session.map_path
+    )
+    log = tmp_path / "frames.jsonl"
+    run_live(LiveConfig(source=str(blurred_walk), log=log), localiser=loc)
+    lines = [json.loads(line) for line in log.read_text().splitlines()]
+    late = [d for d in lines if d.get("late")]
+    logged = sum(o.get("accepted") is True for d in lines for o in d["observations"])
+    accepted = sum(v for k, v in loc.tracker.stats.items() if k.startswith("accepted_"))
+    assert logged == accepted and (loc.counts["deferred_named"] == 0) == (not late)
+    seen = set()
+    for d in lines:
+        if d.get("late"):
+            assert d["index"] in seen  # after its own frame's line, with its time
+        seen.add(d["index"])
+    # The line's form, on a frame whose deferred decode named its sticker.
+    frame_loc = Localiser(*_blurred_scene()[:2], LocaliserConfig(odometry=False, defer_lsq=True))
+    frame_loc.process(Frame(7, 0.25, _blurred_scene()[2]))
+    frame_loc.deferred_work()
+    doc = late_observations_json(7, 0.25, [o for _, o in frame_loc.late])
+    assert doc["index"] == 7 and doc["late"] is True and doc["t"] == 0.25
+    assert [o["sticker_id"] for o in doc["observations"]] == [STICKER] and doc["observations"][0]["accepted"]

@@ -348,6 +348,9 @@ class _LiveRun:
                 before = counts.get("deferred_fixes", 0)
                 deferred(self._no_frame_waiting)
                 self.fixes += counts.get("deferred_fixes", 0) - before
+                # (all of this frame's: deferred work only finishes the frame just published)
+                late = [obs for index, obs in getattr(self.localiser, "late", []) if index == frame.index]
+                outputs.emit_late(frame.index, frame.timestamp, late)
             if self.cfg.stride_when_behind and hasattr(self.localiser, "behind"):
                 self.localiser.behind = not self._no_frame_waiting()
             self.frames += 1

@@ -487,12 +487,7 @@ def frame_result_json(result: FrameResult, include_times: bool = False) -> dict:
     Wall-clock stage timings vary run to run, so they are left out unless ``include_times``:
     without them a replay's log is byte-for-byte reproducible.
     """
-    obs = []
-    for o in result.observations:
-        d = o.to_json()
-        if not include_times:
-            d.pop("times_ms", None)
-        obs.append(d)
+    obs = _observations_json(result.observations, include_times)
     doc = {
         "index": int(result.index),
         "t": round(float(result.timestamp), 6),
@@ -505,8 +500,31 @@ def frame_result_json(result: FrameResult, include_times: bool = False) -> dict:
     return doc
 
 
+def _observations_json(observations, include_times: bool) -> list[dict]:
+    out = []
+    for o in observations:
+        d = o.to_json()
+        if not include_times:
+            d.pop("times_ms", None)
+        out.append(d)
+    return out
+
+
+def late_observations_json(index: int, t: float, observations, include_times: bool = False) -> dict:
+    """Plain-data form of observations finished after frame ``index`` (time ``t`` s) was published
+    (``tagloc live``'s deferred work: a decode and its fix, fused at that frame's time), for the
+    per-frame log: ``{"index", "t", "late": true, "observations"}``."""
+    return {
+        "index": int(index),
+        "t": round(float(t), 6),
+        "late": True,
+        "observations": _observations_json(observations, include_times),
+    }
+
+
 class FrameLog:
-    """Per-frame JSON lines log: observations and tracker output of every frame."""
+    """Per-frame JSON lines log: observations and tracker output of every frame, and (live) a
+    ``"late": true`` line for the observations a frame's deferred work finished after it."""
 
     def __init__(self, path: str | Path, include_times: bool = False):
         self.path = Path(path)
@@ -522,6 +540,12 @@ class FrameLog:
             json.dumps(frame_result_json(result, self.include_times), separators=(",", ":"), default=_json_default)
             + "\n"
         )
+        self._f.flush()
+
+    def write_late(self, index: int, t: float, observations) -> None:
+        """Append one line of observations finished after frame ``index`` (time ``t``) was logged."""
+        doc = late_observations_json(index, t, observations, self.include_times)
+        self._f.write(json.dumps(doc, separators=(",", ":"), default=_json_default) + "\n")
         self._f.flush()
 
     def close(self) -> None:

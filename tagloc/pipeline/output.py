@@ -30,7 +30,7 @@ from pathlib import Path
 from tagloc.core.errors import InputError
 from tagloc.core.rig import Rig
 from tagloc.core.stickermap import StickerMap
-from tagloc.core.types import Frame, FrameResult
+from tagloc.core.types import Frame, FrameResult, Observation
 from tagloc.io.sinks import FrameLog, PoseMessage, Sink, TumSink, open_sink
 
 
@@ -191,6 +191,14 @@ class Outputs:
         if latency is None and grabbed is not None:
             latency = (time.monotonic() - grabbed) * 1e3
         return latency
+
+    def emit_late(self, index: int, t: float, observations: list[Observation]) -> None:
+        """Log the observations that frame ``index``'s deferred work finished after the frame was
+        published (``tagloc live``; :attr:`Localiser.late`), with the frame's time ``t`` (s), as a
+        ``"late"`` line of the per-frame log. Their fixes are in the filter already; the sinks see
+        them in the next frame's pose."""
+        if self.log is not None and observations:
+            self.log.write_late(index, t, observations)
 
     def check(self, now: float | None = None) -> None:
         """Warn about sinks that cannot publish (rate-limited), and once when one recovers."""
