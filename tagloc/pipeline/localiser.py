@@ -890,9 +890,9 @@ class Localiser:
 
     def _flow_needed(self, camera: int) -> bool:
         """Whether this frame's odometry step needs the floor flow's refinement: False only when
-        ``skip_flow_after_fix`` (or :attr:`behind`) and the camera's last frame was placed by a read fix whose sticker the
-        tracker now predicts at least ``skip_flow_margin_px`` inside the image (so that this frame
-        will very likely be placed by it too)."""
+        ``skip_flow_after_fix`` (or :attr:`behind`) and the camera's last frame was placed by a read
+        fix whose sticker the tracker now predicts at least ``skip_flow_margin_px`` inside the image
+        (so that this frame will very likely be placed by it too)."""
         cfg = self.config
         if not ((cfg.skip_flow_after_fix or self.behind) and self._read_fixed.get(camera, False)):
             return True
