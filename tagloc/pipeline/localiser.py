@@ -562,7 +562,6 @@ class Localiser:
         # A step without the flow's refinement, held until the frame's fixes say whether to fuse it
         # (see skip_flow_after_fix): (step, camera).
         self._unrefined: tuple[OdometryStep, int] | None = None
-        self._fixes_done = True  # the current frame's fixes are known (its deferred work may run)
         self._pending_anchors: list[tuple[float, float, float]] = []  # fixes' (t, pitch, roll) held for it
         self._failed: list[FailedRead] = []  # detections of the previous frame nothing named
         self._tracked: list[Tracked] = []  # decoded stickers of the previous frame whose fixes were accepted
@@ -571,7 +570,7 @@ class Localiser:
         # search (TrackingConfig.search_every).
         self._searched: dict[int, tuple[float, list[np.ndarray], int, bool]] = {}
         # Per camera: whether its last frame had a sticker read (decoded, checked or carried) whose
-        # fix the tracker accepted (see skip_flow_after_fix).
+        # fix the tracker accepted in the frame (see skip_flow_after_fix).
         self._read_fixed: dict[int, bool] = {}
         self.counts["region_searches"] = 0  # frames searched only around expected stickers
         self.counts.update(refused_timestamps=0, clock_resets=0, wrong_size_frames=0)
@@ -604,7 +603,6 @@ class Localiser:
             # at the filter's time, so it is fused before the filter moves on.
             with timer("odometry"):
                 self._run_pending_odometry()
-        self._fixes_done = False  # this frame's fixes are not yet known (see _odometry_step)
         refused = self._check_size(frame) or self._check_time(frame)
         if refused:
             # The filter stays where it was: the output is its latest estimate, stamped with its own time.
@@ -700,7 +698,6 @@ class Localiser:
             r and o.fix is not None and o.fix.accepted is True for o, r in zip(observations, read_flags)
         )
         self._fuse_unrefined()
-        self._fixes_done = True
 
         with timer("output"):
             out = self.tracker.output(t)
@@ -867,9 +864,9 @@ class Localiser:
 
     def _odometry_step(self, gray: np.ndarray, camera: int, t: float, refine: bool = True) -> None:
         """Measure this camera's step to the frame at ``t`` and fuse it; a step without the flow's
-        refinement (``refine`` False) is fused only if the frame has no read fix (see
-        ``skip_flow_after_fix``): when the step runs before the frame's fixes, it is held
-        (:attr:`_unrefined`) until they are known (:meth:`_fuse_unrefined`)."""
+        refinement (``refine`` False) is held (:attr:`_unrefined`) until the frame's fixes are
+        known, then fused only if none of them placed the frame (:meth:`_fuse_unrefined`; see
+        ``skip_flow_after_fix``)."""
         odo = self.floor_odometry(camera)
         velocity = self.tracker.velocity()
         twist = velocity if self.rig[camera].readout_s > 0 else None
@@ -885,8 +882,6 @@ class Localiser:
                 self.tracker.update_odometry(step, camera)
             else:
                 self._unrefined = (step, camera)
-                if self._fixes_done:
-                    self._fuse_unrefined()
 
     def _flow_needed(self, camera: int) -> bool:
         """Whether this frame's odometry step needs the floor flow's refinement: False only when
@@ -1144,6 +1139,7 @@ class Localiser:
         job, self._pending_odo = self._pending_odo, None
         if job is not None:
             self._odometry_step(*job)
+            self._fuse_unrefined()  # (its frame's fixes are known by now)
         anchors, self._pending_anchors = self._pending_anchors, []
         for anchor in anchors:
             self._anchor_tilt(*anchor)
