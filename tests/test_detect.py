@@ -365,3 +365,50 @@ def test_region_search_finds_what_the_whole_image_search_finds():
     # Overlapping boxes are merged: no sticker twice.
     x0, y0, x1, y1 = boxes[0]
     assert same(detect_stickers(f.image, CAM, regions=[boxes[0], (x0 + 9, y0 - 7, x1 + 9, y1 - 7)]), whole[:1])
+
+
+def test_grouped_huber_lines_equal_each_group_fitted_alone():
+    from tagloc.vision.detect import huber_lines
+
+    rng = np.random.default_rng(11)
+    # Three groups of four sides, noisy enough (and one gross outlier each) that the groups settle
+    # after different numbers of reweighting passes.
+    groups, masks = [], []
+    for k in range(3):
+        t = np.linspace(-20, 20, 16)
+        sides = []
+        for side in range(4):
+            angle = rng.uniform(0, np.pi)
+            d, nrm = np.array([np.cos(angle), np.sin(angle)]), np.array([-np.sin(angle), np.cos(angle)])
+            pts = 30.0 * side + t[:, None] * d + rng.normal(0, 0.2 + 0.6 * k, (16, 1)) * nrm
+            pts[(5 * side + k) % 16] += (3.0 + 2 * k) * nrm
+            sides.append(pts)
+        groups.append(np.array(sides))
+        masks.append(rng.random((4, 16)) > 0.1)
+    together = huber_lines(np.concatenate(groups), np.concatenate(masks), group=4)
+    alone = np.concatenate([huber_lines(g, m) for g, m in zip(groups, masks)])
+    assert np.array_equal(together, alone)
+    # One group of all twelve runs until every set settles: not the same fits.
+    assert not np.array_equal(huber_lines(np.concatenate(groups), np.concatenate(masks)), alone)
+
+
+def test_refining_candidates_together_equals_refining_each_alone():
+    import dataclasses
+
+    from tagloc.vision.detect import _candidates, _lineariser, _refine
+
+    f = _floor_scene(3, seed=5, noise=3, blur_px=4.0, distractors=[(1100, 250, 45, 20)])
+    cfg = DetectConfig()
+    lin = _lineariser(cfg.response_gamma)
+    quads = _candidates(as_gray(f.image), cfg, None)
+    assert len(quads) >= 4  # the three stickers and the distractor
+    for pass_cfg, search, inner in ((dataclasses.replace(cfg, profiles_per_side=10), 5.0, False), (cfg, 1.5, True)):
+        together = _refine(f.image, CAM, quads, pass_cfg, lin, search, inner)
+        alone = [_refine(f.image, CAM, [q], pass_cfg, lin, search, inner)[0] for q in quads]
+        assert sum(r is not None for r in together) == 3  # the distractor has no paper inside
+        for a, b in zip(together, alone):
+            assert (a is None) == (b is None)
+            if a is not None:
+                assert np.array_equal(a.outer, b.outer) and a.score == b.score
+                assert (a.inner is None) == (b.inner is None)
+                assert a.inner is None or np.array_equal(a.inner, b.inner)

@@ -436,19 +436,29 @@ def _candidates_in(
     return quads, group
 
 
-def huber_lines(points: np.ndarray, mask: np.ndarray, iterations: int = _HUBER_ITERATIONS) -> np.ndarray:
+def huber_lines(
+    points: np.ndarray, mask: np.ndarray, iterations: int = _HUBER_ITERATIONS, group: int | None = None
+) -> np.ndarray:
     """Huber line fits of L point sets at once: points (L, N, 2), mask (L, N) of the points that count.
 
     Iteratively reweighted total least squares (what cv2.fitLine's DIST_HUBER does, one set per
     call): each pass fits the weighted principal axis in closed form for every set, then gives a
-    point at distance r > C the weight C / r (C = 1.345 px, OpenCV's default). Returns homogeneous
-    lines (L, 3) with unit normals; NaN rows for sets of fewer than two points.
+    point at distance r > C the weight C / r (C = 1.345 px, OpenCV's default). The passes stop
+    once no weight moves by 1e-3 within a group of ``group`` consecutive sets (None: all L are one
+    group); a group that stopped keeps that pass's lines, as if fitted on its own (refinement fits
+    the four sides of several stickers at once, a group each). Returns homogeneous lines (L, 3)
+    with unit normals; NaN rows for sets of fewer than two points.
     """
     w = mask.astype(float)
+    L = len(points)
+    g = L if group is None else group
+    n_groups = L // max(g, 1)
     # x and y as rows (L, 2, N), so that each pass handles both coordinates in one array operation
     # (the few dozen points per set make numpy's per-call overhead the cost). The arithmetic is that
     # of the per-coordinate form: the same products, each summed over a set's points in the same order.
     xy = np.ascontiguousarray(points.transpose(0, 2, 1), dtype=float)
+    out = np.empty((L, 3)) if n_groups > 1 else None
+    done = np.zeros(n_groups, bool)
     with np.errstate(invalid="ignore", divide="ignore"):
         for _ in range(iterations):
             w3 = w[:, None, :]
@@ -462,11 +472,25 @@ def huber_lines(points: np.ndarray, mask: np.ndarray, iterations: int = _HUBER_I
             nx, ny = -np.sin(theta), np.cos(theta)
             r = np.abs(d[:, 0] * nx[:, None] + d[:, 1] * ny[:, None])
             w_new = np.where(mask, np.minimum(1.0, HUBER_C / r), 0.0)  # Huber: 1 within C, C / r beyond
-            if float(np.abs(w_new - w).max()) < 1e-3:
-                break
+            if n_groups == 1:
+                if float(np.abs(w_new - w).max()) < 1e-3:
+                    break
+            else:
+                settled = np.abs(w_new - w).reshape(n_groups, -1).max(axis=1) < 1e-3
+                now = settled & ~done
+                if now.any():
+                    rows = np.repeat(now, g)
+                    out[rows] = np.stack([nx, ny, -(nx * m[:, 0] + ny * m[:, 1])], axis=1)[rows]
+                    done |= settled
+                    if done.all():
+                        return out
             w = w_new
-    mx, my = m[:, 0], m[:, 1]
-    return np.stack([nx, ny, -(nx * mx + ny * my)], axis=1)
+    lines = np.stack([nx, ny, -(nx * m[:, 0] + ny * m[:, 1])], axis=1)
+    if out is None:
+        return lines
+    rest = np.repeat(~done, g)
+    out[rest] = lines[rest]
+    return out
 
 
 def _line_residuals(points: np.ndarray, lines: np.ndarray) -> np.ndarray:
@@ -475,11 +499,14 @@ def _line_residuals(points: np.ndarray, lines: np.ndarray) -> np.ndarray:
 
 
 def _robust_lines(
-    points: np.ndarray, mask: np.ndarray, min_points: int, sigmas: float, floor_px: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """:func:`robust_line` for L point sets at once (points (L, N, 2), mask (L, N)): lines (L, 3),
-    inlier RMS (L,) and inlier mask (L, N); None if any set keeps fewer than ``min_points``."""
-    lines = huber_lines(points, mask)
+    points: np.ndarray, mask: np.ndarray, min_points: int, sigmas: float, floor_px: float, group: int | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`robust_line` for L point sets at once (points (L, N, 2), mask (L, N)), in groups of
+    ``group`` consecutive sets (None: one group of all): lines (L, 3), inlier RMS (L,), inlier mask
+    (L, N), and per group whether every set kept at least ``min_points`` (G,) (where not, its
+    lines are not to be used)."""
+    g = len(points) if group is None else group
+    lines = huber_lines(points, mask, group=g)
     res = _line_residuals(points, lines)
     counts = mask.sum(axis=1)
     # Median of each set's residuals: the masked-out ones sort last.
@@ -487,13 +514,16 @@ def _robust_lines(
     rows = np.arange(len(points))
     med = 0.5 * (srt[rows, (counts - 1) // 2] + srt[rows, counts // 2])
     keep = mask & (res <= np.maximum(floor_px, sigmas * _MAD_TO_SIGMA * med)[:, None])
-    if keep.sum(axis=1).min() < min_points:
-        return None
-    if not np.array_equal(keep, mask):  # else the refit is the fit (usually: no outliers)
-        lines = huber_lines(points, keep)
-        res = _line_residuals(points, lines)
-    rms = np.sqrt((np.where(keep, res, 0.0) ** 2).sum(axis=1) / keep.sum(axis=1))
-    return lines, rms, keep
+    n_groups = len(points) // max(g, 1)
+    ok = keep.sum(axis=1).reshape(n_groups, g).min(axis=1) >= min_points
+    # A group without outliers keeps its fit (usually); the others are refitted on their inliers.
+    refit = np.repeat(ok & (keep != mask).reshape(n_groups, -1).any(axis=1), g)
+    if refit.any():
+        lines[refit] = huber_lines(points[refit], keep[refit], group=g)
+        res[refit] = _line_residuals(points[refit], lines[refit])
+    # (A group refused above may keep no point; its RMS is not used.)
+    rms = np.sqrt((np.where(keep, res, 0.0) ** 2).sum(axis=1) / np.maximum(keep.sum(axis=1), 1))
+    return lines, rms, keep, ok
 
 
 def robust_line(
@@ -505,19 +535,19 @@ def robust_line(
     edge; one such point must not sink a side whose other points are on a line. Points further than
     ``sigmas`` robust sigmas (at least ``floor_px``) from the first Huber fit are dropped and the line
     refitted. Returns the line (3,), the inliers' RMS residual (px) and the inlier mask (N,).
-    (One set of :func:`_robust_lines`, which refinement runs on all four sides at once.)
+    (One set of :func:`_robust_lines`, which refinement runs on the sides of several stickers at once.)
     """
-    fit = _robust_lines(points[None], np.ones((1, len(points)), bool), min_points, sigmas, floor_px)
-    if fit is None:
+    lines, rms, keep, ok = _robust_lines(points[None], np.ones((1, len(points)), bool), min_points, sigmas, floor_px)
+    if not ok[0]:
         return None
-    return fit[0][0], float(fit[1][0]), fit[2][0]
+    return lines[0], float(rms[0]), keep[0]
 
 
 def _intersect(lines: np.ndarray) -> np.ndarray:
-    """Corner i = side i-1 x side i, for (4, 3) lines; returns (4, 2)."""
-    p = _cross(lines[_PREV], lines)
+    """Corner i = side i-1 x side i, for (..., 4, 3) lines; returns (..., 4, 2)."""
+    p = _cross(lines[..., _PREV, :].reshape(-1, 3), lines.reshape(-1, 3))
     with np.errstate(divide="ignore", invalid="ignore"):
-        return p[:, :2] / p[:, 2:3]
+        return (p[:, :2] / p[:, 2:3]).reshape(*lines.shape[:-1], 2)
 
 
 def _implied_inner(outer_ideal: np.ndarray) -> np.ndarray:
@@ -554,21 +584,24 @@ class _Refined:
 
 @dataclass
 class _Profiles:
-    """Intensity profiles across the four sides of a quad, in linear light.
+    """Intensity profiles across the four sides of K quads, in linear light.
 
-    base (4, n, 2): profile origins on the sides (distorted px); inward (4, 2): unit normals into
-    the quad; s (S,): sample positions along ``inward`` (px); prof (4, n, S): profiles (each the
-    mean of a strip across the side); frame_w (4, n): distance to the inner edge implied by the
-    quad, px; fw: its median; quiet: width of the quiet zone inside the frame, px.
+    base (K, 4, n, 2): profile origins on the sides (distorted px); inward (K, 4, 2): unit normals
+    into the quads; s (S,): sample positions along ``inward`` (px), shared, each quad's own
+    ``length`` (K,) first of them sampled (its profiles are NaN beyond); prof (K, 4, n, S):
+    profiles (each the mean of a strip across the side); frame_w (K, 4, n): distance to the inner
+    edge implied by the quad, px; fw (K,): its median; quiet (K,): width of the quiet zone inside
+    the frame, px.
     """
 
     base: np.ndarray
     inward: np.ndarray
     s: np.ndarray
+    length: np.ndarray
     prof: np.ndarray
     frame_w: np.ndarray
-    fw: float
-    quiet: float
+    fw: np.ndarray
+    quiet: np.ndarray
 
 
 class _Linearise:
@@ -606,44 +639,57 @@ def _nan_to(a: np.ndarray, value: float) -> np.ndarray:
 
 
 def _sample_profiles(
-    gray: np.ndarray, quad: np.ndarray, cfg: DetectConfig, search_px: float, lin: _Linearise | None
-) -> _Profiles | None:
-    """Sample every profile of the quad's four sides with one cv2.remap; None for a degenerate quad."""
+    gray: np.ndarray, quads: np.ndarray, cfg: DetectConfig, search_px: float, lin: _Linearise | None
+) -> tuple[_Profiles | None, np.ndarray]:
+    """Sample every profile of the four sides of each quad (K, 4, 2) with one cv2.remap: the
+    profiles of the quads that are not degenerate (None if none is), and their indices into ``quads``."""
     n = cfg.profiles_per_side
-    side_vec = quad[_NEXT] - quad  # (4, 2)
-    side_len = np.sqrt(np.einsum("ij,ij->i", side_vec, side_vec))
-    if side_len.min() < 4:
-        return None
-    along = side_vec / side_len[:, None]
-    inward = np.stack([-along[:, 1], along[:, 0]], axis=1)  # clockwise on screen, y down: left of travel is in
+    side_vec = quads[:, _NEXT] - quads  # (K, 4, 2)
+    side_len = np.sqrt(np.einsum("kij,kij->ki", side_vec, side_vec))
+    idx = np.arange(len(quads))
+    short = side_len.min(axis=1) < 4
+    if short.any():
+        idx, side_vec, side_len, quads = idx[~short], side_vec[~short], side_len[~short], quads[~short]
+    along = side_vec / side_len[..., None]
+    inward = np.stack([-along[..., 1], along[..., 0]], axis=-1)  # clockwise on screen, y down: left of travel is in
     margin = (1.0 - cfg.profile_span) / 2
     t = _linspace(margin, 1.0 - margin, n)
-    base = quad[:, None, :] + t[None, :, None] * side_vec[:, None, :]  # (4, n, 2)
+    base = quads[:, :, None, :] + t[None, None, :, None] * side_vec[:, :, None, :]  # (K, 4, n, 2)
     # Frame width along each profile, from the geometry implied by the current quad.
-    a = _implied_inner(quad)
-    b = a[_NEXT]
+    a = np.array([_implied_inner(q) for q in quads]).reshape(-1, 4, 2)
+    b = a[:, _NEXT]
     # The inner side through a and b: (a, 1) x (b, 1) = normal (ay - by, bx - ax), offset ax by - ay bx.
-    normal = np.stack([a[:, 1] - b[:, 1], b[:, 0] - a[:, 0]], axis=1)
-    num = -(np.einsum("inj,ij->in", base, normal) + (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])[:, None])
-    den = np.einsum("ij,ij->i", inward, normal)[:, None]
-    frame_w = np.clip(num / den, 1.0, None)  # (4, n) distance to the inner edge along ``inward``
-    w_max = float(frame_w.max())
-    if w_max > cfg.max_frame_fraction * float(side_len.max()):
-        return None  # a degenerate quad
+    normal = np.stack([a[..., 1] - b[..., 1], b[..., 0] - a[..., 0]], axis=-1)
+    num = -(np.einsum("kinj,kij->kin", base, normal) + (a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0])[..., None])
+    den = np.einsum("kij,kij->ki", inward, normal)[..., None]
+    frame_w = np.clip(num / den, 1.0, None)  # (K, 4, n) distance to the inner edge along ``inward``
+    w_max = frame_w.max(axis=(1, 2))
+    wide = w_max > cfg.max_frame_fraction * side_len.max(axis=1)  # a degenerate quad
+    if wide.any():
+        ok = ~wide
+        idx, along, inward, base, frame_w, w_max = idx[ok], along[ok], inward[ok], base[ok], frame_w[ok], w_max[ok]
+    if len(idx) == 0:
+        return None, idx
     quiet = w_max * _QUIET_RATIO / _FRAME_RATIO
     step = cfg.sample_step_px
-    s = np.arange(-(search_px + cfg.blur_allow_px / 2 + 2), w_max + quiet + search_px + step, step)
+    start = -(search_px + cfg.blur_allow_px / 2 + 2)
+    stops = [float(w) + float(q) + search_px + step for w, q in zip(w_max, quiet)]
+    s = np.arange(start, max(stops), step)
+    # Each quad's own samples: the first of the shared ones (np.arange's values are start + i step).
+    length = [len(s) if stop == stops[0] and len(stops) == 1 else len(np.arange(start, stop, step)) for stop in stops]
     strip = _linspace(-cfg.strip_half_px, cfg.strip_half_px, 3)
-    # Sample points base + strip * along + s * inward, (4, n, 3, S) per coordinate, summed in float32
-    # (remap's own sub-pixel resolution is 1/32 px) from the small per-side offset grid (4, 3, S).
-    # x and y apart: numpy broadcasts over a trailing axis of 2 an order of magnitude slower.
+    # Sample points base + strip * along + s * inward, (K, 4, n, 3, S) per coordinate, summed in
+    # float32 (remap's own sub-pixel resolution is 1/32 px) from the small per-side offset grid
+    # (K, 4, 3, S). x and y apart: numpy broadcasts over a trailing axis of 2 an order of magnitude slower.
+    k = len(idx)
     base32 = base.astype(np.float32)
     maps = []
     for c in (0, 1):
-        offs = (strip[None, :, None] * along[:, None, None, c] + s[None, None, :] * inward[:, None, None, c]).astype(
-            np.float32
-        )
-        maps.append(np.add(base32[:, :, None, None, c], offs[:, None]).reshape(4 * n * 3, len(s)))
+        offs = (
+            strip[None, None, :, None] * along[:, :, None, None, c]
+            + s[None, None, None, :] * inward[:, :, None, None, c]
+        ).astype(np.float32)
+        maps.append(np.add(base32[:, :, :, None, None, c], offs[:, :, None]).reshape(k * 4 * n * 3, len(s)))
     vals = cv2.remap(gray, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     if lin is None:
         vals = vals.astype(np.float32)
@@ -653,55 +699,66 @@ def _sample_profiles(
         vals = lin.lut[vals]
     else:
         vals = lin(vals.astype(np.float32))
-    strips = vals.reshape(4, n, 3, len(s))
-    prof = (strips[:, :, 0] + strips[:, :, 1] + strips[:, :, 2]) / np.float32(3.0)  # (4, n, S): the strips' mean
-    return _Profiles(base, inward, s, prof, frame_w, float(_median_last(frame_w.ravel())), quiet)
+    strips = vals.reshape(k, 4, n, 3, len(s))
+    prof = (strips[:, :, :, 0] + strips[:, :, :, 1] + strips[:, :, :, 2]) / np.float32(3.0)  # the strips' mean
+    for j, end in enumerate(length):
+        if end < len(s):
+            prof[j, :, :, end:] = np.nan  # beyond the quad's own samples
+    fw = _median_last(frame_w.reshape(k, -1))
+    return _Profiles(base, inward, s, np.array(length), prof, frame_w, fw, quiet), idx
 
 
-def _outer_offsets(p: _Profiles, cfg: DetectConfig, search_px: float) -> tuple[np.ndarray, float, float, float] | None:
-    """Outer edge offsets (4, n) along ``inward`` (NaN where not found), with the ink, paper and
-    median floor levels; None if the contrast says this is no sticker."""
+def _outer_offsets(
+    p: _Profiles, cfg: DetectConfig, search_px: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Outer edge offsets (K, 4, n) along ``inward`` (NaN where not found), with the ink, paper and
+    median floor levels (K,) (float32), and which quads (K,) the contrast says are stickers."""
     s, prof, n = p.s, p.prof, cfg.profiles_per_side
-    med = _median_last(prof.transpose(0, 2, 1))  # (4, S): the side's typical profile
-    in_frame = (s >= 0) & (s <= p.fw)
-    if not np.any(in_frame):
-        return None
-    ink = float(np.min(med[:, in_frame]))
-    floor = _median_last(prof[:, :, s < -(search_px + 0.5)])  # (4, n)
-    floor_med = float(_median_last(floor.ravel()))
-    inside = (s > p.fw) & (s <= p.fw + p.quiet + 1.0)
-    paper = float(np.max(med[:, inside])) if np.any(inside) else ink
-    if floor_med - ink < cfg.min_contrast:
-        return None
+    k = len(prof)
+    med = _median_last(prof.transpose(0, 1, 3, 2))  # (K, 4, S): each side's typical profile
+    fw = p.fw[:, None]
+    in_frame = (s >= 0) & (s <= fw)  # (K, S)
+    ok = in_frame.any(axis=1)
+    ink = np.where(in_frame[:, None], med, np.inf).min(axis=(1, 2))
+    floor = _median_last(prof[..., s < -(search_px + 0.5)])  # (K, 4, n)
+    floor_med = _median_last(floor.reshape(k, -1))
+    inside = (s > fw) & (s <= fw + p.quiet[:, None] + 1.0) & (np.arange(len(s)) < p.length[:, None])
+    paper = np.where(inside.any(axis=1), np.where(inside[:, None], med, -np.inf).max(axis=(1, 2)), ink)
+    # (As float64, the contrast tests' arithmetic on single values.)
+    ink64, paper64, floor64 = ink.astype(float), paper.astype(float), floor_med.astype(float)
+    ok &= ~(floor64 - ink64 < cfg.min_contrast)
     # Inside the frame there must be paper, far brighter than ink: a plain dark square has none
     # (adaptive thresholding marks only its rim, which otherwise looks like a frame).
-    if paper - ink < max(cfg.min_contrast, cfg.min_paper_ratio * (floor_med - ink)):
-        return None
+    ok &= ~(paper64 - ink64 < np.maximum(cfg.min_contrast, cfg.min_paper_ratio * (floor64 - ink64)))
     # Halfway between floor and ink is the true edge under any symmetric blur shorter than twice the
     # frame width w. Longer blur L across a side keeps that side's dip above halfway (a bar under a
     # box blur darkens to r = w / L of its full depth) and too shallow to locate in noise. Such a
     # side is located on the steep rise from the dip to the paper instead: for a floor | ink (w) |
     # paper step under a box blur longer than w, that rise is a straight ramp whose middle,
     # ((F + P)(1 - r) + 2 I r) / 2, lies over the frame's centre line, whatever L is.
-    near = (s >= -cfg.blur_allow_px / 2) & (s <= p.fw)
-    floor_side = _median_last(floor)  # (4,)
-    ratio = np.clip((floor_side - med[:, near].min(axis=1)) / np.maximum(floor_side - ink, 1e-6), 0.0, 1.0)
-    flat = prof.reshape(4 * n, len(s))
-    outer_s = _crossings(flat, ((floor + ink) / 2).ravel(), s, np.zeros(4 * n), rising=False).reshape(4, n)
-    outer_s[(floor - ink) < cfg.min_contrast / 2] = np.nan
+    near = (s >= -cfg.blur_allow_px / 2) & (s <= fw)  # (K, S)
+    floor_side = _median_last(floor)  # (K, 4)
+    ink_col = ink[:, None]
+    dip = np.where(near[:, None], med, np.inf).min(axis=2)
+    ratio = np.clip((floor_side - dip) / np.maximum(floor_side - ink_col, 1e-6), 0.0, 1.0)
+    flat = prof.reshape(k * 4 * n, len(s))
+    level = ((floor + ink[:, None, None]) / 2).ravel()
+    outer_s = _crossings(flat, level, s, np.zeros(k * 4 * n), rising=False).reshape(k, 4, n)
+    outer_s[(floor - ink[:, None, None]) < cfg.min_contrast / 2] = np.nan
     # Only sides that the halfway level fails on (too few crossings) take the ramp.
     min_points = _min_points(cfg)
-    sparse = np.isfinite(outer_s).sum(axis=1) < min_points
-    shallow = (ratio < cfg.shallow_ratio) | (sparse & (ratio < cfg.shallow_ratio_sparse))
+    sparse = np.isfinite(outer_s).sum(axis=2) < min_points
+    shallow = ((ratio < cfg.shallow_ratio) | (sparse & (ratio < cfg.shallow_ratio_sparse))) & ok[:, None]
     if np.any(shallow):
         r = ratio[shallow, None]
-        rise = 0.5 * ((floor[shallow] + paper) * (1.0 - r) + 2.0 * ink * r)
+        paper_side = np.broadcast_to(paper[:, None], shallow.shape)[shallow, None]
+        ink_side = np.broadcast_to(ink_col, shallow.shape)[shallow, None]
+        rise = 0.5 * ((floor[shallow] + paper_side) * (1.0 - r) + (2.0 * ink_side) * r)
         half_w = 0.5 * p.frame_w[shallow]
         mid = _crossings(prof[shallow].reshape(-1, len(s)), rise.ravel(), s, half_w.ravel(), rising=True)
         outer_s[shallow] = mid.reshape(half_w.shape) - half_w
-    if np.isfinite(outer_s).sum(axis=1).min() < min_points:
-        return None
-    return outer_s, ink, paper, floor_med
+    ok &= np.isfinite(outer_s).sum(axis=2).min(axis=1) >= min_points
+    return outer_s, ink, paper, floor_med, ok
 
 
 def _min_points(cfg: DetectConfig) -> int:
@@ -709,13 +766,14 @@ def _min_points(cfg: DetectConfig) -> int:
     return max(4, int(cfg.min_points_fraction * cfg.profiles_per_side))
 
 
-def _inner_offsets(p: _Profiles, outer_s: np.ndarray, ink: float, paper: float) -> np.ndarray:
-    """Inner edge offsets (4, n) along ``inward``: the rise from ink to paper, beyond the outer edge."""
-    n = p.frame_w.shape[1]
+def _inner_offsets(p: _Profiles, outer_s: np.ndarray, ink: np.ndarray, paper: np.ndarray) -> np.ndarray:
+    """Inner edge offsets (K, 4, n) along ``inward``: the rise from ink to paper, beyond the outer edge."""
+    k, _, n = p.frame_w.shape
     outer0 = _nan_to(outer_s, 0.0)
-    inner_s = _crossings(
-        p.prof.reshape(4 * n, len(p.s)), np.full(4 * n, (paper + ink) / 2), p.s, (p.frame_w + outer0).ravel(), True
-    ).reshape(4, n)
+    level = np.repeat((paper.astype(float) + ink.astype(float)) / 2, 4 * n)
+    inner_s = _crossings(p.prof.reshape(k * 4 * n, len(p.s)), level, p.s, (p.frame_w + outer0).ravel(), True).reshape(
+        k, 4, n
+    )
     inner_s[~(inner_s > _nan_to(outer_s, -1e9) + 0.5)] = np.nan
     return inner_s
 
@@ -723,52 +781,68 @@ def _inner_offsets(p: _Profiles, outer_s: np.ndarray, ink: float, paper: float) 
 def _refine(
     gray: np.ndarray,
     camera: Camera,
-    quad: np.ndarray,
+    quads: list[np.ndarray],
     cfg: DetectConfig,
     lin: _Linearise | None,
     search_px: float,
     inner: bool = True,
-) -> _Refined | None:
-    """One pass of edge-profile refinement around the distorted quad (4, 2); ``inner`` False skips
-    the inner corners (the first pass only re-aims the second, which uses its outer square alone)."""
-    p = _sample_profiles(gray, quad, cfg, search_px, lin)
+) -> list[_Refined | None]:
+    """One pass of edge-profile refinement around each distorted quad (4, 2), all quads at once
+    (numpy's per-call overhead, not the arithmetic, is the cost: one call per step for all the
+    stickers in view); None for a quad that does not refine. ``inner`` False skips the inner
+    corners (the first pass only re-aims the second, which uses its outer square alone)."""
+    out: list[_Refined | None] = [None] * len(quads)
+    if not quads:
+        return out
+    p, idx = _sample_profiles(gray, np.stack(quads), cfg, search_px, lin)
     if p is None:
-        return None
-    edges = _outer_offsets(p, cfg, search_px)
-    if edges is None:
-        return None
-    outer_s, ink, paper, floor_med = edges
+        return out
+    outer_s, ink, paper, floor_med, ok = _outer_offsets(p, cfg, search_px)
     inner_s = _inner_offsets(p, outer_s, ink, paper) if inner else None
     n = cfg.profiles_per_side
     # Lines are straight only without distortion: undistort every edge point (one call), then fit.
-    offsets = _nan_to(np.stack([outer_s] if inner_s is None else [outer_s, inner_s]), 0.0)  # (1 or 2, 4, n)
-    pts = p.base[None] + offsets[..., None] * p.inward[None, :, None, :]
-    edge = camera.undistort_pixels(pts.reshape(-1, 2)).reshape(len(offsets), 4, n, 2)
+    offsets = _nan_to(np.stack([outer_s] if inner_s is None else [outer_s, inner_s], axis=1), 0.0)  # (K, 1|2, 4, n)
+    pts = p.base[:, None] + offsets[..., None] * p.inward[:, None, :, None, :]
+    edge = camera.undistort_pixels(pts.reshape(-1, 2)).reshape(*offsets.shape, 2)
     min_points = _min_points(cfg)
-    fit = _robust_lines(edge[0], np.isfinite(outer_s), min_points, cfg.outlier_sigmas, cfg.outlier_floor_px)
-    if fit is None:
-        return None
-    lines, rms_sides, keep = fit
-    rms = float(rms_sides.max())
-    if rms > cfg.max_rms_px:
-        return None
-    outer_ideal = _intersect(lines)
-    if not np.all(np.isfinite(outer_ideal)):
-        return None
-    valid = float(keep.sum()) / (4.0 * n)
-    score = valid * min(1.0, (floor_med - ink) / cfg.full_score_contrast) * math.exp(-rms)
-
-    inner_ideal = None
-    ok = np.isfinite(inner_s) if inner_s is not None else np.zeros((4, n), bool)
-    if ok.sum(axis=1).min() >= min_points:
-        inner_ideal = _intersect(huber_lines(edge[1], ok))
-        dev = np.linalg.norm(inner_ideal - _implied_inner(outer_ideal), axis=1)
-        if not (np.all(np.isfinite(dev)) and dev.max() <= cfg.inner_max_dev_px):
-            inner_ideal = None
-    if inner_ideal is None:
-        return _Refined(distort_ideal(camera, outer_ideal), None, outer_ideal, score)
-    both = distort_ideal(camera, np.r_[outer_ideal, inner_ideal])  # one projection for both squares
-    return _Refined(both[:4], both[4:], outer_ideal, score)
+    outer_mask = np.isfinite(outer_s) & ok[:, None, None]  # a refused quad's fit is not used
+    lines, rms_sides, keep, fitted = _robust_lines(
+        edge[:, 0].reshape(-1, n, 2),
+        outer_mask.reshape(-1, n),
+        min_points,
+        cfg.outlier_sigmas,
+        cfg.outlier_floor_px,
+        group=4,
+    )
+    lines, rms_sides, keep = lines.reshape(-1, 4, 3), rms_sides.reshape(-1, 4), keep.reshape(-1, 4, n)
+    outer_ideal = _intersect(lines)  # (K, 4, 2)
+    rms = rms_sides.max(axis=1)
+    ok &= fitted & ~(rms > cfg.max_rms_px) & np.isfinite(outer_ideal).all(axis=(1, 2))
+    inner_ideal: dict[int, np.ndarray] = {}
+    if inner_s is not None:
+        has = ok & (np.isfinite(inner_s).sum(axis=2).min(axis=1) >= min_points)
+        if has.any():
+            fits = huber_lines(edge[has, 1].reshape(-1, n, 2), np.isfinite(inner_s[has]).reshape(-1, n), group=4)
+            for j, corners in zip(np.flatnonzero(has), _intersect(fits.reshape(-1, 4, 3))):
+                dev = np.linalg.norm(corners - _implied_inner(outer_ideal[j]), axis=1)
+                if np.all(np.isfinite(dev)) and dev.max() <= cfg.inner_max_dev_px:
+                    inner_ideal[j] = corners
+    # One projection back to distorted pixels for every corner of every quad.
+    kept = np.flatnonzero(ok)
+    ideal = [np.r_[outer_ideal[j], inner_ideal[j]] if j in inner_ideal else outer_ideal[j] for j in kept]
+    if not ideal:
+        return out
+    distorted = distort_ideal(camera, np.concatenate(ideal))
+    at = 0
+    for j, corners in zip(kept, ideal):
+        both = distorted[at : at + len(corners)]
+        at += len(corners)
+        valid = float(keep[j].sum()) / (4.0 * n)
+        score = (
+            valid * min(1.0, (float(floor_med[j]) - float(ink[j])) / cfg.full_score_contrast) * math.exp(-float(rms[j]))
+        )
+        out[int(idx[j])] = _Refined(both[:4], both[4:] if len(corners) == 8 else None, outer_ideal[j], score)
+    return out
 
 
 def _inside(point: np.ndarray, quad: np.ndarray) -> bool:
@@ -812,17 +886,19 @@ def detect_stickers(
     coarse_cfg = dataclasses.replace(cfg, profiles_per_side=cfg.coarse_profiles_per_side)
     h, w = img.shape
     out: list[Detection] = []
-    for quad in _candidates(img, cfg, regions):
+    quads = _candidates(img, cfg, regions)
+    # Both refinement passes run on every candidate at once (see _refine); the candidates are then
+    # taken in order, as each would be alone.
+    firsts = _refine(
+        img, camera, quads, coarse_cfg, lin, search_px=cfg.coarse_search_px * cfg.downscale + 1.0, inner=False
+    )
+    seconds = iter(_refine(img, camera, [f.outer for f in firsts if f is not None], cfg, lin, cfg.refine_search_px))
+    for quad, first in zip(quads, firsts):
+        ref = next(seconds) if first is not None else None
         area = _polygon_area(quad)
         if any(_inside(quad.mean(axis=0), d.outer) and area < 0.5 * _polygon_area(d.outer) for d in out):
             continue  # a symbol inside an accepted sticker
-        first = _refine(
-            img, camera, quad, coarse_cfg, lin, search_px=cfg.coarse_search_px * cfg.downscale + 1.0, inner=False
-        )
-        if first is None:
-            continue
-        ref = _refine(img, camera, first.outer, cfg, lin, search_px=cfg.refine_search_px)
-        if ref is None or np.max(np.abs(ref.outer - first.outer)) > cfg.max_refine_shift_px:
+        if first is None or ref is None or np.max(np.abs(ref.outer - first.outer)) > cfg.max_refine_shift_px:
             continue
         o = ref.outer
         if (
