@@ -662,7 +662,7 @@ def _sample_profiles(
     normal = np.stack([a[..., 1] - b[..., 1], b[..., 0] - a[..., 0]], axis=-1)
     num = -(np.einsum("kinj,kij->kin", base, normal) + (a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0])[..., None])
     den = np.einsum("kij,kij->ki", inward, normal)[..., None]
-    frame_w = np.clip(num / den, 1.0, None)  # (K, 4, n) distance to the inner edge along ``inward``
+    frame_w = np.maximum(num / den, 1.0)  # (K, 4, n) distance to the inner edge along ``inward``
     w_max = frame_w.max(axis=(1, 2))
     wide = w_max > cfg.max_frame_fraction * side_len.max(axis=1)  # a degenerate quad
     if wide.any():
@@ -740,7 +740,8 @@ def _outer_offsets(
     floor_side = _median_last(floor)  # (K, 4)
     ink_col = ink[:, None]
     dip = np.where(near[:, None], med, np.inf).min(axis=2)
-    ratio = np.clip((floor_side - dip) / np.maximum(floor_side - ink_col, 1e-6), 0.0, 1.0)
+    # (np.clip's wrapper costs more than the arithmetic on these few values.)
+    ratio = np.minimum(np.maximum((floor_side - dip) / np.maximum(floor_side - ink_col, 1e-6), 0.0), 1.0)
     flat = prof.reshape(k * 4 * n, len(s))
     level = ((floor + ink[:, None, None]) / 2).ravel()
     outer_s = _crossings(flat, level, s, np.zeros(k * 4 * n), rising=False).reshape(k, 4, n)
@@ -749,7 +750,7 @@ def _outer_offsets(
     min_points = _min_points(cfg)
     sparse = np.isfinite(outer_s).sum(axis=2) < min_points
     shallow = ((ratio < cfg.shallow_ratio) | (sparse & (ratio < cfg.shallow_ratio_sparse))) & ok[:, None]
-    if np.any(shallow):
+    if shallow.any():
         r = ratio[shallow, None]
         paper_side = np.broadcast_to(paper[:, None], shallow.shape)[shallow, None]
         ink_side = np.broadcast_to(ink_col, shallow.shape)[shallow, None]
