@@ -675,8 +675,8 @@ def _sample_profiles(
     start = -(search_px + cfg.blur_allow_px / 2 + 2)
     stops = [float(w) + float(q) + search_px + step for w, q in zip(w_max, quiet)]
     s = np.arange(start, max(stops), step)
-    # Each quad's own samples: the first of the shared ones (np.arange's values are start + i step).
-    length = [len(s) if stop == stops[0] and len(stops) == 1 else len(np.arange(start, stop, step)) for stop in stops]
+    # Each quad's own samples are the first of the shared ones (np.arange's values are start + i step).
+    length = [len(s) if stop == max(stops) else len(np.arange(start, stop, step)) for stop in stops]
     strip = _linspace(-cfg.strip_half_px, cfg.strip_half_px, 3)
     # Sample points base + strip * along + s * inward, (K, 4, n, 3, S) per coordinate, summed in
     # float32 (remap's own sub-pixel resolution is 1/32 px) from the small per-side offset grid
