@@ -36,6 +36,27 @@ def _tilted(rc: RigCamera, pitch: float, roll: float, rise: float = 0.0) -> np.n
     return T @ rc.T_body_camera
 
 
+def _rolling_frame(
+    floor: Floor, rc: RigCamera, P: np.ndarray, velocity: np.ndarray, turn_rate: float, seed: int
+) -> np.ndarray:
+    """A noise-free, briefly exposed frame of rolling-shutter camera ``rc`` (its ``readout_s``) on the
+    body pose ``P`` (4, 4), the body moving at ``velocity`` (2,) m/s (world) and turning at
+    ``turn_rate`` rad/s during the read-out."""
+    exposure = ExposureConfig(rolling_shutter=True, readout_s=rc.readout_s)
+    return render_view(
+        floor,
+        rc.camera,
+        P @ rc.T_body_camera,
+        lux=200,
+        exposure_s=2e-3,
+        seed=seed,
+        noise=False,
+        velocity=np.array([velocity[0], velocity[1], 0.0]),
+        angular_velocity=np.array([0.0, 0.0, turn_rate]),
+        exposure=exposure,
+    ).image
+
+
 def test_step_tilt_change_and_rise_of_a_rendered_pair(floor):
     """A body step of (4.3 cm, 0.6 cm, 1.2 deg) with the torso pitching 0.4 deg forward, rolling 0.3 deg and
     rising 6 mm (the gait's nod, sway and bobbing in one frame interval, larger than typical), tracked
@@ -77,27 +98,13 @@ def test_rolling_shutter_pair_is_measured_row_by_row(floor):
     rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0), readout_s=readout)
     v_body, w = 1.3, math.radians(60.0)
     dt = 1.0 / FPS
-    exposure = ExposureConfig(rolling_shutter=True, readout_s=readout)
     heading = np.array([math.cos(0.3), math.sin(0.3)])
     frames, poses = [], []
     for k in range(2):
         P = planar_T(4.0, 4.0, 0.3 + w * k * dt)
         P[:2, 3] += heading * v_body * k * dt
         poses.append(P)
-        frames.append(
-            render_view(
-                floor,
-                rc.camera,
-                P @ rc.T_body_camera,
-                lux=200,
-                exposure_s=2e-3,
-                seed=3 + k,
-                noise=False,
-                velocity=np.array([*heading, 0.0]) * v_body,
-                angular_velocity=np.array([0.0, 0.0, w]),
-                exposure=exposure,
-            ).image
-        )
+        frames.append(_rolling_frame(floor, rc, P, heading * v_body, w, seed=3 + k))
     d = np.linalg.inv(poses[0]) @ poses[1]
     truth = np.array([d[0, 3], d[1, 3], w * dt])
     guess = truth + np.array([0.004, 0.003, math.radians(0.1)])
@@ -227,7 +234,6 @@ def test_rolling_shutter_patch_takes_the_trackers_twist(floor):
     rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0), readout_s=readout)
     v_body, accel = 1.2, math.radians(40.0) * FPS  # turn rate + 40 deg/s per frame
     dt = 1.0 / FPS
-    exposure = ExposureConfig(rolling_shutter=True, readout_s=readout)
     # The walk integrated finely: heading 0.3 + accel t^2 / 2, position along it at v_body.
     fine = np.linspace(0.0, 4 * dt, 4001)
     yaw = 0.3 + 0.5 * accel * fine**2
@@ -244,18 +250,9 @@ def test_rolling_shutter_patch_takes_the_trackers_twist(floor):
         poses.append(P)
         twists.append(np.array([v_body, 0.0, accel * fine[j]]))
         frames.append(
-            render_view(
-                floor,
-                rc.camera,
-                P @ rc.T_body_camera,
-                lux=200,
-                exposure_s=2e-3,
-                seed=5 + k,
-                noise=False,
-                velocity=np.array([math.cos(yaw[j]), math.sin(yaw[j]), 0.0]) * v_body,
-                angular_velocity=np.array([0.0, 0.0, accel * fine[j]]),
-                exposure=exposure,
-            ).image
+            _rolling_frame(
+                floor, rc, P, np.array([math.cos(yaw[j]), math.sin(yaw[j])]) * v_body, accel * fine[j], 5 + k
+            )
         )
     truth = []
     for a, b in zip(poses[:-1], poses[1:]):
