@@ -71,6 +71,10 @@ def variants() -> dict[str, LocaliserConfig]:
         )
         out["rs-fixes-only"] = replace(base, odometry_config=replace(base.odometry_config, rolling_shutter=False))
         out["rs-odometry-only"] = replace(base, rolling_shutter=False)
+        # The odometry's patch sampled with its own last step's twist, as before rs_twist_from_tracker.
+        out["rs-odometry-last-step"] = replace(
+            base, odometry_config=replace(base.odometry_config, rs_twist_from_tracker=False)
+        )
         # The fix's correction before this round: the body's planar motion, to the frame's time.
         out["rs-fix-frame-time"] = replace(
             base, rs_image_velocity_max_dt=0.0, pose=replace(base.pose, at_sticker_rows=False)
