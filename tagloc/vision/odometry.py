@@ -263,11 +263,11 @@ class OdometryConfig:
     recent, the tracker's only without one. The last step carries its own error into the next
     patch, and so into the next step: in a fast turn under heavy blur (field walk f01, 150 deg/s
     at 60 lux, where the floor flow is refused and the patch's step stands), the odometry alone
-    with the true body motion of the last interval instead of its own last step summed 3.6 -> 0.4
-    and 5.3 -> 2.3 degrees less turn error over f01's two turns, and 15 -> 8 and 17 -> 6 cm less
-    sideways error. The tracker's prediction is filtered through the fixes and the walking model,
+    with the true body motion of the last interval instead of its own last step: the turn error
+    summed over f01's two turns went 3.6 -> 0.4 and 5.3 -> 2.3 degrees, the sideways error 15 -> 8
+    and 17 -> 6 cm. The tracker's prediction is filtered through the fixes and the walking model,
     and is for the frame's own time rather than the interval before. Through the localiser on the
-    field walks (replays): f00 2.17 -> 2.19 cm, f01 4.42 -> 4.10, f02 2.50 -> 2.45, f03-long 2.93 ->
+    field walks (replays): f00 2.17 -> 2.19 cm, f01 4.42 -> 4.10, f02 2.51 -> 2.45, f03-long 2.92 ->
     2.76, f04-dim 3.14 -> 2.99; taking only the turn rate from the tracker and the rest from the last
     step instead sent f00 to 25 cm (the two disagree). Without rolling-shutter sampling at all: f00
     2.62, f01 4.30, f02 2.73, f03-long 3.08, f04-dim 3.33.
