@@ -673,7 +673,6 @@ class FloorOdometry:
         self._rs = self._rolling_shutter_grid(n, ss, T_cb) if rs else None
         self.tilt_gated_in_row = 0  # sticker fixes refused by the tilt gate in a row (see tilt_gate_result)
         self._flow = FloorFlow(rig_camera, cfg.flow_config, rolling_shutter=cfg.rolling_shutter) if cfg.flow else None
-        self._refine = True  # the step being measured is refined (see measure's refine)
         self._prev_gray: np.ndarray | None = None  # the frame of _prev, for the flow
         self.flow_steps = 0  # steps the flow refined
         self.bridged = 0  # steps that bridged dropped frames (see bridge_max_dt)
@@ -888,10 +887,9 @@ class FloorOdometry:
         if not (0.0 < dt <= max(self.config.max_dt, self.config.bridge_max_dt)):
             return None
         grays = (prev_gray, gray) if prev_gray is not None and refine else None
-        self._refine = refine
         if dt > self.config.max_dt:
             # Frames were dropped: bridge the gap from the walk predicted through it.
-            step = self._bridge(prev, (t, small), body_twist, grays)
+            step = self._bridge(prev, (t, small), body_twist, grays, refine)
             if step is not None:
                 self.bridged += 1
                 self._update_pitch(t, walk_speed)
@@ -899,15 +897,15 @@ class FloorOdometry:
         match = self._match(prev, (t, small))
         if held is not None and prev[0] < held[0] < t and (match is None or not match[3]):
             mid = (held[0], self.birdseye(held[1], self._twist(held[0], body_twist)))
-            first = self._step(prev, mid, self._match(prev, mid))
+            first = self._step(prev, mid, self._match(prev, mid), refine=refine)
             if first is None:
                 return None
-            second = self._step(mid, (t, small), self._match(mid, (t, small)))
+            second = self._step(mid, (t, small), self._match(mid, (t, small)), refine=refine)
             if second is None:
                 return None
             step = _compose_steps(first, second)
         else:
-            step = self._step(prev, (t, small), match, grays)
+            step = self._step(prev, (t, small), match, grays, refine=refine)
             if step is None:
                 return None
             self._last_sure = match[3]
@@ -1014,12 +1012,14 @@ class FloorOdometry:
         match: tuple[float, np.ndarray, float, bool] | None,
         grays: tuple[np.ndarray, np.ndarray] | None = None,
         predicted_shift: np.ndarray | None = None,
+        refine: bool = True,
     ) -> OdometryStep | None:
         """The step from ``prev`` to ``cur`` (time, patch) from ECC's ``match`` (see :meth:`_match`), or
         None; follows the lean, the turn and the tilt to ``cur``'s time. ``grays``: the two frames
         themselves, for the flow's refinement (``flow``); None: the patch's step alone.
         ``predicted_shift``: the patch shift (2,) (pixels) the match started from when it bridged
-        a gap (:meth:`_bridge`); the shift limit then applies to the match's departure from it."""
+        a gap (:meth:`_bridge`); the shift limit then applies to the match's departure from it.
+        ``refine`` False: no homography tilt fit either (see :meth:`measure`)."""
         cfg = self.config
         if match is None:
             return None
@@ -1049,7 +1049,7 @@ class FloorOdometry:
             else:
                 self.flow_steps += 1
         if cfg.tilt_correction:
-            delta = self._untilted_step(small, psmall, W, level, t0, t, R_tilt, flow)
+            delta = self._untilted_step(small, psmall, W, level, t0, t, R_tilt, flow, refine)
         else:
             delta = level if flow is None else flow.delta
         cov = self.covariance(delta) * (1.0 if rho >= cfg.min_ecc else cfg.weak_ecc_cov_scale)
@@ -1065,16 +1065,17 @@ class FloorOdometry:
         t1: float,
         R_tilt: np.ndarray | None = None,
         flow: FlowStep | None = None,
+        refine: bool = True,
     ) -> np.ndarray:
         """The step ``delta`` (3,) from ``t0`` to ``t1`` (s) with the vest's tilt change taken out
         (see ``tilt_correction`` and ``tilt_filter``), on top of the lean ``R_tilt`` (3, 3; None:
         level) both frames share. With the ``flow``'s fit, its tilt change is the measurement and
-        its step (which has that change taken out) is corrected by the filtered change less it."""
+        its step (which has that change taken out) is corrected by the filtered change less it.
+        ``refine`` False: no tilt fit (the frame's sticker fixes anchor the tilt instead)."""
         if flow is not None:
             fit: tuple[float, float | None] | None = (flow.d_pitch, flow.d_roll)
             fit_sigma = self.config.flow_config.tilt_sigma
-        elif not self._refine:
-            # (see measure's refine: the frame's sticker fixes anchor the tilt instead)
+        elif not refine:
             fit, fit_sigma = None, None
         else:
             fit = self._tilt_fit(small, psmall, W, delta, t1 - t0, R_tilt)
@@ -1336,12 +1337,14 @@ class FloorOdometry:
         cur: tuple[float, np.ndarray],
         body_twist: np.ndarray | None,
         grays: tuple[np.ndarray, np.ndarray] | None,
+        refine: bool = True,
     ) -> OdometryStep | None:
         """The step across dropped frames from ``prev`` to ``cur`` (time, patch), or None (see
         ``bridge_max_dt``). The walk before the gap (this odometry's last step when it ended at
         most ``turn_memory`` frame gaps before ``prev``, else ``body_twist``) predicts a
         constant-rate arc; arcs turning by up to half ``bridge_yaw_accel`` dt^2 more or less, a
-        ``rotation_step`` apart, compete as starts for ECC, which must reach ``min_ecc``."""
+        ``rotation_step`` apart, compete as starts for ECC, which must reach ``min_ecc``. ``refine``: see
+        :meth:`measure`."""
         cfg = self.config
         (t0, _), (t, _) = prev, cur
         dt = t - t0
@@ -1362,7 +1365,7 @@ class FloorOdometry:
         if found is None:
             return None
         rho, W, response, start = found
-        step = self._step(prev, cur, (rho, W, response, False), grays, predicted_shift=start[:, 2])
+        step = self._step(prev, cur, (rho, W, response, False), grays, predicted_shift=start[:, 2], refine=refine)
         if step is None:
             return None
         # Too few bursts to calibrate a bridged step's error, so its covariance is deliberately
