@@ -43,7 +43,7 @@ import numpy as np
 
 from tagloc.core.errors import BackendUnavailable, InputError
 from tagloc.core.geometry import planar_T
-from tagloc.core.types import FrameResult, TrackerOutput, TrackState
+from tagloc.core.types import FrameResult, Observation, TrackerOutput, TrackState
 from tagloc.io.session import tum_line
 
 if TYPE_CHECKING:
@@ -500,7 +500,7 @@ def frame_result_json(result: FrameResult, include_times: bool = False) -> dict:
     return doc
 
 
-def _observations_json(observations, include_times: bool) -> list[dict]:
+def _observations_json(observations: list[Observation], include_times: bool) -> list[dict]:
     out = []
     for o in observations:
         d = o.to_json()
@@ -510,7 +510,7 @@ def _observations_json(observations, include_times: bool) -> list[dict]:
     return out
 
 
-def late_observations_json(index: int, t: float, observations, include_times: bool = False) -> dict:
+def late_observations_json(index: int, t: float, observations: list[Observation], include_times: bool = False) -> dict:
     """Plain-data form of observations finished after frame ``index`` (time ``t`` s) was published
     (``tagloc live``'s deferred work: a decode and its fix, fused at that frame's time), for the
     per-frame log: ``{"index", "t", "late": true, "observations"}``."""
@@ -536,15 +536,13 @@ class FrameLog:
 
     def write(self, result: FrameResult) -> None:
         """Append one frame's line."""
-        self._f.write(
-            json.dumps(frame_result_json(result, self.include_times), separators=(",", ":"), default=_json_default)
-            + "\n"
-        )
-        self._f.flush()
+        self._line(frame_result_json(result, self.include_times))
 
-    def write_late(self, index: int, t: float, observations) -> None:
+    def write_late(self, index: int, t: float, observations: list[Observation]) -> None:
         """Append one line of observations finished after frame ``index`` (time ``t``) was logged."""
-        doc = late_observations_json(index, t, observations, self.include_times)
+        self._line(late_observations_json(index, t, observations, self.include_times))
+
+    def _line(self, doc: dict) -> None:
         self._f.write(json.dumps(doc, separators=(",", ":"), default=_json_default) + "\n")
         self._f.flush()
 

@@ -176,7 +176,7 @@ def distort_ideal(camera: Camera, pixels: np.ndarray) -> np.ndarray:
     return camera.project(np.concatenate([norm, np.ones((len(norm), 1))], axis=1))
 
 
-def _median_last(a: np.ndarray) -> np.ndarray:
+def median_last(a: np.ndarray) -> np.ndarray:
     """Median over the last axis of a NaN-free array: np.median's result at a fraction of its
     per-call overhead, which dominates on the few dozen values a side has."""
     n = a.shape[-1]
@@ -704,7 +704,7 @@ def _sample_profiles(
     for j, end in enumerate(length):
         if end < len(s):
             prof[j, :, :, end:] = np.nan  # beyond the quad's own samples
-    fw = _median_last(frame_w.reshape(k, -1))
+    fw = median_last(frame_w.reshape(k, -1))
     return _Profiles(base, inward, s, np.array(length), prof, frame_w, fw, quiet), idx
 
 
@@ -715,13 +715,13 @@ def _outer_offsets(
     median floor levels (K,) (float32), and which quads (K,) the contrast says are stickers."""
     s, prof, n = p.s, p.prof, cfg.profiles_per_side
     k = len(prof)
-    med = _median_last(prof.transpose(0, 1, 3, 2))  # (K, 4, S): each side's typical profile
+    med = median_last(prof.transpose(0, 1, 3, 2))  # (K, 4, S): each side's typical profile
     fw = p.fw[:, None]
     in_frame = (s >= 0) & (s <= fw)  # (K, S)
     ok = in_frame.any(axis=1)
     ink = np.where(in_frame[:, None], med, np.inf).min(axis=(1, 2))
-    floor = _median_last(prof[..., s < -(search_px + 0.5)])  # (K, 4, n)
-    floor_med = _median_last(floor.reshape(k, -1))
+    floor = median_last(prof[..., s < -(search_px + 0.5)])  # (K, 4, n)
+    floor_med = median_last(floor.reshape(k, -1))
     inside = (s > fw) & (s <= fw + p.quiet[:, None] + 1.0) & (np.arange(len(s)) < p.length[:, None])
     paper = np.where(inside.any(axis=1), np.where(inside[:, None], med, -np.inf).max(axis=(1, 2)), ink)
     # (As float64, the contrast tests' arithmetic on single values.)
@@ -737,7 +737,7 @@ def _outer_offsets(
     # paper step under a box blur longer than w, that rise is a straight ramp whose middle,
     # ((F + P)(1 - r) + 2 I r) / 2, lies over the frame's centre line, whatever L is.
     near = (s >= -cfg.blur_allow_px / 2) & (s <= fw)  # (K, S)
-    floor_side = _median_last(floor)  # (K, 4)
+    floor_side = median_last(floor)  # (K, 4)
     ink_col = ink[:, None]
     dip = np.where(near[:, None], med, np.inf).min(axis=2)
     # (np.clip's wrapper costs more than the arithmetic on these few values.)

@@ -38,6 +38,7 @@ import cv2
 import numpy as np
 
 from tagloc.core.rig import RigCamera, row_delay_s
+from tagloc.vision.detect import median_last  # np.median without its per-call overhead
 
 __all__ = ["FlowStep", "FloorFlow", "FloorFlowConfig"]
 
@@ -198,7 +199,7 @@ class FloorFlow:
             res = f * np.hypot(P[0, :, 0], P[0, :, 1])
             if i == cfg.fit_iterations:
                 break
-            sigma = 1.4826 * _median(res) + 1e-3
+            sigma = 1.4826 * float(median_last(res)) + 1e-3
             w = np.minimum(1.0, cfg.huber_k * sigma / np.maximum(res, 1e-9)) if i else np.ones(len(res))
             r = P[0].ravel()
             J = ((P[1:] - P[0]).reshape(6, -1) / _H[:, None]).T
@@ -207,7 +208,7 @@ class FloorFlow:
             if not np.all(np.isfinite(step)):
                 return None
             x += step
-        med = self.last_residual = _median(res)
+        med = self.last_residual = float(median_last(res))
         fast = abs(g[2]) > cfg.max_turn_rate * dt
         if (
             not np.all(np.isfinite(x))
@@ -270,13 +271,6 @@ class FloorFlow:
         half = cv2.pyrDown(gray)
         self._halves = [*self._halves[-1:], (gray, half)]
         return half
-
-
-def _median(a: np.ndarray) -> float:
-    """np.median of a 1-D array, without its per-call overhead (a third of the fit's time)."""
-    s = np.sort(a)
-    n = len(s)
-    return float(0.5 * (s[(n - 1) // 2] + s[n // 2]))
 
 
 class _Model:
