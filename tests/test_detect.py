@@ -412,3 +412,29 @@ def test_refining_candidates_together_equals_refining_each_alone():
                 assert np.array_equal(a.outer, b.outer) and a.score == b.score
                 assert (a.inner is None) == (b.inner is None)
                 assert a.inner is None or np.array_equal(a.inner, b.inner)
+
+
+def test_batched_profiles_stop_at_each_quads_own_length():
+    """A small quad sampled with a large one keeps only its own samples: beyond its length its
+    profiles are NaN, which no crossing can land on (else a level found in the large quad's reach,
+    past the small quad's paper, could be taken for the small one's edge)."""
+    from tagloc.vision.detect import _candidates, _crossings, _lineariser, _sample_profiles
+
+    f = _floor_scene(3, seed=5, noise=3, blur_px=4.0)
+    cfg = DetectConfig()
+    lin = _lineariser(cfg.response_gamma)
+    quads = sorted(_candidates(as_gray(f.image), cfg, None), key=_shoelace)
+    small, large = quads[0], quads[-1]
+    assert _shoelace(large) > 1.5 * _shoelace(small)
+    both, idx = _sample_profiles(f.image, np.stack([small, large]), cfg, 5.0, lin)
+    alone, _ = _sample_profiles(f.image, small[None], cfg, 5.0, lin)
+    assert list(idx) == [0, 1] and both.length[0] == alone.prof.shape[-1] < both.length[1] == len(both.s)
+    own = int(both.length[0])
+    assert np.array_equal(both.prof[0, ..., :own], alone.prof[0])
+    assert np.isnan(both.prof[0, ..., own:]).all() and np.isfinite(both.prof[1]).all()
+    # A profile whose only fall below the level lies in the padding has no crossing.
+    row = np.r_[np.full(own, 200.0), np.full(len(both.s) - own, np.nan)]
+    padded = _crossings(row[None], np.array([100.0]), both.s, np.array([both.s[-1]]), rising=False)
+    real = np.r_[np.full(own, 200.0), np.full(len(both.s) - own, 20.0)]
+    found = _crossings(real[None], np.array([100.0]), both.s, np.array([both.s[-1]]), rising=False)
+    assert np.isnan(padded[0]) and np.isfinite(found[0])
