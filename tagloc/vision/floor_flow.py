@@ -50,12 +50,13 @@ class FloorFlowConfig:
     - ``grid``: (columns, rows) of the tracked points, evenly over the image inside ``margin_px``;
       points whose rays dip less than ``min_depression`` below the horizon are left out. 10 x 8:
       on the standard walk s00, 7 x 5 points gave a pitch change 0.094 degrees off per frame
-      against 0.079 with 10 x 8, for 0.6 ms less (most of the cost is the pyramids, not the points).
+      against 0.079 with 10 x 8, for 0.6 ms less.
       Through the localiser (replays of eight cached eval walks, 2026-11-25), 7 x 5 was worse on
       six of them (s00 1.80 -> 2.01 cm, s01 2.95 -> 3.21, f00 2.19 -> 2.64); 14 x 11 was mixed
       (s00 1.43, f02 2.45 -> 2.15, f01 4.10 -> 3.90, but f00 2.32, s04 1.54 -> 1.65) for about 0.8
-      ms more a frame: Lucas-Kanade's point cost, 0.50 -> 0.77 ms at full resolution and 0.72 ->
-      1.23 ms on the two coarse levels for 77 -> 150 points on a walk300 frame pair.
+      ms more a frame. Lucas-Kanade's cost on a walk300 frame pair for 1 / 77 / 150 points: 0.32 /
+      0.50 / 0.77 ms at full resolution (the fixed part is the image's derivatives) and 0.19 / 0.72
+      / 1.23 ms on the two coarse levels.
     - ``window_px``, ``levels``: Lucas-Kanade's window and pyramid levels above full resolution
       (``maxLevel``). The patch's step leaves the points up to ~10 px from where they are (its own
       error, the tilt change, the bobbing); with 1 level and a 21 px window the fitted pitch change
