@@ -23,8 +23,15 @@ def test_field_walks_cover_every_field_condition():
     assert long and long[0].stop_every_s > 0 and long[0].turn_probability < 0.1
     assert any(w.sensor == "ov5647" for w in walks)
     assert any(w.missing_fraction > 0 and w.unmapped > 0 for w in walks)
-    # Fixed: not drawn from the standard preset's seed or counts.
-    assert scenarios(EvalConfig(preset="field", seed=9, sessions=2)) == walks
+    # Fixed: not drawn from the standard preset's counts; another seed gives held-out walks with
+    # the same conditions and seeds no other seed gives.
+    assert scenarios(EvalConfig(preset="field", sessions=2, seconds=5.0, hard=False)) == walks
+    held = {s: scenarios(EvalConfig(preset="field", seed=s)) for s in (2, 3)}
+    for s, other in held.items():
+        assert [replace(w, seed=0) for w in other] == [replace(w, seed=0) for w in walks]
+        assert [w.seed - v.seed for w, v in zip(other, walks)] == [ev.FIELD_SEED_STEP * (s - 1)] * len(walks)
+    seeds = [w.seed for w in walks + held[2] + held[3]]
+    assert len(set(seeds)) == len(seeds)
     with pytest.raises(InputError):
         scenarios(EvalConfig(preset="nope"))
     cond = long[0].conditions()

@@ -32,7 +32,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--sessions", type=int, default=6, help="number of simulated sessions (standard; default 6)")
     p.add_argument("--seconds", type=float, default=20.0, help="length of each session, s (standard; default 20)")
-    p.add_argument("--seed", type=int, default=1, help="seed for the scenario conditions (standard; default 1)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=1,
+        help="seed for the scenario conditions (standard; default 1); field: other than 1, held-out walks "
+        "with the field walks' conditions and fresh seeds",
+    )
     p.add_argument(
         "--modes",
         default="full,decoded-only,orb-all",

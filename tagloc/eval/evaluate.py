@@ -109,6 +109,10 @@ FIELD_WALKS: tuple[Scenario, ...] = (
     Scenario("f04-dim", 2004, 80, 1.3, 1.5, 55.0, 20.0, sensor="ov5647", **_FIELD),
 )
 
+#: ``EvalConfig.seed`` s other than 1 moves every field walk's seed by this much times (s - 1):
+#: larger than the preset's own seed spread, so no two seeds share a walk.
+FIELD_SEED_STEP = 100
+
 PRESETS = ("standard", "field")
 #: One camera against front + rear on the same walks (:mod:`tagloc.eval.multicam`); not part of "all".
 TWO_CAMERA = "two-camera"
@@ -126,7 +130,9 @@ class EvalConfig:
             :data:`tagloc.eval.baselines.EVAL_MODES`).
         hard: add sessions' pathologies: stickers missing from the floor, stickers not in the map.
         preset: "standard" (``sessions`` walks of ``seconds`` drawn from ``seed``) or "field" (the
-            fixed :data:`FIELD_WALKS`; ``sessions``, ``seconds``, ``seed`` and ``hard`` do not apply).
+            fixed :data:`FIELD_WALKS`; ``sessions``, ``seconds`` and ``hard`` do not apply; a
+            ``seed`` other than 1 gives held-out walks with the same conditions, each walk's seed
+            moved by :data:`FIELD_SEED_STEP` times ``seed - 1``).
     """
 
     sessions: int = 6
@@ -140,10 +146,15 @@ class EvalConfig:
 
 
 def scenarios(cfg: EvalConfig) -> list[Scenario]:
-    """The preset's scenarios: the field walks, or (standard) conditions spread over the ranges
-    (stratified, then jittered with ``cfg.seed``)."""
+    """The preset's scenarios: the field walks (held-out ones for a ``cfg.seed`` other than 1), or
+    (standard) conditions spread over the ranges (stratified, then jittered with ``cfg.seed``)."""
     if cfg.preset == "field":
-        return list(FIELD_WALKS)
+        if cfg.seed == 1:
+            return list(FIELD_WALKS)
+        # Held-out walks: each field walk's conditions with a fresh seed (walk, map, survey error,
+        # noise and timing all follow it), so figures can be checked on walks nothing was tried on.
+        off = FIELD_SEED_STEP * (cfg.seed - 1)
+        return [replace(sc, seed=sc.seed + off) for sc in FIELD_WALKS]
     if cfg.preset != "standard":
         raise InputError(f"eval: unknown preset {cfg.preset!r} (one of {', '.join(PRESETS)}, all)")
     rng = np.random.default_rng(cfg.seed)
