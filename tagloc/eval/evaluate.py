@@ -21,6 +21,7 @@ from __future__ import annotations
 import functools
 import json
 import math
+import textwrap
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -572,7 +573,7 @@ def plot_run(
     ax0.set_xlabel("x (m)")
     ax0.set_ylabel("y (m)")
     ax0.legend(loc="best", fontsize=8)
-    ax0.set_title(title, fontsize=9)
+    ax0.set_title(textwrap.fill(title, 70), fontsize=9)  # a field walk's conditions run long
     if gt is not None and v.any():
         e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *gt)
         covs = log.covs[v][e.inside]
