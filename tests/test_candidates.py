@@ -50,6 +50,33 @@ def test_footprint_of_the_default_rig():
     assert footprint(flat, CandidateConfig(max_range=4.0)).polygon[:, 0].max() == pytest.approx(4.0, abs=1e-6)
 
 
+def test_footprint_cache_stays_small_as_the_lean_changes():
+    """The tracker's leaned camera is a new object with a new pose whenever the lean changes: the
+    cache keeps the last few by content (a leaned camera equal to an earlier one finds it), not
+    one entry per lean for the whole shift."""
+    import dataclasses
+
+    import tracker.candidates as cand
+
+    rc = default_rig()[0]
+    fresh, alive = {}, []  # every camera kept alive, so none shares an earlier one's identity
+    for k in range(200):
+        roll = math.radians(0.05 * k)
+        T = np.eye(4)
+        T[1:3, 1:3] = [[math.cos(roll), -math.sin(roll)], [math.sin(roll), math.cos(roll)]]
+        leaned = dataclasses.replace(rc, T_body_camera=T @ rc.T_body_camera)
+        alive.append(leaned)
+        fp = footprint(leaned)
+        if k % 50 == 0:
+            fresh[k] = (leaned, fp)
+        assert len(cand._FOOTPRINTS) <= cand._FOOTPRINTS_KEPT
+    last_leaned, last_fp = fresh[150]
+    again = dataclasses.replace(last_leaned, T_body_camera=last_leaned.T_body_camera.copy())
+    cand._FOOTPRINTS.clear()
+    assert np.array_equal(footprint(again).polygon, last_fp.polygon)
+    assert footprint(dataclasses.replace(again)) is footprint(again)  # equal content: cached
+
+
 def test_project_map_matches_brute_force(rng):
     smap = grid_map(rng, 20)
     rc = default_rig()[0]
