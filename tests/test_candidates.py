@@ -77,6 +77,34 @@ def test_footprint_cache_stays_small_as_the_lean_changes():
     assert footprint(dataclasses.replace(again)) is footprint(again)  # equal content: cached
 
 
+def test_tracker_candidates_reuse_one_priors_projection_and_only_that(rng):
+    """Several stickers detected under one prior get what select_candidates gives each; once a fix
+    moves the prior, the projection is made afresh (a reused one would gate the old pose)."""
+    smap = grid_map(rng, 10, spacing=0.6)  # dense enough for several stickers in view
+    rc = default_rig()[0]
+    pose = np.array([3.0, 3.0, 0.2])
+    pr = project_map(pose, smap, rc)
+    seen = [pr.pixels[i] + np.array([2.0, -1.0]) for i in np.flatnonzero(pr.in_image)]
+    assert len(seen) >= 3
+    tr = Tracker()
+    tr.predict(0.0)
+    tr.update([PoseFix(np.eye(4), pose, np.diag([1e-4, 1e-4, 1e-4]), 0.3)], 1, IdSource.DECODED, 0.0)
+
+    def fresh(px):
+        mean, cov = tr.prior()
+        return select_candidates(mean, cov, smap, tr.leaned_camera(rc), px)
+
+    first = [tr.candidates(smap, rc, px) for px in seen]
+    assert first == [fresh(px) for px in seen] and all(first)
+    kept = tr._predicted
+    assert [tr.candidates(smap, rc, px) for px in seen] == first and tr._predicted is kept  # reused
+    nudged = pose + np.array([0.02, -0.01, 0.0])  # a second fix moves the prior
+    res = tr.update([PoseFix(np.eye(4), nudged, np.diag([1e-4, 1e-4, 1e-4]), 0.3)], 2, IdSource.DECODED, 0.0)
+    assert res.accepted and tr._predicted is kept  # made only when asked
+    after = [tr.candidates(smap, rc, px) for px in seen]
+    assert tr._predicted is not kept and after == [fresh(px) for px in seen]
+
+
 def test_project_map_matches_brute_force(rng):
     smap = grid_map(rng, 20)
     rc = default_rig()[0]

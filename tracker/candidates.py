@@ -269,6 +269,51 @@ def predicted_pixels(
     return rows, pix, C
 
 
+def predicted_rows(
+    mean: np.ndarray,
+    cov: np.ndarray,
+    smap: StickerMap,
+    rig_camera: RigCamera,
+    gate_sigma: float = GATE_SIGMA,
+    config: CandidateConfig | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The map rows that may be in ``rig_camera``'s view from the body pose prior ``mean`` (3,),
+    ``cov`` (3, 3) (the footprint widened by ``gate_sigma`` of its uncertainty), with their
+    predicted pixels and covariances as :func:`predicted_pixels` gives them: (rows (N,), pixels
+    (N, 2), covariances (N, 2, 2) px^2). The part of :func:`select_candidates` that does not
+    depend on the observed pixel: one prior serves every sticker detected under it."""
+    cfg = config or CandidateConfig()
+    mean = np.asarray(mean, float).ravel()
+    cov = np.asarray(cov, float)
+    rows = _query_rows(mean, cov, smap, footprint(rig_camera, cfg), gate_sigma)
+    if len(rows) == 0:
+        return rows, np.zeros((0, 2)), np.zeros((0, 2, 2))
+    return predicted_pixels(mean, cov, smap, rig_camera, rows, cfg)
+
+
+def gate_candidates(
+    smap: StickerMap,
+    predicted: tuple[np.ndarray, np.ndarray, np.ndarray],
+    observed_px: np.ndarray,
+    k: int = 5,
+    gate_sigma: float = GATE_SIGMA,
+) -> list[int]:
+    """Up to ``k`` IDs of the ``predicted`` rows (see :func:`predicted_rows`) whose pixel
+    distribution holds ``observed_px`` (2,) within the Mahalanobis gate ``gate_sigma``, most
+    likely first."""
+    rows, pix, C = predicted
+    if len(rows) == 0:
+        return []
+    d = np.asarray(observed_px, float).ravel()[:2] - pix
+    d2 = np.einsum("ni,ni->n", d, np.linalg.solve(C, d[:, :, None])[:, :, 0])
+    inside = d2 <= gate_sigma**2
+    if not inside.any():
+        return []
+    neg_log_lik = d2[inside] + np.log(np.linalg.det(C[inside]))
+    order = np.argsort(neg_log_lik, kind="stable")[:k]
+    return [int(i) for i in smap.ids[rows[inside][order]]]
+
+
 def select_candidates(
     mean: np.ndarray,
     cov: np.ndarray,
@@ -293,20 +338,6 @@ def select_candidates(
     """
     if mean is None or cov is None:
         return []
-    cfg = config or CandidateConfig()
-    mean = np.asarray(mean, float).ravel()
-    cov = np.asarray(cov, float)
-    rows = _query_rows(mean, cov, smap, footprint(rig_camera, cfg), gate_sigma)
-    if len(rows) == 0:
-        return []
-    rows, pix, C = predicted_pixels(mean, cov, smap, rig_camera, rows, cfg)
-    if len(rows) == 0:
-        return []
-    d = np.asarray(observed_px, float).ravel()[:2] - pix
-    d2 = np.einsum("ni,ni->n", d, np.linalg.solve(C, d[:, :, None])[:, :, 0])
-    inside = d2 <= gate_sigma**2
-    if not inside.any():
-        return []
-    neg_log_lik = d2[inside] + np.log(np.linalg.det(C[inside]))
-    order = np.argsort(neg_log_lik, kind="stable")[:k]
-    return [int(i) for i in smap.ids[rows[inside][order]]]
+    return gate_candidates(
+        smap, predicted_rows(mean, cov, smap, rig_camera, gate_sigma, config), observed_px, k, gate_sigma
+    )
