@@ -34,6 +34,9 @@ def test_field_walks_cover_every_field_condition():
     assert len(set(seeds)) == len(seeds)
     with pytest.raises(InputError):
         scenarios(EvalConfig(preset="nope"))
+    for preset in ("standard", "field"):
+        with pytest.raises(InputError, match="seed must be 0 or more"):
+            scenarios(EvalConfig(preset=preset, seed=-1))
     cond = long[0].conditions()
     for word in ("90 s", "rolling shutter", "jitter 2 ms", "drops 4%", "survey 1.5 cm", "missing"):
         assert word in cond, cond

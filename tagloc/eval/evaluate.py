@@ -149,6 +149,8 @@ class EvalConfig:
 def scenarios(cfg: EvalConfig) -> list[Scenario]:
     """The preset's scenarios: the field walks (held-out ones for a ``cfg.seed`` other than 1), or
     (standard) conditions spread over the ranges (stratified, then jittered with ``cfg.seed``)."""
+    if cfg.seed < 0:
+        raise InputError(f"the seed must be 0 or more, got {cfg.seed}")  # numpy's generators refuse it
     if cfg.preset == "field":
         if cfg.seed == 1:
             return list(FIELD_WALKS)
