@@ -505,10 +505,12 @@ def replace_timing(t: TimingConfig, **kw) -> TimingConfig:
     return replace(t, **kw)
 
 
-def _spin_after_burst(cfg) -> tuple[dict, float]:
+def _spin_after_burst(cfg, refused: bool = False) -> tuple[dict, float]:
     """Walk 1 m/s with fixes and odometry at 30 fps; at 3 s a spin starts (6 rad/s^2 up to 3 rad/s)
-    while a burst of 8 frames is lost; odometry steps follow from the first frame after the burst.
-    Returns the tracker's stats and the heading error over its stated sigma at that frame."""
+    while a burst of 8 frames is lost (``refused``: the frames arrive, but their 8 odometry steps
+    are refused, as in a fast turn's smeared frames); odometry steps follow from the first frame
+    after the burst. Returns the tracker's stats and the heading error over its stated sigma at
+    that frame."""
     from tagloc.core.types import IdSource, PoseFix
     from tagloc.vision.odometry import OdometryStep
     from tracker.tracker import Tracker
@@ -522,7 +524,8 @@ def _spin_after_burst(cfg) -> tuple[dict, float]:
     fix_cov = np.diag([0.008**2, 0.008**2, math.radians(0.4) ** 2])
     odo_cov = np.diag([0.003**2, 0.0015**2, math.radians(0.1) ** 2])
     tr = Tracker(cfg)
-    frames = [k / 30 for k in range(0, 110) if not 90 < k <= 98]
+    frames = [k / 30 for k in range(0, 110) if refused or not 90 < k <= 98]
+    lost = {k / 30 for k in range(91, 99)}
     z_after = math.nan
     for i, t in enumerate(frames):
         tr.predict(t)
@@ -530,14 +533,14 @@ def _spin_after_burst(cfg) -> tuple[dict, float]:
             a, b = truth(frames[i - 1]), truth(t)
             c, s = math.cos(a[2]), math.sin(a[2])
             d = np.array([c * (b[0] - a[0]) + s * (b[1] - a[1]), -s * (b[0] - a[0]) + c * (b[1] - a[1]), b[2] - a[2]])
-            if t - frames[i - 1] <= 0.12:
+            if t - frames[i - 1] <= 0.12 and t not in lost:
                 tr.update_odometry(
                     OdometryStep(frames[i - 1], t, d + rng.multivariate_normal(np.zeros(3), odo_cov), odo_cov, 0.5)
                 )
         if t < 3.0 and (t % 1.0) < 0.5:
             z = truth(t) + rng.multivariate_normal(np.zeros(3), fix_cov)
             tr.update([PoseFix(np.eye(4), z, fix_cov, 0.3)], 5 + int(t), IdSource.DECODED, t)
-        if i == 91:  # the first frame after the burst
+        if t == 99 / 30:  # the first frame after the burst
             out = tr.output(t)
             z_after = abs(math.remainder(out.pose[2] - truth(t)[2], 2 * math.pi)) / math.sqrt(out.cov[2, 2])
     return tr.stats, z_after
@@ -555,6 +558,21 @@ def test_gap_noise_lets_odometry_follow_a_spin_that_started_in_a_burst():
     # (the odometry's tilt offset, which lets a lean look like motion, now also keeps the narrow
     # filter from gating these steps: none refused either way)
     assert stats["odometry_rejected"] == 0 <= narrow["odometry_rejected"]
+
+
+def test_refused_odometry_steps_widen_the_heading_as_a_gap_does():
+    """The same spin, its first 8 frames seen but their odometry steps refused: the heading sigma
+    grows as over a burst of drops (``missed_step_noise``), so the steps after it are taken; the
+    narrow model alone is far overconfident there."""
+    from dataclasses import replace
+
+    from tracker.config import TrackerConfig
+
+    stats, z = _spin_after_burst(TrackerConfig(), refused=True)
+    narrow, z_narrow = _spin_after_burst(replace(TrackerConfig(), missed_step_noise=False), refused=True)
+    assert stats["frame_gaps"] == narrow["frame_gaps"] == 0
+    assert stats["missed_steps"] >= 5 and narrow["missed_steps"] == 0
+    assert z < 2.0 < 2.5 < z_narrow, (z, z_narrow)
 
 
 def test_odometry_patch_follows_a_rolling_shutter():

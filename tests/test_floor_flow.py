@@ -275,3 +275,23 @@ def test_rolling_shutter_patch_takes_the_trackers_twist(floor):
     assert right[0] < 0.004 and right[1] < 0.3
     assert late[0] > 2 * right[0]
     assert own[0] > 3 * right[0]
+
+
+def test_a_coarser_camera_starts_its_pyramid_lower_and_trusts_its_tilts_less():
+    """At half the reference resolution the pixels are twice as large: the flow runs one pyramid
+    level fewer (its coarsest level sees the floor at the reference's scale) and the tilt filter's
+    angular sigmas are doubled; the reference camera and a finer one keep the configured values."""
+    from tagloc.core.camera import default_camera, pixel_scale
+    from tagloc.core.rig import RigCamera, looking_forward
+    from tagloc.vision.floor_flow import FloorFlow, FloorFlowConfig
+    from tagloc.vision.odometry import FloorOdometry, OdometryConfig
+
+    cfg = OdometryConfig()
+    for factor, scale, levels in ((1.0, 1.0, 2), (0.5, 2.0, 1), (2.0, 1.0, 2)):
+        cam = default_camera().scaled(factor) if factor != 1.0 else default_camera()
+        rc = RigCamera("front", cam, looking_forward(1.3, 55.0))
+        assert pixel_scale(cam) == pytest.approx(scale, rel=1e-3)
+        assert FloorFlow(rc, FloorFlowConfig())._levels == levels
+        torso = FloorOdometry(rc, cfg)._torso
+        assert torso.anchor_sigma == pytest.approx(cfg.tilt_anchor_sigma * scale, rel=1e-3)
+        assert torso.fit_sigma == pytest.approx(cfg.tilt_fit_sigma * scale, rel=1e-3)

@@ -188,6 +188,20 @@ class TrackerConfig:
     design above, and fixes after a spin re-initialise):
     2.5 rad^2/s^3 makes a spin's first 0.27 s (an 8-frame burst) a 2-sigma event in yaw rate
     (1.6 against 0.82 rad/s) and in yaw (12.6 against 7.3 degrees).
+    ``missed_step_noise``: the same, frame interval by frame interval, when frames arrive but their
+    odometry steps are refused (the camera's last frame was to be measured and no step ended
+    there), for as long as the odometry had followed the walk until ``odometry_max_dt`` before:
+    the odometry mostly fails where a turn is fast (its smeared frames, see
+    :class:`tagloc.vision.odometry.OdometryConfig`), which is also where the narrow model fails.
+    Measured (2026-11-25, replays): twelve 20 s walks at 648 x 486 (``tagloc simulate --scale
+    0.5``, 60-300 lux, field timing and survey error) had runs of 8-10 refused steps in turns at
+    100-120 deg/s, after which the heading was 10-28 deg off against a stated 2-6 deg, the fixes
+    were gated and, with no sticker decodable at that resolution, nothing recovered for up to 6
+    s (48 and 22 cm RMSE on the two worst walks). With the noise, 7.2 and 4.4 cm; 8 of the 12
+    walks better, median 5.7 -> 5.5 cm. On the eval presets (1296 x 972): standard 1.81 -> 1.78
+    cm, field 2.89 -> 2.93 cm (f01 4.10 -> 4.30 in a replay, 3.82 -> 3.81 in live's order).
+    Starting the noise only once the run is longer than ``gap_s``, as for a frame gap, left the
+    presets as they were but the worst walk at 17.6 cm.
 
     Covariance guards: eigenvalues are kept >= ``min_eig``; variances are capped (position
     ``pos_var_cap`` m^2, i.e. 1 km sigma; yaw pi^2/3, the variance of a uniform heading; speed
@@ -239,6 +253,7 @@ class TrackerConfig:
     odometry_max_dt: float = 0.35
     gap_s: float = 0.12
     gap_yaw_accel_psd: float = 2.5
+    missed_step_noise: bool = True
 
     def __post_init__(self) -> None:
         """Refuse values the filter cannot run with (a config is set in code: a typo there must

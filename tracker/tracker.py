@@ -181,6 +181,7 @@ class Tracker:
                     "odometry_ignored",
                     "odometry_overruled",
                     "frame_gaps",
+                    "missed_steps",
                 ),
                 0,
             )
@@ -311,6 +312,13 @@ class Tracker:
                     self._drop_clones()
                 if t - t0 > self.config.gap_s and t0 - self._last_odo_t <= self.config.gap_s:
                     self._gap_noise(t - t0)
+                elif (
+                    self.config.missed_step_noise
+                    and self._here
+                    and 0.0 < t0 - self._last_odo_t <= self.config.odometry_max_dt
+                ):
+                    # The last frame's step was wanted and none ended there (see missed_step_noise).
+                    self._gap_noise(t - t0, "missed_steps")
             self._here = set()
             self._before_step = None
         if odometry:
@@ -325,7 +333,7 @@ class Tracker:
         if self._t is not None:
             self._clones_dropped_t = self._t
 
-    def _gap_noise(self, dt: float) -> None:
+    def _gap_noise(self, dt: float, stat: str = "frame_gaps") -> None:
         """Widen yaw and yaw rate after ``dt`` s no odometry could follow (see ``gap_yaw_accel_psd``).
 
         The noise is independent of the state before the gap, so a clone's cross-covariance stands."""
@@ -337,7 +345,7 @@ class Tracker:
         P[w, yaw] += q * dt**2 / 2.0
         P[w, w] += q * dt
         self._guarded(lambda: self._ekf.set(self._ekf.x[:, 0], P))
-        self._stats["frame_gaps"] += 1
+        self._stats[stat] += 1
 
     def _check_lost(self) -> None:
         if self._state is TrackState.TRACKING and self._is_lost(self._ekf.cov, self._t):

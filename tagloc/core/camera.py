@@ -79,6 +79,20 @@ class Camera:
         return Camera(K, self.dist.copy(), round(self.width * factor), round(self.height * factor))
 
 
+# The focal length (px) of the reference camera (default_camera) for which tagloc's pixel and
+# angular defaults were set and measured; other cameras scale them by their own.
+REFERENCE_FOCAL_PX = 1285.7
+
+
+def pixel_scale(camera: Camera) -> float:
+    """How many times larger than the reference camera's (:func:`default_camera`, the Pi camera v1
+    at 1296 x 972, for which tagloc's figures were measured) ``camera``'s pixels are in angle, at
+    least 1. An angle read from image positions is that much less sure at the same pixel noise,
+    and an image pyramid reaches the same angular scale that many times sooner. A finer camera
+    keeps the measured figures (they also hold errors that are not in pixels)."""
+    return max(1.0, REFERENCE_FOCAL_PX / float(camera.K[0, 0]))
+
+
 def default_camera() -> Camera:
     """Raspberry Pi camera v1 (OV5647) at 1296x972: 3.6 mm lens, 1.4 um pixels binned 2x2.
 

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from tagloc.core.camera import Camera
+from tagloc.core.camera import REFERENCE_FOCAL_PX, Camera
 from tagloc.core.errors import InputError
 from tagloc.core.sticker import FRAME_M, INNER_M, MODULE_M, SIZE_M
 from tagloc.core.types import Detection
@@ -153,7 +153,7 @@ class DetectConfig:
         Pi camera v1 at 1296x972); a sticker's image size scales with the focal length, so the
         window and side limits do too, and below ~0.75 of it the candidate stage runs at full
         resolution, or a sticker 2 m away would be only ~15 px there."""
-        scale = float(camera.K[0, 0]) / _REFERENCE_FOCAL_PX
+        scale = float(camera.K[0, 0]) / REFERENCE_FOCAL_PX
         if 0.9 <= scale <= 1.1:
             return cls()
         return cls(
@@ -162,9 +162,6 @@ class DetectConfig:
             min_side_px=max(12.0, 24.0 * scale),
             max_side_px=420.0 * scale,
         )
-
-
-_REFERENCE_FOCAL_PX = 1285.7  # the focal length DetectConfig's defaults are set for
 
 
 def distort_ideal(camera: Camera, pixels: np.ndarray) -> np.ndarray:

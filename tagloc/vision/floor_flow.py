@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from tagloc.core.camera import pixel_scale
 from tagloc.core.rig import RigCamera, row_delay_s
 from tagloc.vision.detect import median_last  # np.median without its per-call overhead
 
@@ -61,7 +62,15 @@ class FloorFlowConfig:
       (``maxLevel``). The patch's step leaves the points up to ~10 px from where they are (its own
       error, the tilt change, the bobbing); with 1 level and a 21 px window the fitted pitch change
       followed 17-32 % of the true change on s00 and f00, with 2 levels 78-82 % (s00) and 54 %
-      (f00, rolling shutter at 150 lux).
+      (f00, rolling shutter at 150 lux). These are for the reference camera (1296 x 972, f = 1286
+      px); a camera with larger pixels (:func:`tagloc.core.camera.pixel_scale`) runs that many
+      fewer levels (log2 of it, rounded), so that the coarsest level sees the floor at the same
+      scale. At 648 x 486 with 2 levels, the coarsest (162 x 121) holds little of the floor's
+      texture beyond the image's own fixed shading (vignetting), and Lucas-Kanade read the floor's
+      motion 3-9 % short (the ground truth's floor points, ``tagloc simulate --scale 0.5``, 150 lux),
+      which the fit took for a tilt change of +0.24 deg and a rise of 6 mm every frame (true: 0.006
+      deg, 0): the odometry alone came out 8-14 % short over 14-15 m on three walks (1.4 % at 1296 x
+      972). With 1 level, 0.4-1.5 % short per point, and 1.4-5.5 % over the walks.
     - ``iterations``: Lucas-Kanade's per level; ``lk_eps``: its stop (pixels).
     - ``fit_iterations``: Gauss-Newton steps of the six-parameter fit from the patch's step.
     - ``huber_k``: points further than this many robust sigmas (1.4826 median absolute residual)
@@ -148,6 +157,9 @@ class FloorFlow:
         self._R_bc, self._c_nom = T[:3, :3], T[:3, 3]
         self._vp = np.asarray(rig_camera.vest_point, float)
         self._criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, cfg.iterations, cfg.lk_eps)
+        # The pyramid's coarsest level at the same angular scale as the reference camera's (see
+        # ``levels``): a camera with pixels twice as large starts a level lower.
+        self._levels = max(0, cfg.levels - int(round(math.log2(pixel_scale(cam)))))
         self._sin_min = math.sin(cfg.min_depression)
         self._halves: list[tuple[np.ndarray, np.ndarray]] = []  # (frame, its pyrDown), last two frames
         # The last fit's median reprojection error (px), kept or refused; None when the last call
@@ -241,7 +253,7 @@ class FloorFlow:
         win = (cfg.window_px, cfg.window_px)
         p0 = np.ascontiguousarray(p0, np.float32).reshape(-1, 1, 2)
         start = np.ascontiguousarray(guess, np.float32).reshape(-1, 1, 2)
-        if cfg.levels >= 1:
+        if self._levels >= 1:
             # A point lost on a coarse level is not refused there either (OpenCV refuses points on
             # the full-resolution level only): the full-resolution pass decides its status.
             coarse, _, _ = cv2.calcOpticalFlowPyrLK(
@@ -250,7 +262,7 @@ class FloorFlow:
                 p0 * 0.5,
                 start * 0.5,
                 winSize=win,
-                maxLevel=cfg.levels - 1,
+                maxLevel=self._levels - 1,
                 criteria=self._criteria,
                 flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
             )

@@ -57,6 +57,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from tagloc.core.camera import pixel_scale
 from tagloc.core.errors import CalibrationError, InputError
 from tagloc.core.rig import RigCamera, row_delay_s, torso_tilt
 from tagloc.vision.floor_flow import FloorFlow, FloorFlowConfig, FlowStep
@@ -255,6 +256,17 @@ class OdometryConfig:
     sticker leaving the image) is refused (with 5 deg it anchored the filter: 3.8 -> 4.3 cm). Offline on s04 and s00 (anchored at the true
     tilt, as a fix does), the forward error summed over 5 s fell from 14.9 / 7.0 cm (raw fits) to
     7.1 / 7.1 cm, and over 1-2 s stayed at 4.8-6.6 / 3.5-4.7 cm.
+
+    These angular sigmas (``tilt_fit_sigma``, ``tilt_anchor_sigma`` and the flow's
+    ``FloorFlowConfig.tilt_sigma``) were measured with the reference camera (the Pi camera v1 at
+    1296 x 972). An angle read from image positions is as sure as a pixel is small, so for a camera
+    with a shorter focal length (fewer pixels over the same view) all three grow with its pixels'
+    angular size (:func:`tagloc.core.camera.pixel_scale`; never shrunk for a finer camera, since they also hold errors
+    that are not in pixels). At 648 x 486 (``tagloc simulate --scale 0.5``, 150 lux, rolling
+    shutter, jitter, drops; replay 2026-11-25) the fixes' tilts were 0.6-1.1 deg uncertain by their
+    corner noise, and the filter at the reference sigmas refused the fixes of 71 frames at its tilt
+    gate (the same walk at 1296 x 972: 3 frames): 3.88 cm RMSE with 327 fixes. With the anchor's sigma scaled,
+    23 refused, 375 fixes, 3.69 cm; with all three, 390 fixes, 2.84 cm.
 
     ``rolling_shutter``: for a rolling-shutter camera (``RigCamera.readout_s`` > 0), sample each
     frame's patch where each floor point was at its row's time (see the module docstring).
@@ -680,13 +692,14 @@ class FloorOdometry:
         # The flow fit's median reprojection error (px) in the last measure, kept or refused; None
         # when it made none (see FloorFlow.last_residual).
         self.last_flow_residual: float | None = None
+        self._pixel_scale = pixel_scale(rig_camera.camera)
         self._torso = (
             TorsoTilt(
                 cfg.tilt_sigma_pitch,
                 cfg.tilt_sigma_roll,
                 cfg.tilt_tau_s,
-                cfg.tilt_fit_sigma,
-                cfg.tilt_anchor_sigma,
+                cfg.tilt_fit_sigma * self._pixel_scale,
+                cfg.tilt_anchor_sigma * self._pixel_scale,
                 cfg.tilt_posture_fixes,
             )
             if cfg.tilt_correction and cfg.tilt_filter
@@ -1074,7 +1087,7 @@ class FloorOdometry:
         ``refine`` False: no tilt fit (the frame's sticker fixes anchor the tilt instead)."""
         if flow is not None:
             fit: tuple[float, float | None] | None = (flow.d_pitch, flow.d_roll)
-            fit_sigma = self.config.flow_config.tilt_sigma
+            fit_sigma = self.config.flow_config.tilt_sigma * self._pixel_scale
         elif not refine:
             fit, fit_sigma = None, None
         else:
