@@ -69,3 +69,28 @@ def test_preset_all_runs_both_and_prints_both_summaries(tmp_path, monkeypatch, c
     assert main(["eval", "--preset", "field", "--modes", "full", "--quiet", "-o", str(tmp_path / "field")]) == 0
     out = capsys.readouterr().out
     assert "f01-dim" in out and "<10 cm of all frames" in out
+
+
+def test_scale_renders_the_same_walks_with_a_coarser_camera(tmp_path):
+    """--scale keeps each walk's conditions and seed and changes only its camera's resolution; the
+    reference walks keep their cache stamps (no 'scale' entry), so they are not rendered again."""
+    import json
+
+    from tagloc.io.session import SessionReader
+
+    ref = scenarios(EvalConfig(preset="field"))
+    half = scenarios(EvalConfig(preset="field", scale=0.5))
+    assert [replace(w, scale=1.0) for w in half] == ref and {w.scale for w in half} == {0.5}
+    assert "resolution x0.5" in half[0].conditions() and "resolution" not in ref[0].conditions()
+    for bad in (0.0, 3.0):
+        with pytest.raises(InputError, match="resolution factor"):
+            scenarios(EvalConfig(preset="field", scale=bad))
+    tiny = replace(FIELD_WALKS[0], seconds=0.2)
+    for sc, width in ((tiny, 1296), (replace(tiny, name="f00-half", scale=0.5), 648)):
+        path = ev.make_session(sc, tmp_path, progress=False)
+        assert SessionReader(path).rig.cameras[0].camera.width == width
+        stamp = json.loads((path / "scenario.json").read_text())
+        assert ("scale" in stamp) == (sc.scale != 1)
+        before = (path / "scenario.json").stat().st_mtime_ns
+        assert ev.make_session(sc, tmp_path, progress=False) == path
+        assert (path / "scenario.json").stat().st_mtime_ns == before  # cached, not made again

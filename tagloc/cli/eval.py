@@ -20,6 +20,7 @@ one camera (the front one's frames alone) against both: time with a sticker in v
 examples:
   tagloc eval --sessions 6 --seconds 20 -o out/eval
   tagloc eval --preset all --modes full -o out/eval
+  tagloc eval --preset field --scale 0.5 --modes full -o out/eval-half
   tagloc eval --preset two-camera -o out/eval/two_camera"""
 
 
@@ -46,6 +47,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "tagloc in tagloc live's order, each frame's odometry step and least-squares decodes after "
         "its pose is published)",
     )
+    p.add_argument(
+        "--scale",
+        type=float,
+        default=1.0,
+        help="standard, field: every walk's camera at this resolution factor (default 1: 1296x972; 0.5: 648x486)",
+    )
     p.add_argument("--no-hard", action="store_true", help="no missing/unmapped stickers in the odd sessions (standard)")
     p.add_argument("-o", "--out", type=Path, default=Path("out/eval"), help="output directory (default out/eval)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -59,6 +66,7 @@ def run(args: argparse.Namespace) -> int:
 
     checks.number(args.sessions, "--sessions", 1, 1000)
     checks.number(args.seconds, "--seconds", 0, 3600, lo_open=True)
+    checks.number(args.scale, "--scale", 0.1, 2.0)
     modes = tuple(m.strip() for m in args.modes.split(",") if m.strip())
     unknown = [m for m in modes if m not in EVAL_MODES]
     if unknown or not modes:
@@ -75,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
         modes=modes,
         hard=not args.no_hard,
         progress=not args.quiet,
+        scale=args.scale,
     )
     print(run_presets(cfg, args.preset))
     return 0

@@ -59,6 +59,7 @@ class Scenario:
     map_width_m: float = 24.0
     stop_every_s: float = 12.0
     turn_probability: float = 0.2
+    scale: float = 1.0  # the camera's resolution factor (1: 1296 x 972)
 
     def conditions(self) -> str:
         """The walk's conditions, short, for the table."""
@@ -75,6 +76,8 @@ class Scenario:
             parts.append(f"{100 * self.missing_fraction:g}% missing, {self.unmapped} unmapped")
         if self.sensor != "standard":
             parts.append(f"sensor {self.sensor}")
+        if self.scale != 1:
+            parts.append(f"resolution x{self.scale:g}")
         return ", ".join(parts)
 
 
@@ -134,6 +137,8 @@ class EvalConfig:
             fixed :data:`FIELD_WALKS`; ``sessions``, ``seconds`` and ``hard`` do not apply; a
             ``seed`` other than 1 gives held-out walks with the same conditions, each walk's seed
             moved by :data:`FIELD_SEED_STEP` times ``seed - 1``).
+        scale: every walk's camera at this resolution factor (0.5: 648 x 486), the walks otherwise
+            as the preset has them.
     """
 
     sessions: int = 6
@@ -144,9 +149,18 @@ class EvalConfig:
     hard: bool = True
     progress: bool = True
     preset: str = "standard"
+    scale: float = 1.0
 
 
 def scenarios(cfg: EvalConfig) -> list[Scenario]:
+    """The preset's scenarios (see :func:`_preset_scenarios`), at ``cfg.scale``."""
+    if not 0.1 <= cfg.scale <= 2.0:
+        raise InputError(f"the resolution factor must be 0.1-2, got {cfg.scale:g}")
+    out = _preset_scenarios(cfg)
+    return out if cfg.scale == 1 else [replace(sc, scale=cfg.scale) for sc in out]
+
+
+def _preset_scenarios(cfg: EvalConfig) -> list[Scenario]:
     """The preset's scenarios: the field walks (held-out ones for a ``cfg.seed`` other than 1), or
     (standard) conditions spread over the ranges (stratified, then jittered with ``cfg.seed``)."""
     if cfg.seed < 0:
@@ -193,6 +207,8 @@ def make_session(sc: Scenario, root: Path, progress: bool) -> Path:
     path = root / "sessions" / sc.name
     stamp = path / "scenario.json"
     made = {**asdict(sc), "simulator": SIM_REVISION}
+    if sc.scale == 1:
+        del made["scale"]  # as stamped before the factor existed: those walks stay cached
     if stamp.exists() and json.loads(stamp.read_text()) == made and (path / FRAMES_CSV).exists():
         return path
     if path.exists():
@@ -220,6 +236,7 @@ def make_session(sc: Scenario, root: Path, progress: bool) -> Path:
             missing_fraction=sc.missing_fraction,
             unmapped=sc.unmapped,
             rolling_shutter=sc.rolling_shutter,
+            scale=sc.scale,
             walk=WalkConfig(stop_every_s=sc.stop_every_s, turn_probability=sc.turn_probability),
             **_sensor_conditions(sc),
         ),
