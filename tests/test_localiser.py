@@ -193,3 +193,22 @@ def test_region_search_between_whole_image_searches_keeps_the_track(walk, full_l
     assert full_log.counts["region_searches"] > 0.2 * len(full_log.stamps)
     assert base.counts["region_searches"] == 0
     np.testing.assert_allclose(full_log.poses[full_log.valid], base.poses[base.valid], atol=1e-9)
+
+
+def test_shape_match_finds_the_corner_shift_and_the_motion():
+    """A quad's corners relabelled (cyclic shift) and moved: the shift that lines them up, how far
+    the centre moved, and no shape change; a distorted corner shows as the change."""
+    from tagloc.pipeline.localiser import _shape_match, _shortest_side
+
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        quad = np.array([[0.0, 0.0], [40.0, 0.0], [40.0, 30.0], [0.0, 30.0]]) + rng.uniform(0, 500, 2)
+        sh = int(rng.integers(4))
+        move = rng.normal(0, 5, 2)
+        prev = np.roll(quad, -sh, axis=0) + move  # prev[j] = quad[(j + sh) % 4] moved
+        shift, moved, change = _shape_match(quad, prev)
+        assert shift == sh and moved == pytest.approx(np.hypot(*move)) and change < 1e-9
+        assert _shortest_side(quad) == pytest.approx(30.0)
+        bent = prev.copy()
+        bent[0] += (3.0, 4.0)
+        assert _shape_match(quad, bent)[2] == pytest.approx(5.0 * 3 / 4, rel=1e-6)

@@ -305,8 +305,13 @@ def _same_place(det: Detection, outer: np.ndarray, config: TrackingConfig) -> bo
     return moved <= config.max_centre_shift * side and change <= config.max_shape_change * side
 
 
+# Row ``sh`` lists the corners of a quad cyclically shifted by ``sh``: (j + sh) % 4.
+_CYCLIC_SHIFTS = (np.arange(4)[None, :] + np.arange(4)[:, None]) % 4
+
+
 def _shortest_side(quad: np.ndarray) -> float:
-    return float(np.min(np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1)))
+    d = quad - quad[_CYCLIC_SHIFTS[1]]
+    return float(np.sqrt(np.min(np.sum(d * d, axis=1))))
 
 
 def _shape_match(cur: np.ndarray, prev: np.ndarray) -> tuple[int, float, float]:
@@ -314,9 +319,11 @@ def _shape_match(cur: np.ndarray, prev: np.ndarray) -> tuple[int, float, float]:
     ``prev``, for the cyclic shift with ``cur[(j + shift) % 4]`` at ``prev[j]``."""
     cc, pc = cur.mean(axis=0), prev.mean(axis=0)
     a, b = cur - cc, prev - pc
-    dev = [float(np.linalg.norm(a[(np.arange(4) + sh) % 4] - b, axis=1).max()) for sh in range(4)]
+    d = a[_CYCLIC_SHIFTS] - b[None]  # (shift, corner, 2), all four shifts at once
+    dev = np.sqrt(np.sum(d * d, axis=2)).max(axis=1)
     shift = int(np.argmin(dev))
-    return shift, float(np.linalg.norm(cc - pc)), dev[shift]
+    c = cc - pc
+    return shift, float(np.sqrt(np.sum(c * c))), float(dev[shift])
 
 
 def match_tracked(
