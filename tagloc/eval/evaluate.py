@@ -117,6 +117,10 @@ FIELD_WALKS: tuple[Scenario, ...] = (
 #: larger than the preset's own seed spread, so no two seeds share a walk.
 FIELD_SEED_STEP = 100
 
+#: The resolution factors ``EvalConfig.scale`` accepts (0.1: 130 x 97 px; 2: 2592 x 1944, the Pi
+#: camera v1's full sensor).
+SCALE_RANGE = (0.1, 2.0)
+
 PRESETS = ("standard", "field")
 #: One camera against front + rear on the same walks (:mod:`tagloc.eval.multicam`); not part of "all".
 TWO_CAMERA = "two-camera"
@@ -154,8 +158,9 @@ class EvalConfig:
 
 def scenarios(cfg: EvalConfig) -> list[Scenario]:
     """The preset's scenarios (see :func:`_preset_scenarios`), at ``cfg.scale``."""
-    if not 0.1 <= cfg.scale <= 2.0:
-        raise InputError(f"the resolution factor must be 0.1-2, got {cfg.scale:g}")
+    lo, hi = SCALE_RANGE
+    if not lo <= cfg.scale <= hi:
+        raise InputError(f"the resolution factor must be {lo:g}-{hi:g}, got {cfg.scale:g}")
     out = _preset_scenarios(cfg)
     return out if cfg.scale == 1 else [replace(sc, scale=cfg.scale) for sc in out]
 
