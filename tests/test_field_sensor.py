@@ -505,12 +505,13 @@ def replace_timing(t: TimingConfig, **kw) -> TimingConfig:
     return replace(t, **kw)
 
 
-def _spin_after_burst(cfg, refused: bool = False) -> tuple[dict, float]:
+def _spin_after_burst(cfg, refused: bool = False, wrong_first: bool = False, at: int = 99) -> tuple[dict, float]:
     """Walk 1 m/s with fixes and odometry at 30 fps; at 3 s a spin starts (6 rad/s^2 up to 3 rad/s)
     while a burst of 8 frames is lost (``refused``: the frames arrive, but their 8 odometry steps
     are refused, as in a fast turn's smeared frames); odometry steps follow from the first frame
-    after the burst. Returns the tracker's stats and the heading error over its stated sigma at
-    that frame."""
+    after the burst (``wrong_first``: the first of them a mistracking that saw no turn). Returns the
+    tracker's stats and the heading error over its stated sigma at frame ``at`` (the first after
+    the burst by default)."""
     from tagloc.core.types import IdSource, PoseFix
     from tagloc.vision.odometry import OdometryStep
     from tracker.tracker import Tracker
@@ -533,6 +534,8 @@ def _spin_after_burst(cfg, refused: bool = False) -> tuple[dict, float]:
             a, b = truth(frames[i - 1]), truth(t)
             c, s = math.cos(a[2]), math.sin(a[2])
             d = np.array([c * (b[0] - a[0]) + s * (b[1] - a[1]), -s * (b[0] - a[0]) + c * (b[1] - a[1]), b[2] - a[2]])
+            if wrong_first and t == 99 / 30:
+                d[2] = 0.0
             if t - frames[i - 1] <= 0.12 and t not in lost:
                 tr.update_odometry(
                     OdometryStep(frames[i - 1], t, d + rng.multivariate_normal(np.zeros(3), odo_cov), odo_cov, 0.5)
@@ -540,7 +543,7 @@ def _spin_after_burst(cfg, refused: bool = False) -> tuple[dict, float]:
         if t < 3.0 and (t % 1.0) < 0.5:
             z = truth(t) + rng.multivariate_normal(np.zeros(3), fix_cov)
             tr.update([PoseFix(np.eye(4), z, fix_cov, 0.3)], 5 + int(t), IdSource.DECODED, t)
-        if t == 99 / 30:  # the first frame after the burst
+        if t == at / 30:
             out = tr.output(t)
             z_after = abs(math.remainder(out.pose[2] - truth(t)[2], 2 * math.pi)) / math.sqrt(out.cov[2, 2])
     return tr.stats, z_after
@@ -573,6 +576,25 @@ def test_refused_odometry_steps_widen_the_heading_as_a_gap_does():
     assert stats["frame_gaps"] == narrow["frame_gaps"] == 0
     assert stats["missed_steps"] >= 5 and narrow["missed_steps"] == 0
     assert z < 2.0 < 2.5 < z_narrow, (z, z_narrow)
+
+
+def test_odometry_steps_gated_in_a_row_widen_the_heading():
+    """The same spin with its steps refused, and the first step after it a mistracking that saw no
+    turn, fused: the filter now holds a heading 17 degrees short with a yaw rate near zero, and gates
+    the right steps that follow. Two of them in a row turning the same way show that the turn went
+    missing (``disagreement_noise``): the heading sigma grows by the turn they report. Without it
+    the heading is over 4 sigma off four frames on (at frame 99, before any evidence, both are 3.1)."""
+    from dataclasses import replace
+
+    from tracker.config import TrackerConfig
+
+    stats, z = _spin_after_burst(TrackerConfig(), refused=True, wrong_first=True, at=103)
+    narrow, z_narrow = _spin_after_burst(
+        replace(TrackerConfig(), disagreement_noise=False), refused=True, wrong_first=True, at=103
+    )
+    assert stats["odometry_disagreements"] >= 1 and narrow["odometry_disagreements"] == 0
+    assert narrow["odometry_rejected"] >= 3
+    assert z < 2.0 < 4.0 < z_narrow, (z, z_narrow)
 
 
 def test_odometry_patch_follows_a_rolling_shutter():

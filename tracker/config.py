@@ -202,6 +202,20 @@ class TrackerConfig:
     cm, field 2.89 -> 2.93 cm (f01 4.10 -> 4.30 in a replay, 3.82 -> 3.81 in live's order).
     Starting the noise only once the run is longer than ``gap_s``, as for a frame gap, left the
     presets as they were but the worst walk at 17.6 cm.
+    ``disagreement_noise``: the other way a turn goes missing. The first step after such a run can
+    be a mistracking that passes the gate, because the filter no longer knows the turn
+    rate. On the field walk f01 at 648 x 486 (60 lux, a 145 deg/s turn), that step read -0.4 deg
+    for a true +4.5. The filter then held a yaw rate near zero and gated the right steps that
+    followed, each reporting the 4-5 deg turn the filter missed: the heading ended 45 deg off
+    against a stated 9. One gated step may be a mistracking of its own, so the first is only
+    noted. When the next step of the same camera is gated too, with the same sign, the turn of
+    both went missing. The yaw sigma grows by the sum of their disagreements: the missing turn is
+    one error that adds up, not independent ones. Every further gated step with the same sign adds
+    its own disagreement. The yaw rate's variance grows by (disagreement / interval)^2, so the
+    right steps pass the gate again. Measured (2026-11-25) on that walk: heading 30 deg off against
+    a stated 18 after the turn, 91.5 -> 61.4 cm RMSE, NEES 7.5 -> 1.9. It fired on no other walk
+    of the presets at either resolution, nor on twelve other walks at 648 x 486; at 1296 x 972 the
+    tracker gates 0-1 steps a walk, and the presets' figures are unchanged.
 
     Covariance guards: eigenvalues are kept >= ``min_eig``; variances are capped (position
     ``pos_var_cap`` m^2, i.e. 1 km sigma; yaw pi^2/3, the variance of a uniform heading; speed
@@ -254,6 +268,7 @@ class TrackerConfig:
     gap_s: float = 0.12
     gap_yaw_accel_psd: float = 2.5
     missed_step_noise: bool = True
+    disagreement_noise: bool = True
 
     def __post_init__(self) -> None:
         """Refuse values the filter cannot run with (a config is set in code: a typo there must

@@ -149,6 +149,10 @@ class Tracker:
         self._here: set[Hashable] = set()  # cameras whose frames are at the filter's time
         self._clones_dropped_t = -math.inf  # when the clones were last dropped (restart, forgetting)
         self._last_odo_t = -math.inf  # end of the last odometry step fused
+        # (camera, end time, yaw innovation) of the last odometry step gated, while no step has been
+        # fused since (see disagreement_noise).
+        self._gated_step: tuple[Hashable, float, float] | None = None
+        self._gated_run = 0  # gated steps in a row that disagree the same way
         # The filter (mean, covariance, clones, _last_odo_t) just before the odometry step fused at
         # the filter's current time, while no fix has been fused after it (see overrule_odometry).
         self._before_step: tuple[float, Hashable, np.ndarray, np.ndarray, CloneSet, float] | None = None
@@ -182,6 +186,7 @@ class Tracker:
                     "odometry_overruled",
                     "frame_gaps",
                     "missed_steps",
+                    "odometry_disagreements",
                 ),
                 0,
             )
@@ -346,6 +351,26 @@ class Tracker:
         P[w, w] += q * dt
         self._guarded(lambda: self._ekf.set(self._ekf.x[:, 0], P))
         self._stats[stat] += 1
+
+    def _disagreement(self, camera: Hashable, t0: float, t1: float, e_yaw: float) -> None:
+        """A gated odometry step of ``camera`` over ``t0``-``t1`` whose turn differs by ``e_yaw`` (rad)
+        from the filter's (see ``disagreement_noise``)."""
+        prev, self._gated_step = self._gated_step, (camera, t1, e_yaw)
+        if prev is None or prev[0] != camera or abs(prev[1] - t0) > 1e-6 + 1e-9 * abs(t0) or prev[2] * e_yaw <= 0.0:
+            self._gated_run = 1
+            return
+        if not self.config.disagreement_noise:
+            return
+        # The second step of a run vouches for the first: the turn of both went missing.
+        m = abs(e_yaw) + (abs(prev[2]) if self._gated_run == 1 else 0.0)
+        self._gated_run += 1
+        P = self._ekf.P.copy()
+        # The missed turn adds up step by step (it is one error, not independent ones): the yaw
+        # sigma grows by it, and the yaw rate is uncertain by this step's disagreement over its interval.
+        P[motion.YAW, motion.YAW] = (math.sqrt(P[motion.YAW, motion.YAW]) + m) ** 2
+        P[motion.W, motion.W] += (abs(e_yaw) / (t1 - t0)) ** 2
+        self._guarded(lambda: self._ekf.set(self._ekf.x[:, 0], P))
+        self._stats["odometry_disagreements"] += 1
 
     def _check_lost(self) -> None:
         if self._state is TrackState.TRACKING and self._is_lost(self._ekf.cov, self._t):
@@ -660,6 +685,7 @@ class Tracker:
             return UpdateResult(False, "singular odometry innovation")
         if not nis <= cfg.gate_odometry:
             self._stats["odometry_rejected"] += 1
+            self._disagreement(camera, t0, t1, float(y[2]))
             return UpdateResult(False, f"odometry gated: NIS {nis:.1f} > {cfg.gate_odometry:.1f}", nis)
 
         def fuse() -> None:
@@ -680,6 +706,7 @@ class Tracker:
         self._clones.drop(camera)
         self._stats["odometry_accepted"] += 1
         self._last_odo_t = t1
+        self._gated_step, self._gated_run = None, 0
         self._before_step = before
         return UpdateResult(True, "fused", nis)
 
