@@ -68,7 +68,7 @@ _STARTUP_STEPS = (
     ("+ the tracker (filterpy.kalman)", "import numpy, cv2, scipy.spatial, tracker.tracker"),
     ("+ scipy.stats (not imported by a replay)", "import numpy, cv2, scipy.spatial, tracker.tracker, scipy.stats"),
 )
-_STAGES = ("odometry", "detect", "decode", "identify", "pose", "tracker", "total")
+_STAGES = ("deflicker", "odometry", "detect", "decode", "identify", "pose", "tracker", "total")
 
 
 def _child(code: str, arg: str, core: int | None) -> tuple[float, float]:

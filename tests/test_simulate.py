@@ -17,6 +17,7 @@ from tagloc.io.session import SessionReader
 from tagloc.sim.floor import Floor, FloorConfig
 from tagloc.sim.render import (
     ExposureConfig,
+    Flicker,
     OpticsConfig,
     SensorConfig,
     choose_gain,
@@ -136,6 +137,40 @@ def test_exposure_policy_and_gain():
     noisy = {lx: render_view(floor, cam, T, lx, exposure=low_target, seed=3).image[80:160, 100:220] for lx in (5, 100)}
     snr = {lx: im.mean() / im.std() for lx, im in noisy.items()}
     assert snr[5] < 0.7 * snr[100]
+
+
+def test_flicker_bands_a_rolling_shutter_and_a_full_period_averages_it_out():
+    """30 % flicker at 100 Hz on a uniform floor: with a 30 ms rolling shutter and a 1 ms exposure,
+    each row's signal (linearised, against steady light) follows the flicker at that row's time,
+    three periods down the frame; a global shutter scales the whole frame by the flicker at the
+    frame's time; a 10 ms exposure (one period) sees steady light."""
+    from tagloc.core.rig import row_delay_s
+    from tagloc.sim.render import Renderer
+
+    cam = small_camera()
+    floor = Floor(StickerMap([1], [[0.0, 0.0]], [0.0]), FloorConfig(texture=False))
+    T = camera_pose_looking_at((0.0, 0.0), 1.3, 55.0)
+    flicker = Flicker(0.3, 100.0, 0.7)
+    t_mid = 0.0123
+
+    def rows_linear(rolling: bool, exposure_s: float, fl: Flicker | None) -> np.ndarray:
+        exp = ExposureConfig(rolling_shutter=rolling, readout_s=0.030, bands=8, target_mean=0.05)
+        r = Renderer(floor, cam, sensor=SensorConfig(noise=False, prnu=0.0), exposure=exp, flicker=fl)
+        img = r.render(
+            lambda ts: np.repeat(T[None], len(ts), 0), t_mid, 300.0, np.random.default_rng(0), exposure_s=exposure_s
+        ).image
+        return ((img[:, 40:280].astype(float) + 0.0) / 255.0) ** 2.2
+
+    rows = np.arange(cam.height)
+    for rolling in (True, False):
+        ratio = (rows_linear(rolling, 0.001, flicker) / rows_linear(rolling, 0.001, None)).mean(axis=1)
+        want = flicker.mean_over(t_mid + row_delay_s(rows, cam.height, 0.030 if rolling else 0.0), 0.001)
+        # Rows near the horizon are dark (vignetting, far floor): compare where the signal is.
+        ok = rows > 20
+        assert np.abs(ratio[ok] - want[ok]).max() < 0.03, np.abs(ratio[ok] - want[ok]).max()
+        assert (np.ptp(ratio[ok]) > 0.5) == rolling  # bands (+-30 %) only with the rolling shutter
+    steady = rows_linear(True, 0.010, flicker) / rows_linear(True, 0.010, None)
+    assert np.abs(steady[rows > 20].mean(axis=1) - 1.0).max() < 0.02
 
 
 # -- walk -----------------------------------------------------------------------------------------

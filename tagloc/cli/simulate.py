@@ -19,13 +19,15 @@ motion-priority auto exposure (t = 0.3 lux*s / lux, capped), motion blur from th
 during the exposure, shot and read noise, gain, vignetting, lens distortion, gamma and JPEG.
 
 Field conditions (all seeded): a rolling shutter, the driver's timestamp jitter and dropped frames,
-a map with survey error (the frames show the true stickers), a dimmer sensor.
+a map with survey error (the frames show the true stickers), a dimmer sensor, flickering lamps.
 
 example:
   tagloc simulate --map maps/demo.csv --seconds 20 --lux 100 --speed 1.3 --seed 1 -o logs/sim1
   tagloc simulate --map maps/demo.csv --seconds 20 --seed 1 --rolling-shutter --jitter-ms 2 \
       --drop-fraction 0.04 --drop-bursts-per-min 3 --survey-sigma-cm 1 --survey-sigma-deg 1.5 \
-      --sensor ov5647 -o logs/field1"""
+      --sensor ov5647 -o logs/field1
+  tagloc simulate --map maps/demo.csv --seconds 20 --seed 1 --lux 300 --rolling-shutter \
+      --flicker 30 -o logs/flicker1        # fluorescent tubes on magnetic ballasts, 50 Hz mains"""
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -66,6 +68,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="share of the map's stickers absent from the floor (default 0)",
     )
     p.add_argument("--unmapped", type=int, default=0, help="stickers on the floor that are not in the map (default 0)")
+    p.add_argument(
+        "--flicker",
+        type=float,
+        default=0.0,
+        help="lamps' percent flicker at twice the mains frequency (default 0: steady; 8 is IEEE 1789's"
+        " low-risk limit at 100 Hz, 20-40 magnetic-ballast fluorescents)",
+    )
+    p.add_argument("--mains-hz", type=float, default=50.0, help="mains frequency, Hz (default 50; 60 in the Americas)")
     p.add_argument("--jpeg-quality", type=int, default=85, help="JPEG quality of the frames (default 85)")
     p.add_argument("--scale", type=float, default=1.0, help="image resolution factor (default 1: 1296x972)")
     p.add_argument("--calibration", type=Path, help="true camera calibration (OpenCV or ROS YAML); default Pi v1")
@@ -90,6 +100,8 @@ def run(args: argparse.Namespace) -> int:
     checks.number(args.unmapped, "--unmapped", 0, 10_000)
     checks.number(args.jpeg_quality, "--jpeg-quality", 1, 100)
     checks.number(args.scale, "--scale", 0, 4, lo_open=True)
+    checks.number(args.flicker, "--flicker", 0, 100)
+    checks.number(args.mains_hz, "--mains-hz", 0, 1000, lo_open=True)
     checks.output_dir(args.out, "-o")
 
     summary = simulate_session(
@@ -119,6 +131,8 @@ def run(args: argparse.Namespace) -> int:
                 bursts_per_min=args.drop_bursts_per_min,
             ),
             survey=SurveyConfig(args.survey_sigma_cm * 1e-2, args.survey_sigma_deg, args.survey_stated),
+            flicker=args.flicker / 100.0,
+            mains_hz=args.mains_hz,
         ),
         progress=not args.quiet,
     )

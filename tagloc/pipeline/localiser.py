@@ -36,6 +36,7 @@ from tagloc.core.types import (
 )
 from tagloc.io.session import CAMERA_FILE, MAP_FILE, RIG_FILE
 from tagloc.vision.decode import DecodeConfig, decode, verify_detection
+from tagloc.vision.deflicker import Deflicker, DeflickerConfig
 from tagloc.vision.detect import detect, merge_boxes
 from tagloc.vision.image import as_gray
 from tagloc.vision.odometry import FloorOdometry, OdometryConfig, OdometryStep
@@ -176,6 +177,9 @@ class LocaliserConfig:
             it is load shedding: ``tagloc live`` turns it on while it falls behind the camera
             (:attr:`Localiser.behind`, with the odometry's stride). See the README's Speed
             section.
+        deflicker: lamp flicker bands in a rolling-shutter camera's frames are found and divided
+            out before every stage (:mod:`tagloc.vision.deflicker`; counter ``deflickered``);
+            None: frames are taken as they come.
     """
 
     detector: str = "contour"
@@ -199,6 +203,7 @@ class LocaliserConfig:
     check_expected: bool = True
     skip_flow_after_fix: bool = False
     skip_flow_margin_px: float = 80.0
+    deflicker: DeflickerConfig | None = field(default_factory=DeflickerConfig)
 
 
 @dataclass
@@ -462,6 +467,7 @@ def new_counts() -> dict[str, int]:
             "flow_skipped",
             "odometry_unfused",
             "tilt_gated",
+            "deflickered",
         ),
         0,
     )
@@ -547,6 +553,7 @@ class Localiser:
         self.tracker = Tracker(self.config.tracker)
         self._refs = refs
         self._map_path = map_path
+        self._deflickers: dict[int, Deflicker] = {}  # per rig camera with a rolling shutter
         self._odometry: dict[int, FloorOdometry | None] = {}  # per rig camera; None: camera sees too little floor
         self._step = None  # this frame's odometry step, for the rolling-shutter correction
         # Set by a live loop while frames wait for the localiser (it is falling behind the camera):
@@ -634,6 +641,9 @@ class Localiser:
             return FrameResult(frame.index, t, [], out, timer.finish(), frame.error or "unreadable", frame)
         gray = as_gray(frame.image)
         rig_cam = self.rig[frame.camera]
+        if self.config.deflicker is not None and rig_cam.readout_s > 0:
+            with timer("deflicker"):
+                gray = self._deflicker(gray, frame.camera, rig_cam.readout_s)
         # Deferred decodes not run before this frame are dropped (the detection, still unread here,
         # queues its decode again).
         self._pending = []
@@ -822,6 +832,15 @@ class Localiser:
         self._searched = {}
         self._read_fixed = {}
         self._sticker_corners = {}
+
+    def _deflicker(self, gray: np.ndarray, camera: int, readout_s: float) -> np.ndarray:
+        """``gray`` with the camera's lamp flicker bands divided out, or as it is while it has none."""
+        d = self._deflickers.get(camera)
+        if d is None:
+            d = self._deflickers[camera] = Deflicker(readout_s, self.config.deflicker)
+        out = d(gray)
+        self.counts["deflickered"] += out is not gray
+        return out
 
     def _check_size(self, frame: Frame) -> str | None:
         """Why the frame's image cannot be this camera's, or None."""

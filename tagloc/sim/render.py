@@ -25,7 +25,14 @@ Pipeline of one frame (all in linear light until the tone curve):
    (+ dark current), with per-pixel response non-uniformity (PRNU). Shot noise (Poisson, drawn as
    its Gaussian limit together with read noise), full-well clipping, analog gain, 10-bit ADC,
    then a gamma tone curve to 8 bits. The session writer adds JPEG compression.
-5. **Auto exposure (motion priority).** ``t_exp = e0_lux_s / lux`` capped at ``max_exposure_s`` and
+5. **Light flicker** (:class:`Flicker`, off by default). Lamps on AC mains pulse at twice the
+   mains frequency (100 Hz on 50 Hz mains). Each row collects the light of its own exposure window,
+   so a row's signal is scaled by the flicker averaged over that window. A global shutter makes
+   the whole frame brighter or darker. A rolling shutter reads rows at staggered times, which
+   gives horizontal bands (a 30 ms read-out spans three periods at 100 Hz) that move from frame
+   to frame. Exposures of a whole period or more average the flicker out. The auto exposure
+   sets the gain from the mean light, because the camera's loop spans many frames.
+6. **Auto exposure (motion priority).** ``t_exp = e0_lux_s / lux`` capped at ``max_exposure_s`` and
    the frame interval; gain brings the frame's mean signal to ``target_mean`` of full scale, capped
    at ``max_gain``. Dimmer light: longer exposure (more blur), and once capped, more gain (more noise).
 
@@ -168,6 +175,31 @@ class ExposureConfig:
     max_range_m: float = 8.0
 
 
+@dataclass(frozen=True)
+class Flicker:
+    """The lamps' light output ``1 + depth * cos(2 pi frequency_hz t + phase)`` (t in s, session time).
+
+    ``depth`` is the percent flicker as a fraction, ``(max - min) / (max + min)``. IEEE 1789-2015
+    rates up to 8 % at 100 Hz (0.08 times the frequency) as low risk. Fluorescent tubes on magnetic
+    ballasts, and LED drivers with little smoothing, are commonly measured at 20-40 %; electronic
+    ballasts and well-smoothed LED drivers at a few percent. ``frequency_hz`` is twice the mains
+    frequency. ``phase`` (rad) is where the mains stood at session time 0: a camera's clock is not
+    locked to it.
+    """
+
+    depth: float = 0.0
+    frequency_hz: float = 100.0
+    phase: float = 0.0
+
+    def mean_over(self, t: np.ndarray, exposure_s: float) -> np.ndarray:
+        """The light, relative to its mean, averaged over exposure windows of ``exposure_s`` centred
+        on the times ``t`` (s): ``1 + depth sinc(pi f exposure) cos(2 pi f t + phase)``."""
+        w = 2.0 * math.pi * self.frequency_hz
+        half = 0.5 * w * exposure_s
+        damp = math.sin(half) / half if half > 1e-12 else 1.0
+        return 1.0 + self.depth * damp * np.cos(w * np.asarray(t, float) + self.phase)
+
+
 @dataclass
 class RenderResult:
     """One rendered frame.
@@ -270,8 +302,10 @@ class Renderer:
         sensor: SensorConfig | None = None,
         exposure: ExposureConfig | None = None,
         seed: int = 0,
+        flicker: Flicker | None = None,
     ):
         self.floor = floor
+        self.flicker = flicker if flicker is not None and flicker.depth > 0 else None
         self.camera = camera
         self.optics = optics or OpticsConfig()
         self.sensor = sensor or SensorConfig()
@@ -485,6 +519,16 @@ class Renderer:
         e += self.sensor.dark_current_e_s * t_exp
         mean_e = float(e.mean())
         g = gain if gain is not None else choose_gain(mean_e, self.sensor, cfg)
+        if self.flicker is not None:
+            H = self.camera.height
+            # Each row's exposure window is centred on its own read-out time (0 for a global shutter).
+            rows = np.arange(H)
+            readout = cfg.readout_s if cfg.rolling_shutter else 0.0
+            light = self.flicker.mean_over(t_mid + row_delay_s(rows, H, readout), t_exp).astype(np.float32)
+            dark = np.float32(self.sensor.dark_current_e_s * t_exp)  # the sensor's own: not the lamps'
+            e -= dark
+            e *= light[:, None]
+            e += dark
         return RenderResult(self._read_out(e, g, rng), t_exp, g, blur, n_sub, mean_e)
 
     def _illumination(self, T_world_camera: np.ndarray) -> np.ndarray | float:

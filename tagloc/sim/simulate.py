@@ -46,6 +46,7 @@ from tagloc.io.session import GROUNDTRUTH_FILE, SessionInfo, SessionWriter, writ
 from tagloc.sim.floor import Floor, FloorConfig
 from tagloc.sim.render import (
     ExposureConfig,
+    Flicker,
     OpticsConfig,
     Renderer,
     RenderResult,
@@ -96,6 +97,8 @@ class SimConfig:
         timing: jittered timestamps and dropped frames (:mod:`tagloc.sim.timing`).
         survey: survey error of the map written to the session (:mod:`tagloc.sim.survey`); the
             floor keeps the true poses.
+        flicker: the lamps' percent flicker as a fraction (:class:`tagloc.sim.render.Flicker`; 0:
+            steady light), at twice ``mains_hz``; the mains phase at time 0 is drawn from ``seed``.
     """
 
     seconds: float = 20.0
@@ -121,6 +124,8 @@ class SimConfig:
     sensor_preset: str | None = None
     timing: TimingConfig = field(default_factory=TimingConfig)
     survey: SurveyConfig = field(default_factory=SurveyConfig)
+    flicker: float = 0.0
+    mains_hz: float = 50.0
 
     def __post_init__(self) -> None:
         if not self.seconds > 0 or not self.fps > 0 or not self.lux > 0 or not self.speed_mps > 0:
@@ -129,6 +134,10 @@ class SimConfig:
             raise InputError(f"scale {self.scale} must be in (0, 4]")
         if not self.exposure.readout_s >= 0:
             raise InputError(f"rolling-shutter read-out {self.exposure.readout_s} s must be >= 0")
+        if not 0 <= self.flicker <= 1:
+            raise InputError(f"flicker {self.flicker} must be a fraction in [0, 1]")
+        if not self.mains_hz > 0:
+            raise InputError(f"mains frequency {self.mains_hz} Hz must be positive")
         if not 1 <= self.jpeg_quality <= 100:
             raise InputError(f"JPEG quality {self.jpeg_quality} is not in 1-100")
 
@@ -152,6 +161,13 @@ class SimConfig:
     def exposure_config(self) -> ExposureConfig:
         """The exposure model with this config's shutter type, scaled to the sensor's sensitivity."""
         return exposure_for_sensor(replace(self.exposure, rolling_shutter=self.rolling_shutter), self.sensor_config())
+
+    def light_flicker(self) -> Flicker | None:
+        """The lamps' flicker (None: steady light), its mains phase drawn from ``seed``."""
+        if self.flicker == 0:
+            return None
+        phase = float(np.random.default_rng([self.seed, 29]).uniform(0.0, 2.0 * math.pi))
+        return Flicker(self.flicker, 2.0 * self.mains_hz, phase)
 
     def build_rig(self) -> Rig:
         """The rig to simulate (every camera), each camera scaled by ``scale``."""
@@ -295,7 +311,13 @@ def simulate_session(
     # Each camera has its own sensor (fixed-pattern noise seed) and its own auto exposure.
     renderers = [
         Renderer(
-            floor, rc.camera, config.optics, config.sensor_config(), exp_cfg, seed=config.seed + CAMERA_SEED_STEP * c
+            floor,
+            rc.camera,
+            config.optics,
+            config.sensor_config(),
+            exp_cfg,
+            seed=config.seed + CAMERA_SEED_STEP * c,
+            flicker=config.light_flicker(),
         )
         for c, rc in enumerate(rig.cameras)
     ]
@@ -481,6 +503,7 @@ def render_view(
     optics: OpticsConfig | None = None,
     sensor: SensorConfig | None = None,
     exposure: ExposureConfig | None = None,
+    flicker: Flicker | None = None,
 ) -> RenderResult:
     """Render one frame of ``camera`` at ``T_world_camera`` (pose at mid-exposure), same physics as sessions.
 
@@ -490,14 +513,15 @@ def render_view(
     ``blur_direction_deg`` (0: image +x, 90: image +y), that blurs the floor at the image centre
     by that many pixels. ``scene`` is a map (a floor is made with ``floor_config`` and ``seed``;
     pass a :class:`Floor` to reuse its tile cache across calls). ``noise=False`` gives the
-    noise-free image; ``jpeg_quality`` round-trips it through JPEG.
+    noise-free image; ``jpeg_quality`` round-trips it through JPEG. ``flicker``: the lamps', the
+    frame at time 0 of its phase.
     """
     import cv2
 
     floor = scene if isinstance(scene, Floor) else Floor(scene, floor_config or FloorConfig(), seed=seed)
     sensor = replace(sensor or SensorConfig(), noise=noise)
     exp_cfg = exposure or ExposureConfig()
-    renderer = Renderer(floor, camera, optics, sensor, exp_cfg, seed=seed)
+    renderer = Renderer(floor, camera, optics, sensor, exp_cfg, seed=seed, flicker=flicker)
     T0 = np.asarray(T_world_camera, float)
     t_exp = exposure_s if exposure_s is not None else exposure_time(lux, exp_cfg)
     v = np.zeros(3) if velocity is None else np.asarray(velocity, float)

@@ -1,0 +1,70 @@
+"""Lamp flicker bands: fitted by their form, divided out, and told apart from the floor's own rows."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from tagloc.core.rig import row_delay_s
+from tagloc.vision.deflicker import Deflicker, DeflickerConfig, find_bands, remove_bands
+
+H, W, READOUT = 480, 640, 0.030
+
+
+def floor_image(seed: int = 0, line: bool = False) -> np.ndarray:
+    """A textured floor (grey 100 +- 15, darker towards the top like a far floor) as float (H, W);
+    ``line``: a painted aisle line 40 rows high across the whole image (grey 180)."""
+    rng = np.random.default_rng(seed)
+    img = 100.0 + 15.0 * rng.standard_normal((H, W))
+    img *= np.linspace(0.8, 1.05, H)[:, None]
+    if line:
+        img[300:340] = 180.0 + 10.0 * rng.standard_normal((40, W))
+    return img
+
+
+def banded(img: np.ndarray, depth: float, frequency_hz: float, phase: float) -> np.ndarray:
+    t = np.asarray(row_delay_s(np.arange(H), H, READOUT))
+    gain = 1.0 + depth * np.cos(2 * math.pi * frequency_hz * t + phase)
+    return np.clip(img * gain[:, None] + 0.5, 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("frequency_hz", [100.0, 120.0])
+def test_bands_are_found_and_divided_out(frequency_hz):
+    img = floor_image()
+    frame = banded(img, 0.08, frequency_hz, 1.1)
+    bands = find_bands(frame, READOUT)
+    assert bands is not None and bands.frequency_hz == frequency_hz
+    assert bands.depth == pytest.approx(0.08, abs=0.008)
+    flat = remove_bands(frame, bands)
+    assert flat.shape == frame.shape and flat.dtype == np.uint8
+    # Row by row, the frame divided by the floor without bands: +-8 % before, under 1 % after.
+    ratio = lambda a: a.astype(float).mean(axis=1) / img.mean(axis=1)  # noqa: E731
+    assert np.ptp(ratio(frame)) > 0.14
+    assert np.ptp(ratio(flat)) < 0.02
+
+
+def test_steady_light_a_painted_line_and_a_global_shutter_give_no_bands():
+    steady = np.clip(floor_image(seed=1, line=True) + 0.5, 0, 255).astype(np.uint8)
+    cfg = DeflickerConfig()
+    bands = find_bands(steady, READOUT, cfg)
+    assert bands is not None and bands.depth < 0.5 * cfg.min_depth, bands.depth
+    # The robust fit is what leaves the line alone: plain least squares takes it for bands.
+    plain = find_bands(steady, READOUT, DeflickerConfig(fit_iterations=0))
+    assert plain.depth > cfg.min_depth, plain.depth
+    assert find_bands(steady, 0.0) is None  # no rolling shutter, no bands
+
+
+def test_a_camera_is_corrected_on_every_frame_or_none():
+    cfg = DeflickerConfig()
+    steady = Deflicker(READOUT, cfg)
+    frames = [np.clip(floor_image(seed=k, line=k % 2 == 0) + 0.5, 0, 255).astype(np.uint8) for k in range(12)]
+    assert all(steady(f) is f for f in frames) and not steady.on
+    flickering = Deflicker(READOUT, cfg)
+    # 100 Hz at 30 fps: the bands move a third of a period a frame.
+    out = [flickering(banded(floor_image(seed=k), 0.05, 100.0, 0.3 + k * 2 * math.pi / 3)) for k in range(12)]
+    assert flickering.on and flickering.level == pytest.approx(0.05, abs=0.008)
+    assert all(
+        np.ptp(o.astype(float).mean(axis=1) / floor_image(seed=k).mean(axis=1)) < 0.03 for k, o in enumerate(out)
+    )
