@@ -60,7 +60,7 @@ class DeflickerConfig:
       brightness. Already 5 % flicker, below IEEE 1789's low-risk limit, moved one such walk
       1.24 -> 1.98 cm, so it is corrected.
     - ``check_every``: while a camera's frames are not corrected, only every this-many-th is fitted
-      (a fit costs about 0.33 ms on one core, dividing out 0.4 ms): lamps do not start to flicker
+      (a fit costs 0.3-0.6 ms on one core, dividing out 0.4 ms): lamps do not start to flicker
       from one frame to the next.
     - ``row_step``, ``strips``: the profile is taken on every ``row_step``-th row. Each such row is
       averaged in ``strips`` vertical strips, and the median of the strips is taken, so a sticker
