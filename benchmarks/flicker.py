@@ -32,6 +32,7 @@ CONDITIONS = {
     "30% 60Hz": (30.0, 60.0, 300.0, True),
     "steady 100lx": (0.0, 50.0, 100.0, True),
     "30% 50Hz 100lx": (30.0, 50.0, 100.0, True),
+    "steady global": (0.0, 50.0, 300.0, False),
     "30% 50Hz global": (30.0, 50.0, 300.0, False),
 }
 

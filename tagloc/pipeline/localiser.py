@@ -177,9 +177,10 @@ class LocaliserConfig:
             it is load shedding: ``tagloc live`` turns it on while it falls behind the camera
             (:attr:`Localiser.behind`, with the odometry's stride). See the README's Speed
             section.
-        deflicker: lamp flicker bands in a rolling-shutter camera's frames are found and divided
-            out before every stage (:mod:`tagloc.vision.deflicker`; counter ``deflickered``);
-            None: frames are taken as they come.
+        deflicker: lamp flicker is divided out of the frames before every stage: the bands of a
+            rolling-shutter camera, the brightness swings of a global-shutter one
+            (:mod:`tagloc.vision.deflicker`; counter ``deflickered``); None: frames are taken as
+            they come.
     """
 
     detector: str = "contour"
@@ -641,7 +642,7 @@ class Localiser:
             return FrameResult(frame.index, t, [], out, timer.finish(), frame.error or "unreadable", frame)
         gray = as_gray(frame.image)
         rig_cam = self.rig[frame.camera]
-        if self.config.deflicker is not None and rig_cam.readout_s > 0:
+        if self.config.deflicker is not None:
             with timer("deflicker"):
                 gray = self._deflicker(gray, frame.camera, rig_cam.readout_s)
         # Deferred decodes not run before this frame are dropped (the detection, still unread here,

@@ -26,8 +26,8 @@ would itself put a band between them. While the camera's fitted depth, averaged
 over recent frames, is at least ``min_depth``, the sinusoid alone is divided out of every frame's
 rows, and the floor's own brightness is kept.
 
-A global-shutter frame gets no bands, only a brighter or darker frame, which the stages already
-take (nothing is done for ``readout_s`` 0).
+A global-shutter frame gets no bands, only a brighter or darker frame: while a camera's frames
+keep changing brightness from one to the next, each is scaled to their running average.
 """
 
 from __future__ import annotations
@@ -62,6 +62,15 @@ class DeflickerConfig:
     - ``check_every``: while a camera's frames are not corrected, only every this-many-th is fitted
       (a fit costs 0.3-0.6 ms on one core, dividing out 0.4 ms): lamps do not start to flicker
       from one frame to the next.
+    - ``frame_min_step``, ``frame_off_step``, ``frame_memory``: a global shutter gets no bands, but
+      its frames brighten and darken with the flicker. With 100 Hz at 30 fps the pattern repeats
+      every three frames. Lucas-Kanade takes brightness as constant, and on a 20 s walk with 30 %
+      flicker the RMSE was 1.44 cm against 1.13 cm in steady light. The frame-to-frame change of
+      the log mean brightness, averaged like the depth, was 0.4 % or less in steady light (six
+      standard eval walks, two others) and 15 % or more with 30 % flicker. While it is at least
+      ``frame_min_step`` (until below ``frame_off_step``), each frame is scaled to the brightness
+      averaged over about ``frame_memory`` frames, which leaves 0.5 % of a three-frame ripple.
+      120 Hz at 30 fps gives every frame the same light: nothing to do.
     - ``row_step``, ``strips``: the profile is taken on every ``row_step``-th row. Each such row is
       averaged in ``strips`` vertical strips, and the median of the strips is taken, so a sticker
       or a shadow in one strip does not move it. Bands span 250 rows or more.
@@ -82,6 +91,9 @@ class DeflickerConfig:
     off_depth: float = 0.012
     memory: float = 5.0
     check_every: int = 4
+    frame_min_step: float = 0.015
+    frame_off_step: float = 0.008
+    frame_memory: float = 15.0
     row_step: int = 8
     strips: int = 8
     trend_degree: int = 3
@@ -171,24 +183,44 @@ def remove_bands(gray: np.ndarray, bands: Bands) -> np.ndarray:
 
 
 class Deflicker:
-    """One camera's flicker bands, divided out of its frames while the camera has them (see
-    :class:`DeflickerConfig`). ``readout_s``: the camera's rolling-shutter read-out (s)."""
+    """One camera's lamp flicker, divided out of its frames while the camera has it (see
+    :class:`DeflickerConfig`). ``readout_s``: the camera's rolling-shutter read-out (s); 0 for a
+    global shutter, whose frames flicker as a whole (see ``frame_min_step``)."""
 
     def __init__(self, readout_s: float, config: DeflickerConfig | None = None):
         self.readout_s = float(readout_s)
         self.config = config or DeflickerConfig()
-        self.level: float | None = None  # the fitted depth, averaged over recent fits
+        self.level: float | None = None  # the fitted depth (or frame step), averaged over recent frames
         self.on = False
         self._frames = 0
+        self._log_mean: float | None = None  # global shutter: the last frame's log brightness
+        self._log_ref: float | None = None  # and its slow average
 
     def __call__(self, gray: np.ndarray) -> np.ndarray:
-        """``gray`` ((H, W) uint8) with the camera's bands divided out, or ``gray`` itself."""
+        """``gray`` ((H, W) uint8) with the camera's flicker divided out, or ``gray`` itself."""
+        if not self.readout_s > 0:
+            return self._whole_frames(gray)
         cfg = self.config
         self._frames += 1
         if not self.on and (self._frames - 1) % cfg.check_every:
             return gray
         bands = find_bands(gray, self.readout_s, cfg)
         depth = bands.depth if bands is not None else 0.0
-        self.level = depth if self.level is None else self.level + (depth - self.level) / max(cfg.memory, 1.0)
-        self.on = self.level >= (cfg.off_depth if self.on else cfg.min_depth)
+        self._average(depth, cfg.min_depth, cfg.off_depth)
         return remove_bands(gray, bands) if self.on and bands is not None else gray
+
+    def _whole_frames(self, gray: np.ndarray) -> np.ndarray:
+        cfg = self.config
+        lm = math.log(max(cv2.mean(gray[::4])[0], 1.0))  # every 4th row: 0.02 ms
+        prev, self._log_mean = self._log_mean, lm
+        if prev is None or self._log_ref is None:
+            self._log_ref = lm
+            return gray
+        self._average(abs(lm - prev), cfg.frame_min_step, cfg.frame_off_step)
+        self._log_ref += (lm - self._log_ref) / max(cfg.frame_memory, 1.0)
+        return cv2.convertScaleAbs(gray, alpha=math.exp(self._log_ref - lm)) if self.on else gray
+
+    def _average(self, x: float, on: float, off: float) -> None:
+        m = max(self.config.memory, 1.0)
+        self.level = x if self.level is None else self.level + (x - self.level) / m
+        self.on = self.level >= (off if self.on else on)
