@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from synth import floor_point_at_pixel, floor_view, sticker_pose, synth_frame
@@ -438,3 +439,35 @@ def test_batched_profiles_stop_at_each_quads_own_length():
     real = np.r_[np.full(own, 200.0), np.full(len(both.s) - own, 20.0)]
     found = _crossings(real[None], np.array([100.0]), both.s, np.array([both.s[-1]]), rising=False)
     assert np.isnan(padded[0]) and np.isfinite(found[0])
+
+
+def test_profiles_skip_a_quad_with_a_corner_far_outside_the_image():
+    """Lines meeting at a grazing angle can put a refined corner millions of pixels away; sampling
+    its profiles asked cv2.remap for maps of 480 x 1.8 million (3.5 GB) and failed. Such a quad is
+    no sticker in view: it is left out, the others are sampled."""
+    from tagloc.vision.detect import DetectConfig, _sample_profiles
+
+    gray = np.full((480, 640), 200, np.uint8)
+    good = np.array([[100.0, 100.0], [200.0, 100.0], [200.0, 200.0], [100.0, 200.0]])
+    far = good.copy()
+    far[1] = [3.0e6, -1.0e6]
+    nan = good.copy()
+    nan[2] = np.nan
+    prof, idx = _sample_profiles(gray, np.stack([good, far, nan]), DetectConfig(), 4.0, None)
+    assert prof is not None and list(idx) == [0]
+
+
+def test_remap_in_blocks_of_rows_matches_one_remap():
+    """cv2.remap takes maps of at most 32766 rows; more are sampled in blocks, with the same values."""
+    from tagloc.vision.detect import _REMAP_MAX_ROWS, _remap_rows
+
+    rng = np.random.default_rng(0)
+    gray = rng.integers(0, 256, (120, 160), dtype=np.uint8)
+    rows = _REMAP_MAX_ROWS + 1000
+    mx = rng.uniform(0, 159, (rows, 3)).astype(np.float32)
+    my = rng.uniform(0, 119, (rows, 3)).astype(np.float32)
+    out = _remap_rows(gray, mx, my)
+    assert out.shape == (rows, 3)
+    tail = cv2.remap(gray, mx[-1000:], my[-1000:], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    assert np.array_equal(out[-1000:], tail)
+    assert np.array_equal(out[:1000], _remap_rows(gray, mx[:1000], my[:1000]))

@@ -635,6 +635,30 @@ def _nan_to(a: np.ndarray, value: float) -> np.ndarray:
     return np.where(np.isnan(a), value, a)
 
 
+#: cv2.remap refuses maps of 32767 rows or more (SHRT_MAX): a frame with many large candidates
+#: (say 50 quads with 200 px sides) gives more profile rows than that.
+_REMAP_MAX_ROWS = 32766
+
+
+def _remap_rows(gray: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
+    """``cv2.remap`` (bilinear, replicated border) of ``gray`` at the float32 maps (R, C), in blocks
+    of rows that remap takes."""
+    if len(map_x) <= _REMAP_MAX_ROWS:
+        return cv2.remap(gray, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return np.concatenate(
+        [
+            cv2.remap(
+                gray,
+                map_x[r : r + _REMAP_MAX_ROWS],
+                map_y[r : r + _REMAP_MAX_ROWS],
+                cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_REPLICATE,
+            )
+            for r in range(0, len(map_x), _REMAP_MAX_ROWS)
+        ]
+    )
+
+
 def _sample_profiles(
     gray: np.ndarray, quads: np.ndarray, cfg: DetectConfig, search_px: float, lin: _Linearise | None
 ) -> tuple[_Profiles | None, np.ndarray]:
@@ -644,7 +668,13 @@ def _sample_profiles(
     side_vec = quads[:, _NEXT] - quads  # (K, 4, 2)
     side_len = np.sqrt(np.einsum("kij,kij->ki", side_vec, side_vec))
     idx = np.arange(len(quads))
-    short = side_len.min(axis=1) < 4
+    # A quad with a corner far outside the image is no sticker in view: lines that meet at a
+    # grazing angle put corners millions of pixels away, and its profiles would be as long.
+    H, W = gray.shape[:2]
+    reach = max(H, W)
+    inside = np.isfinite(quads).all(axis=(1, 2)) & (quads >= -reach).all(axis=(1, 2))
+    inside &= (quads[..., 0] <= W + reach).all(axis=1) & (quads[..., 1] <= H + reach).all(axis=1)
+    short = ~inside | (side_len.min(axis=1) < 4)
     if short.any():
         idx, side_vec, side_len, quads = idx[~short], side_vec[~short], side_len[~short], quads[~short]
     along = side_vec / side_len[..., None]
@@ -687,7 +717,7 @@ def _sample_profiles(
             + s[None, None, None, :] * inward[:, :, None, None, c]
         ).astype(np.float32)
         maps.append(np.add(base32[:, :, :, None, None, c], offs[:, :, None]).reshape(k * 4 * n * 3, len(s)))
-    vals = cv2.remap(gray, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    vals = _remap_rows(gray, maps[0], maps[1])
     if lin is None:
         vals = vals.astype(np.float32)
     elif vals.dtype == np.uint8:
