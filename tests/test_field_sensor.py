@@ -598,6 +598,25 @@ def test_odometry_steps_gated_in_a_row_widen_the_heading():
     assert z < 2.0 < 4.0 < z_narrow, (z, z_narrow)
 
 
+def _rolling_frame(floor, rc, body: np.ndarray, v: float, w: float, seed: int = 1, **kw) -> np.ndarray:
+    """A 300 lux frame of ``rc`` (30 ms rolling shutter) at the planar body pose ``body``, walking
+    ``v`` m/s along its heading and turning ``w`` rad/s; ``kw`` go to ``render_view``."""
+    from tagloc.sim.simulate import render_view
+
+    yaw = math.atan2(body[1, 0], body[0, 0])
+    return render_view(
+        floor,
+        rc.camera,
+        body @ rc.T_body_camera,
+        300.0,
+        velocity=np.array([v * math.cos(yaw), v * math.sin(yaw), 0.0]),
+        angular_velocity=np.array([0.0, 0.0, w]),
+        exposure=ExposureConfig(rolling_shutter=True, readout_s=0.030),
+        seed=seed,
+        **kw,
+    ).image
+
+
 def test_odometry_patch_follows_a_rolling_shutter():
     """Two rendered 30 ms rolling-shutter frames, walking 1.4 m/s while the turn rate swings from
     +1.5 to -1.5 rad/s (the vest's twist): the frames are skewed differently, which the plain patch
@@ -607,7 +626,6 @@ def test_odometry_patch_follows_a_rolling_shutter():
     from tagloc.core.geometry import invert, planar_from_T, planar_T
     from tagloc.core.rig import RigCamera, looking_forward
     from tagloc.sim.floor import Floor, FloorConfig
-    from tagloc.sim.simulate import render_view
     from tagloc.vision.odometry import FloorOdometry, OdometryConfig
 
     cam = default_camera()
@@ -616,22 +634,7 @@ def test_odometry_patch_follows_a_rolling_shutter():
     v, dt, wA, wB = 1.4, 1 / 30, 1.5, -1.5
     bodyA = planar_T(0.0, 0.0, 0.3)
     bodyB = planar_T(v * dt * math.cos(0.3), v * dt * math.sin(0.3), 0.3 + 0.5 * (wA + wB) * dt)
-    imgs = []
-    for body, w in ((bodyA, wA), (bodyB, wB)):
-        yaw = math.atan2(body[1, 0], body[0, 0])
-        imgs.append(
-            render_view(
-                floor,
-                cam,
-                body @ rc.T_body_camera,
-                300.0,
-                velocity=np.array([v * math.cos(yaw), v * math.sin(yaw), 0.0]),
-                angular_velocity=np.array([0.0, 0.0, w]),
-                exposure=ExposureConfig(rolling_shutter=True, readout_s=0.030),
-                seed=1,
-                noise=False,
-            ).image
-        )
+    imgs = [_rolling_frame(floor, rc, body, v, w, noise=False) for body, w in ((bodyA, wA), (bodyB, wB))]
     truth = np.array(planar_from_T(invert(bodyA) @ bodyB))
     errs = {}
     for corrected in (False, True):
@@ -657,7 +660,6 @@ def test_flicker_bands_are_divided_out_before_the_odometry(frequency_hz, phase_s
     from tagloc.core.rig import RigCamera, looking_forward
     from tagloc.sim.floor import Floor, FloorConfig
     from tagloc.sim.render import Flicker
-    from tagloc.sim.simulate import render_view
     from tagloc.vision.deflicker import Deflicker
     from tagloc.vision.odometry import FloorOdometry, OdometryConfig
 
@@ -667,16 +669,7 @@ def test_flicker_bands_are_divided_out_before_the_odometry(frequency_hz, phase_s
     v, dt, yaw = 1.4, 1 / 30, 0.3
     bodies = [planar_T(0.0, 0.0, yaw), planar_T(v * dt * math.cos(yaw), v * dt * math.sin(yaw), yaw)]
     imgs = [
-        render_view(
-            floor,
-            cam,
-            body @ rc.T_body_camera,
-            300.0,
-            velocity=np.array([v * math.cos(yaw), v * math.sin(yaw), 0.0]),
-            exposure=ExposureConfig(rolling_shutter=True, readout_s=0.030),
-            seed=1 + k,
-            flicker=Flicker(0.3, frequency_hz, 0.4 + k * phase_step),
-        ).image
+        _rolling_frame(floor, rc, body, v, 0.0, seed=1 + k, flicker=Flicker(0.3, frequency_hz, 0.4 + k * phase_step))
         for k, body in enumerate(bodies)
     ]
     truth = np.array(planar_from_T(invert(bodies[0]) @ bodies[1]))
