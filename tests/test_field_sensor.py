@@ -701,6 +701,11 @@ def test_cli_simulate_field_flags(tmp_path, capsys):
     assert reader.rig[0].readout_s == pytest.approx(0.025)
     sim = json.loads((tmp_path / "f" / "session.json").read_text())["simulation"]["config"]
     assert sim["flicker"] == pytest.approx(0.3) and sim["mains_hz"] == 60
+    capsys.readouterr()
+    # A replay says the lamps flicker (every frame's bands divided out).
+    assert main(["replay", str(tmp_path / "f"), "--quiet"]) == 0
+    n = len(SessionReader(tmp_path / "f"))
+    assert f"lamp flicker: divided out of {n} of {n} frames" in capsys.readouterr().out
     assert np.isfinite(reader.map.sigma_xy).all() and (tmp_path / "f" / "map_true.csv").exists()
     assert 0 < len(reader) <= 5
     for bad, word in (

@@ -193,6 +193,11 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
 
         v = run.valid
         plot_walk(session.map, run.stamps[v], run.poses[v], run.covs[v], cfg.png, gt, title=f"{cfg.session.name}")
+    notes = list(session.warnings)
+    flickered = int(run.counts.get("deflickered", 0))
+    if flickered:
+        # Worth knowing on site: the lamps flicker (see the README's "Lamp flicker").
+        notes.append(f"lamp flicker: divided out of {flickered} of {len(run.stamps)} frames")
     return ReplayResult(
-        len(run.stamps), len(session.skipped), int(run.valid.sum()), fixes, seconds, metrics, summary, session.warnings
+        len(run.stamps), len(session.skipped), int(run.valid.sum()), fixes, seconds, metrics, summary, notes
     )
