@@ -122,6 +122,11 @@ def _checked(step: Callable[[], R]) -> tuple[bool, R | None]:
         return False, None
 
 
+def _time_tol(t: float) -> float:
+    """How far apart (s) two frame times near ``t`` may be and still be the same frame's."""
+    return 1e-6 + 1e-9 * abs(t)
+
+
 class Tracker:
     """Walking-motion EKF over the body pose (x, y, yaw) fed with sticker pose fixes."""
 
@@ -149,10 +154,9 @@ class Tracker:
         self._here: set[Hashable] = set()  # cameras whose frames are at the filter's time
         self._clones_dropped_t = -math.inf  # when the clones were last dropped (restart, forgetting)
         self._last_odo_t = -math.inf  # end of the last odometry step fused
-        # (camera, end time, yaw innovation) of the last odometry step gated, while no step has been
-        # fused since (see disagreement_noise).
-        self._gated_step: tuple[Hashable, float, float] | None = None
-        self._gated_run = 0  # gated steps in a row that disagree the same way
+        # (camera, end time, yaw innovation, gated steps in a row that disagree the same way) of the
+        # last odometry step gated, while no step has been fused since (see disagreement_noise).
+        self._gated: tuple[Hashable, float, float, int] | None = None
         # The filter (mean, covariance, clones, _last_odo_t) just before the odometry step fused at
         # the filter's current time, while no fix has been fused after it (see overrule_odometry).
         self._before_step: tuple[float, Hashable, np.ndarray, np.ndarray, CloneSet, float] | None = None
@@ -355,15 +359,15 @@ class Tracker:
     def _disagreement(self, camera: Hashable, t0: float, t1: float, e_yaw: float) -> None:
         """A gated odometry step of ``camera`` over ``t0``-``t1`` whose turn differs by ``e_yaw`` (rad)
         from the filter's (see ``disagreement_noise``)."""
-        prev, self._gated_step = self._gated_step, (camera, t1, e_yaw)
-        if prev is None or prev[0] != camera or abs(prev[1] - t0) > 1e-6 + 1e-9 * abs(t0) or prev[2] * e_yaw <= 0.0:
-            self._gated_run = 1
+        prev = self._gated
+        if prev is None or prev[0] != camera or abs(prev[1] - t0) > _time_tol(t0) or prev[2] * e_yaw <= 0.0:
+            self._gated = (camera, t1, e_yaw, 1)
             return
+        self._gated = (camera, t1, e_yaw, prev[3] + 1)
         if not self.config.disagreement_noise:
             return
         # The second step of a run vouches for the first: the turn of both went missing.
-        m = abs(e_yaw) + (abs(prev[2]) if self._gated_run == 1 else 0.0)
-        self._gated_run += 1
+        m = abs(e_yaw) + (abs(prev[2]) if prev[3] == 1 else 0.0)
         P = self._ekf.P.copy()
         # The missed turn adds up step by step (it is one error, not independent ones): the yaw
         # sigma grows by it, and the yaw rate is uncertain by this step's disagreement over its interval.
@@ -656,7 +660,7 @@ class Tracker:
         if self._t is None or t1 > self._t:
             self.predict(t1, camera)
         t_clone = self._clones.time(camera)
-        tol = 1e-6 + 1e-9 * abs(t1)
+        tol = _time_tol(t1)
         if t_clone is None and t0 <= self._clones_dropped_t + tol:
             self._stats["odometry_ignored"] += 1
             return UpdateResult(False, "the track restarted after the step's first frame")
@@ -706,7 +710,7 @@ class Tracker:
         self._clones.drop(camera)
         self._stats["odometry_accepted"] += 1
         self._last_odo_t = t1
-        self._gated_step, self._gated_run = None, 0
+        self._gated = None
         self._before_step = before
         return UpdateResult(True, "fused", nis)
 

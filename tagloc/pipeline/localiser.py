@@ -554,7 +554,7 @@ class Localiser:
         self.tracker = Tracker(self.config.tracker)
         self._refs = refs
         self._map_path = map_path
-        self._deflickers: dict[int, Deflicker] = {}  # per rig camera with a rolling shutter
+        self._deflickers: dict[int, Deflicker] = {}  # per rig camera
         self._odometry: dict[int, FloorOdometry | None] = {}  # per rig camera; None: camera sees too little floor
         self._step = None  # this frame's odometry step, for the rolling-shutter correction
         # Set by a live loop while frames wait for the localiser (it is falling behind the camera):

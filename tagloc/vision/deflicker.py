@@ -40,6 +40,7 @@ import cv2
 import numpy as np
 
 from tagloc.core.rig import row_delay_s
+from tagloc.vision.detect import median_last  # np.median without its per-call overhead
 
 __all__ = ["DeflickerConfig", "Bands", "Deflicker", "find_bands", "remove_bands"]
 
@@ -122,7 +123,7 @@ def find_bands(gray: np.ndarray, readout_s: float, config: DeflickerConfig | Non
         return None
     n = len(range(0, H, cfg.row_step))
     strips = cv2.resize(gray[:: cfg.row_step], (cfg.strips, n), interpolation=cv2.INTER_AREA)
-    level = np.median(strips, axis=1).astype(float)
+    level = median_last(strips.astype(float))
     lit = level > cfg.min_level
     freqs, A = _designs(H, float(readout_s), cfg.row_step, cfg.trend_degree, tuple(cfg.frequencies_hz))
     if int(lit.sum()) < 4 * A.shape[2]:
@@ -163,7 +164,6 @@ def _robust_fit(A: np.ndarray, y: np.ndarray, w0: np.ndarray, k: float, iteratio
     F = A.shape[0]
     w = np.broadcast_to(w0, (F, len(w0)))
     kept = w0 > 0
-    coef = np.full((F, A.shape[2]), np.nan)
     for _ in range(iterations + 1):
         Aw = A * w[:, :, None]
         AwT = Aw.transpose(0, 2, 1)
@@ -172,7 +172,7 @@ def _robust_fit(A: np.ndarray, y: np.ndarray, w0: np.ndarray, k: float, iteratio
         except np.linalg.LinAlgError:
             return np.full((F, A.shape[2]), np.nan)
         r = np.abs(y[None] - np.einsum("fnp,fp->fn", A, coef))
-        sigma = 1.4826 * np.median(r[:, kept], axis=1, keepdims=True) + 1e-6
+        sigma = 1.4826 * median_last(r[:, kept])[:, None] + 1e-6
         w = w0[None] * np.minimum(1.0, k * sigma / np.maximum(r, 1e-12))
     return coef
 
