@@ -694,13 +694,14 @@ def test_cli_simulate_field_flags(tmp_path, capsys):
         base
         + ["--quiet", "--rolling-shutter", "--readout-ms", "25", "--jitter-ms", "2", "--drop-fraction", "0.3"]
         + ["--survey-sigma-cm", "1", "--survey-sigma-deg", "1.5", "--survey-stated", "--sensor", "ov5647"]
-        + ["--flicker", "30", "--mains-hz", "60", "-o", str(tmp_path / "f")]
+        + ["--flicker", "30", "--mains-hz", "60", "--shadow", "-o", str(tmp_path / "f")]
     )
     assert rc == 0, capsys.readouterr().err
     reader = SessionReader(tmp_path / "f")
     assert reader.rig[0].readout_s == pytest.approx(0.025)
     sim = json.loads((tmp_path / "f" / "session.json").read_text())["simulation"]["config"]
     assert sim["flicker"] == pytest.approx(0.3) and sim["mains_hz"] == 60
+    assert sim["shadow"] is True and sim["lamps"]["height_m"] == pytest.approx(9.0)
     capsys.readouterr()
     # A replay says the lamps flicker (every frame's bands divided out).
     assert main(["replay", str(tmp_path / "f"), "--quiet"]) == 0

@@ -19,7 +19,8 @@ motion-priority auto exposure (t = 0.3 lux*s / lux, capped), motion blur from th
 during the exposure, shot and read noise, gain, vignetting, lens distortion, gamma and JPEG.
 
 Field conditions (all seeded): a rolling shutter, the driver's timestamp jitter and dropped frames,
-a map with survey error (the frames show the true stickers), a dimmer sensor, flickering lamps.
+a map with survey error (the frames show the true stickers), a dimmer sensor, flickering lamps,
+the operator's own shadow under a grid of overhead lamps.
 
 example:
   tagloc simulate --map maps/demo.csv --seconds 20 --lux 100 --speed 1.3 --seed 1 -o logs/sim1
@@ -27,7 +28,8 @@ example:
       --drop-fraction 0.04 --drop-bursts-per-min 3 --survey-sigma-cm 1 --survey-sigma-deg 1.5 \
       --sensor ov5647 -o logs/field1
   tagloc simulate --map maps/demo.csv --seconds 20 --seed 1 --lux 300 --rolling-shutter \
-      --flicker 30 -o logs/flicker1        # fluorescent tubes on magnetic ballasts, 50 Hz mains"""
+      --flicker 30 -o logs/flicker1        # fluorescent tubes on magnetic ballasts, 50 Hz mains
+  tagloc simulate --map maps/demo.csv --seconds 20 --seed 1 --lux 300 --shadow -o logs/shadow1"""
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -76,6 +78,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         " low-risk limit at 100 Hz, 20-40 magnetic-ballast fluorescents)",
     )
     p.add_argument("--mains-hz", type=float, default=50.0, help="mains frequency, Hz (default 50; 60 in the Americas)")
+    p.add_argument(
+        "--shadow",
+        action="store_true",
+        help="the operator's own shadow under high-bay lamps 6 m apart, 9 m up (default: no shadow)",
+    )
     p.add_argument("--jpeg-quality", type=int, default=85, help="JPEG quality of the frames (default 85)")
     p.add_argument("--scale", type=float, default=1.0, help="image resolution factor (default 1: 1296x972)")
     p.add_argument("--calibration", type=Path, help="true camera calibration (OpenCV or ROS YAML); default Pi v1")
@@ -133,6 +140,7 @@ def run(args: argparse.Namespace) -> int:
             survey=SurveyConfig(args.survey_sigma_cm * 1e-2, args.survey_sigma_deg, args.survey_stated),
             flicker=args.flicker / 100.0,
             mains_hz=args.mains_hz,
+            shadow=args.shadow,
         ),
         progress=not args.quiet,
     )

@@ -64,6 +64,7 @@ from tagloc.core.errors import InputError
 from tagloc.core.rig import row_delay_s
 from tagloc.core.sticker import sticker_pixel_to_metres
 from tagloc.sim.floor import Floor, sticker_size_px
+from tagloc.sim.lamps import Lamps
 
 #: Photons per second per square metre per lux of white (LED/fluorescent) light, visible band.
 PHOTONS_PER_LUX_S_M2 = 1.0e16
@@ -303,8 +304,10 @@ class Renderer:
         exposure: ExposureConfig | None = None,
         seed: int = 0,
         flicker: Flicker | None = None,
+        lamps: Lamps | None = None,
     ):
         self.floor = floor
+        self.lamps = lamps
         self.flicker = flicker if flicker is not None and flicker.depth > 0 else None
         self.camera = camera
         self.optics = optics or OpticsConfig()
@@ -483,11 +486,14 @@ class Renderer:
         frame_interval_s: float | None = None,
         exposure_s: float | None = None,
         gain: float | None = None,
+        body: np.ndarray | None = None,
     ) -> RenderResult:
         """Render the frame whose exposure is centred on ``t_mid`` (s) under ``lux`` on the floor.
 
         ``pose_at`` gives the true camera pose at any time; ``rng`` draws the noise. ``exposure_s``
-        and ``gain`` override the auto exposure.
+        and ``gain`` override the auto exposure. ``body`` (3,): where the operator's body axis
+        stands at ``t_mid`` and its heading, (x, y, yaw) m and rad (:meth:`tagloc.sim.lamps.Lamps.axis`),
+        for its shadow under ``lamps`` (none without either).
         """
         cfg = self.exposure
         t_exp = exposure_s if exposure_s is not None else exposure_time(lux, cfg, frame_interval_s)
@@ -513,7 +519,7 @@ class Renderer:
         if self.optics.psf_sigma_px > 0:
             lin = cv2.GaussianBlur(lin, (0, 0), self.optics.psf_sigma_px)
         lin *= self._fixed
-        lin *= self._illumination(pose_at(np.array([t_mid]))[0])
+        lin *= self._illumination(pose_at(np.array([t_mid]))[0], body)
         e = lin
         e *= electrons_per_lux_s(self.optics, self.sensor) * lux * t_exp
         e += self.sensor.dark_current_e_s * t_exp
@@ -531,14 +537,22 @@ class Renderer:
             e += dark
         return RenderResult(self._read_out(e, g, rng), t_exp, g, blur, n_sub, mean_e)
 
-    def _illumination(self, T_world_camera: np.ndarray) -> np.ndarray | float:
-        if not self.floor.config.texture or self.floor.config.illumination_variation == 0:
+    def _illumination(self, T_world_camera: np.ndarray, body: np.ndarray | None = None) -> np.ndarray | float:
+        """The floor's illumination pattern in this view, times the body's shadow if there is one."""
+        shadow = self.lamps is not None and body is not None
+        pattern = self.floor.config.texture and self.floor.config.illumination_variation != 0
+        if not (shadow or pattern):
             return 1.0
         H, W = self.camera.height, self.camera.width
-        gx, gy = np.meshgrid(np.linspace(0, W - 1, 17), np.linspace(0, H - 1, 13))
+        # The shadow's penumbra is 11-14 cm wide on the floor, ~100 px in the image: a finer grid for it.
+        nx, ny = (33, 25) if shadow else (17, 13)
+        gx, gy = np.meshgrid(np.linspace(0, W - 1, nx), np.linspace(0, H - 1, ny))
         pix = np.c_[gx.ravel(), gy.ravel()] - self.canvas_origin
         xy, _ = _floor_hits(T_world_camera, self._K_inv, pix, self.exposure.max_range_m)
-        coarse = self.floor.illumination(xy).reshape(gx.shape).astype(np.float32)
+        coarse = self.floor.illumination(xy) if pattern else np.ones(len(xy))
+        if shadow:
+            coarse = coarse * self.lamps.shadow(xy, body)
+        coarse = coarse.reshape(gx.shape).astype(np.float32)
         return cv2.resize(coarse, (W, H), interpolation=cv2.INTER_LINEAR)
 
     def _read_out(self, e: np.ndarray, gain: float, rng: np.random.Generator) -> np.ndarray:

@@ -44,6 +44,7 @@ from tagloc.core.sticker import INNER_CORNERS, OUTER_CORNERS
 from tagloc.core.stickermap import StickerMap, load_map, save_map
 from tagloc.io.session import GROUNDTRUTH_FILE, SessionInfo, SessionWriter, write_tum
 from tagloc.sim.floor import Floor, FloorConfig
+from tagloc.sim.lamps import LampConfig, Lamps
 from tagloc.sim.render import (
     ExposureConfig,
     Flicker,
@@ -99,6 +100,9 @@ class SimConfig:
             floor keeps the true poses.
         flicker: the lamps' percent flicker as a fraction (:class:`tagloc.sim.render.Flicker`; 0:
             steady light), at twice ``mains_hz``; the mains phase at time 0 is drawn from ``seed``.
+        shadow: the operator's own shadow under a grid of overhead lamps (``lamps``,
+            :mod:`tagloc.sim.lamps`), on top of the floor's illumination pattern; the grid's offset
+            is drawn from ``seed``.
     """
 
     seconds: float = 20.0
@@ -126,6 +130,8 @@ class SimConfig:
     survey: SurveyConfig = field(default_factory=SurveyConfig)
     flicker: float = 0.0
     mains_hz: float = 50.0
+    shadow: bool = False
+    lamps: LampConfig = field(default_factory=LampConfig)
 
     def __post_init__(self) -> None:
         if not self.seconds > 0 or not self.fps > 0 or not self.lux > 0 or not self.speed_mps > 0:
@@ -168,6 +174,10 @@ class SimConfig:
             return None
         phase = float(np.random.default_rng([self.seed, 29]).uniform(0.0, 2.0 * math.pi))
         return Flicker(self.flicker, 2.0 * self.mains_hz, phase)
+
+    def lamp_grid(self) -> Lamps | None:
+        """The lamps that cast the operator's shadow (None: no shadow)."""
+        return Lamps(self.lamps, seed=self.seed) if self.shadow else None
 
     def build_rig(self) -> Rig:
         """The rig to simulate (every camera), each camera scaled by ``scale``."""
@@ -308,6 +318,7 @@ def simulate_session(
     walk = simulate_walk(smap, config)
     floor = Floor(smap, config.floor_config(), seed=config.seed)
     exp_cfg = config.exposure_config()
+    lamps = config.lamp_grid()
     # Each camera has its own sensor (fixed-pattern noise seed) and its own auto exposure.
     renderers = [
         Renderer(
@@ -318,6 +329,7 @@ def simulate_session(
             exp_cfg,
             seed=config.seed + CAMERA_SEED_STEP * c,
             flicker=config.light_flicker(),
+            lamps=lamps,
         )
         for c, rc in enumerate(rig.cameras)
     ]
@@ -428,14 +440,18 @@ def _simulate_frame(
     t = float(schedule.true_t[j]) + camera * stagger
     index = k if n_cams == 1 else k * n_cams + camera
     seed = [config.seed, 23, k] if camera == 0 else [config.seed, 23, k, camera]
-    res = renderer.render(pose_at, t, config.lux, np.random.default_rng(seed), frame_interval_s=1.0 / config.fps)
+    T_world_body = walk.T_world_body(t, vest_point)
+    body = renderer.lamps.axis(T_world_body, vest_point) if renderer.lamps is not None else None
+    res = renderer.render(
+        pose_at, t, config.lux, np.random.default_rng(seed), frame_interval_s=1.0 / config.fps, body=body
+    )
     stamp = float(schedule.stamp[j]) + camera * stagger
     writer.write(index, stamp, res.image, camera)
     rec = {"index": index} | ({"camera": camera} if n_cams > 1 else {})
     rec |= {
         "t": round(t, 6),
         "stamp": round(stamp, 6),
-        "T_world_body": np.round(walk.T_world_body(t, vest_point), 6).tolist(),
+        "T_world_body": np.round(T_world_body, 6).tolist(),
         "T_world_camera": np.round(pose_at(np.array([t]))[0], 6).tolist(),
         "exposure_s": round(res.exposure_s, 7),
         "gain": round(res.gain, 4),
@@ -504,6 +520,8 @@ def render_view(
     sensor: SensorConfig | None = None,
     exposure: ExposureConfig | None = None,
     flicker: Flicker | None = None,
+    lamps: Lamps | None = None,
+    body: np.ndarray | None = None,
 ) -> RenderResult:
     """Render one frame of ``camera`` at ``T_world_camera`` (pose at mid-exposure), same physics as sessions.
 
@@ -514,14 +532,15 @@ def render_view(
     by that many pixels. ``scene`` is a map (a floor is made with ``floor_config`` and ``seed``;
     pass a :class:`Floor` to reuse its tile cache across calls). ``noise=False`` gives the
     noise-free image; ``jpeg_quality`` round-trips it through JPEG. ``flicker``: the lamps', the
-    frame at time 0 of its phase.
+    frame at time 0 of its phase. ``lamps`` and ``body`` (3,): the operator's shadow, the body's
+    axis standing at ``body`` (x, y, yaw; m, rad)
     """
     import cv2
 
     floor = scene if isinstance(scene, Floor) else Floor(scene, floor_config or FloorConfig(), seed=seed)
     sensor = replace(sensor or SensorConfig(), noise=noise)
     exp_cfg = exposure or ExposureConfig()
-    renderer = Renderer(floor, camera, optics, sensor, exp_cfg, seed=seed, flicker=flicker)
+    renderer = Renderer(floor, camera, optics, sensor, exp_cfg, seed=seed, flicker=flicker, lamps=lamps)
     T0 = np.asarray(T_world_camera, float)
     t_exp = exposure_s if exposure_s is not None else exposure_time(lux, exp_cfg)
     v = np.zeros(3) if velocity is None else np.asarray(velocity, float)
@@ -548,7 +567,7 @@ def render_view(
             out[:, :3, :3] = R @ T0[:3, :3]
         return out
 
-    res = renderer.render(pose_at, 0.0, lux, np.random.default_rng([seed, 29]), exposure_s=t_exp, gain=gain)
+    res = renderer.render(pose_at, 0.0, lux, np.random.default_rng([seed, 29]), exposure_s=t_exp, gain=gain, body=body)
     if jpeg_quality is not None:
         ok, buf = cv2.imencode(".jpg", res.image, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
         res.image = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
