@@ -357,9 +357,10 @@ def test_localiser_with_odometry_follows_the_stop(stop_walk):
     # through the braking's lean (which its fixed homography sees as floor motion).
     assert m_on["rmse_m"] < 1.25 * m_off["rmse_m"]
     assert m_on["max_m"] < 1.25 * m_off["max_m"]
-    # Conservative here (0.17): the steps' covariance is calibrated on walks, not on this stop-and-go
-    # one; overconfidence would show above 2.
-    assert 0.1 < m_on["nees_mean"] < 6.0
+    # Conservative here (0.09, and 0.11 without odometry; 0.13 before the flow's coarse levels were
+    # flattened, which took its RMSE 0.88 -> 0.66 cm): the steps' covariance is calibrated on walks,
+    # not on this stop-and-go one; overconfidence would show above 2.
+    assert 0.05 < m_on["nees_mean"] < 6.0
     first = next(i for i, s in enumerate(states) if s is not TrackState.INITIALISING)
     assert np.mean([s is TrackState.TRACKING for s in states[first:]]) > 0.95
 

@@ -41,7 +41,7 @@ from tagloc.core.camera import pixel_scale
 from tagloc.core.rig import RigCamera, row_delay_s
 from tagloc.vision.detect import median_last  # np.median without its per-call overhead
 
-__all__ = ["FlowStep", "FloorFlow", "FloorFlowConfig"]
+__all__ = ["FLAT_LEVEL", "FlowStep", "FloorFlow", "FloorFlowConfig", "flatten"]
 
 
 @dataclass(frozen=True)
@@ -71,6 +71,34 @@ class FloorFlowConfig:
       which the fit took for a tilt change of +0.24 deg and a rise of 6 mm every frame (true: 0.006
       deg, 0): the odometry alone came out 8-14 % short over 14-15 m on three walks (1.4 % at 1296 x
       972). With 1 level, 0.4-1.5 % short per point, and 1.4-5.5 % over the walks.
+    - ``flatten_px``, ``flatten_retry_px``: the coarse levels are tracked on the half-resolution
+      level divided by its own local mean (a box of ``flatten_px`` reference-camera pixels, about
+      1.5 cm of floor at 1.3 m; 0: the frames as they are; see :func:`flatten`). Shading fixed to
+      the image, not to the floor, pulls each point's match towards no motion: the lens's
+      vignetting, and the operator's own shadow under the lamps (:mod:`tagloc.sim.lamps`), which
+      moves with the body and lies in the lower part of the view. Divided by the local mean, a
+      smooth ramp of shading is gone and only its curvature over the box is left; the floor's
+      grain is kept. Where the points land is decided on the coarse levels: the full-resolution
+      pass, whose 21 px windows see mostly grain and noise, stays in the nearest of many shallow
+      optima, so flattening it alone changed nothing, nor did a flattened half-level pass after
+      the plain coarse levels. The odometry alone (``benchmarks/odometry_accuracy.py``, the eleven
+      eval walks) read the distance walked 0.5-5 % short with the frames as they are (s01 -54 cm
+      over 17.7 m, f01 -98 over 25.1, f03-long -86 over 72.5) and within 1.5 % flattened (-7,
+      -33, -1); under the operator's shadow (the field walk f02, pitched 65 degrees, lamps 9 m up)
+      -16 -> +8 cm over 14.4 m, as without the shadow (+5 plain, +8 flattened). A 27 px box did
+      as well as 41 (without the retry below), 15 px less. Flattened, the coarse
+      levels reach less far, because the floor's broad mottling they lock on to is gone: from
+      guesses 5-10 px off (a 0.4 degree tilt change and a 6 mm rise in one frame, twice the usual)
+      ten rendered pairs came out with a median residual of 2 px instead of 1 and four refused.
+      So when the flattened fit's median reprojection error is above ``flatten_retry_px`` (1 px
+      is usual), the points are tracked again on the plain levels and the better fit is kept.
+      Cost (``benchmarks/replay_cost.py`` on the Speed walk, alternated with the commit before):
+      the odometry 3.80-3.89 -> 4.11-4.14 ms a frame, the box filter and the division on the
+      half-resolution level. The retry runs on 3 of that walk's 600 frames, 10 of f00's 554, but
+      143 of s01's 600 and 252 of f01's 570 (dim light and blur put the fits near 1.5 px): there
+      another coarse pass, about 0.5 ms, on those frames. The residuals of the ten pairs above
+      were 1.56-3.03 px flattened and 0.92-1.26 plain, so a higher threshold would keep some of
+      the former (pitch changes 0.13-0.34 deg off).
     - ``iterations``: Lucas-Kanade's per level; ``lk_eps``: its stop (pixels).
     - ``fit_iterations``: Gauss-Newton steps of the six-parameter fit from the patch's step.
     - ``huber_k``: points further than this many robust sigmas (1.4826 median absolute residual)
@@ -103,6 +131,8 @@ class FloorFlowConfig:
     min_depression: float = math.radians(20.0)
     window_px: int = 21
     levels: int = 2
+    flatten_px: int = 41
+    flatten_retry_px: float = 1.5
     iterations: int = 10
     lk_eps: float = 0.01
     fit_iterations: int = 3
@@ -161,12 +191,19 @@ class FloorFlow:
         # ``levels``): a camera with pixels twice as large starts a level lower.
         self._levels = max(0, cfg.levels - int(round(math.log2(pixel_scale(cam)))))
         self._sin_min = math.sin(cfg.min_depression)
-        self._halves: list[tuple[np.ndarray, np.ndarray]] = []  # (frame, its pyrDown), last two frames
+        # The local mean's box on the half-resolution level (the coarse levels' base), scaled like
+        # the levels to the camera's pixel size; odd, so that it is centred.
+        box = int(round(cfg.flatten_px / (2.0 * pixel_scale(cam)))) if cfg.flatten_px > 0 else 0
+        self._box = box + 1 - box % 2 if box > 1 else 0
+        # (frame, its half-resolution level, that flattened), for the last two frames.
+        self._halves: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         # The last fit's median reprojection error (px), kept or refused; None when the last call
         # made no fit (too few points, no interval). How far a frame pair is from the rigid-floor
         # model: the odometry's step error grows with it (benchmarks/odometry_accuracy.py
         # --by-residual).
         self.last_residual: float | None = None
+        # Fits tracked again on the plain coarse levels (``flatten_retry_px``).
+        self.retries = 0
 
     def refine(
         self,
@@ -200,7 +237,46 @@ class FloorFlow:
         p_guess = cv2.projectPoints(
             np.column_stack([start, np.ones(len(start))]), np.zeros(3), np.zeros(3), cam.K, cam.dist
         )[0].reshape(-1, 2)
-        tracked, status = self._track(gray0, gray1, self._px[down], p_guess)
+        fit = self._fit(gray0, gray1, p_guess, X, down, lever, M0, x, dt, bool(self._box))
+        if self._box and (fit is None or fit[1] > cfg.flatten_retry_px):
+            # Flattened, the coarse levels' reach is shorter (see ``flatten_retry_px``).
+            self.retries += 1
+            alt = self._fit(gray0, gray1, p_guess, X, down, lever, M0, x, dt, False)
+            if alt is not None and (fit is None or alt[1] < fit[1]):
+                fit = alt
+        if fit is None:
+            return None
+        x, med, n = fit
+        self.last_residual = med
+        fast = abs(g[2]) > cfg.max_turn_rate * dt
+        if (
+            not np.all(np.isfinite(x))
+            or med > (cfg.fast_turn_max_residual_px if fast else cfg.max_residual_px)
+            or math.hypot(x[0] - g[0], x[1] - g[1]) > cfg.max_disagreement_m
+            or abs(x[2] - g[2]) > cfg.max_disagreement_rad
+        ):
+            return None
+        return FlowStep(x[:3].copy(), float(x[3]), float(x[4]), float(x[5]), med, n)
+
+    def _fit(
+        self,
+        gray0: np.ndarray,
+        gray1: np.ndarray,
+        p_guess: np.ndarray,
+        X: np.ndarray,
+        down: np.ndarray,
+        lever: np.ndarray,
+        M0: np.ndarray,
+        x0: np.ndarray,
+        dt: float,
+        flat: bool,
+    ) -> tuple[np.ndarray, float, int] | None:
+        """Track the points from ``p_guess`` (N, 2) px (their floor points ``X`` (N, 3)) and fit the six
+        parameters from ``x0`` (6,): (x, median reprojection error px, points tracked), or None when
+        too few points track or the fit breaks down. ``flat``: the coarse levels on flattened frames."""
+        cfg = self.config
+        cam = self.rig_camera.camera
+        tracked, status = self._track(gray0, gray1, self._px[down], p_guess, flat)
         ok = status.ravel() == 1
         if int(ok.sum()) < cfg.min_points:
             return None
@@ -211,6 +287,7 @@ class FloorFlow:
         scale = 1.0 + (np.asarray(row_delay_s(p1[:, 1], cam.height, self._readout)) - self._delay0[down][ok]) / dt
         E = np.vstack([np.zeros(6), np.diag(_H)])
         f = cam.fx
+        x = x0.copy()
         for i in range(cfg.fit_iterations + 1):
             P = model.project(x[None] + E if i < cfg.fit_iterations else x[None], scale) - seen[None]
             # Huber weights from the residuals at the current estimate (all 1 at the start).
@@ -226,19 +303,10 @@ class FloorFlow:
             if not np.all(np.isfinite(step)):
                 return None
             x += step
-        med = self.last_residual = float(median_last(res))
-        fast = abs(g[2]) > cfg.max_turn_rate * dt
-        if (
-            not np.all(np.isfinite(x))
-            or med > (cfg.fast_turn_max_residual_px if fast else cfg.max_residual_px)
-            or math.hypot(x[0] - g[0], x[1] - g[1]) > cfg.max_disagreement_m
-            or abs(x[2] - g[2]) > cfg.max_disagreement_rad
-        ):
-            return None
-        return FlowStep(x[:3].copy(), float(x[3]), float(x[4]), float(x[5]), med, int(ok.sum()))
+        return x, float(median_last(res)), int(ok.sum())
 
     def _track(
-        self, gray0: np.ndarray, gray1: np.ndarray, p0: np.ndarray, guess: np.ndarray
+        self, gray0: np.ndarray, gray1: np.ndarray, p0: np.ndarray, guess: np.ndarray, flat: bool = False
     ) -> tuple[np.ndarray, np.ndarray]:
         """Pyramidal Lucas-Kanade of the points ``p0`` (N, 2) px of ``gray0`` into ``gray1``, started at
         ``guess`` (N, 2): the tracked points (N, 1, 2) float32 and their status (N, 1).
@@ -257,8 +325,8 @@ class FloorFlow:
             # A point lost on a coarse level is not refused there either (OpenCV refuses points on
             # the full-resolution level only): the full-resolution pass decides its status.
             coarse, _, _ = cv2.calcOpticalFlowPyrLK(
-                self._half_of(gray0),
-                self._half_of(gray1),
+                self._half_of(gray0, flat),
+                self._half_of(gray1, flat),
                 p0 * 0.5,
                 start * 0.5,
                 winSize=win,
@@ -279,16 +347,35 @@ class FloorFlow:
         )
         return tracked, status
 
-    def _half_of(self, gray: np.ndarray) -> np.ndarray:
+    def _half_of(self, gray: np.ndarray, flat: bool = False) -> np.ndarray:
         """``gray``'s half-resolution level (:func:`cv2.pyrDown`, as OpenCV's own pyramid makes it),
-        kept for the last two frames seen (by identity: frame sources hand over a new array per
-        frame)."""
-        for g, half in self._halves:
+        or that divided by its local mean (``flat``: :func:`flatten`, see ``flatten_px``); kept for
+        the last two frames seen (by identity: frame sources hand over a new array per frame)."""
+        for g, half, flattened in self._halves:
             if g is gray:
-                return half
+                return flattened if flat else half
         half = cv2.pyrDown(gray)
-        self._halves = [*self._halves[-1:], (gray, half)]
-        return half
+        flattened = flatten(half, self._box) if self._box else half
+        self._halves = [*self._halves[-1:], (gray, half, flattened)]
+        return flattened if flat else half
+
+
+#: The level a pixel as bright as its neighbourhood takes in :func:`flatten`'s output; twice it
+#: (a pixel twice its local mean: white paper on concrete) saturates.
+FLAT_LEVEL = 128.0
+
+
+def flatten(gray: np.ndarray, box_px: int) -> np.ndarray:
+    """``gray`` (H, W) uint8 divided by its local mean (a ``box_px`` square box), as uint8 at
+    :data:`FLAT_LEVEL` for "as bright as around it".
+
+    Shading that varies smoothly over the box (vignetting, a shadow's penumbra, a lamp's pool of
+    light) is divided out: a linear ramp of it exactly. Texture finer than the box is kept, in
+    proportion to its contrast. Equal frames give equal outputs wherever the floor lies in them, so
+    the floor's texture moves with the floor as before."""
+    # The mean in float: rounded to whole grey levels, its steps would draw contours of +-1 level.
+    mean = cv2.boxFilter(gray, cv2.CV_32F, (box_px, box_px))
+    return cv2.divide(gray, mean, scale=FLAT_LEVEL, dtype=cv2.CV_8U)
 
 
 class _Model:
