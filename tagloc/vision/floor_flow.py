@@ -92,6 +92,14 @@ class FloorFlowConfig:
       ten rendered pairs came out with a median residual of 2 px instead of 1 and four refused.
       So when the flattened fit's median reprojection error is above ``flatten_retry_px`` (1 px
       is usual), the points are tracked again on the plain levels and the better fit is kept.
+      ``flatten_max_scale``: only cameras whose pixels are at most this many times the reference
+      camera's (:func:`tagloc.core.camera.pixel_scale`) flatten. At 648 x 486 (scale 2, one coarse
+      level) the twelve half-resolution walks of the README's "Other cameras" came out mixed through
+      the localiser (RMSE per walk before -> flattened: six better, e.g. h33 8.46 -> 6.61 cm, five
+      worse, and h23 4.40 -> 19.38: a turn at 13 s loses the heading by 20-25 degrees either way, and
+      only without the flattening does a sticker put it back within a second), although the
+      odometry alone read h23 and h32 less short (-90 -> -51 and -42 -> -7 cm over 17 m). So it
+      stays off there until that is understood.
       Cost (``benchmarks/replay_cost.py`` on the Speed walk, alternated with the commit before):
       the odometry 3.80-3.89 -> 4.11-4.14 ms a frame, the box filter and the division on the
       half-resolution level. The retry runs on 3 of that walk's 600 frames, 10 of f00's 554, but
@@ -133,6 +141,7 @@ class FloorFlowConfig:
     levels: int = 2
     flatten_px: int = 41
     flatten_retry_px: float = 1.5
+    flatten_max_scale: float = 1.0
     iterations: int = 10
     lk_eps: float = 0.01
     fit_iterations: int = 3
@@ -193,7 +202,8 @@ class FloorFlow:
         self._sin_min = math.sin(cfg.min_depression)
         # The local mean's box on the half-resolution level (the coarse levels' base), scaled like
         # the levels to the camera's pixel size; odd, so that it is centred.
-        box = int(round(cfg.flatten_px / (2.0 * pixel_scale(cam)))) if cfg.flatten_px > 0 else 0
+        scale = pixel_scale(cam)
+        box = int(round(cfg.flatten_px / (2.0 * scale))) if cfg.flatten_px > 0 and scale <= cfg.flatten_max_scale else 0
         self._box = box + 1 - box % 2 if box > 1 else 0
         # (frame, its half-resolution level, that flattened), for the last two frames.
         self._halves: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
