@@ -61,19 +61,19 @@ def make(out: Path, name: str, seed: int) -> Path:
     return path
 
 
-def replay(path: Path, deflicker: bool) -> dict:
-    """One replay of ``path``'s session, scored against its ground truth."""
+def score_replay(path: Path, cfg) -> dict:
+    """One replay of ``path``'s session with ``cfg`` (a ``LocaliserConfig``), scored against its
+    ground truth; ``counts``: the localiser's counters."""
     import cv2
 
     from tagloc.eval.evaluate import wrong_id_fixes
     from tagloc.eval.metrics import trajectory_errors
     from tagloc.io.session import SessionReader
-    from tagloc.pipeline.localiser import Localiser, LocaliserConfig
+    from tagloc.pipeline.localiser import Localiser
     from tagloc.pipeline.run import run_session
 
     cv2.setNumThreads(1)
     session = SessionReader(path)
-    cfg = LocaliserConfig() if deflicker else LocaliserConfig(deflicker=None)
     loc = Localiser(session.map, session.rig, config=cfg, map_path=session.map_path)
     loc.warm_up()
     log = run_session(session, localiser=loc)
@@ -86,25 +86,37 @@ def replay(path: Path, deflicker: bool) -> dict:
         "nees": float(np.mean(e.nees)),
         "fixes": len(log.fixes),
         "wrong_ids": wrong_id_fixes(path, log)[0],
-        "deflickered": int(loc.counts.get("deflickered", 0)),
         "frames": len(log.stamps),
+        "counts": dict(loc.counts),
     }
 
 
-def main() -> None:
+def replay(path: Path, deflicker: bool) -> dict:
+    """One replay of ``path``'s session, with the bands divided out or not."""
+    from tagloc.pipeline.localiser import LocaliserConfig
+
+    r = score_replay(path, LocaliserConfig() if deflicker else LocaliserConfig(deflicker=None))
+    return r | {"deflickered": int(r["counts"].get("deflickered", 0))}
+
+
+def run_table(doc: str, conditions: dict, make, replay, out: Path, toggle: str, column: str, extra=None) -> None:
+    """The command line of a benchmark over ``conditions`` (name -> settings): each condition's
+    session made by ``make(out, name, seed)`` and replayed by ``replay(path, on)`` with the
+    correction named ``toggle`` on and off (rows ``out`` / ``kept`` under ``column``); ``extra``:
+    (header, row -> text) of one more column."""
     from tqdm import tqdm
 
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("-o", "--out", type=Path, default=Path("out/flicker"))
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("-o", "--out", type=Path, default=out)
     ap.add_argument("--seed", type=int, default=4)
-    ap.add_argument("--conditions", default=",".join(CONDITIONS), help="comma-separated names (default: all)")
+    ap.add_argument("--conditions", default=",".join(conditions), help="comma-separated names (default: all)")
     ap.add_argument("--jobs", type=int, default=2, help="processes (default 2)")
     ap.add_argument("--json", type=Path, help="also write the rows as JSON")
     args = ap.parse_args()
     names = [n.strip() for n in args.conditions.split(",")]
-    unknown = [n for n in names if n not in CONDITIONS]
+    unknown = [n for n in names if n not in conditions]
     if unknown:
-        raise SystemExit(f"unknown condition(s) {', '.join(unknown)}; known: {', '.join(CONDITIONS)}")
+        raise SystemExit(f"unknown condition(s) {', '.join(unknown)}; known: {', '.join(conditions)}")
     args.out.mkdir(parents=True, exist_ok=True)
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         made = list(
@@ -117,20 +129,35 @@ def main() -> None:
         )
         jobs = [(p, d) for p in made for d in (True, False)]
         scored = list(tqdm(pool.map(replay, *zip(*jobs)), total=len(jobs), desc="replay", unit="replay"))
-    rows = []
+    width = max(len(n) for n in names) + 1
     print(
-        f"{'condition':16s} {'bands':>5s} {'RMSE cm':>8s} {'max cm':>7s} {'head deg':>8s} {'NEES':>6s}"
-        f" {'fixes':>6s} {'wrong':>5s} {'divided out':>11s}"
+        f"{'condition':{width}s} {column:>7s} {'RMSE cm':>8s} {'max cm':>7s} {'head deg':>8s} {'NEES':>6s}"
+        f" {'fixes':>6s} {'wrong':>5s}" + (f" {extra[0]}" if extra else "")
     )
+    rows = []
     for k, (name, (path, on)) in enumerate(zip([n for n in names for _ in (0, 1)], jobs)):
-        r = scored[k] | {"condition": name, "deflicker": on, "session": str(path)}
+        r = scored[k] | {"condition": name, toggle: on, "session": str(path)}
         rows.append(r)
         print(
-            f"{name:16s} {'out' if on else 'kept':>5s} {r['rmse_cm']:8.2f} {r['max_cm']:7.1f} {r['heading_deg']:8.2f}"
-            f" {r['nees']:6.2f} {r['fixes']:6d} {r['wrong_ids']:5d} {r['deflickered']:5d}/{r['frames']}"
+            f"{name:{width}s} {'out' if on else 'kept':>7s} {r['rmse_cm']:8.2f} {r['max_cm']:7.1f}"
+            f" {r['heading_deg']:8.2f} {r['nees']:6.2f} {r['fixes']:6d} {r['wrong_ids']:5d}"
+            + (f" {extra[1](r)}" if extra else "")
         )
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
+
+
+def main() -> None:
+    run_table(
+        __doc__,
+        CONDITIONS,
+        make,
+        replay,
+        Path("out/flicker"),
+        "deflicker",
+        "bands",
+        ("divided out", lambda r: f"{r['deflickered']:5d}/{r['frames']}"),
+    )
 
 
 if __name__ == "__main__":

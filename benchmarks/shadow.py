@@ -18,13 +18,12 @@ Rows: ``shading out`` / ``kept``.
 
 from __future__ import annotations
 
-import argparse
 import json
-import math
-from concurrent.futures import ProcessPoolExecutor
+import sys
 from pathlib import Path
 
-import numpy as np
+# The table's driver and the replay's scoring are the flicker benchmark's.
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 #: name -> (shadow, lamp spacing m, lamp height m, lux, camera pitch deg, walking speed m/s)
 CONDITIONS = {
@@ -69,76 +68,21 @@ def replay(path: Path, flatten: bool) -> dict:
     """One replay of ``path``'s session, scored against its ground truth."""
     from dataclasses import replace
 
-    import cv2
+    from flicker import score_replay
 
-    from tagloc.eval.evaluate import wrong_id_fixes
-    from tagloc.eval.metrics import trajectory_errors
-    from tagloc.io.session import SessionReader
-    from tagloc.pipeline.localiser import Localiser, LocaliserConfig
-    from tagloc.pipeline.run import run_session
+    from tagloc.pipeline.localiser import LocaliserConfig
 
-    cv2.setNumThreads(1)
-    session = SessionReader(path)
     cfg = LocaliserConfig()
     if not flatten:
         odo = cfg.odometry_config
         cfg = replace(cfg, odometry_config=replace(odo, flow_config=replace(odo.flow_config, flatten_px=0)))
-    loc = Localiser(session.map, session.rig, config=cfg, map_path=session.map_path)
-    loc.warm_up()
-    log = run_session(session, localiser=loc)
-    v = log.valid
-    e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *session.groundtruth())
-    return {
-        "rmse_cm": 100 * math.sqrt(float(np.mean(e.position**2))),
-        "max_cm": 100 * float(np.max(e.position)),
-        "heading_deg": math.degrees(math.sqrt(float(np.mean(e.yaw**2)))),
-        "nees": float(np.mean(e.nees)),
-        "fixes": len(log.fixes),
-        "wrong_ids": wrong_id_fixes(path, log)[0],
-        "frames": len(log.stamps),
-    }
+    return score_replay(path, cfg)
 
 
 def main() -> None:
-    from tqdm import tqdm
+    from flicker import run_table
 
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("-o", "--out", type=Path, default=Path("out/shadow"))
-    ap.add_argument("--seed", type=int, default=4)
-    ap.add_argument("--conditions", default=",".join(CONDITIONS), help="comma-separated names (default: all)")
-    ap.add_argument("--jobs", type=int, default=2, help="processes (default 2)")
-    ap.add_argument("--json", type=Path, help="also write the rows as JSON")
-    args = ap.parse_args()
-    names = [n.strip() for n in args.conditions.split(",")]
-    unknown = [n for n in names if n not in CONDITIONS]
-    if unknown:
-        raise SystemExit(f"unknown condition(s) {', '.join(unknown)}; known: {', '.join(CONDITIONS)}")
-    args.out.mkdir(parents=True, exist_ok=True)
-    with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        made = list(
-            tqdm(
-                pool.map(make, [args.out] * len(names), names, [args.seed] * len(names)),
-                total=len(names),
-                desc="simulate",
-                unit="walk",
-            )
-        )
-        jobs = [(p, d) for p in made for d in (True, False)]
-        scored = list(tqdm(pool.map(replay, *zip(*jobs)), total=len(jobs), desc="replay", unit="replay"))
-    rows = []
-    print(
-        f"{'condition':17s} {'shading':>7s} {'RMSE cm':>8s} {'max cm':>7s} {'head deg':>8s} {'NEES':>6s}"
-        f" {'fixes':>6s} {'wrong':>5s}"
-    )
-    for k, (name, (path, on)) in enumerate(zip([n for n in names for _ in (0, 1)], jobs)):
-        r = scored[k] | {"condition": name, "flatten": on, "session": str(path)}
-        rows.append(r)
-        print(
-            f"{name:17s} {'out' if on else 'kept':>7s} {r['rmse_cm']:8.2f} {r['max_cm']:7.1f}"
-            f" {r['heading_deg']:8.2f} {r['nees']:6.2f} {r['fixes']:6d} {r['wrong_ids']:5d}"
-        )
-    if args.json:
-        args.json.write_text(json.dumps(rows, indent=1))
+    run_table(__doc__, CONDITIONS, make, replay, Path("out/shadow"), "flatten", "shading")
 
 
 if __name__ == "__main__":
