@@ -40,7 +40,7 @@ CONDITIONS = {
 def make(out: Path, name: str, seed: int) -> Path:
     """The condition's session in ``out`` (simulated unless the same settings made it before)."""
     from tagloc.sim.render import ExposureConfig
-    from tagloc.sim.simulate import SIM_REVISION, SimConfig, simulate_session
+    from tagloc.sim.simulate import SimConfig
 
     flicker, mains, lux, rolling = CONDITIONS[name]
     cfg = SimConfig(
@@ -52,7 +52,14 @@ def make(out: Path, name: str, seed: int) -> Path:
         flicker=flicker / 100.0,
         mains_hz=mains,
     )
-    path = out / name.replace(" ", "_").replace("%", "pc")
+    return demo_session(out / name.replace(" ", "_").replace("%", "pc"), cfg)
+
+
+def demo_session(path: Path, cfg) -> Path:
+    """The session of ``cfg`` (a ``SimConfig``) over ``maps/demo.csv`` at ``path``, simulated unless
+    the same simulator and settings made it before."""
+    from tagloc.sim.simulate import SIM_REVISION, simulate_session
+
     stamp = json.loads(json.dumps({"sim": SIM_REVISION, "config": cfg.to_json()}))
     meta = path / "made.json"
     if not (meta.exists() and json.loads(meta.read_text()) == stamp):

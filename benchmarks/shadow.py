@@ -18,7 +18,6 @@ Rows: ``shading out`` / ``kept``.
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
@@ -39,9 +38,11 @@ CONDITIONS = {
 
 def make(out: Path, name: str, seed: int) -> Path:
     """The condition's session in ``out`` (simulated unless the same settings made it before)."""
+    from flicker import demo_session
+
     from tagloc.sim.lamps import LampConfig
     from tagloc.sim.render import ExposureConfig
-    from tagloc.sim.simulate import SIM_REVISION, SimConfig, simulate_session
+    from tagloc.sim.simulate import SimConfig
 
     shadow, spacing, height, lux, pitch, speed = CONDITIONS[name]
     cfg = SimConfig(
@@ -55,13 +56,7 @@ def make(out: Path, name: str, seed: int) -> Path:
         shadow=shadow,
         lamps=LampConfig(spacing_m=spacing, height_m=height),
     )
-    path = out / name.replace(" ", "_")
-    stamp = json.loads(json.dumps({"sim": SIM_REVISION, "config": cfg.to_json()}))
-    meta = path / "made.json"
-    if not (meta.exists() and json.loads(meta.read_text()) == stamp):
-        simulate_session(Path(__file__).resolve().parent.parent / "maps" / "demo.csv", path, cfg, progress=False)
-        meta.write_text(json.dumps(stamp))
-    return path
+    return demo_session(out / name.replace(" ", "_"), cfg)
 
 
 def replay(path: Path, flatten: bool) -> dict:
