@@ -30,7 +30,7 @@ Model (all lengths in metres, world frame, floor at z = 0):
 
 The illuminance is normalised so that the unshadowed floor averages 1 over a grid cell: the session's
 ``lux`` is the mean illuminance, as a light meter survey quotes it. With the defaults the grid itself
-varies by +-1.5 %, and a lamp behind the operator takes 10-15 % of the light from its shadow.
+varies by +-1 %, and a lamp behind the operator takes 5-15 % of the light from its shadow.
 """
 
 from __future__ import annotations
