@@ -100,8 +100,7 @@ class Lamps:
         # One cell's mean of the unshadowed light: the normaliser that makes the floor average 1.
         g = (np.arange(24) + 0.5) / 24 * c.spacing_m
         cell = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2) + self.offset
-        self._norm = 1.0
-        self._norm = float(self.illuminance(cell).mean())
+        self._norm = float(self._contributions(cell)[2].sum(1).mean())
 
     def _lamps_near(self, xy: np.ndarray) -> np.ndarray:
         """Centres (M, 2) of the lamps within reach of any of the points ``xy`` (N, 2)."""
@@ -118,23 +117,35 @@ class Lamps:
         ``body`` (3,): where the body's vertical axis stands and which way it faces, (x, y, yaw) m and
         rad (:meth:`axis`; None: no body, no shadow).
         """
-        c = self.config
         xy = np.asarray(xy, float).reshape(-1, 2)
         if len(xy) == 0:
             return np.zeros(0)
-        lamps = self._lamps_near(xy)
-        d = lamps[None, :, :] - xy[:, None, :]  # floor point -> lamp, horizontal (N, M, 2)
-        r2 = np.einsum("nmk,nmk->nm", d, d)
-        h2 = c.height_m**2
-        e = (h2 / (h2 + r2)) ** 2  # cos^4(theta); the common I0 / h^2 goes into the normaliser
-        e[r2 > (c.reach * c.height_m) ** 2] = 0.0
+        d, r2, e = self._contributions(xy)
         if body is not None:
             e *= self._visible(xy, d, r2, np.asarray(body, float))
         return e.sum(1) / self._norm
 
     def shadow(self, xy: np.ndarray, body: np.ndarray) -> np.ndarray:
         """Share (N,) of the light at floor points ``xy`` (N, 2) that the body ``body`` (3,) leaves."""
-        return self.illuminance(xy, body) / np.maximum(self.illuminance(xy), 1e-12)
+        xy = np.asarray(xy, float).reshape(-1, 2)
+        if len(xy) == 0:
+            return np.zeros(0)
+        d, r2, e = self._contributions(xy)
+        lit = e.sum(1) / self._norm
+        shaded = (e * self._visible(xy, d, r2, np.asarray(body, float))).sum(1) / self._norm
+        return shaded / np.maximum(lit, 1e-12)
+
+    def _contributions(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each lamp within reach seen from the floor points ``xy`` (N, 2): the horizontal offsets
+        point -> lamp (N, M, 2), their squared lengths (N, M), and the illuminance each lamp gives
+        (N, M), unnormalised (0 beyond reach)."""
+        c = self.config
+        d = self._lamps_near(xy)[None, :, :] - xy[:, None, :]
+        r2 = np.einsum("nmk,nmk->nm", d, d)
+        h2 = c.height_m**2
+        e = (h2 / (h2 + r2)) ** 2  # cos^4(theta); the common I0 / h^2 goes into the normaliser
+        e[r2 > (c.reach * c.height_m) ** 2] = 0.0
+        return d, r2, e
 
     def _segments(self, body: np.ndarray) -> list[tuple[np.ndarray, float, float, float]]:
         """The body's round segments: (axis (2,), bottom, top, radius), m."""

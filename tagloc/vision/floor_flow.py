@@ -380,7 +380,8 @@ def flatten(gray: np.ndarray, box_px: int) -> np.ndarray:
     :data:`FLAT_LEVEL` for "as bright as around it".
 
     Shading that varies smoothly over the box (vignetting, a shadow's penumbra, a lamp's pool of
-    light) is divided out: a linear ramp of it exactly. Texture finer than the box is kept, in
+    light) is divided out, a linear ramp of it to first order (its curvature over the box and the
+    texture's own local mean are left). Texture finer than the box is kept, in
     proportion to its contrast. Equal frames give equal outputs wherever the floor lies in them, so
     the floor's texture moves with the floor as before."""
     # The mean in float: rounded to whole grey levels, its steps would draw contours of +-1 level.
