@@ -175,6 +175,23 @@ class FlowStep:
 _H = np.array([1e-4, 1e-4, 1e-5, 1e-5, 1e-5, 1e-4])
 
 
+@dataclass(frozen=True)
+class _Problem:
+    """One frame pair's fitting problem, the same for every tracking attempt (see
+    :meth:`FloorFlow.refine`): the grid points' guessed pixels ``p_guess`` (N, 2) in the later
+    frame and their floor points ``X`` (N, 3); ``down`` (G,) bool, which grid points those are;
+    the lean's ``lever`` (3,) from the vest point to the camera and camera axes ``M0`` (3, 3) in
+    the level body frame; the starting parameters ``x0`` (6,); the interval ``dt`` (s)."""
+
+    p_guess: np.ndarray
+    X: np.ndarray
+    down: np.ndarray
+    lever: np.ndarray
+    M0: np.ndarray
+    x0: np.ndarray
+    dt: float
+
+
 class FloorFlow:
     """Full-resolution step and tilt change of one rig camera between two frames (see the module)."""
 
@@ -247,11 +264,12 @@ class FloorFlow:
         p_guess = cv2.projectPoints(
             np.column_stack([start, np.ones(len(start))]), np.zeros(3), np.zeros(3), cam.K, cam.dist
         )[0].reshape(-1, 2)
-        fit = self._fit(gray0, gray1, p_guess, X, down, lever, M0, x, dt, bool(self._box))
+        problem = _Problem(p_guess, X, down, lever, M0, x, dt)
+        fit = self._fit(gray0, gray1, problem, bool(self._box))
         if self._box and (fit is None or fit[1] > cfg.flatten_retry_px):
             # Flattened, the coarse levels' reach is shorter (see ``flatten_retry_px``).
             self.retries += 1
-            alt = self._fit(gray0, gray1, p_guess, X, down, lever, M0, x, dt, False)
+            alt = self._fit(gray0, gray1, problem, False)
             if alt is not None and (fit is None or alt[1] < fit[1]):
                 fit = alt
         if fit is None:
@@ -269,35 +287,27 @@ class FloorFlow:
         return FlowStep(x[:3].copy(), float(x[3]), float(x[4]), float(x[5]), med, n)
 
     def _fit(
-        self,
-        gray0: np.ndarray,
-        gray1: np.ndarray,
-        p_guess: np.ndarray,
-        X: np.ndarray,
-        down: np.ndarray,
-        lever: np.ndarray,
-        M0: np.ndarray,
-        x0: np.ndarray,
-        dt: float,
-        flat: bool,
+        self, gray0: np.ndarray, gray1: np.ndarray, problem: _Problem, flat: bool
     ) -> tuple[np.ndarray, float, int] | None:
-        """Track the points from ``p_guess`` (N, 2) px (their floor points ``X`` (N, 3)) and fit the six
-        parameters from ``x0`` (6,): (x, median reprojection error px, points tracked), or None when
-        too few points track or the fit breaks down. ``flat``: the coarse levels on flattened frames."""
+        """Track ``problem``'s points from their guessed pixels and fit the six parameters from its
+        starting step: (x (6,), median reprojection error px, points tracked), or None when too few
+        points track or the fit breaks down. ``flat``: the coarse levels on flattened frames."""
         cfg = self.config
         cam = self.rig_camera.camera
-        tracked, status = self._track(gray0, gray1, self._px[down], p_guess, flat)
+        pb = problem
+        tracked, status = self._track(gray0, gray1, self._px[pb.down], pb.p_guess, flat)
         ok = status.ravel() == 1
         if int(ok.sum()) < cfg.min_points:
             return None
         p1 = tracked.reshape(-1, 2)[ok].astype(np.float64)
         seen = cv2.undistortPoints(p1.reshape(-1, 1, 2), cam.K, cam.dist).reshape(-1, 2)
-        model = _Model(X[ok], lever, self._vp, M0)
+        model = _Model(pb.X[ok], pb.lever, self._vp, pb.M0)
         # Each point's interval, in frame intervals (rolling shutter; 1 for a global shutter).
-        scale = 1.0 + (np.asarray(row_delay_s(p1[:, 1], cam.height, self._readout)) - self._delay0[down][ok]) / dt
+        delay1 = np.asarray(row_delay_s(p1[:, 1], cam.height, self._readout))
+        scale = 1.0 + (delay1 - self._delay0[pb.down][ok]) / pb.dt
         E = np.vstack([np.zeros(6), np.diag(_H)])
         f = cam.fx
-        x = x0.copy()
+        x = pb.x0.copy()
         for i in range(cfg.fit_iterations + 1):
             P = model.project(x[None] + E if i < cfg.fit_iterations else x[None], scale) - seen[None]
             # Huber weights from the residuals at the current estimate (all 1 at the start).
