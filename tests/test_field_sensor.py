@@ -694,7 +694,7 @@ def test_cli_simulate_field_flags(tmp_path, capsys):
         base
         + ["--quiet", "--rolling-shutter", "--readout-ms", "25", "--jitter-ms", "2", "--drop-fraction", "0.3"]
         + ["--survey-sigma-cm", "1", "--survey-sigma-deg", "1.5", "--survey-stated", "--sensor", "ov5647"]
-        + ["--flicker", "30", "--mains-hz", "60", "--shadow", "-o", str(tmp_path / "f")]
+        + ["--flicker", "30", "--mains-hz", "60", "--shadow", "--legs", "-o", str(tmp_path / "f")]
     )
     assert rc == 0, capsys.readouterr().err
     reader = SessionReader(tmp_path / "f")
@@ -702,6 +702,7 @@ def test_cli_simulate_field_flags(tmp_path, capsys):
     sim = json.loads((tmp_path / "f" / "session.json").read_text())["simulation"]["config"]
     assert sim["flicker"] == pytest.approx(0.3) and sim["mains_hz"] == 60
     assert sim["shadow"] is True and sim["lamps"]["height_m"] == pytest.approx(9.0)
+    assert sim["legs"] is True and reader.rig[0].legs_in_view  # the forward camera sees them
     capsys.readouterr()
     # A replay says the lamps flicker (every frame's bands divided out).
     assert main(["replay", str(tmp_path / "f"), "--quiet"]) == 0

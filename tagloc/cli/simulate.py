@@ -20,7 +20,7 @@ during the exposure, shot and read noise, gain, vignetting, lens distortion, gam
 
 Field conditions (all seeded): a rolling shutter, the driver's timestamp jitter and dropped frames,
 a map with survey error (the frames show the true stickers), a dimmer sensor, flickering lamps,
-the operator's own shadow under a grid of overhead lamps.
+the operator's own shadow under a grid of overhead lamps, the wearer's legs and feet in view.
 
 example:
   tagloc simulate --map maps/demo.csv --seconds 20 --lux 100 --speed 1.3 --seed 1 -o logs/sim1
@@ -29,7 +29,8 @@ example:
       --sensor ov5647 -o logs/field1
   tagloc simulate --map maps/demo.csv --seconds 20 --seed 1 --lux 300 --rolling-shutter \
       --flicker 30 -o logs/flicker1        # fluorescent tubes on magnetic ballasts, 50 Hz mains
-  tagloc simulate --map maps/demo.csv --seconds 20 --seed 1 --lux 300 --shadow -o logs/shadow1"""
+  tagloc simulate --map maps/demo.csv --seconds 20 --seed 1 --lux 300 --shadow -o logs/shadow1
+  tagloc simulate --map maps/demo.csv --seconds 20 --seed 1 --pitch 65 --legs -o logs/legs1"""
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -82,6 +83,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--shadow",
         action="store_true",
         help="the operator's own shadow under high-bay lamps 6 m apart, 9 m up (default: no shadow)",
+    )
+    p.add_argument(
+        "--legs",
+        action="store_true",
+        help="the wearer's legs and feet, stepping with the gait, where the camera sees them (default: none)",
     )
     p.add_argument("--jpeg-quality", type=int, default=85, help="JPEG quality of the frames (default 85)")
     p.add_argument("--scale", type=float, default=1.0, help="image resolution factor (default 1: 1296x972)")
@@ -141,6 +147,7 @@ def run(args: argparse.Namespace) -> int:
             flicker=args.flicker / 100.0,
             mains_hz=args.mains_hz,
             shadow=args.shadow,
+            legs=args.legs,
         ),
         progress=not args.quiet,
     )

@@ -19,7 +19,10 @@ own z axis, by 2.3 cm; the vest point does not move when the torso tilts about i
 by a sticker fix does not move (x, y) (see :func:`vest_planar`).
 An optional ``"readout_s"`` gives a rolling-shutter camera's read-out time, first row to last
 (seconds; 0 or absent: global shutter): row ``v`` is exposed ``(v - (H - 1) / 2) * readout_s / H``
-after the frame's timestamp, which belongs to the middle row.
+after the frame's timestamp, which belongs to the middle row. An optional ``"legs_in_view": true``
+says the camera sees the wearer's own feet and legs (pitched steeply down from the chest, it sees
+the leading foot once per step): the floor odometry then leaves the floor they can cover out
+(:class:`tagloc.vision.odometry.OdometryConfig` ``legs_reach_m``).
 """
 
 from __future__ import annotations
@@ -48,6 +51,7 @@ class RigCamera:
     calibration_file: str = "camera.yaml"
     readout_s: float = 0.0
     vest_height_m: float | None = None  # height of the vest point in the body frame; None: the camera's
+    legs_in_view: bool = False  # the camera sees the wearer's feet and legs (see the module docstring)
 
     def __post_init__(self) -> None:
         if self.vest_height_m is None:
@@ -179,7 +183,12 @@ def load_rig(path: str | Path, calibration: Camera | None = None) -> Rig:
         readout = entry.get("readout_s", 0.0)
         if isinstance(readout, bool) or not isinstance(readout, (int, float)) or not 0.0 <= readout < 1.0:
             raise CalibrationError(f"{where}: readout_s {readout!r} must be a number of seconds in [0, 1)")
-        out.append(RigCamera(name, cam, _check_T(entry["T_body_camera"], where), calib_file, float(readout)))
+        legs = entry.get("legs_in_view", False)
+        if not isinstance(legs, bool):
+            raise CalibrationError(f"{where}: legs_in_view must be true or false, got {legs!r}")
+        rc = RigCamera(name, cam, _check_T(entry["T_body_camera"], where), calib_file, float(readout))
+        rc.legs_in_view = legs
+        out.append(rc)
     height = doc.get("vest_height_m")
     if height is not None and (
         isinstance(height, bool) or not isinstance(height, (int, float)) or not 0.0 < float(height) < 3.0
@@ -196,6 +205,7 @@ def save_rig(rig: Rig, path: str | Path, write_calibrations: bool = True) -> Non
         "cameras": [
             {"name": c.name, "calibration": c.calibration_file, "T_body_camera": np.round(c.T_body_camera, 12).tolist()}
             | ({"readout_s": c.readout_s} if c.readout_s > 0 else {})
+            | ({"legs_in_view": True} if c.legs_in_view else {})
             for c in rig.cameras
         ],
     }

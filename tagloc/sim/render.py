@@ -32,6 +32,8 @@ Pipeline of one frame (all in linear light until the tone curve):
    gives horizontal bands (a 30 ms read-out spans three periods at 100 Hz) that move from frame
    to frame. Exposures of a whole period or more average the flicker out. The auto exposure
    sets the gain from the mean light, because the camera's loop spans many frames.
+   The wearer's legs and feet (:mod:`tagloc.sim.legs`, ``legs``, off by default) are painted over
+   each sub-frame's floor at that sub-frame's time, so they blur with their own motion.
 6. **Auto exposure (motion priority).** ``t_exp = e0_lux_s / lux`` capped at ``max_exposure_s`` and
    the frame interval; gain brings the frame's mean signal to ``target_mean`` of full scale, capped
    at ``max_gain``. Dimmer light: longer exposure (more blur), and once capped, more gain (more noise).
@@ -65,6 +67,7 @@ from tagloc.core.rig import row_delay_s
 from tagloc.core.sticker import sticker_pixel_to_metres
 from tagloc.sim.floor import Floor, sticker_size_px
 from tagloc.sim.lamps import Lamps
+from tagloc.sim.legs import Legs
 
 #: Photons per second per square metre per lux of white (LED/fluorescent) light, visible band.
 PHOTONS_PER_LUX_S_M2 = 1.0e16
@@ -305,9 +308,11 @@ class Renderer:
         seed: int = 0,
         flicker: Flicker | None = None,
         lamps: Lamps | None = None,
+        legs: Legs | None = None,
     ):
         self.floor = floor
         self.lamps = lamps
+        self.legs = legs
         self.flicker = flicker if flicker is not None and flicker.depth > 0 else None
         self.camera = camera
         self.optics = optics or OpticsConfig()
@@ -510,10 +515,13 @@ class Renderer:
         )
         H, W = self.camera.height, self.camera.width
         lin = np.empty((H, W), np.float32)
-        for b, band_poses in zip(self._bands, poses):
+        for b, band_poses, band_times in zip(self._bands, poses, times.reshape(len(self._bands), n_sub)):
             acc = np.zeros((b.roi[3], b.roi[2]), np.float32)
-            for T in band_poses:
-                acc += self._render_roi(T, b.roi, rows)
+            for T, t_sub in zip(band_poses, band_times):
+                view = self._render_roi(T, b.roi, rows)
+                if self.legs is not None:
+                    self.legs.paint(view, T, self.K_canvas, float(t_sub), offset=b.roi[:2])
+                acc += view
             acc *= 1.0 / (255.0 * n_sub)
             lin[b.rows] = cv2.remap(acc, b.map1, b.map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         if self.optics.psf_sigma_px > 0:

@@ -45,6 +45,7 @@ from tagloc.core.stickermap import StickerMap, load_map, save_map
 from tagloc.io.session import GROUNDTRUTH_FILE, SessionInfo, SessionWriter, write_tum
 from tagloc.sim.floor import Floor, FloorConfig
 from tagloc.sim.lamps import LampConfig, Lamps
+from tagloc.sim.legs import Legs, LegsConfig
 from tagloc.sim.render import (
     ExposureConfig,
     Flicker,
@@ -103,6 +104,9 @@ class SimConfig:
         shadow: the operator's own shadow under a grid of overhead lamps (``lamps``,
             :mod:`tagloc.sim.lamps`), on top of the floor's illumination pattern; the grid's offset
             is drawn from ``seed``.
+        legs: the wearer's legs and feet in the camera's view (``legs_config``,
+            :mod:`tagloc.sim.legs`), stepping with the walk's gait; the session's rig then marks
+            its forward-looking cameras ``legs_in_view``.
     """
 
     seconds: float = 20.0
@@ -132,6 +136,8 @@ class SimConfig:
     mains_hz: float = 50.0
     shadow: bool = False
     lamps: LampConfig = field(default_factory=LampConfig)
+    legs: bool = False
+    legs_config: LegsConfig = field(default_factory=LegsConfig)
 
     def __post_init__(self) -> None:
         if not self.seconds > 0 or not self.fps > 0 or not self.lux > 0 or not self.speed_mps > 0:
@@ -314,11 +320,16 @@ def simulate_session(
     config = config or SimConfig()
     smap = _resolve_map(smap)
     rig = config.build_rig()
+    if config.legs:
+        # The session's rig says what its forward cameras see (an installer sees the feet too).
+        for rc in rig.cameras:
+            rc.legs_in_view = rc.legs_in_view or float(rc.T_body_camera[0, 2]) > 0.0
     n_cams = len(rig)
     walk = simulate_walk(smap, config)
     floor = Floor(smap, config.floor_config(), seed=config.seed)
     exp_cfg = config.exposure_config()
     lamps = config.lamp_grid()
+    legs = Legs(walk, rig.vest_point, config.legs_config) if config.legs else None
     # Each camera has its own sensor (fixed-pattern noise seed) and its own auto exposure.
     renderers = [
         Renderer(
@@ -330,6 +341,7 @@ def simulate_session(
             seed=config.seed + CAMERA_SEED_STEP * c,
             flicker=config.light_flicker(),
             lamps=lamps,
+            legs=legs,
         )
         for c, rc in enumerate(rig.cameras)
     ]

@@ -113,7 +113,7 @@ class WalkConfig:
 
 
 # Columns of the walk's state spline (the lean is in PITCH and ROLL).
-_X, _Y, _YAW, _V, _BOB, _SWAY, _TYAW, _PITCH, _ROLL, _LPITCH, _LROLL = range(11)
+_X, _Y, _YAW, _V, _BOB, _SWAY, _TYAW, _PITCH, _ROLL, _LPITCH, _LROLL, _PHASE = range(12)
 
 
 @dataclass
@@ -122,7 +122,8 @@ class Walk:
 
     Attributes:
         spline: cubic spline of the state columns (x, y, yaw, speed, bob, sway, torso yaw, pitch,
-            roll, and the lean's part of pitch and roll, rad).
+            roll, the lean's part of pitch and roll, rad, and the gait's step phase, rad: one step
+            per 2 pi, the bobbing being ``bob_m cos(phase)``).
         stops: (K, 2) start and end times of the stops (standing still), s.
         waypoints: (M, 2) the points the walker steered at, world metres.
         config: what produced it.
@@ -150,6 +151,10 @@ class Walk:
         """Forward speed of the path (m/s) at ``t``, from its derivative."""
         d = self.spline(np.clip(np.asarray(t, float), self.t_start, self.t_end), 1)
         return np.hypot(d[..., _X], d[..., _Y])
+
+    def phase(self, t: float | np.ndarray) -> np.ndarray:
+        """The gait's step phase (rad, growing; one step per 2 pi) at ``t``: () or (N,)."""
+        return self._state(t)[..., _PHASE]
 
     def lean(self, t: float | np.ndarray) -> np.ndarray:
         """The lean's (roll, pitch) at ``t`` (rad; roll > 0 tips the torso's top to the right, pitch
@@ -399,5 +404,7 @@ def plan_walk(smap: StickerMap, cfg: WalkConfig) -> Walk:
     pj = math.radians(cfg.pitch_jitter_deg)
     pitch = pj * (0.5 * g * np.sin(phase + 1.0) + 0.5 * drift)
     lean_roll, lean_pitch = _lean(speed, turn_rate, cfg)
-    cols = np.column_stack([states, bob, sway, tyaw, pitch + lean_pitch, roll + lean_roll, lean_pitch, lean_roll])
+    cols = np.column_stack(
+        [states, bob, sway, tyaw, pitch + lean_pitch, roll + lean_roll, lean_pitch, lean_roll, phase]
+    )
     return Walk(CubicSpline(t, cols), np.array(stops).reshape(-1, 2), np.array(waypoints), cfg)

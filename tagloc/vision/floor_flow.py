@@ -195,7 +195,16 @@ class _Problem:
 class FloorFlow:
     """Full-resolution step and tilt change of one rig camera between two frames (see the module)."""
 
-    def __init__(self, rig_camera: RigCamera, config: FloorFlowConfig | None = None, rolling_shutter: bool = True):
+    def __init__(
+        self,
+        rig_camera: RigCamera,
+        config: FloorFlowConfig | None = None,
+        rolling_shutter: bool = True,
+        legs: tuple[float, float] = (0.0, 0.0),
+    ):
+        """``legs``: (reach, half width) m of the floor ahead of the vest point that the wearer's legs
+        can cover (:class:`tagloc.vision.odometry.OdometryConfig` ``legs_reach_m``); grid points
+        seeing it (at the nominal pose) are not tracked. (0, 0): none."""
         self.config = cfg = config or FloorFlowConfig()
         self.rig_camera = rig_camera
         cam = rig_camera.camera
@@ -205,13 +214,23 @@ class FloorFlow:
         # Whole pixels: the figures in the README were measured with this grid.
         px = np.rint(np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2))
         n = cv2.undistortPoints(px.reshape(-1, 1, 2), cam.K, cam.dist).reshape(-1, 2)
-        self._rays_c = np.column_stack([n, np.ones(len(n))])  # camera frame
-        self._px = px.astype(np.float32)
-        self._readout = rig_camera.readout_s if rolling_shutter else 0.0
-        self._delay0 = np.asarray(row_delay_s(px[:, 1], cam.height, self._readout), float)
+        rays_c = np.column_stack([n, np.ones(len(n))])  # camera frame
         T = np.asarray(rig_camera.T_body_camera, float)
         self._R_bc, self._c_nom = T[:3, :3], T[:3, 3]
         self._vp = np.asarray(rig_camera.vest_point, float)
+        reach, half = legs
+        if reach > 0 and half > 0:
+            rays_b = rays_c @ self._R_bc.T
+            with np.errstate(divide="ignore", invalid="ignore"):
+                s = np.where(rays_b[:, 2] < 0, -self._c_nom[2] / rays_b[:, 2], np.inf)
+            fx = self._c_nom[0] + s * rays_b[:, 0] - self._vp[0]
+            fy = self._c_nom[1] + s * rays_b[:, 1] - self._vp[1]
+            keep = ~((fx < reach) & (np.abs(fy) < half))
+            px, rays_c = px[keep], rays_c[keep]
+        self._rays_c = rays_c
+        self._px = px.astype(np.float32)
+        self._readout = rig_camera.readout_s if rolling_shutter else 0.0
+        self._delay0 = np.asarray(row_delay_s(px[:, 1], cam.height, self._readout), float)
         self._criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, cfg.iterations, cfg.lk_eps)
         # The pyramid's coarsest level at the same angular scale as the reference camera's (see
         # ``levels``): a camera with pixels twice as large starts a level lower.

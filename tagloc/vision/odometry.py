@@ -106,6 +106,20 @@ class OdometryConfig:
       walks fail to match, at 0.17 ms less per frame).
     - ``highpass_sigma_px``: the local mean (Gaussian of this sigma) is subtracted, so lighting
       gradients and vignetting do not correlate.
+    - ``legs_reach_m``, ``legs_half_width_m``: for a rig camera that sees the wearer's own feet
+      and legs (``legs_in_view`` in ``rig.json``, :mod:`tagloc.core.rig`), the floor they can
+      cover, from the vest point up to ``legs_reach_m`` ahead of it and ``legs_half_width_m``
+      either side, is left out: the patch's near edge starts beyond it, and the floor flow tracks
+      no point that sees it. They move with the body, not with the floor, and
+      a camera pitched 55-65 degrees sees them once per step (:mod:`tagloc.sim.legs`): a heel lands
+      half a step (0.3-0.4 m) ahead of the hips, which are ~0.12 m behind a chest-mounted vest
+      point, and the shoe reaches 0.2 m beyond the ankle; a shin or knee 0.3-0.5 m up hides floor
+      further out still (seen from 1.3 m, a knee 0.3 m ahead covers the floor 0.5 m ahead). Hence
+      0.7 m and 0.3 m (the feet 0.05 m either side of the walking line, the hips and thighs 0.17 m,
+      spread by the view from above). The legs of :mod:`tagloc.sim.legs` reach 0.46 / 0.58 / 0.68 m
+      ahead of the vest point (99th percentile of their floor-projected outline) at 0.9 / 1.3 /
+      1.6 m/s. The patch further out sees the floor coarser, so this costs where no legs are in
+      view (see the README's "The wearer's legs"): it is the rig's to declare, not a default.
     - ``min_camera_height``: a camera lower than this (m) sees no floor patch worth matching;
       ``min_side_m``: a floor square smaller than this (20 cm: 2.5 mm pixels at 80 px, finer
       than the camera resolves at 1-2 m) is refused.
@@ -351,6 +365,8 @@ class OdometryConfig:
 
     patch_px: int = 80
     max_side_m: float = 1.0
+    legs_reach_m: float = 0.7
+    legs_half_width_m: float = 0.3
     image_margin: float = 0.03
     min_depression: float = math.radians(20.0)
     supersample: int = 4
@@ -553,6 +569,15 @@ def _floor_from_pixels(rig_camera: RigCamera, px: np.ndarray, min_depression: fl
     return out
 
 
+def legs_zone(rig_camera: RigCamera, config: OdometryConfig) -> tuple[float, float]:
+    """(reach, half width) m of the floor ahead of the vest point that the odometry leaves to the
+    wearer's legs: ``legs_reach_m``, ``legs_half_width_m`` for a camera whose rig entry says it sees
+    them (``legs_in_view``), else (0, 0)."""
+    if rig_camera.legs_in_view and config.legs_reach_m > 0 and config.legs_half_width_m > 0:
+        return float(config.legs_reach_m), float(config.legs_half_width_m)
+    return 0.0, 0.0
+
+
 def floor_patch(rig_camera: RigCamera, config: OdometryConfig | None = None) -> FloorPatch:
     """The largest floor square (side <= ``max_side_m``) in front of the camera that the image covers.
 
@@ -601,9 +626,16 @@ def floor_patch(rig_camera: RigCamera, config: OdometryConfig | None = None) -> 
         return np.all(side >= 0, axis=(1, 2)) | np.all(side <= 0, axis=(1, 2))
 
     xs = floor[ok, 0]
+    x_min = float(xs.min())
+    reach, half = legs_zone(rig_camera, cfg)
+    if reach > 0 and abs(yc - float(rig_camera.vest_point[1])) < half:
+        # In front of the wearer's own legs (see ``legs_reach_m``).
+        x_min = max(x_min, float(rig_camera.vest_point[0]) + reach)
+        if x_min >= xs.max():
+            raise CalibrationError(f"camera {rig_camera.name!r}: sees no floor beyond the wearer's legs")
     # Each near edge's largest square by bisection, all near edges at once (one call per step
     # instead of one per edge and step: 1,200 calls were a visible share of a replay's start-up).
-    near_edges = np.linspace(xs.min(), xs.max(), _NEAR_EDGE_STEPS)
+    near_edges = np.linspace(x_min, xs.max(), _NEAR_EDGE_STEPS)
     lo, hi = np.zeros(len(near_edges)), np.full(len(near_edges), cfg.max_side_m)
     for _ in range(_BISECTIONS):
         mid = 0.5 * (lo + hi)
@@ -684,7 +716,16 @@ class FloorOdometry:
         rs = cfg.rolling_shutter and rig_camera.readout_s > 0
         self._rs = self._rolling_shutter_grid(n, ss, T_cb) if rs else None
         self.tilt_gated_in_row = 0  # sticker fixes refused by the tilt gate in a row (see tilt_gate_result)
-        self._flow = FloorFlow(rig_camera, cfg.flow_config, rolling_shutter=cfg.rolling_shutter) if cfg.flow else None
+        self._flow = (
+            FloorFlow(
+                rig_camera,
+                cfg.flow_config,
+                rolling_shutter=cfg.rolling_shutter,
+                legs=legs_zone(rig_camera, cfg),
+            )
+            if cfg.flow
+            else None
+        )
         self._prev_gray: np.ndarray | None = None  # the frame of _prev, for the flow
         self.flow_steps = 0  # steps the flow refined
         self.bridged = 0  # steps that bridged dropped frames (see bridge_max_dt)
