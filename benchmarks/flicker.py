@@ -39,20 +39,18 @@ CONDITIONS = {
 
 def make(out: Path, name: str, seed: int) -> Path:
     """The condition's session in ``out`` (simulated unless the same settings made it before)."""
+    flicker, mains, lux, rolling = CONDITIONS[name]
+    cfg = walk_config(seed, lux, rolling_shutter=rolling, flicker=flicker / 100.0, mains_hz=mains)
+    return demo_session(out / name.replace(" ", "_").replace("%", "pc"), cfg)
+
+
+def walk_config(seed: int, lux: float, **settings):
+    """These benchmarks' 20 s walk (a ``SimConfig``): ``lux``, ``seed``, a 25 ms read-out when the
+    shutter rolls, and the condition's ``settings`` (any other ``SimConfig`` fields)."""
     from tagloc.sim.render import ExposureConfig
     from tagloc.sim.simulate import SimConfig
 
-    flicker, mains, lux, rolling = CONDITIONS[name]
-    cfg = SimConfig(
-        seconds=20.0,
-        lux=lux,
-        seed=seed,
-        rolling_shutter=rolling,
-        exposure=ExposureConfig(readout_s=0.025),
-        flicker=flicker / 100.0,
-        mains_hz=mains,
-    )
-    return demo_session(out / name.replace(" ", "_").replace("%", "pc"), cfg)
+    return SimConfig(seconds=20.0, lux=lux, seed=seed, exposure=ExposureConfig(readout_s=0.025), **settings)
 
 
 def demo_session(path: Path, cfg) -> Path:

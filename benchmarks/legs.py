@@ -36,23 +36,12 @@ CONDITIONS = {
 def make(out: Path, name: str, seed: int) -> Path:
     """The condition's session in ``out`` (simulated unless the same settings made it before), its
     rig marked ``legs_in_view``."""
-    from flicker import demo_session
+    from flicker import demo_session, walk_config
 
     from tagloc.core.rig import load_rig, save_rig
-    from tagloc.sim.render import ExposureConfig
-    from tagloc.sim.simulate import SimConfig
 
     legs, pitch, speed, lux = CONDITIONS[name]
-    cfg = SimConfig(
-        seconds=20.0,
-        lux=lux,
-        seed=seed,
-        pitch_deg=pitch,
-        speed_mps=speed,
-        rolling_shutter=True,
-        exposure=ExposureConfig(readout_s=0.025),
-        legs=legs,
-    )
+    cfg = walk_config(seed, lux, pitch_deg=pitch, speed_mps=speed, rolling_shutter=True, legs=legs)
     path = demo_session(out / name.replace(" ", "_").replace("/", "p"), cfg)
     rig = load_rig(path / "rig.json")
     if not all(c.legs_in_view for c in rig.cameras):

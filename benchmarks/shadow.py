@@ -38,24 +38,13 @@ CONDITIONS = {
 
 def make(out: Path, name: str, seed: int) -> Path:
     """The condition's session in ``out`` (simulated unless the same settings made it before)."""
-    from flicker import demo_session
+    from flicker import demo_session, walk_config
 
     from tagloc.sim.lamps import LampConfig
-    from tagloc.sim.render import ExposureConfig
-    from tagloc.sim.simulate import SimConfig
 
     shadow, spacing, height, lux, pitch, speed = CONDITIONS[name]
-    cfg = SimConfig(
-        seconds=20.0,
-        lux=lux,
-        seed=seed,
-        pitch_deg=pitch,
-        speed_mps=speed,
-        rolling_shutter=True,
-        exposure=ExposureConfig(readout_s=0.025),
-        shadow=shadow,
-        lamps=LampConfig(spacing_m=spacing, height_m=height),
-    )
+    lamps = LampConfig(spacing_m=spacing, height_m=height)
+    cfg = walk_config(seed, lux, pitch_deg=pitch, speed_mps=speed, rolling_shutter=True, shadow=shadow, lamps=lamps)
     return demo_session(out / name.replace(" ", "_"), cfg)
 
 
