@@ -159,3 +159,27 @@ def test_rig_json_carries_legs_in_view(tmp_path):
     (tmp_path / "rig.json").write_text(json.dumps(doc))
     with pytest.raises(CalibrationError, match=r"rig.json: cameras\[0\]: legs_in_view"):
         load_rig(tmp_path / "rig.json")
+
+
+def test_rig_show_points_out_a_camera_that_sees_the_feet(tmp_path, capsys):
+    """``tagloc rig show`` tells the installer of a camera that sees the floor where the feet step
+    (65 degrees at 1.3 m: from 0.13 m ahead) to declare ``legs_in_view``, says so when declared, and
+    says nothing for a camera looking further ahead (40 degrees: from 0.77 m)."""
+    from tagloc.cli import main
+    from tagloc.core.rig import default_rig, save_rig
+    from tagloc.vision.odometry import nearest_floor_ahead
+
+    steep, shallow = default_rig(1.3, 65.0), default_rig(1.3, 40.0)
+    assert nearest_floor_ahead(steep.cameras[0]) == pytest.approx(0.13, abs=0.01)
+    assert nearest_floor_ahead(shallow.cameras[0]) == pytest.approx(0.77, abs=0.01)
+    said = {}
+    for name, rig in (("steep", steep), ("shallow", shallow)):
+        save_rig(rig, tmp_path / f"{name}.json")
+        assert main(["rig", "show", str(tmp_path / f"{name}.json")]) == 0
+        said[name] = capsys.readouterr().out
+    assert '"legs_in_view": true' in said["steep"] and "0.13 m ahead" in said["steep"]
+    assert "legs_in_view" not in said["shallow"]
+    steep.cameras[0].legs_in_view = True
+    save_rig(steep, tmp_path / "steep.json")
+    assert main(["rig", "show", str(tmp_path / "steep.json")]) == 0
+    assert "legs_in_view declared" in capsys.readouterr().out

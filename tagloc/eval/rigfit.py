@@ -448,4 +448,21 @@ def check_rig_file(path: str | Path) -> str:
         rows.append(
             f"{c.name:<10}{h:>10.4f}{p:>9.3f}{r:>9.3f}{y:>9.3f}{c.T_body_camera[0, 3]:>8.3f}{c.T_body_camera[1, 3]:>8.3f}"
         )
+    rows += [line for line in (_legs_line(c) for c in rig.cameras) if line]
     return "\n".join(rows)
+
+
+def _legs_line(c: RigCamera) -> str | None:
+    """What ``tagloc rig show`` says about the wearer's legs in camera ``c``'s view, if anything."""
+    from tagloc.vision.odometry import OdometryConfig, nearest_floor_ahead
+
+    reach = OdometryConfig().legs_reach_m
+    if c.legs_in_view:
+        return f"{c.name}: legs_in_view declared: the floor odometry leaves out the floor up to {reach:.2f} m ahead of the vest point"
+    near = nearest_floor_ahead(c)
+    if near is None or near >= reach:
+        return None
+    return (
+        f"{c.name}: sees the floor from {near:.2f} m ahead of the vest point (with the Pi camera v1's field of view),"
+        f' where the wearer\'s feet step: if they appear in its frames, declare "legs_in_view": true'
+    )

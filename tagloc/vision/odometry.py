@@ -578,6 +578,22 @@ def legs_zone(rig_camera: RigCamera, config: OdometryConfig) -> tuple[float, flo
     return 0.0, 0.0
 
 
+def nearest_floor_ahead(rig_camera: RigCamera, min_depression: float = math.radians(20.0)) -> float | None:
+    """How far ahead of the vest point (m, along the body's +x) the nearest floor the camera sees
+    lies (its image's bottom row, inset by 3 %), or None for a camera that sees no floor ahead
+    (looking up, back or sideways): where the wearer's feet enter the view when it is within
+    ``OdometryConfig.legs_reach_m``."""
+    cam = rig_camera.camera
+    if float(rig_camera.T_body_camera[0, 2]) <= 0.0:
+        return None  # the optical axis does not point forward
+    u = np.linspace(0.03, 0.97, 33) * (cam.width - 1)
+    px = np.column_stack([u, np.full_like(u, 0.97 * (cam.height - 1))])
+    floor = _floor_from_pixels(rig_camera, px, min_depression)
+    ahead = floor[np.isfinite(floor[:, 0]), 0] - float(rig_camera.vest_point[0])
+    ahead = ahead[ahead > 0.0]
+    return float(ahead.min()) if len(ahead) else None
+
+
 def floor_patch(rig_camera: RigCamera, config: OdometryConfig | None = None) -> FloorPatch:
     """The largest floor square (side <= ``max_side_m``) in front of the camera that the image covers.
 
