@@ -172,7 +172,7 @@ def _pose_fixture():
     from tagloc.core.sticker import INNER_CORNERS, OUTER_CORNERS
     from tagloc.core.types import Detection
 
-    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0))
+    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0), legs_in_view=False)
     body = planar_T(2.0, -1.0, 0.7)
     # The sticker ~1.6 m ahead of the body origin and a little to the left, at some yaw.
     c, s = math.cos(0.7), math.sin(0.7)
@@ -313,7 +313,7 @@ def test_rolling_shutter_frame_gives_the_right_pose(turn):
     from tagloc.vision.pose import PoseConfig, solve_pose
 
     cam = default_camera()
-    rc = RigCamera("front", cam, looking_forward(1.3, 55.0), readout_s=0.030)
+    rc = RigCamera("front", cam, looking_forward(1.3, 55.0), readout_s=0.030, legs_in_view=False)
     T_wc = camera_pose_looking_at((1.0, 0.0), 1.3, 55.0, 0.0)
     smap = StickerMap(np.array([4242]), np.array([[0.62, 0.05]]), np.array([0.5]))
     T_ws = smap.T_world_sticker(4242)
@@ -391,7 +391,7 @@ def test_solve_pose_refuses_a_short_corner_velocity():
     from tagloc.core.types import Detection
     from tagloc.vision.pose import solve_pose
 
-    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0), readout_s=0.030)
+    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0), readout_s=0.030, legs_in_view=False)
     det = Detection(np.array([[600.0, 700.0], [700.0, 700.0], [700.0, 800.0], [600.0, 800.0]]))
     with pytest.raises(InputError, match="corner_velocity"):
         solve_pose(det, 0, np.eye(4), rc, corner_velocity=np.zeros((2, 2)))
@@ -629,7 +629,7 @@ def test_odometry_patch_follows_a_rolling_shutter():
     from tagloc.vision.odometry import FloorOdometry, OdometryConfig
 
     cam = default_camera()
-    rc = RigCamera("front", cam, looking_forward(1.3, 55.0), readout_s=0.030)
+    rc = RigCamera("front", cam, looking_forward(1.3, 55.0), readout_s=0.030, legs_in_view=False)
     floor = Floor(StickerMap(np.array([1]), np.array([[50.0, 50.0]]), np.array([0.0])), FloorConfig(), seed=3)
     v, dt, wA, wB = 1.4, 1 / 30, 1.5, -1.5
     bodyA = planar_T(0.0, 0.0, 0.3)
@@ -664,7 +664,7 @@ def test_flicker_bands_are_divided_out_before_the_odometry(frequency_hz, phase_s
     from tagloc.vision.odometry import FloorOdometry, OdometryConfig
 
     cam = default_camera()
-    rc = RigCamera("front", cam, looking_forward(1.3, 55.0), readout_s=0.030)
+    rc = RigCamera("front", cam, looking_forward(1.3, 55.0), readout_s=0.030, legs_in_view=False)
     floor = Floor(StickerMap(np.array([1]), np.array([[50.0, 50.0]]), np.array([0.0])), FloorConfig(), seed=3)
     v, dt, yaw = 1.4, 1 / 30, 0.3
     bodies = [planar_T(0.0, 0.0, yaw), planar_T(v * dt * math.cos(yaw), v * dt * math.sin(yaw), yaw)]
@@ -738,7 +738,7 @@ def test_odometry_step_is_not_fooled_by_the_vest_tilting(pitch_deg, roll_deg, le
     from tagloc.vision.odometry import FloorOdometry, OdometryConfig
 
     cam = default_camera()
-    rc = RigCamera("front", cam, looking_forward(1.3, 55.0))
+    rc = RigCamera("front", cam, looking_forward(1.3, 55.0), legs_in_view=False)
     floor = Floor(StickerMap(np.array([1]), np.array([[50.0, 50.0]]), np.array([0.0])), FloorConfig(), seed=4)
     c = rc.T_body_camera[:3, 3]
     tilt = np.eye(4)
@@ -778,7 +778,7 @@ def test_corner_velocity_comes_from_the_same_sticker_in_the_previous_frame():
     from tagloc.core.types import Detection, Identity, IdSource
     from tagloc.pipeline.localiser import Localiser
 
-    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0), readout_s=0.030)
+    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0), readout_s=0.030, legs_in_view=False)
     loc = Localiser(line_map(), Rig([rc]))
     quad = np.array([[600.0, 700.0], [700.0, 700.0], [700.0, 800.0], [600.0, 800.0]])
     ident = Identity(100, 1, IdSource.DECODED)
@@ -792,7 +792,7 @@ def test_corner_velocity_comes_from_the_same_sticker_in_the_previous_frame():
     assert sight(np.array([24.0, -6.0]), 1 / 30 + 0.08) is None  # 80 ms since: too old
     assert sight(np.array([600.0, 0.0]), 1 / 30 + 0.11) is None  # six sides away: not the same sticker
     # Without a rolling shutter there is nothing to straighten.
-    gs = RigCamera("front", default_camera(), looking_forward(1.3, 55.0))
+    gs = RigCamera("front", default_camera(), looking_forward(1.3, 55.0), legs_in_view=False)
     still = Localiser(line_map(), Rig([gs]))
     assert still._corner_velocity(Detection(quad), ident, gs, 0, 0.0) is None
     assert still._corner_velocity(Detection(quad + 5.0), ident, gs, 0, 1 / 30) is None

@@ -112,18 +112,23 @@ def walk_map():
 
 
 def test_odometry_leaves_the_legs_floor_out():
-    """For a camera whose rig says it sees the legs, the patch's near edge starts ``legs_reach_m``
-    ahead of the vest point and no flow point sees the zone; for one that does not, or with the zone
-    set to 0, the patch is the largest square nearest the camera, as before."""
+    """For a camera that sees the legs (its rig says so, or, not stated, it sees the floor within
+    the reach), the patch's near edge starts ``legs_reach_m`` ahead of the vest point and no flow
+    point sees the zone; for one that does not, or with the zone set to 0, the patch is the largest
+    square nearest the camera, as before."""
     from dataclasses import replace
 
     from tagloc.core.camera import default_camera
     from tagloc.core.rig import RigCamera, looking_forward
     from tagloc.vision.odometry import FloorOdometry, OdometryConfig, _floor_from_pixels, floor_patch
 
-    plain = RigCamera("front", default_camera(), looking_forward(1.3, 65.0))
+    plain = RigCamera("front", default_camera(), looking_forward(1.3, 65.0), legs_in_view=False)
     legs = replace(plain, legs_in_view=True)
     cfg = OdometryConfig()
+    # Not stated, a forward camera that sees the floor within the reach is taken to see the legs.
+    assert floor_patch(replace(plain, legs_in_view=None), cfg).x_near == floor_patch(legs, cfg).x_near
+    shallow = RigCamera("front", default_camera(), looking_forward(1.3, 40.0))
+    assert floor_patch(shallow, cfg).x_near == floor_patch(replace(shallow, legs_in_view=False), cfg).x_near
     near = floor_patch(plain, cfg).x_near
     assert near < 0.3  # at 65 degrees the image's bottom edge sees the floor 0.1 m ahead
     assert floor_patch(legs, replace(cfg, legs_reach_m=0.0)).x_near == near
@@ -140,8 +145,8 @@ def test_odometry_leaves_the_legs_floor_out():
 
 
 def test_rig_json_carries_legs_in_view(tmp_path):
-    """``legs_in_view`` is written only when true, read back, and anything but a boolean is refused
-    with the file and camera named."""
+    """``legs_in_view`` is written when stated (true or false) and read back; absent, it stays None
+    (decided from the mount); anything but a boolean is refused with the file and camera named."""
     import json
 
     from tagloc.core.errors import CalibrationError
@@ -150,10 +155,11 @@ def test_rig_json_carries_legs_in_view(tmp_path):
     rig = default_rig()
     save_rig(rig, tmp_path / "rig.json")
     assert "legs_in_view" not in (tmp_path / "rig.json").read_text()
-    assert not load_rig(tmp_path / "rig.json").cameras[0].legs_in_view
-    rig.cameras[0].legs_in_view = True
-    save_rig(rig, tmp_path / "rig.json")
-    assert load_rig(tmp_path / "rig.json").cameras[0].legs_in_view
+    assert load_rig(tmp_path / "rig.json").cameras[0].legs_in_view is None
+    for stated in (True, False):
+        rig.cameras[0].legs_in_view = stated
+        save_rig(rig, tmp_path / "rig.json")
+        assert load_rig(tmp_path / "rig.json").cameras[0].legs_in_view is stated
     doc = json.loads((tmp_path / "rig.json").read_text())
     doc["cameras"][0]["legs_in_view"] = "yes"
     (tmp_path / "rig.json").write_text(json.dumps(doc))
@@ -162,24 +168,26 @@ def test_rig_json_carries_legs_in_view(tmp_path):
 
 
 def test_rig_show_points_out_a_camera_that_sees_the_feet(tmp_path, capsys):
-    """``tagloc rig show`` tells the installer of a camera that sees the floor where the feet step
-    (65 degrees at 1.3 m: from 0.13 m ahead) to declare ``legs_in_view``, says so when declared, and
-    says nothing for a camera looking further ahead (40 degrees: from 0.77 m)."""
+    """``tagloc rig show`` says of a camera that sees the floor where the feet step (65 degrees at
+    1.3 m: from 0.13 m ahead) and states nothing that the odometry leaves that floor out, shows a
+    stated value, and says nothing for a camera looking further ahead (40 degrees: from 0.77 m)."""
     from tagloc.cli import main
     from tagloc.core.rig import default_rig, save_rig
-    from tagloc.vision.odometry import nearest_floor_ahead
+    from tagloc.vision.odometry import nearest_floor_ahead, sees_legs
 
     steep, shallow = default_rig(1.3, 65.0), default_rig(1.3, 40.0)
     assert nearest_floor_ahead(steep.cameras[0]) == pytest.approx(0.13, abs=0.01)
     assert nearest_floor_ahead(shallow.cameras[0]) == pytest.approx(0.77, abs=0.01)
+    assert sees_legs(steep.cameras[0]) and not sees_legs(shallow.cameras[0])
     said = {}
     for name, rig in (("steep", steep), ("shallow", shallow)):
         save_rig(rig, tmp_path / f"{name}.json")
         assert main(["rig", "show", str(tmp_path / f"{name}.json")]) == 0
         said[name] = capsys.readouterr().out
-    assert '"legs_in_view": true' in said["steep"] and "0.13 m ahead" in said["steep"]
+    assert "0.13 m ahead" in said["steep"] and "legs_in_view not stated" in said["steep"]
     assert "legs_in_view" not in said["shallow"]
-    steep.cameras[0].legs_in_view = True
-    save_rig(steep, tmp_path / "steep.json")
-    assert main(["rig", "show", str(tmp_path / "steep.json")]) == 0
-    assert "legs_in_view declared" in capsys.readouterr().out
+    for stated in (True, False):
+        steep.cameras[0].legs_in_view = stated
+        save_rig(steep, tmp_path / "steep.json")
+        assert main(["rig", "show", str(tmp_path / "steep.json")]) == 0
+        assert f"legs_in_view {str(stated).lower()}" in capsys.readouterr().out

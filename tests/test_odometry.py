@@ -30,7 +30,10 @@ FPS = 30.0
 
 def rig_camera(pitch_deg: float = 55.0, scale: float = 1.0) -> RigCamera:
     cam = default_camera()
-    return RigCamera("front", cam.scaled(scale) if scale != 1 else cam, looking_forward(1.3, pitch_deg))
+    # The simulator's frames here show no legs (see tests/test_legs.py for those that do).
+    return RigCamera(
+        "front", cam.scaled(scale) if scale != 1 else cam, looking_forward(1.3, pitch_deg), legs_in_view=False
+    )
 
 
 # -- patch geometry ---------------------------------------------------------------------------------
@@ -200,7 +203,7 @@ def test_fast_turn_between_frames_is_measured(turns_deg):
     from tagloc.sim.floor import Floor, FloorConfig
     from tagloc.sim.simulate import render_view
 
-    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0))
+    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0), legs_in_view=False)
     smap = grid_map(GridMapConfig(width_m=8, depth_m=8, spacing_min_m=1.6, spacing_max_m=2.0, seed=4))
     floor = Floor(smap, FloorConfig(), seed=4)
     turns = np.radians(turns_deg)
@@ -231,7 +234,7 @@ def test_a_turn_that_slowed_in_a_smeared_patch_is_not_locked_to_the_last_one():
     from tagloc.sim.floor import Floor, FloorConfig
     from tagloc.sim.simulate import render_view
 
-    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0))
+    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0), legs_in_view=False)
     smap = grid_map(GridMapConfig(width_m=8, depth_m=8, spacing_min_m=1.6, spacing_max_m=2.0, seed=4))
     floor = Floor(smap, FloorConfig(), seed=4)
     turn = math.radians(3.0)
@@ -265,7 +268,7 @@ def test_a_burst_of_dropped_frames_is_bridged(gap_turn_deg):
     from tagloc.sim.floor import Floor, FloorConfig
     from tagloc.sim.simulate import render_view
 
-    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0))
+    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0), legs_in_view=False)
     smap = grid_map(GridMapConfig(width_m=8, depth_m=8, spacing_min_m=1.6, spacing_max_m=2.0, seed=4))
     floor = Floor(smap, FloorConfig(), seed=4)
     step = 1.3 / FPS

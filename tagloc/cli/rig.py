@@ -14,7 +14,8 @@ in the world; height, pitch and roll come straight from it, the yaw from straigh
 walking. Walk at a normal pace along an aisle of mapped stickers and back, about a minute, with
 straight stretches of several metres; the command warns when the walk does not constrain a value.
 The camera's x, y on the vest (where the body point is) are kept from the prior rig.
-show: each camera's mount in a rig.json as height, pitch, roll, yaw, x, y.
+show: each camera's mount in a rig.json as height, pitch, roll, yaw, x, y, and whether the floor
+odometry takes it to see the wearer's feet (legs_in_view, or decided from the mount).
 
 examples:
   tagloc rig fit logs/calib_walk -o rig.json

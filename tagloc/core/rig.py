@@ -19,10 +19,12 @@ own z axis, by 2.3 cm; the vest point does not move when the torso tilts about i
 by a sticker fix does not move (x, y) (see :func:`vest_planar`).
 An optional ``"readout_s"`` gives a rolling-shutter camera's read-out time, first row to last
 (seconds; 0 or absent: global shutter): row ``v`` is exposed ``(v - (H - 1) / 2) * readout_s / H``
-after the frame's timestamp, which belongs to the middle row. An optional ``"legs_in_view": true``
-says the camera sees the wearer's own feet and legs (pitched steeply down from the chest, it sees
-the leading foot once per step): the floor odometry then leaves the floor they can cover out
-(:class:`tagloc.vision.odometry.OdometryConfig` ``legs_reach_m``).
+after the frame's timestamp, which belongs to the middle row. ``"legs_in_view"`` (true or false)
+says whether the camera sees the wearer's own feet and legs (pitched steeply down from the chest, it
+sees the leading foot once per step): the floor odometry then leaves out the floor they can cover
+(:class:`tagloc.vision.odometry.OdometryConfig` ``legs_reach_m``). Absent, it is decided from the
+mount: a forward camera that sees the floor within that reach of the vest point sees the feet
+(:func:`tagloc.vision.odometry.legs_zone`).
 """
 
 from __future__ import annotations
@@ -51,7 +53,8 @@ class RigCamera:
     calibration_file: str = "camera.yaml"
     readout_s: float = 0.0
     vest_height_m: float | None = None  # height of the vest point in the body frame; None: the camera's
-    legs_in_view: bool = False  # the camera sees the wearer's feet and legs (see the module docstring)
+    # The camera sees the wearer's feet and legs; None: decided from the mount (see the module docstring).
+    legs_in_view: bool | None = None
 
     def __post_init__(self) -> None:
         if self.vest_height_m is None:
@@ -183,8 +186,8 @@ def load_rig(path: str | Path, calibration: Camera | None = None) -> Rig:
         readout = entry.get("readout_s", 0.0)
         if isinstance(readout, bool) or not isinstance(readout, (int, float)) or not 0.0 <= readout < 1.0:
             raise CalibrationError(f"{where}: readout_s {readout!r} must be a number of seconds in [0, 1)")
-        legs = entry.get("legs_in_view", False)
-        if not isinstance(legs, bool):
+        legs = entry.get("legs_in_view")
+        if legs is not None and not isinstance(legs, bool):
             raise CalibrationError(f"{where}: legs_in_view must be true or false, got {legs!r}")
         rc = RigCamera(name, cam, _check_T(entry["T_body_camera"], where), calib_file, float(readout))
         rc.legs_in_view = legs
@@ -205,7 +208,7 @@ def save_rig(rig: Rig, path: str | Path, write_calibrations: bool = True) -> Non
         "cameras": [
             {"name": c.name, "calibration": c.calibration_file, "T_body_camera": np.round(c.T_body_camera, 12).tolist()}
             | ({"readout_s": c.readout_s} if c.readout_s > 0 else {})
-            | ({"legs_in_view": True} if c.legs_in_view else {})
+            | ({"legs_in_view": bool(c.legs_in_view)} if c.legs_in_view is not None else {})
             for c in rig.cameras
         ],
     }

@@ -440,7 +440,8 @@ def format_fit(fit: RigFit) -> str:
 
 
 def check_rig_file(path: str | Path) -> str:
-    """Each camera's mount in ``rig.json`` as height, pitch, roll and yaw (for ``tagloc rig show``)."""
+    """Each camera's mount in ``rig.json`` as height, pitch, roll and yaw, and whether the odometry
+    takes it to see the wearer's legs (for ``tagloc rig show``)."""
     rig = load_rig(path, calibration=default_camera())  # only the mounts are shown
     rows = [f"{'camera':<10}{'height m':>10}{'pitch':>9}{'roll':>9}{'yaw':>9}{'x m':>8}{'y m':>8}"]
     for c in rig.cameras:
@@ -457,12 +458,16 @@ def _legs_line(c: RigCamera) -> str | None:
     from tagloc.vision.odometry import OdometryConfig, nearest_floor_ahead
 
     reach = OdometryConfig().legs_reach_m
-    if c.legs_in_view:
-        return f"{c.name}: legs_in_view declared: the floor odometry leaves out the floor up to {reach:.2f} m ahead of the vest point"
+    out = f"the floor odometry leaves out the floor up to {reach:.2f} m ahead of the vest point"
+    if c.legs_in_view is not None:
+        return f"{c.name}: legs_in_view {'true' if c.legs_in_view else 'false'}" + (
+            f": {out}" if c.legs_in_view else ""
+        )
     near = nearest_floor_ahead(c)
     if near is None or near >= reach:
         return None
     return (
         f"{c.name}: sees the floor from {near:.2f} m ahead of the vest point (with the Pi camera v1's field of view),"
-        f' where the wearer\'s feet step: if they appear in its frames, declare "legs_in_view": true'
+        f' where the wearer\'s feet step, so {out} (legs_in_view not stated; "legs_in_view": false if no feet'
+        " ever appear in its frames)"
     )

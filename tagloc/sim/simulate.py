@@ -68,8 +68,10 @@ CAMERA_SEED_STEP = 7919
 # Bumped whenever the simulated physics change, so that sessions cached by ``tagloc eval`` are made
 # again (2: slow roll drift of the vest; 3: lean into turns and with acceleration, torso rotations
 # about the centre of mass, ground truth at the vest point's vertical projection; 4: the tilt drift
-# and the walking speed's variation have the body's inertia, so their rates are not white noise).
-SIM_REVISION = 4
+# and the walking speed's variation have the body's inertia, so their rates are not white noise;
+# 5: the frames are the same, but the session's rig states ``legs_in_view``, which a rig made
+# before would have decided from its mount).
+SIM_REVISION = 5
 
 
 @dataclass
@@ -105,8 +107,8 @@ class SimConfig:
             :mod:`tagloc.sim.lamps`), on top of the floor's illumination pattern; the grid's offset
             is drawn from ``seed``.
         legs: the wearer's legs and feet in the camera's view (``legs_config``,
-            :mod:`tagloc.sim.legs`), stepping with the walk's gait; the session's rig then marks
-            its forward-looking cameras ``legs_in_view``.
+            :mod:`tagloc.sim.legs`), stepping with the walk's gait; the session's rig marks its
+            forward-looking cameras ``legs_in_view`` then, and every camera not so without them.
     """
 
     seconds: float = 20.0
@@ -320,10 +322,10 @@ def simulate_session(
     config = config or SimConfig()
     smap = _resolve_map(smap)
     rig = config.build_rig()
-    if config.legs:
-        # The session's rig says what its forward cameras see (an installer sees the feet too).
-        for rc in rig.cameras:
-            rc.legs_in_view = rc.legs_in_view or float(rc.T_body_camera[0, 2]) > 0.0
+    # The session's rig says what its cameras see: the simulated vest's legs or none (an
+    # installer looks at the frames too).
+    for rc in rig.cameras:
+        rc.legs_in_view = bool(config.legs and float(rc.T_body_camera[0, 2]) > 0.0)
     n_cams = len(rig)
     walk = simulate_walk(smap, config)
     floor = Floor(smap, config.floor_config(), seed=config.seed)

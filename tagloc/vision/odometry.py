@@ -107,8 +107,9 @@ class OdometryConfig:
     - ``highpass_sigma_px``: the local mean (Gaussian of this sigma) is subtracted, so lighting
       gradients and vignetting do not correlate.
     - ``legs_reach_m``, ``legs_half_width_m``: for a rig camera that sees the wearer's own feet
-      and legs (``legs_in_view`` in ``rig.json``, :mod:`tagloc.core.rig`), the floor they can
-      cover, from the vest point up to ``legs_reach_m`` ahead of it and ``legs_half_width_m``
+      and legs (``legs_in_view`` in ``rig.json``, :mod:`tagloc.core.rig`; not stated there: a
+      forward camera that sees the floor within ``legs_reach_m`` of the vest point), the floor they
+      can cover, from the vest point up to ``legs_reach_m`` ahead of it and ``legs_half_width_m``
       either side, is left out: the patch's near edge starts beyond it, and the floor flow tracks
       no point that sees it. They move with the body, not with the floor, and
       a camera pitched 55-65 degrees sees them once per step (:mod:`tagloc.sim.legs`): a heel lands
@@ -119,7 +120,7 @@ class OdometryConfig:
       spread by the view from above). The legs of :mod:`tagloc.sim.legs` reach 0.46 / 0.58 / 0.68 m
       ahead of the vest point (99th percentile of their floor-projected outline) at 0.9 / 1.3 /
       1.6 m/s. The patch further out sees the floor coarser, so this costs where no legs are in
-      view (see the README's "The wearer's legs"): it is the rig's to declare, not a default.
+      view (see the README's "The wearer's legs"), and a rig can say ``"legs_in_view": false``.
     - ``min_camera_height``: a camera lower than this (m) sees no floor patch worth matching;
       ``min_side_m``: a floor square smaller than this (20 cm: 2.5 mm pixels at 80 px, finer
       than the camera resolves at 1-2 m) is refused.
@@ -569,11 +570,21 @@ def _floor_from_pixels(rig_camera: RigCamera, px: np.ndarray, min_depression: fl
     return out
 
 
+def sees_legs(rig_camera: RigCamera, config: OdometryConfig | None = None) -> bool:
+    """Whether the camera sees the wearer's feet and legs: as its rig entry says (``legs_in_view``),
+    else (not stated) whether it looks forward and sees the floor within ``legs_reach_m`` of the
+    vest point, where the feet step (:func:`nearest_floor_ahead`)."""
+    if rig_camera.legs_in_view is not None:
+        return bool(rig_camera.legs_in_view)
+    near = nearest_floor_ahead(rig_camera)
+    return near is not None and near < (config or OdometryConfig()).legs_reach_m
+
+
 def legs_zone(rig_camera: RigCamera, config: OdometryConfig) -> tuple[float, float]:
     """(reach, half width) m of the floor ahead of the vest point that the odometry leaves to the
-    wearer's legs: ``legs_reach_m``, ``legs_half_width_m`` for a camera whose rig entry says it sees
-    them (``legs_in_view``), else (0, 0)."""
-    if rig_camera.legs_in_view and config.legs_reach_m > 0 and config.legs_half_width_m > 0:
+    wearer's legs: ``legs_reach_m``, ``legs_half_width_m`` for a camera that sees them
+    (:func:`sees_legs`), else (0, 0)."""
+    if config.legs_reach_m > 0 and config.legs_half_width_m > 0 and sees_legs(rig_camera, config):
         return float(config.legs_reach_m), float(config.legs_half_width_m)
     return 0.0, 0.0
 
