@@ -55,8 +55,8 @@ __all__ = ["LegsConfig", "Legs", "Solid"]
 class LegsConfig:
     """An adult's lower body and gait (metres, fractions; see the module docstring).
 
-    Figures: the hips' axis 0.12 m behind a chest-mounted vest point (half a chest's depth); step width 0.08-0.12 m between the feet's centre lines; stance 60 % of the gait cycle
-    at a normal pace; a work shoe 0.28 x 0.11 x 0.10 m; knee 0.50 m and hip 0.92 m up for a
+    Figures: the hips' axis 0.12 m behind a chest-mounted vest point (half a chest's depth); step
+    width 0.08-0.12 m between the feet's centre lines; stance 60 % of the gait cycle at a normal pace; a work shoe 0.28 x 0.11 x 0.10 m; knee 0.50 m and hip 0.92 m up for a
     1.75 m stature (0.285 and 0.53 of it); toe clearance in swing 1-2 cm, the foot's middle
     lifted a few centimetres.
     """
@@ -121,12 +121,13 @@ class Legs:
         # Footfalls: the phase crossing pi + 2 pi k; even k the left foot, odd k the right.
         k0, k1 = math.ceil((phase[0] - math.pi) / (2 * math.pi)), math.floor((phase[-1] - math.pi) / (2 * math.pi))
         ks = np.arange(k0, k1 + 1)
+        rate = np.gradient(phase, t)  # rad/s: 2 pi per step
         falls = []  # (k, time, heel (2,), yaw)
         for k in ks:
             target = math.pi + 2 * math.pi * k
             tk = float(np.interp(target, phase, t))  # the phase never decreases
             x, y, yaw = self._axis_at(tk)
-            cadence = float(np.interp(tk, t, np.gradient(phase, t))) / (2 * math.pi)  # steps per second
+            cadence = float(np.interp(tk, t, rate)) / (2 * math.pi)  # steps per second
             step = float(walk.speed(tk)) / cadence if cadence > 1e-6 else 0.0
             side = 1.0 if k % 2 == 0 else -1.0
             c, s = math.cos(yaw), math.sin(yaw)
