@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import shutil
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -61,6 +62,10 @@ def demo_session(path: Path, cfg) -> Path:
     stamp = json.loads(json.dumps({"sim": SIM_REVISION, "config": cfg.to_json()}))
     meta = path / "made.json"
     if not (meta.exists() and json.loads(meta.read_text()) == stamp):
+        if path.exists():
+            # Made by another simulator or settings: made again (a session directory is never
+            # written over).
+            shutil.rmtree(path)
         simulate_session(Path(__file__).resolve().parent.parent / "maps" / "demo.csv", path, cfg, progress=False)
         meta.write_text(json.dumps(stamp))
     return path
