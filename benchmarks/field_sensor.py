@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import shutil
 from dataclasses import replace
 from pathlib import Path
 
@@ -107,6 +108,8 @@ def make(path: Path, seed: int, seconds: float, condition: str) -> Path:
     meta = path / "made.json"
     if meta.exists() and json.loads(meta.read_text()) == json.loads(json.dumps(stamp)):
         return path
+    if path.exists():
+        shutil.rmtree(path)  # made by another simulator or settings (a session is never written over)
     simulate_session(walk_map(seed), path, cfg, progress=False)
     if raise_m:
         rig_path = path / "rig.json"

@@ -28,6 +28,7 @@ import argparse
 import dataclasses
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -51,21 +52,26 @@ from tagloc.eval.mapbench import (
 )
 from tagloc.eval.mapobs import collect_walk
 from tagloc.eval.maprefine import RefineConfig, refine_map
-from tagloc.sim.simulate import SimConfig, simulate_session
+from tagloc.sim.simulate import SIM_REVISION, SimConfig, simulate_session
 from tagloc.sim.survey import SurveyConfig, surveyed_map
 
 
 def make_sessions(
     out: Path, seeds: list[int], seconds: float, floor: StickerMap | None = None, survey: SurveyConfig = SITE_SURVEY
 ) -> list[Path]:
-    """The site's walks (made once, reused when present)."""
+    """The site's walks (made once, reused while the simulator and settings are the same)."""
     floor = floor if floor is not None else without(strip_site(), MISSING)
     sessions = []
     for seed in seeds:
         path = out / f"walk{seed}"
-        if not (path / "groundtruth_frames.jsonl").exists():
-            cfg = SimConfig(seconds=seconds, lux=150, speed_mps=1.0, seed=seed, survey=survey)
+        cfg = SimConfig(seconds=seconds, lux=150, speed_mps=1.0, seed=seed, survey=survey)
+        stamp = json.loads(json.dumps({"sim": SIM_REVISION, "config": cfg.to_json()}))
+        meta = path / "made.json"
+        if not (meta.exists() and json.loads(meta.read_text()) == stamp):
+            if path.exists():
+                shutil.rmtree(path)  # made by another simulator or settings
             simulate_session(floor, path, cfg, progress=True)
+            meta.write_text(json.dumps(stamp))
         sessions.append(path)
     return sessions
 
