@@ -3,21 +3,23 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from tagloc.core.stickermap import load_map
 from tagloc.sim.legs import Legs
 from tagloc.sim.simulate import SimConfig, simulate_walk
 from tagloc.sim.walk import WalkConfig
 
+DEMO_MAP = Path(__file__).resolve().parents[1] / "maps" / "demo.csv"
+
 
 @pytest.fixture(scope="module")
 def walk():
-    from tagloc.core.stickermap import load_map
-
     cfg = SimConfig(seconds=8.0, seed=4, speed_mps=1.3, walk=WalkConfig(stop_every_s=0.0))
-    return simulate_walk(load_map("maps/demo.csv"), cfg)
+    return simulate_walk(load_map(DEMO_MAP), cfg)
 
 
 def test_feet_alternate_and_stand_still_in_stance(walk):
@@ -59,9 +61,7 @@ def test_feet_alternate_and_stand_still_in_stance(walk):
 def test_a_standing_walker_keeps_both_feet_down():
     """In a stop the phase stops: from the stop's start on (the walker has braked to it), both feet
     stay where they are, on the floor."""
-    from tagloc.core.stickermap import load_map
-
-    w = simulate_walk(load_map("maps/demo.csv"), SimConfig(seconds=20.0, seed=2))
+    w = simulate_walk(load_map(DEMO_MAP), SimConfig(seconds=20.0, seed=2))
     (t0, t1), *_ = w.stops  # 18.6-19.6 s
     legs = Legs(w)
     a, b = legs.feet(t0 + 0.05), legs.feet(t1 - 0.05)
@@ -80,7 +80,7 @@ def test_legs_are_painted_where_the_camera_looks_down_only(walk):
     from tagloc.sim.render import Renderer
 
     cam = default_camera()
-    floor = Floor(walk_map(), FloorConfig(), seed=1)
+    floor = Floor(load_map(DEMO_MAP), FloorConfig(), seed=1)
     legs = Legs(walk)
     changed_low, changed_high = 0.0, 0.0
     for pitch in (65.0, 30.0):
@@ -105,12 +105,6 @@ def test_legs_are_painted_where_the_camera_looks_down_only(walk):
     assert changed_high == 0.0
 
 
-def walk_map():
-    from tagloc.core.stickermap import load_map
-
-    return load_map("maps/demo.csv")
-
-
 def test_odometry_leaves_the_legs_floor_out():
     """For a camera that sees the legs (its rig says so, or, not stated, it sees the floor within
     the reach), the patch's near edge starts ``legs_reach_m`` ahead of the vest point and no flow
@@ -119,8 +113,8 @@ def test_odometry_leaves_the_legs_floor_out():
     from dataclasses import replace
 
     from tagloc.core.camera import default_camera
-    from tagloc.core.rig import RigCamera, looking_forward
-    from tagloc.vision.odometry import FloorOdometry, OdometryConfig, _floor_from_pixels, floor_patch
+    from tagloc.core.rig import RigCamera, floor_under_pixels, looking_forward
+    from tagloc.vision.odometry import FloorOdometry, OdometryConfig, floor_patch
 
     plain = RigCamera("front", default_camera(), looking_forward(1.3, 65.0), legs_in_view=False)
     legs = replace(plain, legs_in_view=True)
@@ -137,8 +131,8 @@ def test_odometry_leaves_the_legs_floor_out():
     kept = FloorOdometry(legs, cfg)._flow._px
     assert 0 < len(kept) < len(all_pts)
     gone = np.array([pt for pt in all_pts.tolist() if pt not in kept.tolist()])
-    f_gone = _floor_from_pixels(legs, gone, 0.0) - legs.vest_point[:2]
-    f_kept = _floor_from_pixels(legs, kept, 0.0) - legs.vest_point[:2]
+    f_gone = floor_under_pixels(legs, gone) - legs.vest_point[:2]
+    f_kept = floor_under_pixels(legs, kept) - legs.vest_point[:2]
     zone = (cfg.legs_reach_m, cfg.legs_half_width_m)
     assert np.all((f_gone[:, 0] < zone[0]) & (np.abs(f_gone[:, 1]) < zone[1]))
     assert not np.any((f_kept[:, 0] < zone[0]) & (np.abs(f_kept[:, 1]) < zone[1]))

@@ -34,6 +34,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from tagloc.core.camera import Camera, default_camera, load_calibration, save_calibration
@@ -114,6 +115,21 @@ def torso_tilt(T_world_camera: np.ndarray, T_body_camera: np.ndarray) -> tuple[f
     c, s = math.cos(yaw), math.sin(yaw)
     R = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]]) @ Rb
     return math.atan2(R[0, 2], R[2, 2]), math.atan2(-R[1, 2], R[2, 2])
+
+
+def floor_under_pixels(rig_camera: RigCamera, px: np.ndarray, min_depression: float = 0.0) -> np.ndarray:
+    """Body-frame floor points (N, 2) m under distorted pixels ``px`` (N, 2) of ``rig_camera`` at its
+    nominal mount; NaN where the ray dips less than ``min_depression`` (rad) below the horizon."""
+    cam = rig_camera.camera
+    n = cv2.undistortPoints(np.asarray(px).reshape(-1, 1, 2).astype(np.float64), cam.K, cam.dist).reshape(-1, 2)
+    rays = np.column_stack([n, np.ones(len(n))]) @ rig_camera.T_body_camera[:3, :3].T
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    c = rig_camera.T_body_camera[:3, 3]
+    out = np.full((len(n), 2), np.nan)
+    down = rays[:, 2] < -math.sin(min_depression)
+    s = -c[2] / rays[down, 2]
+    out[down] = c[:2] + s[:, None] * rays[down, :2]
+    return out
 
 
 def _shared_height(cameras: list[RigCamera], height: float | None) -> list[RigCamera]:

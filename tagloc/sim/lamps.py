@@ -42,6 +42,10 @@ import numpy as np
 
 from tagloc.core.errors import InputError
 
+#: The body's vertical axis lies this far behind a chest-mounted vest point (m): about half the
+#: torso's 0.2-0.25 m depth. The shadow's body and the legs (:mod:`tagloc.sim.legs`) stand on it.
+BODY_AXIS_BEHIND_M = 0.12
+
 
 @dataclass(frozen=True)
 class LampConfig:
@@ -65,7 +69,7 @@ class LampConfig:
     height_m: float = 9.0
     size_m: float = 0.6
     reach: float = 3.0
-    axis_behind_m: float = 0.12
+    axis_behind_m: float = BODY_AXIS_BEHIND_M
     leg_radius_m: float = 0.07
     leg_gap_m: float = 0.2
     hip_m: float = 0.9

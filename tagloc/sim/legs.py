@@ -46,6 +46,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from tagloc.sim.lamps import BODY_AXIS_BEHIND_M
 from tagloc.sim.walk import Walk
 
 __all__ = ["LegsConfig", "Legs", "Solid"]
@@ -61,7 +62,7 @@ class LegsConfig:
     lifted a few centimetres.
     """
 
-    axis_behind_m: float = 0.12
+    axis_behind_m: float = BODY_AXIS_BEHIND_M
     step_width_m: float = 0.10
     stance_fraction: float = 0.6
     heel_ahead: float = 0.5
@@ -135,6 +136,9 @@ class Legs:
             heel += side * cfg.step_width_m / 2 * np.array([-s, c])
             falls.append((int(k), tk, heel, yaw))
         self._falls = falls
+        # Each foot's footfalls and their times, for a search by time (+1 left: even k; -1 right).
+        self._by_side = {side: [f for f in falls if (f[0] % 2 == 0) == (side > 0)] for side in (1.0, -1.0)}
+        self._times = {side: np.array([f[1] for f in mine]) for side, mine in self._by_side.items()}
         x, y, yaw = self._axis_at(walk.t_start)
         c, s = math.cos(yaw), math.sin(yaw)
         # Standing before the first step: side by side under the centre of mass, heels a little back.
@@ -162,14 +166,10 @@ class Legs:
         ph = float(self.walk.phase(t))
         out = {}
         for side in (1.0, -1.0):
-            mine = [f for f in self._falls if (f[0] % 2 == 0) == (side > 0)]
-            last = None
-            nxt = None
-            for f in mine:
-                if f[1] <= t:
-                    last = f
-                elif nxt is None:
-                    nxt = f
+            mine = self._by_side[side]
+            i = int(np.searchsorted(self._times[side], t, side="right"))  # footfalls up to t
+            last = mine[i - 1] if i > 0 else None
+            nxt = mine[i] if i < len(mine) else None
             if last is None:
                 heel, yaw = self._start[side]
                 if nxt is None:

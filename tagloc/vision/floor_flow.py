@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 
 from tagloc.core.camera import pixel_scale
-from tagloc.core.rig import RigCamera, row_delay_s
+from tagloc.core.rig import RigCamera, floor_under_pixels, row_delay_s
 from tagloc.vision.detect import median_last  # np.median without its per-call overhead
 
 __all__ = ["FLAT_LEVEL", "FlowStep", "FloorFlow", "FloorFlowConfig", "flatten"]
@@ -220,12 +220,8 @@ class FloorFlow:
         self._vp = np.asarray(rig_camera.vest_point, float)
         reach, half = legs
         if reach > 0 and half > 0:
-            rays_b = rays_c @ self._R_bc.T
-            with np.errstate(divide="ignore", invalid="ignore"):
-                s = np.where(rays_b[:, 2] < 0, -self._c_nom[2] / rays_b[:, 2], np.inf)
-            fx = self._c_nom[0] + s * rays_b[:, 0] - self._vp[0]
-            fy = self._c_nom[1] + s * rays_b[:, 1] - self._vp[1]
-            keep = ~((fx < reach) & (np.abs(fy) < half))
+            f = floor_under_pixels(rig_camera, px) - self._vp[:2]  # NaN above the horizon: kept
+            keep = ~((f[:, 0] < reach) & (np.abs(f[:, 1]) < half))
             px, rays_c = px[keep], rays_c[keep]
         self._rays_c = rays_c
         self._px = px.astype(np.float32)

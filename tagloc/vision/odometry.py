@@ -59,7 +59,7 @@ import numpy as np
 
 from tagloc.core.camera import pixel_scale
 from tagloc.core.errors import CalibrationError, InputError
-from tagloc.core.rig import RigCamera, row_delay_s, torso_tilt
+from tagloc.core.rig import RigCamera, floor_under_pixels, row_delay_s, torso_tilt
 from tagloc.vision.floor_flow import FloorFlow, FloorFlowConfig, FlowStep
 from tagloc.vision.image import require_gray
 from tagloc.vision.torso_tilt import TorsoTilt
@@ -556,28 +556,15 @@ def _floor_hit(c: np.ndarray, rays: np.ndarray, rx, ry):
     return c[0] + k * ddx, c[1] + k * ddy
 
 
-def _floor_from_pixels(rig_camera: RigCamera, px: np.ndarray, min_depression: float) -> np.ndarray:
-    """Body-frame floor points (N, 2) under distorted pixels (N, 2); NaN where the ray misses the floor."""
-    cam = rig_camera.camera
-    n = cv2.undistortPoints(px.reshape(-1, 1, 2).astype(np.float64), cam.K, cam.dist).reshape(-1, 2)
-    rays = np.column_stack([n, np.ones(len(n))]) @ rig_camera.T_body_camera[:3, :3].T
-    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
-    c = rig_camera.T_body_camera[:3, 3]
-    out = np.full((len(n), 2), np.nan)
-    down = rays[:, 2] < -math.sin(min_depression)
-    s = -c[2] / rays[down, 2]
-    out[down] = c[:2] + s[:, None] * rays[down, :2]
-    return out
-
-
 def sees_legs(rig_camera: RigCamera, config: OdometryConfig | None = None) -> bool:
     """Whether the camera sees the wearer's feet and legs: as its rig entry says (``legs_in_view``),
     else (not stated) whether it looks forward and sees the floor within ``legs_reach_m`` of the
     vest point, where the feet step (:func:`nearest_floor_ahead`)."""
     if rig_camera.legs_in_view is not None:
         return bool(rig_camera.legs_in_view)
-    near = nearest_floor_ahead(rig_camera)
-    return near is not None and near < (config or OdometryConfig()).legs_reach_m
+    cfg = config or OdometryConfig()
+    near = nearest_floor_ahead(rig_camera, cfg)
+    return near is not None and near < cfg.legs_reach_m
 
 
 def legs_zone(rig_camera: RigCamera, config: OdometryConfig) -> tuple[float, float]:
@@ -589,17 +576,18 @@ def legs_zone(rig_camera: RigCamera, config: OdometryConfig) -> tuple[float, flo
     return 0.0, 0.0
 
 
-def nearest_floor_ahead(rig_camera: RigCamera, min_depression: float = math.radians(20.0)) -> float | None:
+def nearest_floor_ahead(rig_camera: RigCamera, config: OdometryConfig | None = None) -> float | None:
     """How far ahead of the vest point (m, along the body's +x) the nearest floor the camera sees
-    lies (its image's bottom row, inset by 3 %), or None for a camera that sees no floor ahead
-    (looking up, back or sideways): where the wearer's feet enter the view when it is within
-    ``OdometryConfig.legs_reach_m``."""
+    lies (its image's bottom row, inset by 3 %, rays at least ``min_depression`` down), or None for
+    a camera that sees no floor ahead (looking up, back or sideways): where the wearer's feet enter
+    the view when it is within ``OdometryConfig.legs_reach_m``."""
+    min_depression = (config or OdometryConfig()).min_depression
     cam = rig_camera.camera
     if float(rig_camera.T_body_camera[0, 2]) <= 0.0:
         return None  # the optical axis does not point forward
     u = np.linspace(0.03, 0.97, 33) * (cam.width - 1)
     px = np.column_stack([u, np.full_like(u, 0.97 * (cam.height - 1))])
-    floor = _floor_from_pixels(rig_camera, px, min_depression)
+    floor = floor_under_pixels(rig_camera, px, min_depression)
     ahead = floor[np.isfinite(floor[:, 0]), 0] - float(rig_camera.vest_point[0])
     ahead = ahead[ahead > 0.0]
     return float(ahead.min()) if len(ahead) else None
@@ -629,7 +617,7 @@ def floor_patch(rig_camera: RigCamera, config: OdometryConfig | None = None) -> 
             np.column_stack([np.full_like(k, u0), v1 - (v1 - v0) * k]),
         ]
     )
-    floor = _floor_from_pixels(rig_camera, border, cfg.min_depression)
+    floor = floor_under_pixels(rig_camera, border, cfg.min_depression)
     ok = np.all(np.isfinite(floor), axis=1)
     if ok.sum() < _MIN_FLOOR_POINTS:
         raise CalibrationError(f"camera {rig_camera.name!r}: sees too little floor for odometry")
