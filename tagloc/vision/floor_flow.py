@@ -1,4 +1,4 @@
-"""The step between two frames from sparse optical flow at the camera's own resolution.
+"""The step between two frames from sparse optical flow at the camera's own pixel scale.
 
 The floor odometry's bird's-eye patch (:mod:`tagloc.vision.odometry`) matches 12.5 mm pixels: fine
 for the step's rigid part, too coarse for the torso's tilt change between frames, which it reads
@@ -107,6 +107,19 @@ class FloorFlowConfig:
       another coarse pass, about 0.5 ms, on those frames. The residuals of the ten pairs above
       were 1.56-3.03 px flattened and 0.92-1.26 plain, so a higher threshold would keep some of
       the former (pitch changes 0.13-0.34 deg off).
+    - ``finest_scale``: Lucas-Kanade stops at the half-resolution level (the flattened one, as the
+      coarse levels) when that level's pixels are at most this many times the reference camera's
+      (the reference camera itself: 2); otherwise, as for a camera with pixels twice as large, at
+      the camera's own full resolution. The full-resolution pass on the plain frame, whose 21 px
+      windows see mostly grain and noise (see ``flatten_px``), moved the points by a few tenths of a
+      pixel and did not make the steps better: through the localiser on the eleven cached eval
+      walks (2026-11-25, replays, ending at half resolution -> before): standard s00 1.34 / 1.32
+      cm, s01 2.31 / 2.62, s02 1.27 / 1.28, s03 1.19 / 1.27, s04 1.25 / 1.32, s05 1.06 / 1.07 (pooled
+      1.46 / 1.57); field f00 2.09 / 1.94, f01 4.10 / 3.92, f02 2.15 / 2.39, f03-long 2.58 / 2.65,
+      f04-dim 2.86 / 2.74 (pooled 2.75 / 2.75); 0 wrong IDs either way. Ending on the plain
+      half-resolution level instead was worse on nine of the eleven (standard pooled 1.68). It
+      saves the full-resolution level's derivatives and a third pass: about 1 ms a frame on the
+      Speed walk (``benchmarks/replay_cost.py``). 0: always end at full resolution.
     - ``iterations``: Lucas-Kanade's per level; ``lk_eps``: its stop (pixels).
     - ``fit_iterations``: Gauss-Newton steps of the six-parameter fit from the patch's step.
     - ``huber_k``: points further than this many robust sigmas (1.4826 median absolute residual)
@@ -142,6 +155,7 @@ class FloorFlowConfig:
     flatten_px: int = 41
     flatten_retry_px: float = 1.5
     flatten_max_scale: float = 1.0
+    finest_scale: float = 2.0
     iterations: int = 10
     lk_eps: float = 0.01
     fit_iterations: int = 3
@@ -232,6 +246,8 @@ class FloorFlow:
         # ``levels``): a camera with pixels twice as large starts a level lower.
         self._levels = max(0, cfg.levels - int(round(math.log2(pixel_scale(cam)))))
         self._sin_min = math.sin(cfg.min_depression)
+        # Whether tracking ends on the half-resolution level (see ``finest_scale``).
+        self._half_only = self._levels >= 1 and 2.0 * pixel_scale(cam) <= cfg.finest_scale * (1 + 1e-6)
         # The local mean's box on the half-resolution level (the coarse levels' base), scaled like
         # the levels to the camera's pixel size; odd, so that it is centred.
         scale = pixel_scale(cam)
@@ -349,17 +365,18 @@ class FloorFlow:
         OpenCV builds both frames' pyramids afresh in every call, and its Python binding takes no
         pyramid built before (opencv/opencv#4777), so each frame's first level would be built twice,
         once as the later frame and once as the earlier. It is built once here
-        (:meth:`_half_of`), the coarse levels are tracked on it and the full resolution from there:
-        the same arithmetic as one call with ``levels`` (identical points on the Speed walk's
-        frames), 0.2 ms a frame less."""
+        (:meth:`_half_of`), the coarse levels are tracked on it and the full resolution from there
+        (unless tracking ends at half resolution, ``finest_scale``): the same arithmetic as one
+        call with ``levels`` (identical points on the Speed walk's frames), 0.2 ms a frame less."""
         cfg = self.config
         win = (cfg.window_px, cfg.window_px)
         p0 = np.ascontiguousarray(p0, np.float32).reshape(-1, 1, 2)
         start = np.ascontiguousarray(guess, np.float32).reshape(-1, 1, 2)
         if self._levels >= 1:
-            # A point lost on a coarse level is not refused there either (OpenCV refuses points on
-            # the full-resolution level only): the full-resolution pass decides its status.
-            coarse, _, _ = cv2.calcOpticalFlowPyrLK(
+            # OpenCV refuses points on its input's own level only (a point lost on the quarter level
+            # is not refused there): the half level decides the status when tracking ends there
+            # (``finest_scale``), else the full-resolution pass does.
+            coarse, status, _ = cv2.calcOpticalFlowPyrLK(
                 self._half_of(gray0, flat),
                 self._half_of(gray1, flat),
                 p0 * 0.5,
@@ -369,6 +386,9 @@ class FloorFlow:
                 criteria=self._criteria,
                 flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
             )
+            if self._half_only:
+                # The half-resolution level's status (OpenCV decides it on its input's own level).
+                return coarse * 2.0, status
             start = coarse * 2.0
         tracked, status, _ = cv2.calcOpticalFlowPyrLK(
             gray0,

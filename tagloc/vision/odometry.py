@@ -299,7 +299,7 @@ class OdometryConfig:
     step instead sent f00 to 25 cm (the two disagree). Without rolling-shutter sampling at all: f00
     2.62, f01 4.30, f02 2.73, f03-long 3.08, f04-dim 3.33.
 
-    ``flow``: refine each step at the camera's full resolution (:mod:`tagloc.vision.floor_flow`,
+    ``flow``: refine each step at the camera's own pixel scale (:mod:`tagloc.vision.floor_flow`,
     tuned by ``flow_config``): a grid of image points tracked from where the patch's step puts
     them gives the step, the tilt change and the bobbing together. The tilt change goes to the
     tilt filter in place of the patch's homography fit (with ``flow_config.tilt_sigma``), and the
