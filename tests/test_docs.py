@@ -1,0 +1,54 @@
+"""The README and the measurement history link to each other by heading anchors; a heading renamed or
+a section moved must not leave a link pointing nowhere."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+README = REPO / "README.md"
+HISTORY = REPO / "benchmarks" / "HISTORY.md"
+
+
+def github_anchor(heading: str) -> str:
+    """The anchor GitHub gives a Markdown heading: lower case, punctuation other than hyphens and
+    underscores dropped, spaces to hyphens."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+
+
+def anchors(text: str) -> set[str]:
+    """Every heading's anchor in ``text`` (fenced code blocks skipped: their ``#`` lines are comments)."""
+    out, fenced = set(), False
+    for line in text.splitlines():
+        if line.startswith("```"):
+            fenced = not fenced
+        elif not fenced and (m := re.match(r"^#+\s+(.*)$", line)):
+            out.add(github_anchor(m.group(1)))
+    return out
+
+
+def links(text: str, target: str) -> list[str]:
+    """The anchors of the links to ``target`` (a file name as written in the link, '' for the page itself)."""
+    return re.findall(r"\]\(" + re.escape(target) + r"#([^)\s]+)\)", text)
+
+
+def test_github_anchor_matches_githubs_rule():
+    assert github_anchor("Field physics: `tagloc eval --preset all --modes full -o out/eval`") == (
+        "field-physics-tagloc-eval---preset-all---modes-full--o-outeval"
+    )
+    assert github_anchor("The wearer's legs: `python benchmarks/legs.py`") == "the-wearers-legs-python-benchmarkslegspy"
+
+
+def test_every_anchor_link_between_readme_and_history_resolves():
+    readme, history = README.read_text(), HISTORY.read_text()
+    in_readme, in_history = anchors(readme), anchors(history)
+    checks = [
+        ("README.md -> README.md", links(readme, ""), in_readme),
+        ("README.md -> HISTORY.md", links(readme, "benchmarks/HISTORY.md"), in_history),
+        ("HISTORY.md -> HISTORY.md", links(history, ""), in_history),
+        ("HISTORY.md -> README.md", links(history, "../README.md"), in_readme),
+    ]
+    assert sum(len(found) for _, found, _ in checks) > 20  # the documents do link to each other
+    broken = [(where, a) for where, found, known in checks for a in found if a not in known]
+    assert not broken, broken
