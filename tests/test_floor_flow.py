@@ -180,6 +180,34 @@ def test_odometry_uses_the_flow_for_the_tilt_change(floor):
     assert errs[False] > 2 * errs[True]
 
 
+def _tracks_as_one_call(flow, g0, g1, p0, guess, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Assert that ``flow._track`` gives the points and status of one ``calcOpticalFlowPyrLK`` call
+    with the flow's levels on the frames at ``scale`` (1: full resolution; 0.5: the half frames,
+    one level fewer), scaled back; return that call's points (N, 1, 2) at full resolution and
+    which of them tracked (N,) bool."""
+    import cv2
+
+    cfg = flow.config
+    a, b = (g0, g1) if scale == 1.0 else (cv2.pyrDown(g0), cv2.pyrDown(g1))
+    want, want_status, _ = cv2.calcOpticalFlowPyrLK(
+        a,
+        b,
+        (p0 * scale).astype(np.float32),
+        (guess * scale).astype(np.float32),
+        winSize=(cfg.window_px, cfg.window_px),
+        maxLevel=cfg.levels - (0 if scale == 1.0 else 1),
+        criteria=flow._criteria,
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+    )
+    want = want / scale
+    got, status = flow._track(g0, g1, p0, guess)
+    ok = want_status.ravel() == 1
+    assert ok.sum() >= 60
+    np.testing.assert_array_equal(status.ravel(), want_status.ravel())
+    np.testing.assert_allclose(got.reshape(-1, 2)[ok], want.reshape(-1, 2)[ok], atol=1e-3)
+    return want, ok
+
+
 def test_tracking_ends_at_half_resolution_for_the_reference_camera(floor):
     """With ``finest_scale`` 2 (the default) the reference camera's points are tracked down to its
     half-resolution level only: they equal one ``calcOpticalFlowPyrLK`` call on the half frames,
@@ -206,22 +234,8 @@ def test_tracking_ends_at_half_resolution_for_the_reference_camera(floor):
     true = cv2.projectPoints((X - T1[:3, 3]) @ T1[:3, :3], np.zeros(3), np.zeros(3), cam.K, cam.dist)[0]
     p0 = p0[down]
     guess = (true + np.random.default_rng(4).uniform(-8.0, 8.0, true.shape)).astype(np.float32)
-    cfg = half.config
-    want, want_status, _ = cv2.calcOpticalFlowPyrLK(
-        cv2.pyrDown(g0),
-        cv2.pyrDown(g1),
-        p0 * 0.5,
-        guess * 0.5,
-        winSize=(cfg.window_px, cfg.window_px),
-        maxLevel=cfg.levels - 1,
-        criteria=half._criteria,
-        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-    )
-    got, status = half._track(g0, g1, p0, guess)
-    ok = want_status.ravel() == 1
-    assert ok.sum() >= 60
-    np.testing.assert_array_equal(status.ravel(), want_status.ravel())
-    np.testing.assert_allclose(got.reshape(-1, 2)[ok], 2.0 * want.reshape(-1, 2)[ok], atol=1e-3)
+    want, ok = _tracks_as_one_call(half, g0, g1, p0, guess, scale=0.5)
+    got, _ = half._track(g0, g1, p0, guess)
     got_full, status_full = full._track(g0, g1, p0, guess)
     both = ok & (status_full.ravel() == 1)
     d_half = (got - true).reshape(-1, 2)[both]
@@ -238,8 +252,6 @@ def test_tracking_on_the_kept_half_frame_equals_one_pyramid_call(floor):
     (OpenCV's Python binding takes no pyramid made before); the points must be those of one
     ``calcOpticalFlowPyrLK`` call with the same levels, from guesses up to 8 px off (the frames as
     they are: with ``flatten_px`` the coarse levels are tracked on flattened frames instead)."""
-    import cv2
-
     rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0))
     P0 = planar_T(4.0, 4.0, 0.3)
     frames = [
@@ -249,27 +261,12 @@ def test_tracking_on_the_kept_half_frame_equals_one_pyramid_call(floor):
         for k in range(3)
     ]
     flow = FloorFlow(rc, FloorFlowConfig(flatten_px=0, finest_scale=0.0))
-    cfg = flow.config
     p0 = flow._px.reshape(-1, 1, 2)
     rng = np.random.default_rng(3)
     moved = 0
     for g0, g1 in zip(frames[:-1], frames[1:]):
         guess = (p0 + rng.uniform(-8.0, 8.0, p0.shape)).astype(np.float32)
-        want, want_status, _ = cv2.calcOpticalFlowPyrLK(
-            g0,
-            g1,
-            p0,
-            guess.copy(),
-            winSize=(cfg.window_px, cfg.window_px),
-            maxLevel=cfg.levels,
-            criteria=flow._criteria,
-            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-        )
-        got, status = flow._track(g0, g1, p0, guess)
-        ok = want_status.ravel() == 1
-        assert ok.sum() >= 60
-        np.testing.assert_array_equal(status.ravel(), want_status.ravel())
-        np.testing.assert_allclose(got.reshape(-1, 2)[ok], want.reshape(-1, 2)[ok], atol=1e-3)
+        want, ok = _tracks_as_one_call(flow, g0, g1, p0, guess, scale=1.0)
         moved += int(np.sum(np.linalg.norm((want - p0).reshape(-1, 2)[ok], axis=1) > 10.0))
     assert moved > 50  # the step moved the points far enough that the coarse levels mattered
     assert len(flow._halves) == 2  # each frame's half level built once and kept for the next pair
