@@ -114,10 +114,10 @@ class FloorFlowConfig:
       windows see mostly grain and noise (see ``flatten_px``), moved the points by a few tenths of a
       pixel and did not make the steps better: through the localiser on the eleven cached eval
       walks (2026-11-25, replays, ending at half resolution -> before): standard s00 1.34 / 1.32
-      cm, s01 2.31 / 2.62, s02 1.27 / 1.28, s03 1.19 / 1.27, s04 1.25 / 1.32, s05 1.06 / 1.07 (pooled
-      1.46 / 1.57); field f00 2.09 / 1.94, f01 4.10 / 3.92, f02 2.15 / 2.39, f03-long 2.58 / 2.65,
-      f04-dim 2.86 / 2.74 (pooled 2.75 / 2.75); 0 wrong IDs either way. Ending on the plain
-      half-resolution level instead was worse on nine of the eleven (standard pooled 1.68). It
+      cm, s01 2.31 / 2.62, s02 1.27 / 1.28, s03 1.19 / 1.27, s04 1.25 / 1.32, s05 1.06 / 1.07 (the
+      eval's pooled 1.45 / 1.55); field f00 2.09 / 1.94, f01 4.10 / 3.92, f02 2.15 / 2.39, f03-long 2.58 / 2.65,
+      f04-dim 2.86 / 2.74 (pooled 2.74 / 2.74); 0 wrong IDs either way. Ending on the plain
+      half-resolution level instead was worse on ten of the eleven (standard pooled 1.70). It
       saves the full-resolution level's derivatives and a third pass: about 1 ms a frame on the
       Speed walk (``benchmarks/replay_cost.py``). 0: always end at full resolution.
     - ``iterations``: Lucas-Kanade's per level; ``lk_eps``: its stop (pixels).
