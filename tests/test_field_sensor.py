@@ -762,12 +762,15 @@ def test_odometry_step_is_not_fooled_by_the_vest_tilting(pitch_deg, roll_deg, le
         odo.anchor_tilt_angles(0.0, 0.0, 0.0)  # a sticker fix in the first frame saw it upright
         got = odo.measure(imgs[1], 1 / 30)
         errs[name] = 1000 * float(np.hypot(*(got.delta[:2] - step[:2])))
-    # Measured: none 13.5-16.8 mm; fit 4.0-7.9 mm; filtered (anchored upright in the first frame)
-    # 0.7-3.8 mm; the floor flow, which fits the tilt change at the camera's resolution (and the
-    # same filter): 0.59-0.64 mm.
+    # Measured (the patch sampled from the frame's half-resolution level, ``patch_from_half``):
+    # none 14.4-16.5 mm; fit 2.2-4.3; filtered (anchored upright in the first frame) 4.5-6.4;
+    # the floor flow, which fits the tilt change at the camera's own pixel scale (and the same
+    # filter): 0.9-2.3 mm. Sampled from the frame itself, these noise-free pairs came out sharper
+    # (filtered 0.7-3.8, flow 0.35-0.75 mm), but the rendered walks' steps did not (see
+    # ``OdometryConfig.patch_from_half``).
     assert errs["none"] > 8.0 and errs["fit"] < left * errs["none"], errs
     assert errs["filtered"] < left * errs["none"], errs
-    assert errs["flow"] < 1.0, errs
+    assert errs["flow"] < 0.2 * errs["none"] and errs["flow"] < 2.5, errs
 
 
 def test_corner_velocity_comes_from_the_same_sticker_in_the_previous_frame():

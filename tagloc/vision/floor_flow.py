@@ -402,6 +402,11 @@ class FloorFlow:
         )
         return tracked, status
 
+    def half_level(self, gray: np.ndarray) -> np.ndarray:
+        """``gray``'s half-resolution level (:func:`cv2.pyrDown`), made once per frame and kept for the
+        last two frames (the floor odometry's patch is sampled from it too)."""
+        return self._half_of(gray)
+
     def _half_of(self, gray: np.ndarray, flat: bool = False) -> np.ndarray:
         """``gray``'s half-resolution level (:func:`cv2.pyrDown`, as OpenCV's own pyramid makes it),
         or that divided by its local mean (``flat``: :func:`flatten`, see ``flatten_px``); kept for
