@@ -790,8 +790,8 @@ def test_strided_steps_match_groundtruth(stop_walk):
 def test_patch_from_the_half_level_is_the_same_floor_as_from_the_frame():
     """``patch_from_half``: the bird's-eye patch remapped from the frame's half-resolution level at
     half the samples shows the same floor as the one remapped from the frame itself (the half
-    level's pixel j is the frame's pixel 2j), shifted by under a quarter of a patch pixel; a camera with pixels twice as large
-    samples its own full resolution."""
+    level's pixel j is the frame's pixel 2j), shifted by under a quarter of a patch pixel; a
+    camera with pixels twice as large samples its own full resolution."""
     from tagloc.core.geometry import planar_T
     from tagloc.sim.floor import Floor, FloorConfig
     from tagloc.sim.simulate import render_view
