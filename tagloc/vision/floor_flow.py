@@ -253,8 +253,10 @@ class FloorFlow:
         scale = pixel_scale(cam)
         box = int(round(cfg.flatten_px / (2.0 * scale))) if cfg.flatten_px > 0 and scale <= cfg.flatten_max_scale else 0
         self._box = box + 1 - box % 2 if box > 1 else 0
-        # (frame, its half-resolution level, that flattened), for the last two frames.
-        self._halves: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        # [frame, its half-resolution level, that flattened] for the last two frames; flattened only
+        # when asked for (None before): the odometry's patch takes the plain level, also on frames
+        # whose flow step is skipped (``LocaliserConfig.skip_flow_after_fix``).
+        self._halves: list[list] = []
         # The last fit's median reprojection error (px), kept or refused; None when the last call
         # made no fit (too few points, no interval). How far a frame pair is from the rigid-floor
         # model: the odometry's step error grows with it (benchmarks/odometry_accuracy.py
@@ -411,13 +413,15 @@ class FloorFlow:
         """``gray``'s half-resolution level (:func:`cv2.pyrDown`, as OpenCV's own pyramid makes it),
         or that divided by its local mean (``flat``: :func:`flatten`, see ``flatten_px``); kept for
         the last two frames seen (by identity: frame sources hand over a new array per frame)."""
-        for g, half, flattened in self._halves:
-            if g is gray:
-                return flattened if flat else half
-        half = cv2.pyrDown(gray)
-        flattened = flatten(half, self._box) if self._box else half
-        self._halves = [*self._halves[-1:], (gray, half, flattened)]
-        return flattened if flat else half
+        entry = next((e for e in self._halves if e[0] is gray), None)
+        if entry is None:
+            entry = [gray, cv2.pyrDown(gray), None]
+            self._halves = [*self._halves[-1:], entry]
+        if not flat:
+            return entry[1]
+        if entry[2] is None:
+            entry[2] = flatten(entry[1], self._box) if self._box else entry[1]
+        return entry[2]
 
 
 #: The level a pixel as bright as its neighbourhood takes in :func:`flatten`'s output; twice it
