@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -15,7 +16,7 @@ from tagloc.sim.floor import Floor, FloorConfig
 from tagloc.sim.mapgen import GridMapConfig, grid_map
 from tagloc.sim.render import ExposureConfig
 from tagloc.sim.simulate import render_view
-from tagloc.vision.floor_flow import FloorFlow, FloorFlowConfig, flatten
+from tagloc.vision.floor_flow import FloorFlow, FloorFlowConfig, _Model, flatten
 from tagloc.vision.odometry import FloorOdometry, OdometryConfig
 
 FPS = 30.0
@@ -86,6 +87,46 @@ def test_step_tilt_change_and_rise_of_a_rendered_pair(floor):
         assert math.degrees(abs(fit.d_pitch - d_pitch)) < 0.1 * tol
         assert math.degrees(abs(fit.d_roll - d_roll)) < 0.1 * tol
         assert fit.dz == pytest.approx(rise, abs=2e-3 * tol)
+
+
+def test_fit_stops_once_converged_where_the_full_iterations_would_end(monkeypatch):
+    """The six-parameter fit stops once a Gauss-Newton step moves nothing by more than
+    ``fit_tolerance_m`` / ``fit_tolerance_rad``. Given the exact pixels of a known motion (a typical
+    step, tilt change and rise, tracked from a guess a few millimetres off), it stops after two
+    steps instead of three and lands where all ``fit_iterations`` do (tolerances 0: never early),
+    within a micrometre and a microradian of the motion."""
+    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0))
+    truth = np.array([0.043, 0.006, math.radians(1.2), math.radians(0.1), math.radians(-0.05), 0.001])
+    guess = truth[:3] + np.array([0.003, -0.002, math.radians(0.1)])
+    cam = rc.camera
+    fit_once = FloorFlow._fit
+
+    def exact_fit(self, gray0, gray1, problem, flat):
+        model = _Model(problem.X, problem.lever, self._vp, problem.M0)
+        seen = np.column_stack([model.project(truth[None], np.ones(len(problem.X)))[0], np.ones(len(problem.X))])
+        px = cv2.projectPoints(seen, np.zeros(3), np.zeros(3), cam.K, cam.dist)[0]
+        ok = np.ones((len(px), 1), np.uint8)
+        monkeypatch.setattr(self, "_track", lambda *a, **k: (px.astype(np.float32), ok))
+        return fit_once(self, gray0, gray1, problem, flat)
+
+    monkeypatch.setattr(FloorFlow, "_fit", exact_fit)
+    solves = []
+    lstsq = np.linalg.lstsq
+    monkeypatch.setattr(np.linalg, "lstsq", lambda *a, **k: solves.append(1) or lstsq(*a, **k))
+    blank = np.zeros((cam.height, cam.width), np.uint8)
+    fits = {}
+    for name, cfg in (
+        ("early", FloorFlowConfig()),
+        ("full", FloorFlowConfig(fit_tolerance_m=0.0, fit_tolerance_rad=0.0)),
+    ):
+        solves.clear()
+        fits[name] = (FloorFlow(rc, cfg).refine(blank, blank, guess, 1.0 / FPS), len(solves))
+    (early, n_early), (full, n_full) = fits["early"], fits["full"]
+    assert (n_early, n_full) == (2, FloorFlowConfig().fit_iterations)
+    for fit in (early, full):
+        got = np.array([*fit.delta, fit.d_pitch, fit.d_roll, fit.dz])
+        assert np.abs(got - truth).max() < 1e-6
+        assert fit.residual_px < 1e-3
 
 
 def test_rolling_shutter_pair_is_measured_row_by_row(floor):

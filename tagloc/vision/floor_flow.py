@@ -121,7 +121,14 @@ class FloorFlowConfig:
       saves the full-resolution level's derivatives and a third pass: about 1 ms a frame on the
       Speed walk (``benchmarks/replay_cost.py``). 0: always end at full resolution.
     - ``iterations``: Lucas-Kanade's per level; ``lk_eps``: its stop (pixels).
-    - ``fit_iterations``: Gauss-Newton steps of the six-parameter fit from the patch's step.
+    - ``fit_iterations``: Gauss-Newton steps of the six-parameter fit from the patch's step, at
+      most; ``fit_tolerance_m``, ``fit_tolerance_rad``: the fit stops early once a step moves no
+      translation (dx, dy, dz) by more than the first and no angle by more than the second. On the
+      Speed walk's first 200 frame pairs the first step moved the points' fit by 3 mm (median), the
+      second by 0.04 mm and the third by 0.0004 mm (0.08 mm at most); where the second stayed under
+      0.1 mm and 5e-5 rad (0.003 deg), 72 % of the fits, the third moved no translation by more than
+      0.011 mm and no angle by more than 8e-6 rad: a hundredth of the steps' own error (a few tenths
+      of a millimetre), for one projection of the points six ways and a least-squares solve less.
     - ``huber_k``: points further than this many robust sigmas (1.4826 median absolute residual)
       are down-weighted in proportion.
     - ``min_points``: fewer tracked points than this: no fit.
@@ -159,6 +166,8 @@ class FloorFlowConfig:
     iterations: int = 10
     lk_eps: float = 0.01
     fit_iterations: int = 3
+    fit_tolerance_m: float = 1e-4
+    fit_tolerance_rad: float = 5e-5
     huber_k: float = 2.5
     min_points: int = 12
     max_residual_px: float = 2.5
@@ -187,6 +196,9 @@ class FlowStep:
 # Forward differences of the fit's Jacobian: 0.1 mm, 0.6 mdeg (far below the noise, far above
 # float rounding at these magnitudes; the problem is nearly linear over them).
 _H = np.array([1e-4, 1e-4, 1e-5, 1e-5, 1e-5, 1e-4])
+# The fit's parameters (dx, dy, dyaw, d_pitch, d_roll, dz) by unit, for its stop (``fit_tolerance_m``).
+_TRANSLATIONS = [0, 1, 5]
+_ANGLES = [2, 3, 4]
 
 
 @dataclass(frozen=True)
@@ -341,11 +353,13 @@ class FloorFlow:
         E = np.vstack([np.zeros(6), np.diag(_H)])
         f = cam.fx
         x = pb.x0.copy()
+        last = False  # the next projection is the final one (no Jacobian)
         for i in range(cfg.fit_iterations + 1):
-            P = model.project(x[None] + E if i < cfg.fit_iterations else x[None], scale) - seen[None]
+            last = last or i == cfg.fit_iterations
+            P = model.project(x[None] if last else x[None] + E, scale) - seen[None]
             # Huber weights from the residuals at the current estimate (all 1 at the start).
             res = f * np.hypot(P[0, :, 0], P[0, :, 1])
-            if i == cfg.fit_iterations:
+            if last:
                 break
             sigma = 1.4826 * float(median_last(res)) + 1e-3
             w = np.minimum(1.0, cfg.huber_k * sigma / np.maximum(res, 1e-9)) if i else np.ones(len(res))
@@ -356,6 +370,11 @@ class FloorFlow:
             if not np.all(np.isfinite(step)):
                 return None
             x += step
+            # Not after the first step: its weights are all 1, and the Huber weights may move it.
+            last = i > 0 and bool(
+                np.abs(step[_TRANSLATIONS]).max() <= cfg.fit_tolerance_m
+                and np.abs(step[_ANGLES]).max() <= cfg.fit_tolerance_rad
+            )
         return x, float(median_last(res)), int(ok.sum())
 
     def _track(
