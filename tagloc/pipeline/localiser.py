@@ -260,18 +260,6 @@ class TrackingConfig:
         search_max_stickers: after a frame with more detections than this the whole image is
             searched without working out the regions (their margins would cover most of it, and
             predicting the mapped stickers in view costs ~0.2 ms).
-        crowded_keeps_previous: when the regions are crowded, the frames up to the next scheduled
-            whole-image search are searched around the previous frame's detections only (unless
-            those alone crowd the image, or there are none) instead of whole: a sticker being
-            tracked stays in its region, and one coming into view is found at the scheduled search,
-            at most ``search_every - 1`` frames late, as one the prediction misses. The crowding is
-            mostly the mapped stickers' boxes, widened by a loose prior: with the odometry step
-            deferred (``defer_odometry``, live), the prior at detection is looser (walk300: median
-            position sigma 44 mm against 20) and the regions were crowded on 134 of its 600 frames
-            instead of 14, each then searched whole. Keeping the previous regions there: whole-image
-            searches 334 -> 205 of 600, detection 2.90 -> 2.64 ms a frame, live's latency p99 14.7
-            -> 12.4 ms (medians of five runs each); the eval presets within 0.02 cm of before, with
-            0.3-0.6 % fewer fixes. False: search the whole image.
     """
 
     redecode_every: int = 4
@@ -286,7 +274,6 @@ class TrackingConfig:
     search_sigmas: float = 3.0
     search_max_area: float = 0.4
     search_max_stickers: int = 2
-    crowded_keeps_previous: bool = True
 
 
 @dataclass(frozen=True)
@@ -741,8 +728,7 @@ class Localiser:
         x1, y1) around the camera's previous detections and the mapped stickers the tracker predicts
         in view, or None for the whole image; with the frames since the last scheduled whole-image
         search (0: this one) and whether the regions are crowded (they covered too much of the image:
-        none are worked out again before the next scheduled whole-image search, and the frames up to
-        it are searched around their previous detections alone, ``crowded_keeps_previous``)."""
+        none are worked out again before the next scheduled whole-image search)."""
         cfg = self.config.tracking
         prev = self._searched.get(camera)
         if cfg.search_every <= 1 or not self.config.sticker_tracking or self.config.detector != "contour":
@@ -751,13 +737,11 @@ class Localiser:
             return None, 0, False
         since, crowded = prev[2] + 1, prev[3]
         prior = self.tracker.prior()
-        if len(prev[1]) > cfg.search_max_stickers or prior is None:
+        if crowded or len(prev[1]) > cfg.search_max_stickers or prior is None:
             return None, since, crowded  # (not tracking: nothing says where stickers are)
         cam = rig_cam.camera
         reach = cfg.search_rate_rad_s * (t - prev[0]) * cam.fx
         boxes = [(*(q.min(axis=0) - reach), *(q.max(axis=0) + reach)) for q in prev[1]]
-        if crowded:
-            return self._crowded_regions(boxes, cam), since, True
         mean, cov = prior
         proj = project_map(mean, self.map, self.tracker.leaned_camera(rig_cam))
         if len(proj.rows):
@@ -769,21 +753,6 @@ class Localiser:
             r = (0.75 * SIZE_M + cfg.search_sigmas * pos_sigma) * cam.fx / depth
             r = r + reach + cfg.search_sigmas * yaw_sigma * cam.fx
             boxes += [(u - ri, v - ri, u + ri, v + ri) for (u, v), ri in zip(proj.pixels, r)]
-        out = self._regions(boxes, cam)
-        if out is None:
-            return self._crowded_regions(boxes[: len(prev[1])], cam), since, True
-        return out, since, False
-
-    def _crowded_regions(self, previous: list[tuple[float, ...]], cam) -> list[tuple[int, int, int, int]] | None:
-        """The regions of a crowded plan (``crowded_keeps_previous``): the ``previous`` detections'
-        boxes, or None (the whole image) when there are none or they crowd the image themselves."""
-        if not (self.config.tracking.crowded_keeps_previous and previous):
-            return None
-        return self._regions(previous, cam)
-
-    def _regions(self, boxes: list[tuple[float, ...]], cam) -> list[tuple[int, int, int, int]] | None:
-        """``boxes`` (x0, y0, x1, y1) clipped to the image on whole pixels and merged, or None when
-        they cover more than ``search_max_area`` of the image."""
         out = []
         for x0, y0, x1, y1 in boxes:
             x0, y0 = max(0, math.floor(x0)), max(0, math.floor(y0))
@@ -791,10 +760,9 @@ class Localiser:
             if x1 > x0 and y1 > y0:
                 out.append((x0, y0, x1, y1))
         out = merge_boxes(out)
-        area = sum((x1 - x0) * (y1 - y0) for x0, y0, x1, y1 in out)
-        if area > self.config.tracking.search_max_area * cam.width * cam.height:
-            return None
-        return out
+        if sum((x1 - x0) * (y1 - y0) for x0, y0, x1, y1 in out) > cfg.search_max_area * cam.width * cam.height:
+            return None, since, True
+        return out, since, False
 
     def _track(
         self,
