@@ -351,16 +351,16 @@ class FloorFlow:
         delay1 = np.asarray(row_delay_s(p1[:, 1], cam.height, self._readout))
         scale = 1.0 + (delay1 - self._delay0[pb.down][ok]) / pb.dt
         E = np.vstack([np.zeros(6), np.diag(_H)])
-        f = cam.fx
+
+        def errors(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            """Normalised errors (k, N, 2) of parameter rows (k, 6), and the first row's in px (N,)."""
+            P = model.project(rows, scale) - seen[None]
+            return P, cam.fx * np.hypot(P[0, :, 0], P[0, :, 1])
+
         x = pb.x0.copy()
-        last = False  # the next projection is the final one (no Jacobian)
-        for i in range(cfg.fit_iterations + 1):
-            last = last or i == cfg.fit_iterations
-            P = model.project(x[None] if last else x[None] + E, scale) - seen[None]
+        for i in range(cfg.fit_iterations):
+            P, res = errors(x[None] + E)
             # Huber weights from the residuals at the current estimate (all 1 at the start).
-            res = f * np.hypot(P[0, :, 0], P[0, :, 1])
-            if last:
-                break
             sigma = 1.4826 * float(median_last(res)) + 1e-3
             w = np.minimum(1.0, cfg.huber_k * sigma / np.maximum(res, 1e-9)) if i else np.ones(len(res))
             r = P[0].ravel()
@@ -371,10 +371,13 @@ class FloorFlow:
                 return None
             x += step
             # Not after the first step: its weights are all 1, and the Huber weights may move it.
-            last = i > 0 and bool(
-                np.abs(step[_TRANSLATIONS]).max() <= cfg.fit_tolerance_m
+            if (
+                i > 0
+                and np.abs(step[_TRANSLATIONS]).max() <= cfg.fit_tolerance_m
                 and np.abs(step[_ANGLES]).max() <= cfg.fit_tolerance_rad
-            )
+            ):
+                break
+        res = errors(x[None])[1]
         return x, float(median_last(res)), int(ok.sum())
 
     def _track(
