@@ -5,6 +5,7 @@ Run (from the repository root, on sessions made by ``tagloc eval --preset all`` 
     PYTHONPATH=$PWD python benchmarks/odometry_accuracy.py SESSION [SESSION ...] [--config '{"lean_correction": false}']
     PYTHONPATH=$PWD python benchmarks/odometry_accuracy.py SESSION ... --calibrate
     PYTHONPATH=$PWD python benchmarks/odometry_accuracy.py SESSION ... --by-residual
+    PYTHONPATH=$PWD python benchmarks/odometry_accuracy.py SESSION ... --in-localiser --windows
 
 ``--reference apparent`` compares with the motion the nominal bird's-eye patch appears to make given
 the true (tilted) camera: the vest's motion plus the tilt change's apparent motion, which the
@@ -22,6 +23,14 @@ walked, and the mean CPU time per ``measure`` call (process time: robust to othe
 :class:`tagloc.vision.floor_flow.FloorFlow`), for the steps the flow measured and the patch's steps
 where its fit was refused: RMS error, RMS stated sigma, and the 3-DoF NEES against each step's
 covariance (3 if consistent).
+
+``--in-localiser`` measures the steps the localiser itself fuses (the whole pipeline runs: the
+odometry's lean and pitch then come from the tracker's prediction, as in a replay) instead of the
+odometry alone; every table then describes those steps. ``--windows`` adds the steps summed over
+windows of 15, 30 and 60 consecutive steps (the gaps between stickers that odometry bridges)
+against the sum of their stated covariances: RMS error, RMS stated sigma and the mean 3-DoF NEES
+(3 if the stated covariance holds over such a gap; below it, the tracker's covariance grows faster
+in a gap than its error does).
 
 ``--calibrate`` fits the step covariance as :class:`tagloc.vision.odometry.OdometryConfig` describes:
 the errors are carried to the patch centre (where they are independent), summed over windows of 15,
@@ -125,6 +134,97 @@ def run_session(path: Path, config: OdometryConfig, reference: str = "vest") -> 
         "odo": odo,
         "cost_s": cost / max(n, 1),
     }
+
+
+def run_session_in_localiser(path: Path, config: OdometryConfig) -> dict:
+    """As :func:`run_session`, for the steps :class:`tagloc.pipeline.localiser.Localiser` fuses into its
+    tracker (the default configuration with ``config`` as its odometry's), camera 0's."""
+    import dataclasses
+
+    from tagloc.pipeline.localiser import Localiser, LocaliserConfig
+    from tagloc.pipeline.run import iterate_results
+
+    cv2.setNumThreads(1)
+    session = SessionReader(path)
+    rc = session.rig.cameras[0]
+    T_camera_body = np.linalg.inv(rc.T_body_camera)
+    gt = {}
+    with (path / "groundtruth_frames.jsonl").open() as f:
+        for line in f:
+            rec = json.loads(line)
+            gt[rec["index"]] = vest_planar(np.array(rec["T_world_camera"]) @ T_camera_body, rc.vest_point)
+    loc = Localiser(
+        session.map,
+        session.rig,
+        dataclasses.replace(LocaliserConfig(), odometry_config=config),
+        map_path=session.map_path,
+    )
+    steps = []
+    fuse = loc.tracker.update_odometry
+
+    def recording(step, camera=None):
+        """The tracker's own update, with the step and the flow's verdict on it noted."""
+        odo = loc.floor_odometry(0)
+        steps.append((step, odo.last_flow_residual, odo.flow_steps))
+        return fuse(step, camera)
+
+    loc.tracker.update_odometry = recording
+    frame_of = {}
+    t_start = time.process_time()
+    for res in iterate_results(session, loc):
+        frame_of[round(res.timestamp, 9)] = res.index
+    cost = time.process_time() - t_start
+    true, meas, covs, residual, used, t1 = [], [], [], [], [], []
+    flow_before = 0
+    for step, res_px, flow_steps in steps:
+        i0, i1 = frame_of.get(round(step.t0, 9)), frame_of.get(round(step.t1, 9))
+        flowed, flow_before = flow_steps > flow_before, flow_steps
+        if i0 is None or i1 is None or i0 not in gt or i1 not in gt:
+            continue
+        true.append(_relative(gt[i0], gt[i1]))
+        meas.append(np.asarray(step.delta, float))
+        covs.append(np.asarray(step.cov, float))
+        residual.append(np.nan if res_px is None else res_px)
+        used.append(flowed)
+        t1.append(step.t1)
+    return {
+        "true": np.array(true).reshape(-1, 3),
+        "meas": np.array(meas).reshape(-1, 3),
+        "cov": np.array(covs).reshape(-1, 3, 3),
+        "flow_residual": np.array(residual, float),
+        "flow_used": np.array(used, bool),
+        "t": np.array(t1),
+        "odo": loc.floor_odometry(0),
+        "cost_s": cost / max(len(frame_of), 1),
+    }
+
+
+def window_table(results: list[dict]) -> str:
+    """The steps of each walk summed over windows of consecutive measured steps against the sum of
+    their stated covariances: RMS error (forward, sideways mm, turn deg), RMS stated sigma and the
+    mean 3-DoF NEES (3 if the stated covariance holds over the window)."""
+    lines = [f"{'steps':>5s} {'windows':>7s}  {'rms fwd/lat mm, yaw deg':>24s}  {'stated sigma':>20s}  {'NEES':>5s}"]
+    for w in (15, 30, 60):
+        sums, covs = [], []
+        for r in results:
+            ok = np.all(np.isfinite(r["meas"]), axis=1)
+            e = r["meas"] - r["true"]
+            e[:, 2] = wrap_angle(e[:, 2])
+            for k in range(0, len(e) - w + 1, w):
+                if ok[k : k + w].all():
+                    sums.append(e[k : k + w].sum(axis=0))
+                    covs.append(r["cov"][k : k + w].sum(axis=0))
+        if not sums:
+            continue
+        sums, covs = np.array(sums), np.array(covs)
+        nees = np.einsum("ni,ni->n", sums, np.linalg.solve(covs, sums[:, :, None])[:, :, 0])
+        rms = np.sqrt(np.mean(sums**2, axis=0))
+        s = np.sqrt(np.mean(np.diagonal(covs, axis1=1, axis2=2), axis=0))
+        lines.append(
+            f"{w:5d} {len(sums):7d}  {1e3 * rms[0]:7.1f} {1e3 * rms[1]:6.1f} {math.degrees(rms[2]):6.2f}"
+            f"   {1e3 * s[0]:6.1f} {1e3 * s[1]:6.1f} {math.degrees(s[2]):5.2f}  {np.mean(nees):5.2f}"
+        )
+    return "\n".join(lines)
 
 
 def _patch_motion(odo: FloorOdometry, delta: np.ndarray) -> np.ndarray:
@@ -241,16 +341,31 @@ def main() -> None:
         help="compare with the vest's true motion, or with the motion the nominal patch appears to make"
         " (the vest's plus the tilt's apparent motion, which the tracker's tilt offset takes)",
     )
+    ap.add_argument(
+        "--in-localiser",
+        action="store_true",
+        help="the steps the whole localiser fuses (lean and pitch from its tracker), not the odometry alone",
+    )
+    ap.add_argument(
+        "--windows", action="store_true", help="also the steps summed over 15-60-step windows against their stated sums"
+    )
     args = ap.parse_args()
     config = OdometryConfig(**json.loads(args.config))
+    if args.in_localiser and args.reference != "vest":
+        raise SystemExit("odometry_accuracy: --in-localiser compares with the vest's motion only")
     results = []
     print(HEADER)
     for path in tqdm(args.sessions, desc="sessions", unit="walk", leave=False):
-        r = run_session(path, config, args.reference)
+        if args.in_localiser:
+            r = run_session_in_localiser(path, config)
+        else:
+            r = run_session(path, config, args.reference)
         results.append(r)
         tqdm.write(summary_row(path.name, r))
     if args.by_residual:
         print(residual_table(results))
+    if args.windows:
+        print(window_table(results))
     if args.calibrate:
         for k, v in calibrate(results).items():
             current = getattr(config, k)

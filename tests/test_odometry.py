@@ -22,7 +22,7 @@ from tagloc.pipeline.run import run_session
 from tagloc.sim.mapgen import GridMapConfig, grid_map
 from tagloc.sim.simulate import SimConfig, simulate_session
 from tagloc.sim.walk import WalkConfig
-from tagloc.vision.odometry import FloorOdometry, OdometryConfig, OdometryStep, floor_patch
+from tagloc.vision.odometry import FloorOdometry, OdometryConfig, OdometryStep, floor_patch, flow_cov_scale
 from tracker.tracker import Tracker
 
 FPS = 30.0
@@ -664,13 +664,59 @@ def test_a_weak_match_is_kept_with_a_larger_covariance(monkeypatch):
         return odo, step
 
     odo, strong = steps(0.9)
-    _, weak = steps(0.27)
+    odo_weak, weak = steps(0.27)
     assert strong is not None and weak is not None
     assert np.allclose(weak.delta, strong.delta)
-    assert np.allclose(weak.cov, 4.0 * odo.covariance(weak.delta))
-    assert np.allclose(strong.cov, odo.covariance(strong.delta))
+    assert np.allclose(weak.cov, 4.0 * odo.covariance(weak.delta) * _flow_factor(odo_weak))
+    assert np.allclose(strong.cov, odo.covariance(strong.delta) * _flow_factor(odo))
     assert steps(0.27, weak_ecc=0.3)[1] is None
     assert steps(0.2)[1] is None
+
+
+def _flow_factor(odo: FloorOdometry) -> float:
+    """The factor the floor flow's residual put on ``odo``'s last step's covariance (1 without the flow)."""
+    return flow_cov_scale(odo.last_flow_residual, odo.config) if odo.flow_steps else 1.0
+
+
+def test_flow_cov_scale_follows_the_residual():
+    """The factor on a flow step's covariance: (r / ref)^power between the floor and 1, and 1 when
+    switched off or when the residual is unknown."""
+    cfg = OdometryConfig(flow_cov_ref_px=1.2, flow_cov_power=4.0, flow_cov_min_scale=0.1)
+    assert flow_cov_scale(0.9, cfg) == pytest.approx((0.9 / 1.2) ** 4)
+    assert flow_cov_scale(1.2, cfg) == 1.0 and flow_cov_scale(3.0, cfg) == 1.0
+    assert flow_cov_scale(0.3, cfg) == 0.1  # the floor: one clean fit is not taken as exact
+    assert flow_cov_scale(float("nan"), cfg) == 1.0
+    assert flow_cov_scale(0.5, OdometryConfig(flow_cov_ref_px=0.0)) == 1.0
+    grid = np.linspace(0.0, 2.0, 41)
+    assert np.all(np.diff([flow_cov_scale(r, cfg) for r in grid]) >= 0.0)
+
+
+def test_a_flow_step_is_stated_as_sure_as_its_fit():
+    """On a clean rendered pair the floor flow's fit is sub-pixel, so its step is stated with the
+    patch-fitted covariance times the residual's factor (below 1); switched off, the same step keeps
+    the patch-fitted covariance."""
+    from tagloc.core.geometry import planar_T
+    from tagloc.core.stickermap import StickerMap
+    from tagloc.sim.floor import Floor, FloorConfig
+    from tagloc.sim.simulate import render_view
+
+    rc = rig_camera(55.0)
+    floor = Floor(StickerMap(np.array([1]), np.array([[50.0, 50.0]]), np.array([0.0])), FloorConfig(), seed=4)
+    poses = [planar_T(2.0, 1.0, 0.4), planar_T(2.0, 1.0, 0.4) @ planar_T(0.04, 0.0, 0.0)]
+    imgs = [render_view(floor, rc.camera, T @ rc.T_body_camera, lux=200, seed=k).image for k, T in enumerate(poses)]
+    out = {}
+    for ref in (OdometryConfig().flow_cov_ref_px, 0.0):
+        odo = FloorOdometry(rc, OdometryConfig(flow_cov_ref_px=ref))
+        odo.measure(imgs[0], 0.0)
+        step = odo.measure(imgs[1], 1 / FPS)
+        assert step is not None and odo.flow_steps == 1
+        out[ref] = (odo, step)
+    (odo, scaled), (_, plain) = out[OdometryConfig().flow_cov_ref_px], out[0.0]
+    assert np.allclose(scaled.delta, plain.delta)
+    assert np.allclose(plain.cov, odo.covariance(plain.delta))
+    factor = flow_cov_scale(odo.last_flow_residual, odo.config)
+    assert 0.1 <= factor < 1.0
+    assert np.allclose(scaled.cov, factor * plain.cov)
 
 
 # -- striding (a step over two frames while walking straight) ---------------------------------------

@@ -170,6 +170,24 @@ class OdometryConfig:
       stated sigmas against 0.77 / 0.48 / 0.91 at 0.3-0.4, hence 0.25 and 4 (twice the sigma). On
       the standard walk s01 (56 lux), six such frames in one fast turn had been refused and the
       turn's 19 degrees left to the walking model: heading RMSE 3.1 -> 1.0 deg.
+    - ``flow_cov_ref_px``, ``flow_cov_power``, ``flow_cov_min_scale``: a step the floor flow
+      measured has its covariance (the sigmas above, fitted to the patch's steps) times
+      ``clip((r / flow_cov_ref_px) ** flow_cov_power, flow_cov_min_scale, 1)`` for the flow's
+      median reprojection error ``r`` (px). The residual is the tracking noise the fit saw (sensor
+      noise in dim light, blur, the floor's texture), and the flow's steps' error grows with it.
+      Measured on the steps the localiser fuses (``benchmarks/odometry_accuracy.py --in-localiser
+      --by-residual --windows`` on today's eval walks, 2026-11-28): per step ~1 mm under 0.75 px,
+      1-2 mm at 0.75-1 px, 2-5 mm at 1-1.5 px and 4-9 mm at 1.5-2.5 px, against ~10 mm stated;
+      summed over 15-60 steps (the gaps between stickers), the mean 3-DoF NEES against the stated
+      sums was 0.08-0.12 on s00 (median residual 0.77 px), 0.24-0.33 on s02 (0.83), 0.14-0.54 on
+      f00 (0.82), 0.33-0.81 on f04-dim (1.10) and 0.74-1.50 on f01 (1.25; 3 if honest): the
+      gap's variance grows about as r^4 (the per-step sigma as r^2). 1.33 px and the 4th power
+      put those walks' windowed NEES at about 1-2 (s00 0.9, f00 and s02 2-5 at the 15-step
+      half stride where the gait's sway peaks, f04-dim 1.1, f01 1.3): still on the safe side, and
+      a step with a poor fit (r >= 1.33 px) keeps the patch-fitted covariance. The floor 0.1 (a
+      sigma a third of the patch's) keeps one very clean step from being taken as exact. 0: the
+      sigmas above for every step, as before 2026-11-28 (see "Field physics" in the README for
+      what the scaling does through the localiser).
     - ``max_shift_frac``: shifts beyond this fraction of the patch leave too little overlap.
     - ``rotation_step``, ``max_rotation``: the grid of turn guesses tried when the match from the
       turn under way fails (a person turns at up to ~4 rad/s, 7.6 degrees between frames at
@@ -394,6 +412,9 @@ class OdometryConfig:
     min_ecc: float = 0.3
     weak_ecc: float = 0.25
     weak_ecc_cov_scale: float = 4.0
+    flow_cov_ref_px: float = 1.33
+    flow_cov_power: float = 4.0
+    flow_cov_min_scale: float = 0.1
     max_shift_frac: float = 0.3
     rotation_step: float = math.radians(3.0)
     max_rotation: float = math.radians(9.0)
@@ -488,6 +509,15 @@ def _lag_through_ramp(y0: float, u0: float, u1: float, T: float, tau: float) -> 
     linearly from ``u0`` to ``u1`` (same units as ``y0``; ``T``, ``tau`` > 0, s)."""
     k = (u1 - u0) / T
     return u1 - k * tau + (y0 - u0 + k * tau) * math.exp(-T / tau)
+
+
+def flow_cov_scale(residual_px: float, config: OdometryConfig) -> float:
+    """Factor on the covariance of a step the floor flow measured with median reprojection error
+    ``residual_px`` (see ``OdometryConfig.flow_cov_ref_px``; 1 when off or the residual unknown)."""
+    ref = config.flow_cov_ref_px
+    if not (ref > 0.0 and math.isfinite(residual_px)):
+        return 1.0
+    return min(1.0, max(config.flow_cov_min_scale, (residual_px / ref) ** config.flow_cov_power))
 
 
 def _rot2(a: float) -> np.ndarray:
@@ -1148,6 +1178,8 @@ class FloorOdometry:
         else:
             delta = level if flow is None else flow.delta
         cov = self.covariance(delta) * (1.0 if rho >= cfg.min_ecc else cfg.weak_ecc_cov_scale)
+        if flow is not None and cfg.flow_cov_ref_px > 0.0:
+            cov = cov * flow_cov_scale(flow.residual_px, cfg)
         return OdometryStep(t0, t, delta, cov, float(response))
 
     def _untilted_step(
