@@ -182,12 +182,13 @@ class OdometryConfig:
       sums was 0.08-0.12 on s00 (median residual 0.77 px), 0.24-0.33 on s02 (0.83), 0.14-0.54 on
       f00 (0.82), 0.33-0.81 on f04-dim (1.10) and 0.74-1.50 on f01 (1.25; 3 if honest): the
       gap's variance grows about as r^4 (the per-step sigma as r^2). 1.33 px and the 4th power
-      put those walks' windowed NEES at about 1-2 (s00 0.9, f00 and s02 2-5 at the 15-step
-      half stride where the gait's sway peaks, f04-dim 1.1, f01 1.3): still on the safe side, and
-      a step with a poor fit (r >= 1.33 px) keeps the patch-fitted covariance. The floor 0.1 (a
-      sigma a third of the patch's) keeps one very clean step from being taken as exact. 0: the
-      sigmas above for every step, as before 2026-11-28 (see "Field physics" in the README for
-      what the scaling does through the localiser).
+      divide those NEES by about 9 at s00's residual, 7 at s02's and f00's, 2 at f04-dim's and 1.3
+      at f01's, towards the 1-2 of a covariance still on the safe side (measured after the change
+      with the same command: see "Floor odometry" in the README); a step with a poor fit
+      (r >= 1.33 px) keeps the patch-fitted covariance. The floor 0.1 (a sigma a third of the
+      patch's) keeps one very clean step from being taken as exact. 0: the sigmas above for every
+      step, as before 2026-11-28 (see "Field physics" in the README for what the scaling does
+      through the localiser).
     - ``max_shift_frac``: shifts beyond this fraction of the patch leave too little overlap.
     - ``rotation_step``, ``max_rotation``: the grid of turn guesses tried when the match from the
       turn under way fails (a person turns at up to ~4 rad/s, 7.6 degrees between frames at
