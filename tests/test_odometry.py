@@ -636,9 +636,9 @@ def test_pitch_lean_of_braking_keeps_the_step_length():
     assert odo._pitch(5 / FPS) == 0.0
 
 
-def test_a_weak_match_is_kept_with_a_larger_covariance(monkeypatch):
-    """A match whose ECC correlation falls between ``weak_ecc`` and ``min_ecc`` (heavy blur) is kept
-    with ``weak_ecc_cov_scale`` times the covariance; below ``weak_ecc`` it is refused."""
+def _rendered_pair() -> tuple[RigCamera, list[np.ndarray]]:
+    """A 55-degree rig camera and two rendered frames of plain floor 4 cm of forward walking apart
+    (200 lux)."""
     from tagloc.core.geometry import planar_T
     from tagloc.core.stickermap import StickerMap
     from tagloc.sim.floor import Floor, FloorConfig
@@ -647,7 +647,13 @@ def test_a_weak_match_is_kept_with_a_larger_covariance(monkeypatch):
     rc = rig_camera(55.0)
     floor = Floor(StickerMap(np.array([1]), np.array([[50.0, 50.0]]), np.array([0.0])), FloorConfig(), seed=4)
     poses = [planar_T(2.0, 1.0, 0.4), planar_T(2.0, 1.0, 0.4) @ planar_T(0.04, 0.0, 0.0)]
-    imgs = [render_view(floor, rc.camera, T @ rc.T_body_camera, lux=200, seed=k).image for k, T in enumerate(poses)]
+    return rc, [render_view(floor, rc.camera, T @ rc.T_body_camera, lux=200, seed=k).image for k, T in enumerate(poses)]
+
+
+def test_a_weak_match_is_kept_with_a_larger_covariance(monkeypatch):
+    """A match whose ECC correlation falls between ``weak_ecc`` and ``min_ecc`` (heavy blur) is kept
+    with ``weak_ecc_cov_scale`` times the covariance; below ``weak_ecc`` it is refused."""
+    rc, imgs = _rendered_pair()
 
     def steps(rho: float, **cfg):
         real = cv2.findTransformECC
@@ -695,15 +701,7 @@ def test_a_flow_step_is_stated_as_sure_as_its_fit():
     """On a clean rendered pair the floor flow's fit is sub-pixel, so its step is stated with the
     patch-fitted covariance times the residual's factor (below 1); switched off, the same step keeps
     the patch-fitted covariance."""
-    from tagloc.core.geometry import planar_T
-    from tagloc.core.stickermap import StickerMap
-    from tagloc.sim.floor import Floor, FloorConfig
-    from tagloc.sim.simulate import render_view
-
-    rc = rig_camera(55.0)
-    floor = Floor(StickerMap(np.array([1]), np.array([[50.0, 50.0]]), np.array([0.0])), FloorConfig(), seed=4)
-    poses = [planar_T(2.0, 1.0, 0.4), planar_T(2.0, 1.0, 0.4) @ planar_T(0.04, 0.0, 0.0)]
-    imgs = [render_view(floor, rc.camera, T @ rc.T_body_camera, lux=200, seed=k).image for k, T in enumerate(poses)]
+    rc, imgs = _rendered_pair()
     out = {}
     for ref in (OdometryConfig().flow_cov_ref_px, 0.0):
         odo = FloorOdometry(rc, OdometryConfig(flow_cov_ref_px=ref))
