@@ -180,7 +180,7 @@ class OdometryConfig:
       1-2 mm at 0.75-1 px, 2-5 mm at 1-1.5 px and 4-9 mm at 1.5-2.5 px, against ~10 mm stated;
       summed over 15-60 steps (the gaps between stickers), the mean 3-DoF NEES against the stated
       sums was 0.08-0.12 on s00 (median residual 0.77 px), 0.24-0.33 on s02 (0.83), 0.14-0.54 on
-      f00 (0.82), 0.33-0.81 on f04-dim (1.10) and 0.74-1.50 on f01 (1.25; 3 if honest): the
+      f00 (0.82), 0.29-0.94 on f04-dim (1.10) and 0.74-1.50 on f01 (1.25; 3 if honest): the
       gap's variance grows about as r^4 (the per-step sigma as r^2). 1.33 px and the 4th power
       divide those NEES by about 9 at s00's residual, 7 at s02's and f00's, 2 at f04-dim's and 1.3
       at f01's, towards the 1-2 of a covariance still on the safe side (measured after the change
