@@ -87,6 +87,24 @@ def _apparent(odo: FloorOdometry, T_world_camera: np.ndarray) -> np.ndarray:
     return np.array([t[0], t[1], yaw])
 
 
+def _groundtruth(path: Path) -> dict[int, np.ndarray]:
+    """The simulator's true camera pose (4, 4) ``T_world_camera`` of each frame of session ``path``,
+    by frame index."""
+    gt = {}
+    with (path / "groundtruth_frames.jsonl").open() as f:
+        for line in f:
+            rec = json.loads(line)
+            gt[rec["index"]] = np.array(rec["T_world_camera"])
+    return gt
+
+
+def _errors(r: dict) -> np.ndarray:
+    """Measured less true step (N, 3) of a walk's result ``r``, the turn wrapped (NaN rows where refused)."""
+    e = r["meas"] - r["true"]
+    e[:, 2] = wrap_angle(e[:, 2])
+    return e
+
+
 def run_session(path: Path, config: OdometryConfig, reference: str = "vest") -> dict:
     """Steps of one session: true (N, 3), measured (N, 3; NaN where refused), patch-centre motion
     (N,), frame times (N,), the odometry, and the mean cost per frame (s)."""
@@ -95,11 +113,7 @@ def run_session(path: Path, config: OdometryConfig, reference: str = "vest") -> 
     rc = session.rig.cameras[0]
     odo = FloorOdometry(rc, config)
     T_camera_body = np.linalg.inv(rc.T_body_camera)
-    gt = {}
-    with (path / "groundtruth_frames.jsonl").open() as f:
-        for line in f:
-            rec = json.loads(line)
-            gt[rec["index"]] = np.array(rec["T_world_camera"])
+    gt = _groundtruth(path)
     true, meas, t1, covs, flow = [], [], [], [], []
     prev = None
     cost = 0.0
@@ -148,11 +162,7 @@ def run_session_in_localiser(path: Path, config: OdometryConfig) -> dict:
     session = SessionReader(path)
     rc = session.rig.cameras[0]
     T_camera_body = np.linalg.inv(rc.T_body_camera)
-    gt = {}
-    with (path / "groundtruth_frames.jsonl").open() as f:
-        for line in f:
-            rec = json.loads(line)
-            gt[rec["index"]] = vest_planar(np.array(rec["T_world_camera"]) @ T_camera_body, rc.vest_point)
+    gt = {i: vest_planar(T @ T_camera_body, rc.vest_point) for i, T in _groundtruth(path).items()}
     loc = Localiser(
         session.map,
         session.rig,
@@ -208,8 +218,7 @@ def window_table(results: list[dict]) -> str:
         sums, covs = [], []
         for r in results:
             ok = np.all(np.isfinite(r["meas"]), axis=1)
-            e = r["meas"] - r["true"]
-            e[:, 2] = wrap_angle(e[:, 2])
+            e = _errors(r)
             for k in range(0, len(e) - w + 1, w):
                 if ok[k : k + w].all():
                     sums.append(e[k : k + w].sum(axis=0))
@@ -237,9 +246,8 @@ def _patch_motion(odo: FloorOdometry, delta: np.ndarray) -> np.ndarray:
 def summary_row(name: str, r: dict) -> str:
     """One table row of a session's step statistics."""
     ok = np.all(np.isfinite(r["meas"]), axis=1)
-    tr, me = r["true"][ok], r["meas"][ok]
-    e = me - tr
-    e[:, 2] = wrap_angle(e[:, 2])
+    tr = r["true"][ok]
+    e = _errors(r)[ok]
     A = np.column_stack([tr[:, 2], np.ones(len(tr))])
     slope = np.linalg.lstsq(A, e[:, 2], rcond=None)[0][0]
     rms = np.sqrt(np.mean(e**2, axis=0))
@@ -259,8 +267,7 @@ def residual_table(results: list[dict]) -> str:
     (forward, sideways mm, turn deg), RMS stated sigma, and the mean and median 3-DoF NEES against
     the step's covariance (3 if consistent)."""
     keep = [np.all(np.isfinite(r["meas"]), axis=1) & np.isfinite(r["flow_residual"]) for r in results]
-    e = np.vstack([r["meas"][k] - r["true"][k] for r, k in zip(results, keep)])
-    e[:, 2] = wrap_angle(e[:, 2])
+    e = np.vstack([_errors(r)[k] for r, k in zip(results, keep)])
     cov = np.concatenate([r["cov"][k] for r, k in zip(results, keep)])
     res = np.concatenate([r["flow_residual"][k] for r, k in zip(results, keep)])
     used = np.concatenate([r["flow_used"][k] for r, k in zip(results, keep)])
@@ -299,8 +306,7 @@ def calibrate(results: list[dict]) -> dict[str, float]:
         cx, cy = odo.patch.centre
         G_inv = np.linalg.inv(np.array([[1.0, 0.0, cy], [0.0, 1.0, -cx], [0.0, 0.0, 1.0]]))
         ok = np.all(np.isfinite(r["meas"]), axis=1)
-        e = r["meas"] - r["true"]
-        e[:, 2] = (e[:, 2] + np.pi) % (2 * np.pi) - np.pi
+        e = _errors(r)
         ep = e @ G_inv.T  # patch-centre forward, sideways and turn errors
         d = _patch_motion(odo, np.where(ok[:, None], r["meas"], r["true"]))
         for w in WINDOWS:

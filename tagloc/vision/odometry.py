@@ -1179,7 +1179,7 @@ class FloorOdometry:
         else:
             delta = level if flow is None else flow.delta
         cov = self.covariance(delta) * (1.0 if rho >= cfg.min_ecc else cfg.weak_ecc_cov_scale)
-        if flow is not None and cfg.flow_cov_ref_px > 0.0:
+        if flow is not None:
             cov = cov * flow_cov_scale(flow.residual_px, cfg)
         return OdometryStep(t0, t, delta, cov, float(response))
 
