@@ -695,6 +695,9 @@ def test_flow_cov_scale_follows_the_residual():
     assert flow_cov_scale(0.5, OdometryConfig(flow_cov_ref_px=0.0)) == 1.0
     grid = np.linspace(0.0, 2.0, 41)
     assert np.all(np.diff([flow_cov_scale(r, cfg) for r in grid]) >= 0.0)
+    for bad in (dict(flow_cov_min_scale=0.0), dict(flow_cov_power=-1.0), dict(flow_cov_ref_px=float("nan"))):
+        with pytest.raises(InputError, match="flow_cov"):
+            FloorOdometry(rig_camera(55.0), OdometryConfig(**bad))
 
 
 def test_a_flow_step_is_stated_as_sure_as_its_fit():

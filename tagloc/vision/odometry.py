@@ -731,6 +731,12 @@ class FloorOdometry:
         ss = int(cfg.supersample)
         if ss < 1 or ss & (ss - 1):
             raise InputError(f"odometry supersample must be a power of 2 (1, 2, 4, ...), got {cfg.supersample}")
+        # A zero or negative factor would state a flow step exact or its covariance indefinite.
+        if not (cfg.flow_cov_ref_px >= 0.0 and cfg.flow_cov_power > 0.0 and 0.0 < cfg.flow_cov_min_scale <= 1.0):
+            raise InputError(
+                "odometry flow_cov_ref_px must be >= 0, flow_cov_power > 0 and flow_cov_min_scale in (0, 1], got "
+                f"{cfg.flow_cov_ref_px}, {cfg.flow_cov_power}, {cfg.flow_cov_min_scale}"
+            )
         # Sampled from the half-resolution level (see ``patch_from_half``): half the samples per side.
         self._from_half = cfg.patch_from_half and pixel_scale(rig_camera.camera) <= 1.0 + 1e-6
         if self._from_half:
