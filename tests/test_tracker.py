@@ -850,3 +850,37 @@ def test_configs_in_use_are_accepted():
     TrackerConfig()
     TrackerConfig(v_min=-50, v_max=50, w_max=50, lost_sigma_m=1e3)  # the wide prior of a test below
     TrackerConfig(floor_corr_s=0.0, tilt_sigma_forward=0.0, odometry_scale_sigma=0.0, odometry_scale_rw=0.0)
+
+
+def test_search_prior_leaves_out_the_frame_intervals_walking_noise(rng):
+    """Until something is fused at a new frame, the region search's prior has the covariance the
+    filter had at the frame before (the search bounds the image's motion over the interval itself),
+    with the mean predicted to the new frame; once an odometry step or a fix is fused there, it is
+    the filter's own prior."""
+    from tagloc.vision.odometry import OdometryStep
+
+    assert Tracker().search_prior() is None  # not tracking: nothing says where stickers are
+    tr = _track(rng)  # at 6.0 s, a fix just fused
+    _, cov0 = tr.prior()
+    np.testing.assert_array_equal(tr.search_prior()[1], cov0)
+    t1 = 6.0 + 1 / 30
+    tr.predict(t1)
+    (mean, cov), (prior_mean, prior_cov) = tr.search_prior(), tr.prior()
+    np.testing.assert_array_equal(mean, prior_mean)
+    np.testing.assert_allclose(cov, cov0, rtol=1e-12, atol=1e-15)
+    # The interval's walking noise (a sidestep's white sideways speed: 0.05 m^2/s over 1/30 s is
+    # (41 mm)^2) is what the prior has on top.
+    assert np.trace(prior_cov[:2, :2]) - np.trace(cov[:2, :2]) > 0.5 * TrackerConfig().lateral_psd / 30
+    # An odometry step ending here makes the filter's prior the search's again.
+    d = straight(t1) - straight(6.0)
+    c, s = math.cos(0.4), math.sin(0.4)
+    delta = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], 0.0])
+    step_cov = np.diag([0.003**2, 0.003**2, math.radians(0.1) ** 2])
+    assert tr.update_odometry(OdometryStep(6.0, t1, delta, step_cov, 0.5)).accepted
+    np.testing.assert_array_equal(tr.search_prior()[1], tr.prior()[1])
+    # So does a fix.
+    t2 = t1 + 1 / 30
+    tr.predict(t2)
+    assert np.trace(tr.prior()[1][:2, :2]) > np.trace(tr.search_prior()[1][:2, :2])
+    assert tr.update([noisy_fix(straight(t2), rng, TrackerConfig())], 1, IdSource.DECODED, t2).accepted
+    np.testing.assert_array_equal(tr.search_prior()[1], tr.prior()[1])

@@ -160,6 +160,9 @@ class Tracker:
         # The filter (mean, covariance, clones, _last_odo_t) just before the odometry step fused at
         # the filter's current time, while no fix has been fused after it (see overrule_odometry).
         self._before_step: tuple[float, Hashable, np.ndarray, np.ndarray, CloneSet, float] | None = None
+        # The vest covariance (3, 3) as it stood at the filter's previous time, while nothing has
+        # been fused at the current one (see search_prior); None otherwise.
+        self._cov_before_predict: np.ndarray | None = None
         self._odo_scale = np.sqrt(np.asarray(cfg.odometry_inflation, float))
         # The last leaned camera made, with its rig camera and roll: the candidates of each
         # detection of a frame, and the region search, ask for the same one.
@@ -229,6 +232,24 @@ class Tracker:
         if self._state is not TrackState.TRACKING:
             return None
         return vest_pose(self._ekf.x[:, 0]), vest_cov(self._ekf.P)
+
+    def search_prior(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(mean (3,), cov (3, 3)) of the vest pose for where to look for stickers in this frame; None
+        unless TRACKING.
+
+        The mean is :meth:`prior`'s, predicted to the filter's time. While nothing has been fused at
+        that time (no odometry step ended there yet: ``tagloc live`` fuses a frame's step after
+        publishing it), the covariance is the one the filter had at its previous time, without the
+        walking model's noise for the frame interval since. That noise is the model's catch-all
+        for a walker's changes of speed and heading (a sidestep's white sideways speed alone is
+        41 mm over 1/30 s); the region search bounds the image's motion over the interval
+        physically instead (``TrackingConfig.search_rate_rad_s``), so counting both gave live's
+        search a prior about twice as wide as a replay's, whose frame's step is fused first (median
+        position sigma 44 against 20 mm on the Speed walk)."""
+        if self._state is not TrackState.TRACKING:
+            return None
+        cov = self._cov_before_predict
+        return vest_pose(self._ekf.x[:, 0]), (vest_cov(self._ekf.P) if cov is None else cov)
 
     def velocity(self) -> np.ndarray | None:
         """(3,) the body's predicted motion (forward m/s, sideways m/s (0: the model has no sideways
@@ -312,6 +333,7 @@ class Tracker:
             else:
                 # The filter replaces its arrays rather than writing into them: x0, P0 stay as they were.
                 t0, x0, P0 = self._t, self._ekf.x[:, 0], self._ekf.P
+                self._cov_before_predict = vest_cov(P0)
                 jac: list[np.ndarray] = []
                 if self._guarded(lambda: jac.append(self._ekf.advance(t - t0))):
                     # The cameras of the frames just left start their next steps here; a clone older
@@ -558,6 +580,7 @@ class Tracker:
             if fresh:
                 self._clones.decorrelate(map_slot(k))
         x0, P0 = self._ekf.x[:, 0], self._ekf.P
+        self._cov_before_predict = None
         if self._guarded(lambda: self._ekf.fuse(z, C, lag, term)):
             # The odometry clones follow the fix (see tracker.clones).
             if not self._clones.carry(x0, P0, self._ekf.x[:, 0], self._ekf.P, _ANGLES, self.config.min_eig):
@@ -578,6 +601,7 @@ class Tracker:
         self._hyp = None
         self._drop_clones()
         self._ekf = self._new_filter(alt)
+        self._cov_before_predict = None
         # A fresh track: its sticker set and last-fix time start from this fix alone.
         self._track_ids = set()
         self._last_fix_t = -math.inf
@@ -612,6 +636,7 @@ class Tracker:
             return False
         self._ekf = h.ekf
         self._hyp = None
+        self._cov_before_predict = None
         self._drop_clones()
         self._track_ids = set(h.ids)
         self._accept(sticker_id, IdSource.DECODED, t)
@@ -709,6 +734,7 @@ class Tracker:
         # One step per interval: a second one would reuse the same frames.
         self._clones.drop(camera)
         self._stats["odometry_accepted"] += 1
+        self._cov_before_predict = None
         self._last_odo_t = t1
         self._gated = None
         self._before_step = before

@@ -736,7 +736,9 @@ class Localiser:
         if prev is None or prev[2] + 1 >= cfg.search_every or not 0.0 < t - prev[0] <= cfg.max_gap_s:
             return None, 0, False
         since, crowded = prev[2] + 1, prev[3]
-        prior = self.tracker.prior()
+        # The prior without the walking model's noise for the frame interval: ``reach`` bounds the
+        # image's motion over it (see Tracker.search_prior).
+        prior = self.tracker.search_prior()
         if crowded or len(prev[1]) > cfg.search_max_stickers or prior is None:
             return None, since, crowded  # (not tracking: nothing says where stickers are)
         cam = rig_cam.camera
