@@ -160,9 +160,10 @@ class Tracker:
         # The filter (mean, covariance, clones, _last_odo_t) just before the odometry step fused at
         # the filter's current time, while no fix has been fused after it (see overrule_odometry).
         self._before_step: tuple[float, Hashable, np.ndarray, np.ndarray, CloneSet, float] | None = None
-        # The vest covariance (3, 3) as it stood at the filter's previous time, while nothing has
-        # been fused at the current one (see search_prior); None otherwise.
-        self._cov_before_predict: np.ndarray | None = None
+        # The state covariance (DIM, DIM) as it stood at the filter's previous time, while nothing
+        # has been fused at the current one (see search_prior); None otherwise. The filter replaces
+        # its arrays rather than writing into them, so keeping the reference keeps the values.
+        self._P_before_predict: np.ndarray | None = None
         self._odo_scale = np.sqrt(np.asarray(cfg.odometry_inflation, float))
         # The last leaned camera made, with its rig camera and roll: the candidates of each
         # detection of a frame, and the region search, ask for the same one.
@@ -248,8 +249,8 @@ class Tracker:
         position sigma 44 against 20 mm on the Speed walk)."""
         if self._state is not TrackState.TRACKING:
             return None
-        cov = self._cov_before_predict
-        return vest_pose(self._ekf.x[:, 0]), (vest_cov(self._ekf.P) if cov is None else cov)
+        P = self._ekf.P if self._P_before_predict is None else self._P_before_predict
+        return vest_pose(self._ekf.x[:, 0]), vest_cov(P)
 
     def velocity(self) -> np.ndarray | None:
         """(3,) the body's predicted motion (forward m/s, sideways m/s (0: the model has no sideways
@@ -333,7 +334,7 @@ class Tracker:
             else:
                 # The filter replaces its arrays rather than writing into them: x0, P0 stay as they were.
                 t0, x0, P0 = self._t, self._ekf.x[:, 0], self._ekf.P
-                self._cov_before_predict = vest_cov(P0)
+                self._P_before_predict = P0
                 jac: list[np.ndarray] = []
                 if self._guarded(lambda: jac.append(self._ekf.advance(t - t0))):
                     # The cameras of the frames just left start their next steps here; a clone older
@@ -580,7 +581,7 @@ class Tracker:
             if fresh:
                 self._clones.decorrelate(map_slot(k))
         x0, P0 = self._ekf.x[:, 0], self._ekf.P
-        self._cov_before_predict = None
+        self._P_before_predict = None
         if self._guarded(lambda: self._ekf.fuse(z, C, lag, term)):
             # The odometry clones follow the fix (see tracker.clones).
             if not self._clones.carry(x0, P0, self._ekf.x[:, 0], self._ekf.P, _ANGLES, self.config.min_eig):
@@ -601,7 +602,7 @@ class Tracker:
         self._hyp = None
         self._drop_clones()
         self._ekf = self._new_filter(alt)
-        self._cov_before_predict = None
+        self._P_before_predict = None
         # A fresh track: its sticker set and last-fix time start from this fix alone.
         self._track_ids = set()
         self._last_fix_t = -math.inf
@@ -636,7 +637,7 @@ class Tracker:
             return False
         self._ekf = h.ekf
         self._hyp = None
-        self._cov_before_predict = None
+        self._P_before_predict = None
         self._drop_clones()
         self._track_ids = set(h.ids)
         self._accept(sticker_id, IdSource.DECODED, t)
@@ -734,7 +735,7 @@ class Tracker:
         # One step per interval: a second one would reuse the same frames.
         self._clones.drop(camera)
         self._stats["odometry_accepted"] += 1
-        self._cov_before_predict = None
+        self._P_before_predict = None
         self._last_odo_t = t1
         self._gated = None
         self._before_step = before
