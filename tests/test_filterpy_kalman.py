@@ -18,16 +18,33 @@ def _run(code: str) -> str:
     return out.stdout
 
 
-def test_the_tracker_does_not_import_scipy_stats():
+def test_the_tracker_does_not_import_scipy_stats_or_ndimage():
     out = _run(
         """
         import sys
         import tracker.tracker
         from tagloc.pipeline.localiser import Localiser
-        print("scipy.stats" in sys.modules, "filterpy.stats" in sys.modules)
+        print(*(m in sys.modules for m in ("scipy.stats", "filterpy.stats", "scipy.ndimage", "filterpy.discrete_bayes")))
         """
     )
-    assert out.split() == ["False", "False"]
+    assert out.split() == ["False"] * 4
+
+
+def test_filterpy_discrete_bayes_is_filterpys_when_used():
+    """Through the package's attribute (what filterpy's own ``__init__`` bound) and by a later import,
+    the histogram filter is the real one."""
+    out = _run(
+        """
+        import sys
+        import numpy as np
+        import tracker.filterpy_kalman
+        import filterpy
+        moved = filterpy.discrete_bayes.predict(np.array([0.0, 1.0, 0.0, 0.0]), 1, np.array([1.0]))
+        import filterpy.discrete_bayes as db
+        print(moved.tolist() == [0.0, 0.0, 1.0, 0.0], "scipy.ndimage" in sys.modules, db.predict is filterpy.discrete_bayes.predict)
+        """
+    )
+    assert out.split() == ["True", "True", "True"]
 
 
 def test_filterpy_likelihoods_still_come_from_filterpy_stats():

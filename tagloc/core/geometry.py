@@ -71,11 +71,17 @@ def T_to_tum(T: np.ndarray) -> tuple[float, float, float, float, float, float, f
 
 
 def T_from_tum(values: np.ndarray) -> np.ndarray:
-    """4x4 transform from (x, y, z, qx, qy, qz, qw)."""
+    """4x4 transform from (x, y, z, qx, qy, qz, qw) (7,); or (N, 4, 4) transforms from rows (N, 7)."""
     from scipy.spatial.transform import Rotation
 
     values = np.asarray(values, float)
-    return make_T(Rotation.from_quat(values[3:7]).as_matrix(), values[:3])
+    if values.ndim == 1:
+        return make_T(Rotation.from_quat(values[3:7]).as_matrix(), values[:3])
+    T = np.zeros((len(values), 4, 4))
+    T[:, :3, :3] = Rotation.from_quat(values[:, 3:7]).as_matrix().reshape(-1, 3, 3)
+    T[:, :3, 3] = values[:, :3]
+    T[:, 3, 3] = 1.0
+    return T
 
 
 def interpolate_groundtruth(

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import os
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -93,7 +94,7 @@ def write_tum(path: str | Path, stamps: np.ndarray, poses: list[np.ndarray] | np
 def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """Read a TUM file: timestamps (N,) and poses (N, 4, 4). Lines starting with # are comments."""
     path = Path(path)
-    stamps, poses = [], []
+    rows = []
     try:
         lines = path.read_text(encoding="utf-8").splitlines()
     except OSError as exc:
@@ -109,15 +110,15 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
             values = [float(p) for p in parts]
         except ValueError:
             raise SessionError(f"{path}:{n}: not a TUM line (timestamp x y z qx qy qz qw)") from None
-        if len(values) != 8 or not np.all(np.isfinite(values)):
+        if len(values) != 8 or not all(map(math.isfinite, values)):
             raise SessionError(f"{path}:{n}: want 8 finite numbers, got {len(values)}")
-        if abs(float(np.linalg.norm(values[4:])) - 1.0) > 0.01:
+        if abs(math.hypot(*values[4:]) - 1.0) > 0.01:
             raise SessionError(f"{path}:{n}: quaternion qx qy qz qw is not of unit length")
         if max(abs(v) for v in values[1:4]) > 1e6:
             raise SessionError(f"{path}:{n}: position beyond 1000 km")
-        stamps.append(values[0])
-        poses.append(T_from_tum(values[1:]))
-    return np.array(stamps), np.array(poses).reshape(-1, 4, 4)
+        rows.append(values)
+    # All rotations in one call: one at a time, a 20 s walk's ground truth took 0.1 s of start-up.
+    return (np.array([r[0] for r in rows]), T_from_tum(np.array(rows)[:, 1:]) if rows else np.zeros((0, 4, 4)))
 
 
 def read_image(path: Path) -> tuple[np.ndarray | None, str | None]:
