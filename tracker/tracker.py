@@ -245,8 +245,8 @@ class Tracker:
         for a walker's changes of speed and heading (a sidestep's white sideways speed alone is
         41 mm over 1/30 s); the region search bounds the image's motion over the interval
         physically instead (``TrackingConfig.search_rate_rad_s``), so counting both gave live's
-        search a prior about twice as wide as a replay's, whose frame's step is fused first (median
-        position sigma 44 against 20 mm on the Speed walk)."""
+        search a prior three times as wide as a replay's, whose frame's step is fused first (median
+        position sigma 43 against 14 mm on the Speed walk; 13 mm with this one)."""
         if self._state is not TrackState.TRACKING:
             return None
         P = self._ekf.P if self._P_before_predict is None else self._P_before_predict
