@@ -118,12 +118,16 @@ def main() -> None:
     with ProcessPoolExecutor(max(1, args.jobs)) as ex:
         rows = list(ex.map(run_walk, jobs))
     print(
-        f"{'variant':24s} {'walk':10s} {'RMSE cm':>8s} {'hdg deg':>8s} {'NEES':>6s} {'<10 cm':>7s} {'fixes':>6s} {'wrong':>6s}"
+        f"{'variant':24s} {'walk':10s} {'RMSE cm':>8s} {'hdg deg':>8s} {'NEES':>6s} {'verdict (95 % bounds)':>28s}"
+        f" {'<10 cm':>7s} {'fixes':>6s} {'wrong':>6s}"
     )
     for r in rows:
+        # The walk's own verdict, by its effective-sample bounds (as tagloc eval judges each walk).
+        t = nees_test(np.array(r["nees_blocks"], float).reshape(-1, 3))
+        verdict = f"{t.verdict} [{t.bounds_effective[0]:.2f}, {t.bounds_effective[1]:.2f}]"
         print(
             f"{r['variant']:24s} {r['walk']:10s} {r['rmse_cm']:8.2f} {r['heading_deg']:8.2f} {r['nees']:6.2f}"
-            f" {100 * r['within_10cm_all']:6.1f}% {r['fixes']:6d} {r['wrong_ids']:6d}"
+            f" {verdict:>28s} {100 * r['within_10cm_all']:6.1f}% {r['fixes']:6d} {r['wrong_ids']:6d}"
         )
     summary = {}
     print(

@@ -131,8 +131,14 @@ def test_covariance_is_honest(estimated):
         body, sticker = scene(rng, rc, rng.uniform(1.3, 2.0), rng.uniform(-0.4, 0.4))
         r = int(rng.integers(4))
         det = corners(rc, body, sticker, r, sigma, rng)
+        # Independent corner noise only: no error shared by the corners (outline_scale_px 0).
         sol = solve_pose(
-            det, r, sticker, rc, corner_sigma_px=None if estimated else sigma, config=PoseConfig(min_sigma_px=0.05)
+            det,
+            r,
+            sticker,
+            rc,
+            corner_sigma_px=None if estimated else sigma,
+            config=PoseConfig(min_sigma_px=0.05, outline_scale_px=0.0),
         )
         _, d = pose_error(sol.poses[0], body, rc)
         nees.append(d @ np.linalg.solve(sol.poses[0].cov, d))
@@ -145,6 +151,36 @@ def test_covariance_is_honest(estimated):
         assert lo < mean < hi, (mean, lo, hi)
     # and not a constant: closer stickers give tighter covariances
     assert np.isfinite(mean)
+
+
+@pytest.mark.parametrize("stated", [True, False])
+def test_outline_scale_error_is_in_the_covariance(stated):
+    """Corners all moved along their directions from the sticker's centre by one shared error (the
+    outline seen larger or smaller) fit with no residual, as a change of range: the covariance
+    carries it through ``outline_scale_px`` (NEES ~3), and without that term the far fixes it
+    moves are overconfident."""
+    rng = np.random.default_rng(11)
+    rc = rig_camera()
+    shared, noise = 0.25, 0.1
+    config = PoseConfig(min_sigma_px=0.05, outline_scale_px=shared if stated else 0.0)
+    nees = []
+    n = 300
+    for _ in range(n):
+        body, sticker = scene(rng, rc, rng.uniform(2.0, 3.5), rng.uniform(-0.4, 0.4))
+        r = int(rng.integers(4))
+        det = corners(rc, body, sticker, r, noise, rng)
+        pts = np.vstack([det.outer, det.inner])
+        u = pts - pts.mean(axis=0)
+        pts = pts + rng.normal(0.0, shared) * u / np.linalg.norm(u, axis=1, keepdims=True)
+        sol = solve_pose(Detection(pts[:4], pts[4:]), r, sticker, rc, corner_sigma_px=noise, config=config)
+        _, d = pose_error(sol.poses[0], body, rc)
+        nees.append(d @ np.linalg.solve(sol.poses[0].cov, d))
+    mean = float(np.mean(nees))
+    lo, hi = chi2.ppf([0.005, 0.995], 3 * n) / n
+    if stated:
+        assert lo < mean < hi, (mean, lo, hi)
+    else:
+        assert mean > 2 * hi, mean
 
 
 def test_covariance_grows_with_distance():
@@ -200,9 +236,11 @@ def test_detection_states_its_own_corner_noise():
     body, sticker = scene(rng, rc, distance=1.5)
     det = corners(rc, body, sticker, 0, 0.0, rng)
     four = Detection(outer=det.outer, inner=None)
-    base = solve_pose(four, 0, sticker, rc).poses[0].cov
+    # The corner noise alone (the outline's shared error does not scale with it).
+    plain = PoseConfig(outline_scale_px=0.0)
+    base = solve_pose(four, 0, sticker, rc, config=plain).poses[0].cov
     coarse = Detection(outer=det.outer, inner=None, corner_sigma_px=2.0)
-    sol = solve_pose(coarse, 0, sticker, rc)
+    sol = solve_pose(coarse, 0, sticker, rc, config=plain)
     assert sol.sigma_px == 2.0
     assert np.allclose(sol.poses[0].cov, base * (2.0 / PoseConfig().sigma_4pt_px) ** 2, rtol=1e-6)
     assert solve_pose(coarse, 0, sticker, rc, corner_sigma_px=0.5).sigma_px == 0.5

@@ -3,7 +3,9 @@
 IPPE_SQUARE on the four outer corners gives the two planar-pose candidates; each is refined by
 Levenberg-Marquardt on every corner the detector found (outer + inner black-frame corners). The
 covariance of the 6-DoF pose is sigma^2 (J^T J)^-1 with J the reprojection Jacobian from
-``cv2.projectPoints``, propagated to the body's planar (x, y, yaw) by a central-difference Jacobian.
+``cv2.projectPoints``, plus the pose's response to an error all corners share (the outline seen
+larger or smaller, ``PoseConfig.outline_scale_px``), propagated to the body's planar (x, y, yaw) by
+a central-difference Jacobian.
 The body's planar pose is the vest point projected vertically onto the floor and the horizontal
 heading of the body's +x axis (:func:`tagloc.core.rig.vest_planar`), not the body origin carried
 through the tilted torso: every degree of torso tilt would swing that origin, 1.3 m down the
@@ -69,6 +71,20 @@ class PoseConfig:
         ambiguity_chi2: keep the second IPPE solution when its sum of squared residuals exceeds
             the best one's by less than this many sigma^2.
         max_reprojection_px: solutions with a larger RMS reprojection error are dropped.
+        outline_scale_px: standard deviation (px) of an error every corner of one sticker shares:
+            each moved along its direction from the corners' centre, so that the outline is seen
+            a little larger or smaller. Blur, gamma-encoded shading, JPEG and the lens model's
+            residual move the located edges of all four sides alike, and a focal length known to
+            a few tenths of a percent scales the outline the same way; corners moved so fit with
+            no residual (the camera a little nearer or further), so the corner noise estimated
+            from the residual cannot contain it. Its effect on range grows with the distance
+            squared (a quarter of a pixel on each corner of a 33 px sticker 3 m away is 1 % of the range).
+            Against the simulator's true corners the shared outward error was 0.03 px on
+            stickers 75-100 px across and 0.23 px under 40 px; 0.25 px covers the smallest for
+            every size, since which cause dominates on a given camera is not known (on large
+            stickers the term is small anyway). Without it, fixes 2-3 m away were 1.2-3.6 cm
+            short of the truth against a stated 1-2 cm and a walk with the camera pitched 45 deg
+            ended overconfident (see the README's Field physics). 0: no such term.
         map_sigma_m, map_sigma_yaw: survey standard deviation of a sticker's centre (per axis, m)
             and yaw (rad) where the map does not state one. Stickers are stuck down by hand and
             measured with tape or a laser: 1.5 cm and 1.5 degrees, the middle of the 1-2 cm and 1-2
@@ -86,6 +102,7 @@ class PoseConfig:
     sigma_4pt_px: float = 0.5
     ambiguity_chi2: float = 16.0
     max_reprojection_px: float = 5.0
+    outline_scale_px: float = 0.25
     map_sigma_m: float = 0.015
     map_sigma_yaw: float = math.radians(1.5)
     at_sticker_rows: bool = True
@@ -198,6 +215,21 @@ def rolling_shutter_shift(
     v, w = camera_twist(rig_camera, body_twist)
     X_seen = X - d[:, None] * (v + np.cross(w, X))
     return cam.project(X) - cam.project(X_seen)
+
+
+def _pose_cov(J: np.ndarray, img: np.ndarray, sigma_px: float, outline_px: float) -> np.ndarray:
+    """(6, 6) covariance of the pose (rvec, tvec) fitted to corners ``img`` (N, 2) px with
+    reprojection Jacobian ``J`` (2N, 6): independent corner noise ``sigma_px``, plus an error of
+    ``outline_px`` every corner shares, each moved along its direction from the corners' centre
+    (the outline seen larger or smaller, see ``PoseConfig.outline_scale_px``)."""
+    JtJ_inv = np.linalg.pinv(J.T @ J)
+    cov = sigma_px**2 * JtJ_inv
+    if outline_px > 0:
+        u = img - img.mean(axis=0)
+        u = u / np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
+        d = JtJ_inv @ (J.T @ u.ravel())  # the least-squares pose's response to that displacement
+        cov = cov + outline_px**2 * np.outer(d, d)
+    return cov
 
 
 def _ippe_solutions(outer: np.ndarray, img: np.ndarray, obj: np.ndarray, use8: bool, K: np.ndarray, dist: np.ndarray):
@@ -316,7 +348,7 @@ def solve_pose(
         rms = float(np.sqrt(ssr / n))
         if rms > config.max_reprojection_px:
             continue
-        cov6 = sigma**2 * np.linalg.pinv(J.T @ J)
+        cov6 = _pose_cov(J, img, sigma, config.outline_scale_px)
         Jb = _body_jacobian(rvec, tvec, T_world_sticker, T_camera_body, rig_camera.vest_point)
         cov = Jb @ cov6 @ Jb.T
         cov = (cov + cov.T) / 2
