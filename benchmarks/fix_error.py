@@ -13,9 +13,9 @@ state), so on walks whose map has survey error the error against the truth is mo
 such walks), which leaves the fixes' own error.
 
 Each fix is compared with the truth at its own time: on a rolling-shutter camera a sticker is
-solved for the time its rows were read (:attr:`tagloc.vision.pose.PoseSolution.row_time_s`, up to
-15 ms from the frame's time at a 30 ms read-out: 2 cm of walking), so the truth is interpolated to
-it. A second table bins the fixes by the vest point's distance from the sticker, with the error
+solved for the time its rows were read (the fix's ``row_time_s``, from
+:attr:`tagloc.vision.pose.PoseSolution.row_time_s`: up to 15 ms from the frame's time at a 30 ms
+read-out, 2 cm of walking), so the truth is interpolated to it. A second table bins the fixes by the vest point's distance from the sticker, with the error
 split along that line (radial: its mean says whether the fixes read the sticker too near or too
 far) and across it, each against the stated sigma in that direction.
 
@@ -33,7 +33,6 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from tagloc.core.rig import row_delay_s
 from tagloc.core.stickermap import load_map
 from tagloc.io.session import SessionReader
 from tagloc.pipeline.localiser import Localiser, LocaliserConfig, _shortest_side
@@ -41,7 +40,6 @@ from tagloc.pipeline.run import iterate_results
 from tagloc.vision.decode import blur_extent
 from tagloc.vision.decode.grid import RASTER_PX
 from tagloc.vision.image import as_gray
-from tagloc.vision.pose import PoseConfig
 
 _MAX_TRUTH_GAP_S = 0.02  # a fix is compared with a ground-truth pose at most this far in time
 _BLUR_BINS_PX = ((0, 1), (1, 2), (2, 4), (4, 8), (8, np.inf))
@@ -71,7 +69,7 @@ def fixes(session: Path, true_map: bool) -> list[tuple]:
             if fix is None or fix.accepted is not True or len(fix.poses) != 1:
                 continue
             rig_camera = reader.rig[res.frame.camera]
-            t_fix = res.timestamp + _row_time(obs, rig_camera)
+            t_fix = res.timestamp + fix.row_time_s
             truth = np.array([np.interp(t_fix, gt_t, gt_xy[:, k]) for k in (0, 1)])
             body = fix.poses[0].body[:2]
             d = body - truth
@@ -98,15 +96,6 @@ def fixes(session: Path, true_map: bool) -> list[tuple]:
                 )
             )
     return out
-
-
-def _row_time(obs, rig_camera) -> float:
-    """When the fix holds, s after its frame's time: its corners' mean row's (a rolling shutter; as
-    :func:`tagloc.vision.pose.solve_pose` solves it), else 0."""
-    if rig_camera.readout_s <= 0 or not PoseConfig().at_sticker_rows:
-        return 0.0
-    rows = np.asarray(obs.detection.points, float)[:, 1]
-    return float(np.mean(row_delay_s(rows, rig_camera.camera.height, rig_camera.readout_s)))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -222,3 +222,27 @@ def test_shape_match_finds_the_corner_shift_and_the_motion():
         bent = prev.copy()
         bent[0] += (3.0, 4.0)
         assert _shape_match(quad, bent)[2] == pytest.approx(5.0 * 3 / 4, rel=1e-6)
+
+
+def test_a_rolling_shutter_fix_says_when_it_holds(tmp_path):
+    """On a rolling-shutter camera a sticker is solved for the time its rows were read, and the fix
+    in the frame's result says so (``Fix.row_time_s``: its corners' mean row's delay), as the
+    tracker fuses it; fix_error.py compares each fix with the truth at that time."""
+    from tagloc.core.rig import row_delay_s
+
+    path = tmp_path / "rs"
+    smap = grid_map(GridMapConfig(width_m=6, depth_m=6, spacing_min_m=1.2, spacing_max_m=1.6, seed=5))
+    simulate_session(smap, path, SimConfig(seconds=1.5, lux=200, seed=3, rolling_shutter=True), progress=False)
+    session = SessionReader(path)
+    rc = session.rig.cameras[0]
+    assert rc.readout_s > 0
+    loc = Localiser(session.map, session.rig, LocaliserConfig(), map_path=session.map_path)
+    row_times = []
+    for frame in session.frames():
+        for obs in loc.process(frame).observations:
+            if obs.fix is not None and obs.fix.poses:
+                rows = np.asarray(obs.detection.points, float)[:, 1]
+                want = float(np.mean(row_delay_s(rows, rc.camera.height, rc.readout_s)))
+                assert obs.fix.row_time_s == pytest.approx(want, abs=1e-12)
+                row_times.append(obs.fix.row_time_s)
+    assert row_times and max(abs(t) for t in row_times) > 1e-3  # a sticker away from the middle row

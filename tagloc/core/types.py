@@ -122,6 +122,9 @@ class Fix:
     ambiguous: bool = False
     accepted: bool | None = None  # did the tracker take this fix (None: not offered)
     gate_reason: str | None = None  # the tracker's reason, "fused", "initialised" or why it refused
+    # When the poses hold, s after the frame's time (a rolling shutter's sticker rows; see
+    # tagloc.vision.pose.PoseSolution.row_time_s).
+    row_time_s: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -111,13 +111,13 @@ class BaselineLocaliser:
             if identity is not None:
                 with timer("pose"):
                     sol = solve_pose(det, identity.rotation, self.map.T_world_sticker(identity.sticker_id), rig_cam)
-                fix = Fix(sol.poses, sol.ambiguous)
+                fix = Fix(sol.poses, sol.ambiguous, row_time_s=sol.row_time_s)
             seen.append((det, read, identity, fix))
         best = self._best(seen)
         observations = []
         for i, (det, read, identity, fix) in enumerate(seen):
             if i == best:
-                fix = Fix(fix.poses, fix.ambiguous, True)
+                fix = dataclasses.replace(fix, accepted=True)
                 p = fix.poses[0]
                 self._held = TrackerOutput(
                     t, p.body.copy(), p.cov.copy(), TrackState.TRACKING, 0.0, identity.sticker_id, identity.source

@@ -1103,11 +1103,17 @@ class Localiser:
                 corner_velocity=velocity,
             )
         if not sol.poses:
-            return Fix([], sol.ambiguous)
+            return Fix([], sol.ambiguous, row_time_s=sol.row_time_s)
         poses = self._tilt_gate(sol.poses, rig_cam, t)
         if not poses:
             self.counts["tilt_gated"] += 1
-            return Fix(sol.poses, sol.ambiguous, False, "tilt gated: the camera's tilt disagrees with the torso's")
+            return Fix(
+                sol.poses,
+                sol.ambiguous,
+                False,
+                "tilt gated: the camera's tilt disagrees with the torso's",
+                row_time_s=sol.row_time_s,
+            )
         with timer("update"):
             res = self.tracker.update(
                 poses,
@@ -1126,7 +1132,7 @@ class Localiser:
                 self._pending_anchors.append((t, *tilt))
             else:
                 self._anchor_tilt(t, *tilt)
-        return Fix(poses, len(poses) > 1, res.accepted, res.reason)
+        return Fix(poses, len(poses) > 1, res.accepted, res.reason, row_time_s=sol.row_time_s)
 
     def _corner_velocity(
         self, det: Detection, identity: Identity, rig_cam: RigCamera, camera: int, t: float
