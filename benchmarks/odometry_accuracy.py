@@ -184,7 +184,7 @@ def run_session_in_localiser(path: Path, config: OdometryConfig) -> dict:
     for res in iterate_results(session, loc):
         frame_of[round(res.timestamp, 9)] = res.index
     cost = time.process_time() - t_start
-    true, meas, covs, residual, used, t1 = [], [], [], [], [], []
+    true, meas, covs, residual, used, t1, dt = [], [], [], [], [], [], []
     flow_before = 0
     for step, res_px, flow_steps in steps:
         i0, i1 = frame_of.get(round(step.t0, 9)), frame_of.get(round(step.t1, 9))
@@ -197,6 +197,7 @@ def run_session_in_localiser(path: Path, config: OdometryConfig) -> dict:
         residual.append(np.nan if res_px is None else res_px)
         used.append(flowed)
         t1.append(step.t1)
+        dt.append(step.t1 - step.t0)
     return {
         "true": np.array(true).reshape(-1, 3),
         "meas": np.array(meas).reshape(-1, 3),
@@ -204,6 +205,7 @@ def run_session_in_localiser(path: Path, config: OdometryConfig) -> dict:
         "flow_residual": np.array(residual, float),
         "flow_used": np.array(used, bool),
         "t": np.array(t1),
+        "dt": np.array(dt),
         "odo": loc.floor_odometry(0),
         "cost_s": cost / max(len(frame_of), 1),
     }

@@ -571,6 +571,56 @@ def test_track_resting_on_one_sticker_yields_to_it():
     assert tr.stats["reinitialisations"] == 0
 
 
+def test_own_anchor_sticker_takes_back_a_track_a_bad_step_moved():
+    """Stickers 12 and 13 built the track, sticker 11 was its last fix; then one precise odometry
+    step 6 degrees and 5 cm off (a match bridging 0.3 s of dropped frames) moves it, and no fix comes
+    in the step's frame to overrule it. Sticker 11's next decoded fixes, where it was, are refused;
+    the third re-initialises the track on it, as nothing else supports the track. Not so when the
+    rule is off, when another sticker was fused after the step (a checked one: a decoded one
+    ends the run of refusals anyway), or when sticker 11 was not the
+    track's last fix (a sticker wrong in the map cannot take over a track anchored elsewhere)."""
+    import dataclasses
+
+    from tagloc.vision.odometry import OdometryStep
+
+    here = np.array([2.0, 1.0, 0.4])
+    step_cov = np.diag([0.005**2, 0.005**2, math.radians(0.1) ** 2])
+
+    def run(own_s=None, anchor_ids=(11, 11), between=None):
+        cfg = TrackerConfig()
+        tr = Tracker(cfg if own_s is None else dataclasses.replace(cfg, reinit_own_sticker_s=own_s))
+        k = 0
+        for sid in (12, 13, 12, 13, *anchor_ids):
+            tr.predict(k / 30, "cam")
+            assert tr.update([make_fix(here)], sid, IdSource.DECODED, k / 30).accepted
+            k += 1
+        k += 8  # a burst of dropped frames, 0.3 s
+        tr.predict(k / 30, "cam")
+        bad = OdometryStep((k - 9) / 30, k / 30, np.array([0.05, 0.0, math.radians(6.0)]), step_cov, 0.5)
+        assert tr.update_odometry(bad, "cam").accepted
+        results = []
+        for j in range(5):
+            k += 1
+            tr.predict(k / 30, "cam")
+            if between is not None and j == 1:
+                assert tr.update([make_fix(tr.output().pose)], between, IdSource.CHECKED, k / 30).accepted
+            results.append(tr.update([make_fix(here)], 11, IdSource.DECODED, k / 30))
+        return tr, results
+
+    tr, results = run()
+    assert [r.accepted for r in results[:2]] == [False, False]
+    assert results[2].accepted and results[2].reason.startswith("reinitialised")
+    assert all(r.accepted and r.reason == "fused" for r in results[3:])
+    assert tr.stats["reinit_consistent"] == 1
+    assert np.hypot(*(tr.output().pose[:2] - here[:2])) < 0.01
+    assert abs(math.degrees(wrap(tr.output().pose[2] - here[2]))) < 0.5
+
+    for kwargs in ({"own_s": 0.0}, {"between": 14}, {"anchor_ids": (11, 12)}):
+        tr, results = run(**kwargs)
+        assert not any(r.accepted for r in results[:3]), kwargs
+        assert tr.stats["reinitialisations"] == 0, kwargs
+
+
 def test_inconsistent_rejections_do_not_reinitialise(rng):
     """Three rejected decoded fixes scattered around (not one consistent motion) leave the track alone."""
     cfg = TrackerConfig()

@@ -153,6 +153,17 @@ class TrackerConfig:
       enough when every sticker the track took fixes from since it (re)started is among them: such
       a track has no other support (seen just after a start from that sticker, when one bad
       odometry step had moved the young track and its own sticker's fixes were gated for 0.6 s).
+      One sticker is also enough when it was the track's own anchor: the last fix the track took,
+      at most ``reinit_own_sticker_s`` before the first refused one, was that sticker's, and no
+      fix has been taken since. Its map position is then the one the track itself agreed with
+      moments before, so what changed is the track (a wrong odometry step: after 0.3 s of dropped
+      frames with the operator standing at a sticker, a bridging match 5.9 deg off its true turn
+      left the track 10 cm and 4.8 deg off, and the sticker's next 18 decoded fixes, 1 s of them,
+      were refused). A sticker that is wrong in the map cannot take a track over this way: its
+      first fixes are refused against a track anchored elsewhere, and a sticker the track did
+      take is still refused in favour of another sticker fused since. 1 s: the gap a standing or
+      slowly turning operator bridges on odometry alone, which is where one sticker is in view;
+      0 turns it off.
     - ``overrule_odometry``: a decoded fix that the gate refuses just after its frame's odometry
       step was fused, but that passes against the filter as it was before that step, overrules the
       step: the filter goes back to before it and takes the fix instead (counted as
@@ -254,6 +265,7 @@ class TrackerConfig:
     reinit_fixes: int = 3
     reinit_min_ids: int = 2
     reinit_window_s: float = 5.0
+    reinit_own_sticker_s: float = 1.0
     overrule_odometry: bool = True
     min_eig: float = 1e-10
     pos_var_cap: float = 1e6

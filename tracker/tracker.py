@@ -104,6 +104,7 @@ class _Hypothesis:
     t: float
     ids: set[int]
     count: int
+    own: bool = False  # its first fix came from the track's own anchor (see reinit_own_sticker_s)
 
 
 _SOURCES = (IdSource.DECODED, IdSource.CHECKED, IdSource.ORB, IdSource.APPEARANCE)
@@ -628,12 +629,15 @@ class Tracker:
             if not fused:
                 h = None
         if h is None:
-            h = _Hypothesis(self._new_filter(alts[0]), t, t, {int(sticker_id)}, 1)
+            own = self._last_id == int(sticker_id) and t - self._last_fix_t <= cfg.reinit_own_sticker_s
+            h = _Hypothesis(self._new_filter(alts[0]), t, t, {int(sticker_id)}, 1, own)
         self._hyp = h
         # Several stickers are needed to overrule a track that other stickers support; a track that
         # rests only on stickers now disagreeing with it (one just after it started, say, when a
-        # bad odometry step moved it) has nothing else to defend.
-        if h.count < cfg.reinit_fixes or (len(h.ids) < cfg.reinit_min_ids and not self._track_ids <= h.ids):
+        # bad odometry step moved it), or whose own anchor of a moment ago now disagrees with it
+        # while nothing else supports it, has nothing else to defend.
+        unsupported = self._track_ids <= h.ids or (h.own and self._last_fix_t < h.t0)
+        if h.count < cfg.reinit_fixes or (len(h.ids) < cfg.reinit_min_ids and not unsupported):
             return False
         self._ekf = h.ekf
         self._hyp = None
