@@ -10,11 +10,13 @@ Two stages:
    a wider closing (``group_px``) joins frames that heavy blur or a far, foreshortened view broke
    into pieces.
 2. Refinement at full resolution, twice (the second pass re-aims at the first pass's lines):
-   intensity profiles are sampled across each side (each averaged over a 3 px wide strip), the
-   outer edge is placed where the profile crosses halfway between the floor level next to it and
-   the sticker's ink level, the inner edge halfway between ink and paper. For a symmetric blur
-   of a straight edge that crossing is the mid-exposure edge, unbiased as long as the blur across
-   the edge is under twice the frame width (a 40 px sticker's 3.2 px frame tolerates 6.4 px);
+   intensity profiles are sampled across each side in linear light (each averaged over a 3 px
+   wide strip), the outer edge is placed where the profile crosses halfway between the floor
+   level next to it and the sticker's ink level, the inner edge halfway between ink and paper.
+   For a symmetric blur of a straight edge that crossing is the mid-exposure edge, unbiased as
+   long as the blur across the edge is under twice the frame width (a 40 px sticker's 3.2 px
+   frame tolerates 6.4 px) and the ink level is the one without blur, which the frame's darkest
+   point is not under a blur of a few tenths of its width (:func:`_unblurred_ink`);
    a side blurred beyond that is located on the middle of the ramp from the dip to the paper,
    which lies over the frame's centre line. Edge points are undistorted, a line is fitted per side
    (Huber, gross outliers dropped), adjacent lines are intersected and the corners are distorted
@@ -845,7 +847,7 @@ def _unblurred_ink(
     one side and the paper on the other, so the halfway level from the frame's darkest point sits
     too high and the outer edge is found too far out: the sticker is seen larger, hence nearer (on
     ideal renders under a 1 px Gaussian blur, every corner 0.19 px outward on a 50 px sticker and
-    0.40 px at 40 px, where the frame is 3.2 px wide). For any symmetric blur, the light the outer
+    0.41 px at 40 px, where the frame is 3.2 px wide). For any symmetric blur, the light the outer
     edge carries from the floor into the frame's middle, w/2 inside it, is the light it takes from
     the floor w/2 outside it, ``(F - I) b``; the inner edge blurs alike, so it carries
     ``(P - I) b`` from the paper. The middle reads ``I + (F + P - 2 I) b`` and the floor w/2 out
