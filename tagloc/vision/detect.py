@@ -803,8 +803,7 @@ def _outer_offsets(
     flat = prof.reshape(k * 4 * n, len(s))
     level = ((floor + ink[:, None, None]) / 2).ravel()
     outer_s = _crossings(flat, level, s, np.zeros(k * 4 * n), rising=False).reshape(k, 4, n)
-    faint = (floor - ink[:, None, None]) < cfg.min_contrast / 2
-    outer_s[faint] = np.nan
+    outer_s[(floor - ink[:, None, None]) < cfg.min_contrast / 2] = np.nan
     # The darkest point of a blurred frame is not the ink's level (see _unblurred_ink): the edges
     # are located again, halfway to the ink's level as it is without the blur.
     dark = ink
