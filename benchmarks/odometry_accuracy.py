@@ -6,6 +6,7 @@ Run (from the repository root, on sessions made by ``tagloc eval --preset all`` 
     PYTHONPATH=$PWD python benchmarks/odometry_accuracy.py SESSION ... --calibrate
     PYTHONPATH=$PWD python benchmarks/odometry_accuracy.py SESSION ... --by-residual
     PYTHONPATH=$PWD python benchmarks/odometry_accuracy.py SESSION ... --in-localiser --windows
+    PYTHONPATH=$PWD python benchmarks/odometry_accuracy.py SESSION ... --in-localiser --bridged
 
 ``--reference apparent`` compares with the motion the nominal bird's-eye patch appears to make given
 the true (tilted) camera: the vest's motion plus the tilt change's apparent motion, which the
@@ -31,6 +32,11 @@ windows of 15, 30 and 60 consecutive steps (the gaps between stickers that odome
 against the sum of their stated covariances: RMS error, RMS stated sigma and the mean 3-DoF NEES
 (3 if the stated covariance holds over such a gap; below it, the tracker's covariance grows faster
 in a gap than its error does).
+
+``--bridged`` (with ``--in-localiser``) adds the steps that bridge bursts of dropped frames
+(longer than ``BRIDGE_S``, the tracker's ``gap_s``: 3 or more frames lost at 30 fps), apart for
+steps the flow refined and those whose flow fit was refused: count, the mean 3-DoF NEES of the
+sound ones, and each gross one (NEES beyond ``GROSS_NEES``, the 0.999 gate's 16.27) with its error.
 
 ``--calibrate`` fits the step covariance as :class:`tagloc.vision.odometry.OdometryConfig` describes:
 the errors are carried to the patch centre (where they are independent), summed over windows of 15,
@@ -261,6 +267,8 @@ def summary_row(name: str, r: dict) -> str:
 
 
 RESIDUAL_BINS = (0.0, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 4.0, 6.0, math.inf)  # px
+BRIDGE_S = 0.12  # s: a step over a burst of 3 or more dropped frames at 30 fps (a stride's 67 ms is no gap)
+GROSS_NEES = 16.27  # chi-square, 3 DoF, at 0.999 (the tracker's odometry gate)
 
 
 def residual_table(results: list[dict]) -> str:
@@ -291,6 +299,31 @@ def residual_table(results: list[dict]) -> str:
                 f" {math.degrees(rms[2]):6.2f}   {1e3 * s[0]:6.1f} {1e3 * s[1]:6.1f} {math.degrees(s[2]):5.2f}"
                 f"  {np.mean(nees[m]):8.2f} / {np.median(nees[m]):5.2f}"
             )
+    return "\n".join(lines)
+
+
+def bridged_table(results: list[dict], names: list[str]) -> str:
+    """The steps of ``results`` (from :func:`run_session_in_localiser`, walks ``names``) that bridge
+    bursts of dropped frames, apart for steps the flow refined and those whose flow fit was refused: count,
+    the mean 3-DoF NEES of the sound ones (3 if their covariance is exact), and each gross one."""
+    rows, gross = {"flow refined": [], "flow refused": []}, []
+    for name, r in zip(names, results):
+        e = _errors(r)
+        for k in np.flatnonzero((r["dt"] > BRIDGE_S) & np.all(np.isfinite(r["meas"]), axis=1)):
+            nees = float(e[k] @ np.linalg.solve(r["cov"][k], e[k]))
+            rows["flow refined" if r["flow_used"][k] else "flow refused"].append(nees)
+            if nees > GROSS_NEES:
+                gross.append((name, r, k, e[k], nees))
+    lines = [f"{'bridged steps':14s} {'steps':>6s} {'gross':>6s} {'NEES of the sound ones':>23s}"]
+    for label, nees in rows.items():
+        sound = [v for v in nees if v <= GROSS_NEES]
+        mean = f"{np.mean(sound):.2f}" if sound else "-"
+        lines.append(f"{label:14s} {len(nees):6d} {len(nees) - len(sound):6d} {mean:>23s}")
+    for name, r, k, ek, nees in gross:
+        lines.append(
+            f"  gross: {name} t {r['t'][k]:.2f} s, {1e3 * r['dt'][k]:.0f} ms: error {1e3 * math.hypot(ek[0], ek[1]):.0f} mm,"
+            f" {math.degrees(ek[2]):.1f} deg (NEES {nees:.0f}, flow residual {r['flow_residual'][k]:.1f} px)"
+        )
     return "\n".join(lines)
 
 
@@ -355,10 +388,17 @@ def main() -> None:
         help="the steps the whole localiser fuses (lean and pitch from its tracker), not the odometry alone",
     )
     ap.add_argument(
+        "--bridged",
+        action="store_true",
+        help="also the steps that bridge bursts of dropped frames (with --in-localiser)",
+    )
+    ap.add_argument(
         "--windows", action="store_true", help="also the steps summed over 15-60-step windows against their stated sums"
     )
     args = ap.parse_args()
     config = OdometryConfig(**json.loads(args.config))
+    if args.bridged and not args.in_localiser:
+        raise SystemExit("odometry_accuracy: --bridged needs --in-localiser (the steps the localiser fuses)")
     if args.in_localiser and args.reference != "vest":
         raise SystemExit("odometry_accuracy: --in-localiser compares with the vest's motion only")
     results = []
@@ -374,6 +414,8 @@ def main() -> None:
         print(residual_table(results))
     if args.windows:
         print(window_table(results))
+    if args.bridged:
+        print(bridged_table(results, [str(p) for p in args.sessions]))
     if args.calibrate:
         for k, v in calibrate(results).items():
             current = getattr(config, k)

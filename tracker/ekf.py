@@ -127,7 +127,9 @@ def pose_residual(z: np.ndarray, hx: np.ndarray) -> np.ndarray:
     return y
 
 
-def odometry_model(x: np.ndarray, clone: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def odometry_model(
+    x: np.ndarray, clone: np.ndarray, scale_at: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Measurement model of a floor-odometry step, beside the fix model (:meth:`WalkingEKF.innovation`).
 
     The step is the odometry pose now (the vest pose plus the tilt offset, :func:`odometry_pose`)
@@ -135,7 +137,9 @@ def odometry_model(x: np.ndarray, clone: np.ndarray) -> tuple[np.ndarray, np.nda
     odometry's scale error ``e`` (``x[SCALE]``):
     ``h = ((1 + e) R(yaw0)^T (v1 - c)[:2], v1.yaw - yaw0)`` with ``v1`` the odometry pose of the
     state mean ``x`` (DIM,). Returns h (3,) and its Jacobian H (3, DIM + 3) over the joint state
-    [x, clone (3)] (stochastic cloning).
+    [x, clone (3)] (stochastic cloning). The scale's column is the step ``R(yaw0)^T (v1 - c)[:2]``;
+    ``scale_at`` (2,), m, evaluates it at another estimate of that step (the tracker gives the
+    filter's prediction, see ``Tracker._predicted_step``).
     """
     v1 = odometry_pose(x)
     yaw0 = clone[2]
@@ -147,7 +151,7 @@ def odometry_model(x: np.ndarray, clone: np.ndarray) -> tuple[np.ndarray, np.nda
     hx = np.append(k * body_d, wrap_angle(float(v1[2] - yaw0)))
     H = np.zeros((3, DIM + 3))
     H[:2, :DIM] = k * (Rt @ M_ODO[:2])
-    H[:2, SCALE] = body_d
+    H[:2, SCALE] = body_d if scale_at is None else scale_at
     H[:2, DIM : DIM + 2] = -k * Rt
     H[:2, DIM + 2] = k * (np.array([[-si, co], [-co, -si]]) @ d)
     H[2, :DIM] = M_ODO[2]
