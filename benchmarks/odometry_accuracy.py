@@ -104,6 +104,11 @@ def _groundtruth(path: Path) -> dict[int, np.ndarray]:
     return gt
 
 
+def _nees(e: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """The 3-DoF NEES (N,) of errors ``e`` (N, 3) against their covariances ``cov`` (N, 3, 3)."""
+    return np.einsum("ni,ni->n", e, np.linalg.solve(cov, e[:, :, None])[:, :, 0])
+
+
 def _errors(r: dict) -> np.ndarray:
     """Measured less true step (N, 3) of a walk's result ``r``, the turn wrapped (NaN rows where refused)."""
     e = r["meas"] - r["true"]
@@ -234,7 +239,7 @@ def window_table(results: list[dict]) -> str:
         if not sums:
             continue
         sums, covs = np.array(sums), np.array(covs)
-        nees = np.einsum("ni,ni->n", sums, np.linalg.solve(covs, sums[:, :, None])[:, :, 0])
+        nees = _nees(sums, covs)
         rms = np.sqrt(np.mean(sums**2, axis=0))
         s = np.sqrt(np.mean(np.diagonal(covs, axis1=1, axis2=2), axis=0))
         lines.append(
@@ -281,7 +286,7 @@ def residual_table(results: list[dict]) -> str:
     cov = np.concatenate([r["cov"][k] for r, k in zip(results, keep)])
     res = np.concatenate([r["flow_residual"][k] for r, k in zip(results, keep)])
     used = np.concatenate([r["flow_used"][k] for r, k in zip(results, keep)])
-    nees = np.einsum("ni,ni->n", e, np.linalg.solve(cov, e[:, :, None])[:, :, 0])
+    nees = _nees(e, cov)
     sig = np.sqrt(np.diagonal(cov, axis1=1, axis2=2))
     lines = [
         f"{'step':8s} {'residual px':>11s} {'steps':>6s}  {'rms fwd/lat mm, yaw deg':>24s}"
@@ -309,11 +314,11 @@ def bridged_table(results: list[dict], names: list[str]) -> str:
     rows, gross = {"flow refined": [], "flow refused": []}, []
     for name, r in zip(names, results):
         e = _errors(r)
-        for k in np.flatnonzero((r["dt"] > BRIDGE_S) & np.all(np.isfinite(r["meas"]), axis=1)):
-            nees = float(e[k] @ np.linalg.solve(r["cov"][k], e[k]))
-            rows["flow refined" if r["flow_used"][k] else "flow refused"].append(nees)
+        bridged = np.flatnonzero((r["dt"] > BRIDGE_S) & np.all(np.isfinite(r["meas"]), axis=1))
+        for k, nees in zip(bridged, _nees(e[bridged], r["cov"][bridged])):
+            rows["flow refined" if r["flow_used"][k] else "flow refused"].append(float(nees))
             if nees > GROSS_NEES:
-                gross.append((name, r, k, e[k], nees))
+                gross.append((name, r, k, e[k], float(nees)))
     lines = [f"{'bridged steps':14s} {'steps':>6s} {'gross':>6s} {'NEES of the sound ones':>23s}"]
     for label, nees in rows.items():
         sound = [v for v in nees if v <= GROSS_NEES]
