@@ -189,6 +189,16 @@ def median_last(a: np.ndarray) -> np.ndarray:
     return 0.5 * (srt[..., (n - 1) // 2] + srt[..., n // 2])
 
 
+def masked_median_last(a: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Median over the last axis of the values of ``a`` where ``mask`` (same shape) holds, NaN where
+    none does, and how many there are: np.nanmedian's result without its per-call overhead."""
+    n = mask.sum(axis=-1)
+    srt = np.sort(np.where(mask, a, np.inf), axis=-1)
+    middles = np.stack([np.maximum(n - 1, 0) // 2, n // 2], axis=-1)
+    mid = np.take_along_axis(srt, middles, axis=-1)
+    return np.where(n > 0, 0.5 * (mid[..., 0] + mid[..., 1]), np.nan), n
+
+
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise cross product of (N, 3) arrays (np.cross's axis handling costs more than the product)."""
     return np.stack(
@@ -513,11 +523,7 @@ def _robust_lines(
     g = len(points) if group is None else group
     lines = huber_lines(points, mask, group=g)
     res = _line_residuals(points, lines)
-    counts = mask.sum(axis=1)
-    # Median of each set's residuals: the masked-out ones sort last.
-    srt = np.sort(np.where(mask, res, np.inf), axis=1)
-    rows = np.arange(len(points))
-    med = 0.5 * (srt[rows, (counts - 1) // 2] + srt[rows, counts // 2])
+    med = masked_median_last(res, mask)[0]  # NaN for an empty set, which keeps nothing
     keep = mask & (res <= np.maximum(floor_px, sigmas * _MAD_TO_SIGMA * med)[:, None])
     n_groups = len(points) // max(g, 1)
     ok = keep.sum(axis=1).reshape(n_groups, g).min(axis=1) >= min_points
@@ -854,10 +860,7 @@ def _unblurred_ink(
     one estimate (motion blur differs between sides); their median is the quad's. The paper level
     is read in a quiet zone only 0.44 frame widths wide, which blur darkens too, so the correction
     falls somewhat short on the smallest stickers (see ``DetectConfig.ink_rounds``)."""
-    finite = np.isfinite(outer_s)
-    count = finite.sum(axis=2)
-    srt = np.sort(np.where(finite, outer_s, np.inf), axis=2)
-    edge = np.take_along_axis(srt, np.maximum((count - 1) // 2, 0)[..., None], axis=2)[..., 0]
+    edge, count = masked_median_last(outer_s, np.isfinite(outer_s))
     found = count > 0
     edge = np.where(found, edge, 0.0)  # (K, 4): each side's median outer offset
     half = 0.5 * median_last(frame_w)  # (K, 4)
@@ -875,12 +878,8 @@ def _unblurred_ink(
         est = middle - lost * (light - 2.0 * est) / np.maximum(floor - est, 1e-6)
     good = found & np.isfinite(est) & (floor - middle > 0)
     est = np.where(good, np.clip(est, 0.0, middle), np.nan)
-    # The median of the sides that give one (np.nanmedian's overhead is not worth it for 4 values).
-    srt = np.sort(est, axis=1)
-    n_good = good.sum(axis=1)
-    lo = np.take_along_axis(srt, np.maximum((n_good - 1) // 2, 0)[:, None], axis=1)[:, 0]
-    hi = np.take_along_axis(srt, np.maximum(n_good // 2, 0)[:, None], axis=1)[:, 0]
-    return np.where(n_good > 0, 0.5 * (lo + hi), ink).astype(np.float32)
+    quad, n_good = masked_median_last(est, good)  # the median of the sides that give one
+    return np.where(n_good > 0, quad, ink).astype(np.float32)
 
 
 def _min_points(cfg: DetectConfig) -> int:
