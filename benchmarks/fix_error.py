@@ -19,10 +19,17 @@ read-out, 2 cm of walking), so the truth is interpolated to it. A second table b
 split along that line (radial: its mean says whether the fixes read the sticker too near or too
 far) and across it, each against the stated sigma in that direction.
 
+``--survey`` instead splits each walk's error in the frames with an accepted fix: the tracker's
+output there, the fixes, the error the map's survey alone puts into them (a sticker surveyed off by
+(dx, dy, dyaw) moves a fix of the vest point p by (dx, dy) + (R(dyaw) - I)(p - s), s its true centre:
+the yaw error's lever to the vest point), and the fixes less that (their own error). The tracker
+below the fixes says how much of the survey error it took out with the odometry between stickers.
+
 Example::
 
     python benchmarks/fix_error.py out/eval/standard/sessions/*
     python benchmarks/fix_error.py out/eval/field/sessions/* --true-map
+    python benchmarks/fix_error.py out/eval/field/sessions/* --survey
 """
 
 from __future__ import annotations
@@ -98,11 +105,75 @@ def fixes(session: Path, true_map: bool) -> list[tuple]:
     return out
 
 
+def survey_share(session: Path) -> dict[str, float]:
+    """RMS errors (m) over the frames of ``session`` with an accepted single-solution fix of a
+    sticker in both maps: the tracker's output (``track``), the fixes (``fixes``), the survey's part
+    of the fixes (``survey``) and the fixes less it (``own``), with the frames counted
+    (``frames``) and the tracker over all its frames (``all``). Needs the simulator's
+    ``map_true.csv``."""
+    reader = SessionReader(session)
+    truth_path = session / "map_true.csv"
+    if not truth_path.exists():
+        raise SystemExit(f"{truth_path}: no true map (the simulator writes one for walks with survey error)")
+    true_map, smap = load_map(truth_path), reader.map
+    gt_t, gt = reader.groundtruth()
+    gt_xy = np.array([T[:2, 3] for T in gt]).reshape(-1, 2)
+    loc = Localiser(smap, reader.rig, LocaliserConfig(), map_path=reader.map_path)
+    sq = {"all": [], "track": [], "fixes": [], "survey": [], "own": []}
+    for res in tqdm(iterate_results(reader, loc), desc=session.name, unit="frame", leave=False):
+        i = int(np.argmin(np.abs(gt_t - res.timestamp)))
+        if (
+            abs(gt_t[i] - res.timestamp) > _MAX_TRUTH_GAP_S
+            or res.output is None
+            or res.output.state.value != "tracking"
+        ):
+            continue
+        err = res.output.pose[:2] - gt_xy[i]
+        sq["all"].append(err @ err)
+        per_fix = []
+        for obs in res.observations:
+            fix = obs.fix
+            if fix is None or fix.accepted is not True or len(fix.poses) != 1:
+                continue
+            if obs.sticker_id not in smap or obs.sticker_id not in true_map:
+                continue
+            t_fix = res.timestamp + fix.row_time_s
+            p = np.array([np.interp(t_fix, gt_t, gt_xy[:, k]) for k in (0, 1)])
+            r_map, r_true = smap.row(obs.sticker_id), true_map.row(obs.sticker_id)
+            c, sn = np.cos(smap.yaw[r_map] - true_map.yaw[r_true]), np.sin(smap.yaw[r_map] - true_map.yaw[r_true])
+            lever = p - true_map.xy[r_true]
+            survey = smap.xy[r_map] - true_map.xy[r_true] + np.array([[c, -sn], [sn, c]]) @ lever - lever
+            per_fix.append((fix.poses[0].body[:2] - p, survey))
+        if per_fix:
+            fix_err, survey = (np.mean([f[k] for f in per_fix], axis=0) for k in (0, 1))
+            for key, e in (("track", err), ("fixes", fix_err), ("survey", survey), ("own", fix_err - survey)):
+                sq[key].append(e @ e)
+    out = {k: float(np.sqrt(np.mean(v))) if v else float("nan") for k, v in sq.items()}
+    return out | {"frames": float(len(sq["track"]))}
+
+
+def _print_survey_table(sessions: list[Path]) -> None:
+    print("RMS error, cm: the tracker over all its frames, then over the frames with an accepted fix")
+    print(
+        f"{'walk':<12s} {'all':>6s} {'frames':>7s} {'tracker':>8s} {'fixes':>6s} {'survey':>7s} {'fixes less survey':>18s}"
+    )
+    for s in sessions:
+        r = survey_share(s)
+        print(
+            f"{s.name:<12s} {r['all'] * 100:6.2f} {int(r['frames']):7d} {r['track'] * 100:8.2f} {r['fixes'] * 100:6.2f}"
+            f" {r['survey'] * 100:7.2f} {r['own'] * 100:18.2f}"
+        )
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("sessions", type=Path, nargs="+", help="simulated sessions (with groundtruth.tum)")
     p.add_argument("--true-map", action="store_true", help="localise with each session's map_true.csv")
+    p.add_argument("--survey", action="store_true", help="instead: how much of each walk's error is the survey's")
     args = p.parse_args(argv)
+    if args.survey:
+        _print_survey_table(args.sessions)
+        return 0
     rows = [r for s in args.sessions for r in fixes(s, args.true_map)]
     if not rows:
         print("no accepted fixes")
