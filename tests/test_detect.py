@@ -10,7 +10,7 @@ from synth import floor_point_at_pixel, floor_view, sticker_pose, synth_frame
 from tagloc.core.camera import Camera, default_camera
 from tagloc.core.errors import InputError
 from tagloc.eval.bench_detect import FrameTruth, bench_detection, match_detections
-from tagloc.vision.detect import DetectConfig, detect, detect_stickers
+from tagloc.vision.detect import DetectConfig, detect, detect_stickers, masked_median_last
 from tagloc.vision.image import as_gray
 
 CAM = default_camera()
@@ -531,3 +531,22 @@ def test_blurred_frame_ink_level_is_corrected():
         before, after = _outward_px(side, sigma, raw), _outward_px(side, sigma, DetectConfig())
         assert before > 0.15, (side, before)  # the bias is there to correct
         assert after < limit and after < 0.6 * before, (side, before, after)
+
+
+def test_masked_median_is_numpys_median_of_the_kept_values(rng):
+    """The refinement's masked median (edges, residuals, ink levels): np.median of the kept values
+    along the last axis for odd and even counts, NaN and a count of 0 where none is kept."""
+    a = rng.normal(size=(200, 7))
+    mask = rng.random((200, 7)) < 0.6
+    mask[:3] = False  # rows with nothing kept
+    med, n = masked_median_last(a, mask)
+    assert np.array_equal(n, mask.sum(axis=1))
+    for row, m, value in zip(a, mask, med):
+        if m.any():
+            assert value == pytest.approx(np.median(row[m]), abs=1e-15)
+        else:
+            assert np.isnan(value)
+    assert {int(k) % 2 for k in n if k} == {0, 1}  # both kinds of count were exercised
+    # NaN in the values is what a caller masks out (the sides' edges and ink levels).
+    b = np.where(mask, a, np.nan)
+    assert np.allclose(masked_median_last(b, np.isfinite(b))[0], med, equal_nan=True)
