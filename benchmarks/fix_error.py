@@ -53,6 +53,17 @@ _BLUR_BINS_PX = ((0, 1), (1, 2), (2, 4), (4, 8), (8, np.inf))
 _RANGE_BINS_M = ((0, 1), (1, 1.5), (1.5, 2), (2, 2.5), (2.5, np.inf))
 
 
+def _accepted_fixes(res, gt_t: np.ndarray, gt_xy: np.ndarray):
+    """(observation, fix, true vest point (2,) m at the fix's own time) of each accepted
+    single-solution fix of the frame result ``res``; ``gt_t`` (N,) s and ``gt_xy`` (N, 2) m the truth."""
+    for obs in res.observations:
+        fix = obs.fix
+        if fix is None or fix.accepted is not True or len(fix.poses) != 1:
+            continue
+        t_fix = res.timestamp + fix.row_time_s
+        yield obs, fix, np.array([np.interp(t_fix, gt_t, gt_xy[:, k]) for k in (0, 1)])
+
+
 def fixes(session: Path, true_map: bool) -> list[tuple]:
     """(source, blur px, error m, NEES, stated sigma m, distance m, radial error m, across error m,
     stated radial sigma m, stated across sigma m) of each accepted single-solution fix."""
@@ -71,13 +82,8 @@ def fixes(session: Path, true_map: bool) -> list[tuple]:
         if abs(gt_t[i] - res.timestamp) > _MAX_TRUTH_GAP_S:
             continue
         gray = as_gray(res.frame.image)
-        for obs in res.observations:
-            fix = obs.fix
-            if fix is None or fix.accepted is not True or len(fix.poses) != 1:
-                continue
+        for obs, fix, truth in _accepted_fixes(res, gt_t, gt_xy):
             rig_camera = reader.rig[res.frame.camera]
-            t_fix = res.timestamp + fix.row_time_s
-            truth = np.array([np.interp(t_fix, gt_t, gt_xy[:, k]) for k in (0, 1)])
             body = fix.poses[0].body[:2]
             d = body - truth
             cov = fix.poses[0].cov[:2, :2]
@@ -131,16 +137,12 @@ def survey_share(session: Path) -> dict[str, float]:
         err = res.output.pose[:2] - gt_xy[i]
         sq["all"].append(err @ err)
         per_fix = []
-        for obs in res.observations:
-            fix = obs.fix
-            if fix is None or fix.accepted is not True or len(fix.poses) != 1:
-                continue
+        for obs, fix, p in _accepted_fixes(res, gt_t, gt_xy):
             if obs.sticker_id not in smap or obs.sticker_id not in true_map:
                 continue
-            t_fix = res.timestamp + fix.row_time_s
-            p = np.array([np.interp(t_fix, gt_t, gt_xy[:, k]) for k in (0, 1)])
             r_map, r_true = smap.row(obs.sticker_id), true_map.row(obs.sticker_id)
-            c, sn = np.cos(smap.yaw[r_map] - true_map.yaw[r_true]), np.sin(smap.yaw[r_map] - true_map.yaw[r_true])
+            dyaw = smap.yaw[r_map] - true_map.yaw[r_true]
+            c, sn = np.cos(dyaw), np.sin(dyaw)
             lever = p - true_map.xy[r_true]
             survey = smap.xy[r_map] - true_map.xy[r_true] + np.array([[c, -sn], [sn, c]]) @ lever - lever
             per_fix.append((fix.poses[0].body[:2] - p, survey))
