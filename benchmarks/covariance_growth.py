@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from tagloc.core.geometry import interpolate_groundtruth
+from tagloc.eval.metrics import trajectory_errors
 from tagloc.io.session import SessionReader
 from tagloc.pipeline.localiser import Localiser
 from tagloc.pipeline.run import iterate_results
@@ -84,17 +84,14 @@ def gaps(session: Path) -> np.ndarray:
                 P = None
             else:
                 P = compound(P, prev_yaw, np.asarray(step.delta, float), np.asarray(step.cov, float))
-                rows.append((res.timestamp, res.timestamp - t_fix, *out.pose[:2], out.cov[:2, :2], P[:2, :2]))
+                rows.append((res.timestamp, res.timestamp - t_fix, out.pose, out.cov, np.trace(P[:2, :2])))
         prev_yaw = float(out.pose[2])
     if not rows:
         return np.zeros((0, 5))
-    stamps = np.array([r[0] for r in rows])
-    truth, inside = interpolate_groundtruth(gt[0], gt[1], stamps)
-    table = []
-    for r, g in zip([r for r, k in zip(rows, inside) if k], truth):
-        e = np.array([r[2] - g[0], r[3] - g[1]])
-        table.append((r[1], np.trace(r[4]), np.trace(r[5]), float(e @ e), float(e @ np.linalg.solve(r[4], e))))
-    return np.array(table).reshape(-1, 5)
+    stamps, since, poses, covs, dead = (np.array([r[k] for r in rows]) for k in range(5))
+    e = trajectory_errors(stamps, poses, covs, gt[0], gt[1])
+    tracker = np.trace(covs[:, :2, :2], axis1=1, axis2=2)
+    return np.column_stack([since[e.inside], tracker[e.inside], dead[e.inside], e.position**2, e.nees])
 
 
 def print_table(name: str, g: np.ndarray) -> None:
