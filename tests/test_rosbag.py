@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import re
+import shutil
 from pathlib import Path
 
 import cv2
@@ -178,6 +180,45 @@ def test_bad_bags_give_one_line_errors(tmp_path, written):
         BagSession(tmp_path / "notabag", "/x", WALK / "map.csv")
     with pytest.raises(InputError, match="already exists"):
         BagWriter(written["bag"], "v", SessionReader(WALK).rig)
+
+
+def _damage_mid_bag(bag: Path, out: Path) -> Path:
+    """A copy of ``bag`` whose middle chunk's first record claims a length past the file's end (what a
+    disk error or a torn copy leaves): the reader gives the messages before it, then fails."""
+    shutil.copytree(bag, out)
+    mcap = next(out.glob("*.mcap"))
+    d = bytearray(mcap.read_bytes())
+    off, chunks = 8, []  # after the magic: opcode (1 byte), length (8), content
+    while off + 9 <= len(d) and d[off] != 0x0F:  # up to the footer
+        if d[off] == 0x06:
+            chunks.append(off)
+        off += 9 + int.from_bytes(d[off + 1 : off + 9], "little")
+    # A chunk: 9-byte record head, times (16), sizes and CRC (12), compression (4 + n), records' length (8).
+    p = chunks[len(chunks) // 2] + 9 + 28
+    p += 4 + int.from_bytes(d[p - 4 : p], "little") + 8
+    assert d[p - 4 - 8 : p - 8] == b"\0\0\0\0"  # uncompressed, so the records follow as they are
+    d[p + 1 : p + 9] = (10**12).to_bytes(8, "little")
+    mcap.write_bytes(bytes(d))
+    return out
+
+
+def test_a_bag_damaged_mid_file_is_refused_in_one_line_keeping_what_came_before(tmp_path, written):
+    bag = _damage_mid_bag(written["bag"], tmp_path / "damaged.bag2")
+    src = BagSession(bag, IMAGE_TOPIC, WALK / "map.csv", WALK / "rig.json")
+    seen = []
+    with pytest.raises(SessionError, match=rf"^{re.escape(str(bag))}: damaged after (\d+) messages \(") as err:
+        run_session(src, on_result=seen.append)
+    assert "\n" not in str(err.value)
+    assert 10 <= len(seen) < 60  # the frames before the damage were localised and handed on
+    out = tmp_path / "converted"
+    with pytest.raises(
+        SessionError, match=rf"damaged after \d+ messages .*; {re.escape(str(out))} holds the \d+ frames"
+    ) as err:
+        bag_to_session(bag, IMAGE_TOPIC, out, WALK / "map.csv", WALK / "rig.json")
+    kept = int(re.search(r"holds the (\d+) frames", str(err.value)).group(1))
+    conv = SessionReader(out)  # what came before the damage is a session to replay
+    assert len(conv) == kept == len(seen)
+    assert np.array_equal(conv.timestamps, written["session"].timestamps[: len(seen)])
 
 
 def test_covariance_and_names():

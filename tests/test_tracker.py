@@ -704,6 +704,33 @@ def test_same_frame_fixes_at_initialisation_share_the_floor():
     np.testing.assert_allclose(tr.output().pose, [1.0, 2.0, 0.1], atol=1e-6)
 
 
+@pytest.mark.parametrize("gap", [30.0, 5 * 3600.0, 1e300])
+def test_a_clock_jump_forgets_the_walk_and_never_overflows(rng, gap):
+    """A frame ``gap`` s after the last (a clock that jumped): the walk is extrapolated only until the
+    track goes stale (lost_after_s after its last fix), then the operator may be anywhere near there;
+    nothing overflows, the pose is finite, LOST and capped, and a decoded fix there restarts it."""
+    cfg = TrackerConfig()
+    tr = _track(rng, cfg)
+    t0, x0 = tr.time, tr.filter.x[:, 0].copy()
+    reach = abs(x0[motion.V]) * cfg.lost_after_s
+    for t in (t0 + gap, t0 + gap + 0.033):
+        tr.predict(t)
+        out = tr.output()
+        assert out.state is TrackState.LOST and np.all(np.isfinite(out.pose))
+        assert_spd(out.cov)
+        assert out.cov[0, 0] <= cfg.pos_var_cap * (1 + 1e-9)
+        # Walked on for at most lost_after_s (plus the sway), not for the whole gap.
+        assert np.hypot(*(out.pose[:2] - x0[:2])) <= reach + 0.5
+        assert tr.filter.x[motion.V, 0] == 0.0 and tr.filter.x[motion.W, 0] == 0.0
+    ahead = tr.output(tr.time + gap)
+    assert np.all(np.isfinite(ahead.pose)) and ahead.state is TrackState.LOST
+    assert ahead.cov[0, 0] > 1.0  # extrapolated far ahead: not the confidence of now
+    assert tr.stats["numeric_errors"] == 0
+    here = np.array([2.0, 1.0, 0.5])
+    assert tr.update([make_fix(here)], 3, IdSource.DECODED, tr.time).accepted
+    assert tr.state is TrackState.TRACKING
+
+
 def test_same_frame_fixes_after_hours_lost_stay_precise(rng):
     """A huge prior (hours lost) and two same-frame fixes: no precision lost in the joint update."""
     cfg = TrackerConfig()

@@ -120,8 +120,33 @@ def _checked(step: Callable[[], R]) -> tuple[bool, R | None]:
     try:
         with np.errstate(over="raise", invalid="raise"):
             return True, step()
-    except (FloatingPointError, np.linalg.LinAlgError):
+    except (FloatingPointError, OverflowError, np.linalg.LinAlgError):
+        # OverflowError: Python float arithmetic (a power of a gap of 1e300 s) raises it, not numpy.
         return False, None
+
+
+# A walker of unknown velocity (init_v_sigma 1 m/s) passes the position cap (pos_var_cap, 1 km sd)
+# within 20 minutes: a longer spread changes no variance, and its powers of the interval overflow.
+MAX_SPREAD_S = 3600.0
+
+
+def _advance_forgetting(ekf: WalkingEKF, h_walk: float, h_spread: float) -> None:
+    """Predict ``ekf`` ``h_walk`` s with the walk's own speed and turn rate, forget them, then let a
+    walker of unknown velocity spread for ``h_spread`` s (at most :data:`MAX_SPREAD_S`)."""
+    if h_walk > 0.0:
+        ekf.advance(h_walk)
+    ekf.forget_motion()
+    ekf.advance(min(h_spread, MAX_SPREAD_S))
+
+
+def _pose_unknown(P: np.ndarray, cfg: TrackerConfig) -> np.ndarray:
+    """``P`` (DIM, DIM) with the walking body's pose (x, y, yaw) at its caps and uncorrelated: what a
+    prediction that failed numerically knows of it (never the covariance from before the gap)."""
+    P = P.copy()
+    P[:3, :] = 0.0
+    P[:, :3] = 0.0
+    P[:3, :3] = np.diag([cfg.pos_var_cap, cfg.pos_var_cap, cfg.yaw_var_cap])
+    return P
 
 
 def _time_tol(t: float) -> float:
@@ -342,7 +367,16 @@ class Tracker:
                 t0, x0, P0 = self._t, self._ekf.x[:, 0], self._ekf.P
                 self._P_before_predict = P0
                 jac: list[np.ndarray] = []
-                if self._guarded(lambda: jac.append(self._ekf.advance(t - t0))):
+                forget_at = self._forget_motion_at(t0, t)
+                if forget_at is not None:
+                    # The walk is extrapolated until the track goes stale, not across the whole gap
+                    # (a clock that jumped hours, or 1e300 s, ahead): then, as _check_lost does,
+                    # its speed and turn rate are forgotten and no step from before can be fused.
+                    if not self._guarded(lambda: _advance_forgetting(self._ekf, forget_at - t0, t - forget_at)):
+                        self._ekf.set(self._ekf.mean, _pose_unknown(self._ekf.cov, self.config))
+                    self._forgot = True
+                    self._drop_clones()
+                elif self._guarded(lambda: jac.append(self._ekf.advance(t - t0))):
                     # The cameras of the frames just left start their next steps here; a clone older
                     # than any step can span is of no more use.
                     self._clones.advance(jac[0], x0, P0, M_ODO, t0, t, self._here, self.config.odometry_max_dt)
@@ -370,6 +404,17 @@ class Tracker:
         self._t = t
         self._check_lost()
 
+    def _forget_motion_at(self, t0: float, t: float) -> float | None:
+        """When, within a prediction from ``t0`` to ``t``, the speed and turn rate are to be forgotten
+        (``lost_after_s`` after the last fix), or None: not in this interval. A track that forgot them
+        already forgets them again from ``t0`` when the gap alone outlasts ``lost_after_s``."""
+        stale_at = self._last_fix_t + self.config.lost_after_s
+        if not self._forgot and math.isfinite(stale_at) and t > stale_at:
+            return max(t0, stale_at)
+        if self._forgot and t - t0 > self.config.lost_after_s:
+            return t0
+        return None
+
     def _drop_clones(self) -> None:
         """Forget every camera's clone: the track restarted or forgot its past, so no step from before
         now can be fused (such steps are counted as ``odometry_ignored``, not unmatched)."""
@@ -382,6 +427,9 @@ class Tracker:
 
         The noise is independent of the state before the gap, so a clone's cross-covariance stands."""
         q = self.config.gap_yaw_accel_psd
+        # Beyond lost_after_s the track is lost and its motion forgotten (_check_lost), and the
+        # variances are capped anyway: a longer gap (a clock that jumped) adds nothing but overflow.
+        dt = min(dt, self.config.lost_after_s)
         P = self._ekf.P.copy()
         yaw, w = motion.YAW, motion.W
         P[yaw, yaw] += q * dt**3 / 3.0
@@ -804,8 +852,14 @@ class Tracker:
         if target > now:
             ekf = WalkingEKF(cfg)
             ekf.set(self._ekf.mean, self._ekf.cov)
-            if not _checked(lambda: ekf.advance(target - now))[0]:
-                ekf.set(self._ekf.mean, self._ekf.cov)
+            forget_at = self._forget_motion_at(now, target)
+            if forget_at is None:
+                ok = _checked(lambda: ekf.advance(target - now))[0]
+            else:
+                ok = _checked(lambda: _advance_forgetting(ekf, forget_at - now, target - forget_at))[0]
+            if not ok:
+                # Never the pose of ``now`` stamped ``target`` as if known as well: nothing is known.
+                ekf.set(self._ekf.mean, _pose_unknown(self._ekf.cov, cfg))
             x, P = ekf.mean, ekf.cov
             if state is TrackState.TRACKING and self._is_lost(P, target):
                 state = TrackState.LOST

@@ -344,6 +344,24 @@ def _open_reader(path: Path):
     return reader
 
 
+def _messages(reader, path: Path, connections: list) -> Iterator[tuple[object, int, bytes]]:
+    """``reader.messages(connections=...)``, with a record the bag cannot give (damaged mid-file)
+    refused as a one-line :class:`SessionError` naming the bag and how far it was read: the messages
+    before it have been handed on (a replay's outputs and a converted session keep them)."""
+    it = iter(reader.messages(connections=connections))
+    n = 0
+    while True:
+        try:
+            item = next(it)
+        except StopIteration:
+            return
+        except Exception as exc:  # noqa: BLE001 - rosbags raises many error types for a damaged bag
+            reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise SessionError(f"{path}: damaged after {n} messages ({reason})") from exc
+        n += 1
+        yield item
+
+
 def is_bag(path: str | Path) -> bool:
     """Whether ``path`` looks like a bag (a rosbag2 directory or a ROS 1 .bag file) rather than a session."""
     p = Path(path)
@@ -451,7 +469,7 @@ class BagSession:
             if len({c.topic for c in infos}) != 1:
                 return None
             chosen = infos
-        for conn, _, raw in reader.messages(connections=chosen):
+        for conn, _, raw in _messages(reader, self.path, chosen):
             try:
                 return camera_from_info(reader.deserialize(raw, conn.msgtype))
             except InputError as exc:
@@ -479,7 +497,7 @@ class BagSession:
         reader = _open_reader(self.path)
         try:
             conns = [c for c in reader.connections if c.topic == self.topic]
-            for i, (conn, bag_ns, raw) in enumerate(reader.messages(connections=conns)):
+            for i, (conn, bag_ns, raw) in enumerate(_messages(reader, self.path, conns)):
                 try:
                     msg = reader.deserialize(raw, conn.msgtype)
                 except Exception:  # noqa: BLE001 - a corrupt message is one skipped frame
@@ -523,20 +541,29 @@ def bag_to_session(
     src = BagSession(bag, topic, map_path, rig_path, calibration, info_topic)
     written = skipped = 0
     with SessionWriter(out, src.map, src.rig, SessionInfo(source=src.info.source, fps=0.0), image_ext=".png") as w:
-        for i, t, msg, msgtype in tqdm(src.encoded_frames(), total=len(src), disable=not progress, unit="frame"):
-            if msg is not None and msgtype.endswith("CompressedImage") and "jpeg" in msg.format.lower():
-                data = bytes(msg.data)
-                if cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE) is not None:
-                    w.write_encoded(i, t, data, ".jpg")
+        try:
+            for item in tqdm(src.encoded_frames(), total=len(src), disable=not progress, unit="frame"):
+                if _convert(w, *item):
                     written += 1
-                    continue
-            img = None if msg is None else _image_to_grey(msg, msgtype)
-            if img is None:
-                skipped += 1
-                continue
-            w.write(i, t, img)
-            written += 1
+                else:
+                    skipped += 1
+        except SessionError as exc:
+            raise SessionError(f"{exc}; {out} holds the {written} frames before it") from exc
     return written, skipped
+
+
+def _convert(w: SessionWriter, i: int, t: float, msg: object, msgtype: str) -> bool:
+    """Write one bag image message to the session ``w``: False when it is skipped (undecodable)."""
+    if msg is not None and msgtype.endswith("CompressedImage") and "jpeg" in msg.format.lower():
+        data = bytes(msg.data)
+        if cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE) is not None:
+            w.write_encoded(i, t, data, ".jpg")
+            return True
+    img = None if msg is None else _image_to_grey(msg, msgtype)
+    if img is None:
+        return False
+    w.write(i, t, img)
+    return True
 
 
 @dataclass
@@ -563,7 +590,7 @@ def read_pose_messages(path: str | Path) -> Iterator[BagPose]:
             for c in reader.connections
             if c.topic.startswith("/tagloc/") and c.msgtype == POSE_TYPE and c.topic.rsplit("/", 1)[0] not in have_json
         ]
-        for conn, ns, raw in reader.messages(connections=json_conns + pose_conns):
+        for conn, ns, raw in _messages(reader, Path(path), json_conns + pose_conns):
             msg = reader.deserialize(raw, conn.msgtype)
             if conn.msgtype == STRING_TYPE:
                 try:
