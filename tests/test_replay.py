@@ -105,7 +105,7 @@ def test_replay_is_deterministic_and_scores_against_ground_truth(session, tmp_pa
         runs.append((out.read_bytes(), log.read_bytes(), r.stdout))
     assert runs[0][0] == runs[1][0] and runs[0][1] == runs[1][1]
     stdout = runs[0][2]
-    assert f"frames: {N} (1 unreadable" in stdout and "error vs ground truth" in stdout
+    assert f"frames: {N} (1 skipped" in stdout and "error vs ground truth" in stdout
 
     stamps, T = read_tum(tmp_path / "est0.tum")
     assert len(stamps) >= N - 4  # a pose per frame once tracking (the unreadable frame gets the prediction)
@@ -133,3 +133,32 @@ def test_replay_metrics_match_the_library(session, tmp_path):
     assert res.metrics["frames"] == res.posed
     assert res.metrics["rmse_m"] < 0.10 and res.metrics["within_25cm"] > 0.9
     assert sum(res.fixes.values()) >= N // 2 and res.fixes.get("decoded", 0) >= N // 4
+
+
+def test_frames_of_another_size_are_skipped_and_counted_and_none_usable_is_an_error(session, tmp_path, capsys):
+    """A frame whose size is not the calibration's is skipped and counted with the unreadable ones;
+    a session none of whose frames can be used is an error naming it and why, not a run (exit 0)."""
+    import shutil
+
+    import cv2
+
+    from tagloc.cli import main
+
+    small = cv2.imencode(".jpg", np.full((48, 64), 128, np.uint8))[1].tobytes()
+    one = tmp_path / "one_small"
+    shutil.copytree(session, one)
+    (one / "frames" / "000007.jpg").write_bytes(small)
+    assert main(["replay", str(one), "--quiet"]) == 0
+    out = capsys.readouterr()
+    assert f"frames: {N} (2 skipped" in out.out  # frame 5 unreadable, frame 7 the wrong size
+
+    every = tmp_path / "all_small"
+    shutil.copytree(session, every)
+    for f in (every / "frames").iterdir():
+        f.write_bytes(small)
+    assert main(["replay", str(every), "--quiet", "--out", str(tmp_path / "e.tum")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == (
+        f"tagloc replay: error: {every}: none of its {N} frames could be used "
+        "(frame 0: image is 64x48, the calibration is for 1296x972)"
+    )

@@ -13,7 +13,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from tagloc.core.errors import InputError
+from tagloc.core.errors import InputError, SessionError
 from tagloc.core.types import FrameResult
 from tagloc.eval.metrics import trajectory_metrics
 from tagloc.io.session import SessionReader
@@ -79,7 +79,8 @@ class ReplayResult:
     """What a replay produced.
 
     Attributes:
-        frames: frames processed; skipped: unreadable frames; posed: frames with a pose.
+        frames: frames processed; skipped: frames skipped (unreadable, or not the calibration's
+            size); posed: frames with a pose.
         fixes: accepted fixes by identification source.
         seconds: wall time; metrics: :func:`tagloc.eval.metrics.trajectory_metrics` or None without GT.
         outputs: the output path's counts; warnings: what the session reader noticed (e.g. clock jumps).
@@ -99,7 +100,7 @@ class ReplayResult:
         fps = self.frames / self.seconds if self.seconds > 0 else 0.0
         by = ", ".join(f"{k} {v}" for k, v in sorted(self.fixes.items())) or "none"
         lines = [
-            f"frames: {self.frames} ({self.skipped} unreadable, {self.posed} with a pose) in "
+            f"frames: {self.frames} ({self.skipped} skipped, {self.posed} with a pose) in "
             f"{self.seconds:.1f} s ({fps:.1f} fps)",
             f"fixes: {sum(self.fixes.values())} ({by})",
             *self.warnings,
@@ -130,6 +131,7 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
     # (its quaternions pull in scipy.spatial, which a replay's start-up need not wait for).
     gt = session.groundtruth() if cfg.rerun_save or cfg.spawn else None
     fixes: dict[str, int] = {}
+    first_skip: list[str] = []  # why the first skipped frame was skipped, for a run where all were
     outputs = Outputs(
         session.map,
         session.rig,
@@ -153,6 +155,8 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
             outputs.add_sink(bag)
 
         def on_result(res: FrameResult) -> None:
+            if res.skipped is not None and not first_skip:
+                first_skip.append(res.skipped)
             for o in res.observations:
                 if o.accepted:
                     fixes[o.source.value] = fixes.get(o.source.value, 0) + 1
@@ -183,6 +187,10 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
         seconds = time.monotonic() - t0
     finally:
         summary = outputs.close()
+    skipped = int(run.counts.get("skipped", 0))
+    if len(run.stamps) and skipped == len(run.stamps):
+        # Nothing was localised: not a result to report as a run (exit 0), whatever was written.
+        raise SessionError(f"{cfg.session}: none of its {skipped} frames could be used ({first_skip[0]})")
     metrics = None
     if gt is None and not (cfg.rerun_save or cfg.spawn):
         gt = session.groundtruth()
@@ -198,6 +206,4 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
     if flickered:
         # Worth knowing on site: the lamps flicker (see the README's "Lamp flicker").
         notes.append(f"lamp flicker: divided out of {flickered} of {len(run.stamps)} frames")
-    return ReplayResult(
-        len(run.stamps), len(session.skipped), int(run.valid.sum()), fixes, seconds, metrics, summary, notes
-    )
+    return ReplayResult(len(run.stamps), skipped, int(run.valid.sum()), fixes, seconds, metrics, summary, notes)
