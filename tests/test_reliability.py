@@ -481,6 +481,29 @@ def test_12_an_output_that_cannot_be_created_is_refused_before_the_work(session,
     assert time.monotonic() - t0 < 10
 
 
+@pytest.mark.parametrize(
+    ("argv", "fragment"),
+    [
+        (["--out", "{session}/frames.csv"], "--out names one of the inputs it would overwrite"),
+        (["--log", "{session}/map.csv"], "--log names one of the inputs it would overwrite"),
+        (["--png", "{session}/frames/000003.jpg"], "--png names one of the inputs it would overwrite"),
+        (["--out", "{tmp}/x", "--log", "{tmp}/x"], "--out and --log name the same file"),
+        (["--out", "{tmp}/x", "--rerun", "{tmp}/sub/../x"], "--out and --rerun name the same file"),
+    ],
+)
+def test_12_an_output_over_an_input_or_another_output_is_refused(session, tmp_path, capsys, argv, fragment):
+    """A replay writing over the session it reads (the next replay would refuse it), or two outputs
+    into one file (interleaved, neither readable): refused before the work, nothing touched."""
+    (tmp_path / "sub").mkdir()
+    before = {p: p.read_bytes() for p in session.rglob("*") if p.is_file()}
+    code, _, err = run_cli(
+        capsys, "replay", str(session), "--quiet", *[a.format(session=session, tmp=tmp_path) for a in argv]
+    )
+    one_line_error(code, err, fragment)
+    assert {p: p.read_bytes() for p in session.rglob("*") if p.is_file()} == before
+    assert not (tmp_path / "x").exists()
+
+
 def test_12_no_permission_is_refused(tmp_path, capsys):
     if os.geteuid() == 0:
         pytest.skip("root writes anywhere")

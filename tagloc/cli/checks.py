@@ -53,3 +53,22 @@ def _creatable(directory: Path, target: Path, option: str) -> None:
         raise InputError(f"{target}: {option}: {d} is a file, not a directory")
     if not os.access(d, os.W_OK | os.X_OK):
         raise InputError(f"{target}: {option}: no permission to write in {d}")
+
+
+def outputs_apart(
+    outputs: list[tuple[str, Path | None]], inputs: list[Path | None], input_dirs: list[Path] = ()
+) -> None:
+    """Refuse two options that write the same file, and an output that is one of the run's ``inputs``
+    or lies in one of ``input_dirs`` (a session's frames): a run must not overwrite what it reads."""
+    seen: dict[Path, str] = {}
+    read = {Path(os.path.realpath(p)) for p in inputs if p is not None}
+    dirs = [Path(os.path.realpath(d)) for d in input_dirs]
+    for option, path in outputs:
+        if path is None:
+            continue
+        real = Path(os.path.realpath(path))
+        if real in seen:
+            raise InputError(f"{path}: {seen[real]} and {option} name the same file")
+        if real in read or any(d in real.parents or d == real for d in dirs):
+            raise InputError(f"{path}: {option} names one of the inputs it would overwrite")
+        seen[real] = option

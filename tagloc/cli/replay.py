@@ -64,9 +64,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from tagloc.apps.replay import ReplayConfig, replay
     from tagloc.cli import checks
+    from tagloc.io.rosbag import is_bag
+    from tagloc.io.session import FRAMES_DIR, SESSION_INPUTS
 
-    for option, path in (("--out", args.out), ("--log", args.log), ("--rerun", args.rerun)):
+    outputs = [("--out", args.out), ("--log", args.log), ("--rerun", args.rerun), ("--png", args.png)]
+    for option, path in outputs:
         checks.output_file(path, option)
+    checks.outputs_apart(
+        [*outputs, ("--bag", args.bag)],
+        [*(args.session / name for name in SESSION_INPUTS), args.map, args.rig, args.calibration],
+        [args.session / FRAMES_DIR] if args.session.is_dir() and not is_bag(args.session) else [args.session],
+    )
 
     res = replay(
         ReplayConfig(

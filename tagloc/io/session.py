@@ -47,6 +47,16 @@ MAP_FILE = "map.csv"
 FRAMES_DIR = "frames"
 FRAMES_CSV = "frames.csv"
 GROUNDTRUTH_FILE = "groundtruth.tum"
+# The files of a session directory that a run reads besides its frames (an output must not be one).
+SESSION_INPUTS = (
+    SESSION_JSON,
+    CAMERA_FILE,
+    RIG_FILE,
+    MAP_FILE,
+    FRAMES_CSV,
+    GROUNDTRUTH_FILE,
+    "groundtruth_frames.jsonl",
+)
 # A step between consecutive frames longer than this is reported as a clock jump (s). 5 s: longer
 # than any pause of a recording camera we know of, and longer than the tracker keeps a track
 # without fixes, so the track is lost across it either way.
