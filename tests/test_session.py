@@ -10,7 +10,7 @@ from tagloc.core.errors import SessionError
 from tagloc.core.geometry import make_T
 from tagloc.core.rig import default_rig
 from tagloc.core.stickermap import StickerMap
-from tagloc.io.session import SessionInfo, SessionReader, SessionWriter, read_tum, write_tum
+from tagloc.io.session import SessionInfo, SessionReader, SessionWriter, read_image, read_tum, write_tum
 
 N = 6
 
@@ -136,3 +136,17 @@ def test_groundtruth_in_session(tmp_path, rng):
     write_tum(tmp_path / "s" / "groundtruth.tum", np.array([0.5]), [np.eye(4)])
     t, T = SessionReader(tmp_path / "s").groundtruth()
     assert t.tolist() == [0.5] and T[0] == pytest.approx(np.eye(4))
+
+
+def test_a_frame_that_is_a_device_or_huge_is_skipped_not_read(tmp_path, monkeypatch):
+    """A frame symlinked to /dev/zero would be read without end (the process killed for memory)."""
+    from tagloc.io import session as session_io
+
+    dev = tmp_path / "000001.jpg"
+    dev.symlink_to("/dev/zero")
+    assert read_image(dev) == (None, "000001.jpg: not a regular file")
+    big = tmp_path / "000002.jpg"
+    big.write_bytes(b"\xff" * 2000)
+    monkeypatch.setattr(session_io, "MAX_FRAME_BYTES", 1000)
+    img, why = read_image(big)
+    assert img is None and "more than any frame" in why

@@ -22,6 +22,7 @@ import csv
 import json
 import math
 import os
+import stat
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -61,6 +62,8 @@ SESSION_INPUTS = (
 # than any pause of a recording camera we know of, and longer than the tracker keeps a track
 # without fixes, so the track is lost across it either way.
 CLOCK_JUMP_S = 5.0
+# A frame file larger than this is not a camera frame: 12 MP as 8-bit RGB, uncompressed, is 36 MB.
+MAX_FRAME_BYTES = 64_000_000
 MAX_FPS = 1000.0  # a frame rate above this in session.json is a typo, not a camera
 IMAGE_EXTENSIONS = (".jpg", ".png", ".jpeg", ".bmp", ".tif", ".tiff")
 
@@ -140,6 +143,14 @@ def read_image(path: Path) -> tuple[np.ndarray | None, str | None]:
     stuffed or a restart marker, so FF D9 near the end appears only when the file is complete.
     """
     try:
+        # A device or pipe in the frames (a symlink to /dev/zero) would be read without end.
+        if not stat.S_ISREG(path.stat().st_mode):
+            return None, f"{path.name}: not a regular file"
+        if path.stat().st_size > MAX_FRAME_BYTES:
+            return (
+                None,
+                f"{path.name}: {path.stat().st_size / 1e6:.0f} MB, more than any frame ({MAX_FRAME_BYTES / 1e6:.0f} MB)",
+            )
         data = path.read_bytes()
     except OSError as exc:
         return None, f"{path.name}: cannot read ({exc.strerror})"
