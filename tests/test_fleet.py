@@ -249,6 +249,37 @@ def test_live_monitor_through_a_real_broker(tmp_path, demo_map_path, capsys):
             sink.close()
         broker.stop()
     s = result["summary"]
+    assert s.broker_reached and s.broker is None  # connected to the end
     assert s.counts["vests"] == 1 and s.counts["received"] == 20 and s.counts["invalid"] == 0
     assert "fleet/vests/markers" in read_rrd(tmp_path / "m.rrd")
     assert " 1 vests, " in capsys.readouterr().out  # the headless status lines
+
+
+def test_a_monitor_that_cannot_reach_its_broker_says_so(demo_map_path, capsys):
+    """No broker: not an empty fleet reported as if the warehouse were empty (exit 1, and every status
+    block says the broker is not connected)."""
+    import socket
+
+    from tagloc.cli import main
+
+    with socket.socket() as s:  # a port nothing listens on once this closes
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    code = main(
+        [
+            "monitor",
+            "--map",
+            str(demo_map_path),
+            f"mqtt://127.0.0.1:{port}",
+            "--max-seconds",
+            "1",
+            "--print-every",
+            "0.3",
+        ]
+    )
+    out = capsys.readouterr().out
+    assert code == 1
+    assert f"  not connected to the broker 127.0.0.1:{port} (retrying)" in out
+    assert out.rstrip().endswith(
+        f"warning: never connected to the broker 127.0.0.1:{port}: no vest's messages were received"
+    )

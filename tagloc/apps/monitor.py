@@ -68,6 +68,8 @@ class MonitorSummary:
     counts: dict
     warnings: list
     seconds: float
+    broker: str | None = None  # why the broker's messages may be missing (live), else None
+    broker_reached: bool = True  # False: a live monitor never reached its broker (the CLI exits 1)
 
     def format(self) -> str:
         c = self.counts
@@ -75,6 +77,8 @@ class MonitorSummary:
             f"{c['vests']} vests; {c['received']} messages ({c['invalid']} invalid, {c['reordered']} out of order, "
             f"{c['expired']} expired) in {self.seconds:.1f} s"
         ]
+        if self.broker is not None:
+            lines.append(f"warning: {self.broker}")
         lines += [f"warning: {w.vest}: {w.kind}: {w.text}" for w in self.warnings]
         return "\n".join(lines)
 
@@ -100,7 +104,11 @@ def run_monitor(
         view = FleetView(smap, save=cfg.save, spawn=cfg.spawn, connect=cfg.connect)
     t0 = time.monotonic()
     try:
-        state, now = _from_bag(cfg, view) if cfg.from_bag else _live(cfg, view, stop or threading.Event(), subscribed)
+        broker, reached = None, True
+        if cfg.from_bag:
+            state, now = _from_bag(cfg, view)
+        else:
+            state, now, broker, reached = _live(cfg, view, stop or threading.Event(), subscribed)
     finally:
         if view is not None:
             view.close()
@@ -108,7 +116,7 @@ def run_monitor(
         from tagloc.io.fleet_plot import plot_fleet
 
         plot_fleet(state, smap, now, cfg.png)
-    return MonitorSummary(state.counts(), state.warnings(now), time.monotonic() - t0)
+    return MonitorSummary(state.counts(), state.warnings(now), time.monotonic() - t0, broker, reached)
 
 
 def _from_bag(cfg: MonitorConfig, view) -> tuple[FleetState, float]:
@@ -135,7 +143,9 @@ def _from_bag(cfg: MonitorConfig, view) -> tuple[FleetState, float]:
 
 def _live(
     cfg: MonitorConfig, view, stop: threading.Event, subscribed: threading.Event | None
-) -> tuple[FleetState, float]:
+) -> tuple[FleetState, float, str | None, bool]:
+    """Follow the broker until stopped: (the fleet, the time, a note if the broker was not reached
+    or was lost, whether it was ever reached)."""
     host, port, topic = parse_mqtt_url(cfg.url)
     state = FleetState(cfg.fleet)
     sub = FleetSubscriber(host, port, topic, state, client_id="tagloc-monitor", subscribed=subscribed)
@@ -153,14 +163,23 @@ def _live(
                     view.update(state, now)
                 if cfg.print_every_s and now >= next_print:
                     print(status_text(state, now), flush=True)
+                    if not sub.connected.is_set():
+                        print(f"  not connected to the broker {host}:{port} (retrying)", flush=True)
                     next_print = now + cfg.print_every_s
             stop.wait(period)
     except KeyboardInterrupt:
         pass
     finally:
         restore()
+        # Read before closing: the close disconnects.
+        ever, still = sub.ever_connected.is_set(), sub.connected.is_set()
         sub.close()
-    return state, time.time()
+    note = None
+    if not ever:
+        note = f"never connected to the broker {host}:{port}: no vest's messages were received"
+    elif not still:
+        note = f"the connection to the broker {host}:{port} was lost before the end"
+    return state, time.time(), note, ever
 
 
 def _stop_on_signals(stop: threading.Event):

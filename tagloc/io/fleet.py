@@ -292,11 +292,23 @@ class FleetSubscriber:
         self._hook = on_message
         self.client = mqtt.Client(callback_api_version=mqtt.CallbackAPIVersion.VERSION2, client_id=client_id)
         self.client.reconnect_delay_set(1, 2)
-        self.client.on_connect = lambda c, u, f, rc, p: c.subscribe(topic, qos=0)
+        # Whether the broker is there now, and was ever: a monitor that cannot reach its broker
+        # must say so, not report an empty fleet as if the warehouse were empty.
+        self.connected = threading.Event()
+        self.ever_connected = threading.Event()
+        self.client.on_connect = self._on_connect
+        self.client.on_disconnect = lambda c, u, flags, rc, p: self.connected.clear()
         self.client.on_subscribe = lambda c, u, mid, rcs, p: self.subscribed.set()
         self.client.on_message = self._on_message
         self.client.connect_async(host, port, keepalive=keepalive)
         self.client.loop_start()
+
+    def _on_connect(self, client, userdata, flags, reason_code, properties) -> None:
+        if reason_code.is_failure:
+            return
+        self.connected.set()
+        self.ever_connected.set()
+        client.subscribe(self.topic, qos=0)
 
     def _on_message(self, client, userdata, message) -> None:
         received = self._time()

@@ -232,7 +232,7 @@ class SessionReader:
             )
         for k in np.flatnonzero(steps > CLOCK_JUMP_S)[:5]:
             self.warnings.append(
-                f"{p}: frame {int(self.index[k + 1])}: timestamp jumps {steps[k]:.1f} s forward "
+                f"{p}: frame {int(self.index[k + 1])}: timestamp jumps {steps[k]:.4g} s forward "
                 "(the track will be lost and found again)"
             )
 
