@@ -312,3 +312,22 @@ def test_corrupt_image_messages_are_skipped_and_counted(tmp_path):
     assert len(bag.skipped) == 1 and "frame 1" in bag.skipped[0][1] and "corrupt" in got[1].error
     n, skipped = bag_to_session(path, "/cam/image/compressed", tmp_path / "s", WALK / "map.csv", WALK / "rig.json")
     assert (n, skipped) == (2, 1)
+
+
+def test_an_unreadable_source_directory_is_named_as_given(tmp_path, monkeypatch):
+    """A session directory the user may not read: the error names it, not metadata.yaml inside it
+    (probed to tell a bag from a session). Stat is refused as for a mode-000 directory and a non-root user."""
+    from tagloc.io.rosbag import is_bag
+
+    d = tmp_path / "sess"
+    d.mkdir()
+    real_exists = Path.exists
+
+    def refused(self, *a, **k):
+        if self.parent == d:
+            raise PermissionError(13, "Permission denied", str(self))
+        return real_exists(self, *a, **k)
+
+    monkeypatch.setattr(Path, "exists", refused)
+    with pytest.raises(SessionError, match=rf"^{re.escape(str(d))}: no permission to read$"):
+        is_bag(d)

@@ -365,7 +365,11 @@ def _messages(reader, path: Path, connections: list) -> Iterator[tuple[object, i
 def is_bag(path: str | Path) -> bool:
     """Whether ``path`` looks like a bag (a rosbag2 directory or a ROS 1 .bag file) rather than a session."""
     p = Path(path)
-    return (p.is_dir() and (p / "metadata.yaml").exists()) or (p.is_file() and p.suffix == ".bag")
+    try:
+        return (p.is_dir() and (p / "metadata.yaml").exists()) or (p.is_file() and p.suffix == ".bag")
+    except PermissionError:
+        # Named as the user gave it, not as the file inside that was probed.
+        raise SessionError(f"{p}: no permission to read") from None
 
 
 def _image_to_grey(msg: object, msgtype: str) -> np.ndarray | None:
