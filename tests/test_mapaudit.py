@@ -148,3 +148,24 @@ def test_walks_keep_odometry_steps_and_the_run_log(site):
         assert sum(s is not None for s in steps) > 0.9 * len(steps)
         assert all(abs(s.t1 - fr.t) < 1e-9 for s, fr in zip(steps, walk.frames[1:]) if s is not None)
         assert walk.log is not None and len(walk.log.stamps) == len(walk.frames)
+
+
+def test_a_walk_with_no_usable_frame_is_refused_not_audited(site, tmp_path, capsys):
+    """Every frame unreadable: not an audit that finds every sticker in view "missing" (exit 2)."""
+    import shutil
+
+    walk = tmp_path / "blind"
+    shutil.copytree(site["sessions"][0], walk)
+    n = 0
+    for f in (walk / "frames").iterdir():
+        f.write_bytes(b"not a jpeg")
+        n += 1
+    code = main(
+        ["map", "audit", str(walk), "--map", str(site["root"] / "survey.csv"), "-o", str(tmp_path / "a"), "--quiet"]
+    )
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1
+    assert err[0].endswith(
+        f"{walk}: none of its {n} frames could be used (frame 0: 000000.jpg is corrupt: JPEG cut short (no end-of-image marker))"
+    )
+    assert not (tmp_path / "a").exists()
