@@ -185,6 +185,11 @@ def _rig_doc(T) -> str:
         ((np.diag([1.0, 1, -1, 1])).tolist(), "not a rigid transform"),  # a reflection
         ([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1]], "not a rigid transform"),
         ([["a", 0, 0, 0]] * 4, "not a 4x4 matrix of numbers"),
+        # Rigid, but no worn camera: below the floor, 500 m up, off in space, 5 m beside the wearer.
+        ([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, -1.3], [0, 0, 0, 1]], "at (0, 0, -1.3) m; a worn camera is 0-3 m"),
+        ([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 500], [0, 0, 0, 1]], "at (0, 0, 500) m"),
+        ([[1, 0, 0, 1e300], [0, 1, 0, 0], [0, 0, 1, 1.3], [0, 0, 0, 1]], "within 1 m of the body axis"),
+        ([[1, 0, 0, 0], [0, 1, 0, 5], [0, 0, 1, 1.3], [0, 0, 0, 1]], "at (0, 5, 1.3) m"),
     ],
 )
 def test_bad_T_body_camera_refused(tmp_path, T, fragment):

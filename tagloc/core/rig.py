@@ -166,6 +166,12 @@ def default_rig(height_m: float = 1.3, pitch_deg: float = 55.0, camera: Camera |
     return Rig([RigCamera("front", camera or default_camera(), looking_forward(height_m, pitch_deg))])
 
 
+# Bounds of a worn camera's position in the body frame (m): the vest height's own range (0-3 m) and
+# a torso's reach (a camera on the chest, back or shoulder is well inside 1 m of the body axis).
+MAX_CAMERA_HEIGHT_M = 3.0
+MAX_CAMERA_REACH_M = 1.0
+
+
 def _check_T(value: object, where: str) -> np.ndarray:
     try:
         T = np.asarray(value, float)
@@ -176,6 +182,13 @@ def _check_T(value: object, where: str) -> np.ndarray:
     R = T[:3, :3]
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0 or not np.allclose(T[3], [0, 0, 0, 1]):
         raise CalibrationError(f"{where}: T_body_camera is not a rigid transform")
+    # The body frame stands on the floor under the wearer: a worn camera is above the floor and
+    # within reach of the torso (metres off, every pose would be as far off, without a word).
+    if not 0.0 < T[2, 3] < MAX_CAMERA_HEIGHT_M or np.hypot(T[0, 3], T[1, 3]) > MAX_CAMERA_REACH_M:
+        raise CalibrationError(
+            f"{where}: T_body_camera puts the camera at ({T[0, 3]:.4g}, {T[1, 3]:.4g}, {T[2, 3]:.4g}) m; a worn "
+            f"camera is 0-{MAX_CAMERA_HEIGHT_M:g} m above the floor and within {MAX_CAMERA_REACH_M:g} m of the body axis"
+        )
     return T
 
 
