@@ -62,6 +62,39 @@ def test_missing_session_json_still_readable(tmp_path, rng):
     assert r.info.source == "unknown" and len(list(r.frames())) == 3 and r.skipped == []
 
 
+@pytest.mark.parametrize(
+    ("doc", "why"),
+    [
+        (
+            '{"format": "tagloc-session", "version": 99}',
+            "version 99 is newer than this tagloc reads (1); update tagloc",
+        ),
+        ('{"format": "tagloc-session", "version": "one"}', 'version must be a whole number from 1, got "one"'),
+        ('{"format": "tagloc-session", "version": true}', "version must be a whole number from 1, got true"),
+        ('{"format": "rosbag", "version": 1}', 'format is "rosbag", want "tagloc-session"'),
+        (
+            '{"version": 1, "fps": ' + "1" * 5000 + "}",
+            "not usable JSON (Exceeds the limit (4300 digits) for integer string conversion)",
+        ),
+    ],
+)
+def test_bad_session_json_refused_naming_it(tmp_path, rng, doc, why):
+    _write_session(tmp_path / "s", _images(rng, 2))
+    p = tmp_path / "s" / "session.json"
+    p.write_text(doc)
+    with pytest.raises(SessionError) as info:
+        SessionReader(tmp_path / "s")
+    assert str(info.value) == f"{p}: {why}"
+
+
+def test_session_json_without_format_or_version_read_as_version_1(tmp_path, rng):
+    # tagloc has written both keys since its first session format, so such a file is hand-made.
+    _write_session(tmp_path / "s", _images(rng, 2))
+    (tmp_path / "s" / "session.json").write_text('{"fps": 25, "source": "by hand"}')
+    r = SessionReader(tmp_path / "s")
+    assert (r.info.source, r.info.fps, len(r)) == ("by hand", 25.0, 2)
+
+
 def test_corrupt_and_missing_frames_skipped(tmp_path, rng):
     _write_session(tmp_path / "s", _images(rng), ext=".jpg")
     frames_dir = tmp_path / "s" / "frames"

@@ -186,6 +186,17 @@ class SessionReader:
         doc = read_json(p, SessionError)
         if not isinstance(doc, dict):
             raise SessionError(f"{p}: not a JSON object")
+        # Every tagloc writes both keys, so a file without them was made by hand: read as version 1.
+        fmt = doc.get("format", FORMAT)
+        if fmt != FORMAT:
+            raise SessionError(f"{p}: format is {json.dumps(fmt)[:40]}, want {json.dumps(FORMAT)}")
+        version = doc.get("version", VERSION)
+        if isinstance(version, bool) or not isinstance(version, int) or version < 1:
+            raise SessionError(f"{p}: version must be a whole number from 1, got {json.dumps(version)[:40]}")
+        if version > VERSION:
+            raise SessionError(
+                f"{p}: version {json.dumps(version)[:40]} is newer than this tagloc reads ({VERSION}); update tagloc"
+            )
         fps = doc.get("fps", 0.0)
         if fps is None:
             fps = 0.0
