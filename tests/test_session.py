@@ -123,6 +123,52 @@ def test_frames_csv_cut_mid_line(tmp_path, rng, keep):
     assert len([f for f in r.frames() if f.image is not None]) == 4
 
 
+@pytest.mark.parametrize("sj", [True, False])
+def test_frames_csv_malformed_last_line_refused_unless_cut_short(tmp_path, rng, sj):
+    _write_session(tmp_path / "s", _images(rng))
+    if not sj:
+        (tmp_path / "s" / "session.json").unlink()
+    csv_path = tmp_path / "s" / "frames.csv"
+    lines = csv_path.read_text().splitlines(keepends=True)
+    # Newline-terminated, so written whole: not a write cut short, whatever session.json says.
+    csv_path.write_text("".join(lines[:5]) + "4,abc\n")
+    with pytest.raises(SessionError) as info:
+        SessionReader(tmp_path / "s")
+    assert str(info.value) == f"{csv_path}:6: want 'index,timestamp_s', got '4,abc'"
+    # Unterminated: a recording cut short (dropped) only when session.json says tagloc wrote it.
+    csv_path.write_text("".join(lines[:5]) + "4,abc")
+    if sj:
+        assert list(SessionReader(tmp_path / "s").index) == [0, 1, 2, 3]
+    else:
+        with pytest.raises(SessionError) as info:
+            SessionReader(tmp_path / "s")
+        assert str(info.value) == f"{csv_path}:6: want 'index,timestamp_s', got '4,abc'"
+        # A hand-made file's unterminated last line is read like any other.
+        csv_path.write_text("".join(lines[:5]) + "4,200.5")
+        assert list(SessionReader(tmp_path / "s").index) == [0, 1, 2, 3, 4]
+
+
+@pytest.mark.parametrize("content", ["", "index,timestamp_s\n", "index,timestamp_s\n\n", "index,timestamp_s\n0,1."])
+def test_frames_csv_listing_no_frames_refused(tmp_path, rng, content):
+    _write_session(tmp_path / "s", _images(rng, 2))
+    csv_path = tmp_path / "s" / "frames.csv"
+    csv_path.write_text(content)
+    with pytest.raises(SessionError) as info:
+        SessionReader(tmp_path / "s")
+    assert str(info.value) == f"{csv_path}: lists no frames"
+
+
+def test_images_without_frames_csv_must_be_named_by_index(tmp_path, rng):
+    _write_session(tmp_path / "s", _images(rng, 2))
+    (tmp_path / "s" / "frames.csv").unlink()
+    assert list(SessionReader(tmp_path / "s").index) == [0, 1]  # the documented fallback
+    for f in (tmp_path / "s" / "frames").glob("*.png"):
+        f.rename(f.with_name("img" + f.name))
+    with pytest.raises(SessionError) as info:
+        SessionReader(tmp_path / "s")
+    assert str(info.value) == f"{tmp_path / 's'}: missing frames.csv and no image in frames/ is named by its index"
+
+
 def test_writer_refuses_existing_session(tmp_path, rng):
     _write_session(tmp_path / "s", _images(rng, 2))
     with pytest.raises(SessionError, match="already holds a session"):

@@ -234,7 +234,9 @@ class SessionReader:
             if not files:
                 raise SessionError(f"{self.path}: missing frames.csv and no images in frames/")
             fps = self.info.fps or 30.0
-            idx = np.array([int(f.stem) for f in files if f.stem.isdigit()])
+            idx = np.array([int(f.stem) for f in files if f.stem.isdigit()], np.int64)
+            if not len(idx):
+                raise SessionError(f"{self.path}: missing frames.csv and no image in frames/ is named by its index")
             self.cameras = np.zeros(len(idx), np.int64)
             return idx, idx / fps
         index, stamps, cams = [], [], []
@@ -244,9 +246,12 @@ class SessionReader:
             raise SessionError(f"{p}: cannot read ({exc.strerror})") from exc
         if lines and not lines[-1].endswith("\n") and (self.path / SESSION_JSON).exists():
             # tagloc ends every line with a newline: an unterminated last line is a write cut short by a
-            # crash, and its number may be cut too ("12.5" -> "1"), so it is not trusted.
+            # crash, and its number may be cut too ("12.5" -> "1"), so it is not trusted. Any other
+            # line, the last one included, is the recording's own and must parse.
             lines = lines[:-1]
-        for n, row in enumerate(csv.reader(lines), 1):
+        rows = csv.reader(lines)
+        for row in rows:
+            n = rows.line_num
             if not row or (n == 1 and row[0].strip().lower() == "index"):
                 continue
             try:
@@ -254,8 +259,6 @@ class SessionReader:
                 if not 0 <= i < 10**9:
                     raise ValueError
             except (ValueError, IndexError):
-                if n == len(lines):  # a last line cut short by a crash while recording: stop there
-                    break
                 raise SessionError(f"{p}:{n}: want 'index,timestamp_s', got {','.join(row)!r}") from None
             if not np.isfinite(t):
                 raise SessionError(f"{p}:{n}: timestamp is not finite")
@@ -265,6 +268,8 @@ class SessionReader:
             index.append(i)
             stamps.append(t)
             cams.append(int(cam))
+        if not index:
+            raise SessionError(f"{p}: lists no frames")
         self.cameras = np.array(cams, np.int64)
         return np.array(index, np.int64), np.array(stamps, float)
 
