@@ -209,6 +209,31 @@ def test_tum_comments_and_errors(tmp_path):
         read_tum(p)
 
 
+@pytest.mark.parametrize(
+    ("line", "why"),
+    [
+        ("2.0 1 2 NaN 0 0 0 1", "z is 'NaN' (must be finite)"),
+        ("inf 1 2 3 0 0 0 1", "timestamp is 'inf' (must be finite)"),
+        ("2.0 1 2 3 0 0 0 1 4", "want 8 numbers (timestamp x y z qx qy qz qw), got 9"),
+    ],
+)
+def test_tum_line_errors_say_what_is_wrong(tmp_path, line, why):
+    p = tmp_path / "x.tum"
+    p.write_text(f"1.0 1 2 3 0 0 0 1\n{line}\n")
+    with pytest.raises(SessionError) as info:
+        read_tum(p)
+    assert str(info.value) == f"{p}:2: {why}"
+
+
+def test_bad_groundtruth_refused_when_the_session_is_opened(tmp_path, rng):
+    _write_session(tmp_path / "s", _images(rng, 2))
+    p = tmp_path / "s" / "groundtruth.tum"
+    p.write_text("0.0 0 0 0 0 0 0 1\n0.1 nan 0 0 0 0 0 1\n")
+    with pytest.raises(SessionError) as info:
+        SessionReader(tmp_path / "s")  # before any frame is read, not when groundtruth() is asked
+    assert str(info.value) == f"{p}:2: x is 'nan' (must be finite)"
+
+
 def test_groundtruth_in_session(tmp_path, rng):
     _write_session(tmp_path / "s", _images(rng, 2))
     assert SessionReader(tmp_path / "s").groundtruth() is None
