@@ -239,7 +239,7 @@ class Outputs:
                 try:
                     c.close()
                 except OSError as exc:  # a full disk on the last flush: report it, close the rest
-                    errors.append(f"{getattr(c, 'name', c)}: {exc.strerror or exc}")
+                    errors.append(f"{getattr(c, 'name', type(c).__name__)}: {exc.strerror or exc}")
             self.summary.sinks = {s.name: s.counts() for s in self.sinks}
             if errors:
                 raise InputError("; ".join(errors))
