@@ -217,6 +217,14 @@ def test_bad_rig_files_refused(tmp_path):
         load_rig(p)  # the calibration it names is missing
 
 
+def test_rig_file_with_an_integer_too_long_to_convert_refused(tmp_path):
+    p = tmp_path / "rig.json"
+    p.write_text('{"cameras": [], "n": ' + "9" * 5001 + "}")  # valid JSON; Python converts at most 4300 digits
+    with pytest.raises(CalibrationError) as info:
+        load_rig(p)
+    assert str(info.value) == f"{p}: not usable JSON (Exceeds the limit (4300 digits) for integer string conversion)"
+
+
 def test_default_rig_sees_floor_ahead():
     rig = default_rig()
     cam = rig[0]

@@ -258,6 +258,21 @@ def test_multi_capture_merges_cameras_in_time_order():
     cap.stop()
 
 
+def test_multi_capture_names_each_cameras_skipped_frames():
+    class Blank(Stamped):
+        def read(self):
+            f = super().read()
+            if f is not None and f.index == 1:
+                f.image, f.error = None, "frame 1: empty frame"
+            return f
+
+    cap = capture.MultiCapture([Stamped([0.0, 0.1]), Blank([0.05, 0.15])], buffer=8, pace=False).start()
+    while cap.get(timeout=5.0) is not None:
+        pass
+    assert cap.take_skipped() == ["camera 1: frame 1: empty frame"] and cap.stats.skipped == 1
+    cap.stop()
+
+
 def test_live_with_two_cameras_records_both(tmp_path):
     from tagloc.eval.multicam import front_rear_rig
 

@@ -252,6 +252,27 @@ def test_cli_builds_the_bank(tmp_path, capsys):
     assert "bad.csv" in capsys.readouterr().err
 
 
+def test_an_asked_for_bank_file_that_cannot_be_written_is_an_error(tmp_path, capsys, monkeypatch):
+    m = tmp_path / "site.csv"
+    write_map(m, [5, 6])
+    out = tmp_path / "no_dir" / "x.npz"
+    assert cli_main(["refs", "build", str(m), "--quiet", "-o", str(out)]) == 2
+    cap = capsys.readouterr()
+    assert cap.out == "" and cap.err == f"tagloc refs: error: {out}: cannot write (no directory {out.parent})\n"
+
+    import tagloc.vision.refs as refs
+
+    def full_disk(bank, path):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(refs, "save_refs", full_disk)
+    # The cache beside the map is a convenience: not writing it costs a rebuild next time, no more.
+    assert list(load_or_build_refs(m, progress=False).ids) == [5, 6]
+    with pytest.raises(InputError) as info:
+        load_or_build_refs(m, progress=False, cache_path=tmp_path / "x.npz")
+    assert str(info.value) == f"{tmp_path / 'x.npz'}: cannot write (No space left on device)"
+
+
 def test_degenerate_detection_is_refused(bank, floor):
     img, det = view(IDS[3], 0, 30, 0, 8, floor)
     flat = Detection(np.array([[100.0, 100.0], [200.0, 100.0], [300.0, 100.0], [150.0, 100.0]]))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -147,6 +148,24 @@ def test_session_source_skips_and_counts_corrupt_frames(tmp_path):
     got = drain(cap)
     cap.stop()
     assert got == [0, 1, 3, 5] and cap.stats.skipped == 2 and cap.stats.ended == "end of session"
+    cut = "is corrupt: JPEG cut short (no end-of-image marker)"
+    assert cap.take_skipped() == [f"frame 2: 000002.jpg {cut}", f"frame 4: 000004.jpg {cut}"]
+    assert cap.take_skipped() == []  # each named once
+
+
+def test_live_names_the_corrupt_frames_it_skips_as_replay_does(session, tmp_path, capsys):
+    s = tmp_path / "s"
+    shutil.copytree(session, s)
+    for k in (3, 7):
+        (s / "frames" / f"{k:06d}.jpg").write_bytes(b"\xff\xd8 truncated")
+    summary = run_live(LiveConfig(source=str(s), pace=False), localiser=EchoLocaliser(session))
+    assert summary.frames == N - 2 and summary.capture.skipped == 2
+    warnings = [ln for ln in capsys.readouterr().err.splitlines() if "warning" in ln]
+    # Rate-limited like replay's: the first named, the rest counted in the summary.
+    assert warnings == [
+        "tagloc: warning: skipped frame 3: 000003.jpg is corrupt: JPEG cut short (no end-of-image marker)"
+    ]
+    assert summary.outputs.warnings == 1 and "skipped 2 (corrupt)" in summary.format()
 
 
 class EchoLocaliser:
@@ -280,7 +299,7 @@ def test_recording_killed_mid_run_replays_every_written_frame(session, video, tm
     r = cli("replay", str(rec), "--out", str(tmp_path / "est.tum"), "--quiet")
     out, err = r.communicate(timeout=120)
     assert r.returncode == 0, err
-    assert f"frames: {len(frames)} (0 unreadable" in out
+    assert f"frames: {len(frames)} (0 skipped" in out
 
 
 @pytest.mark.skipif(MOSQUITTO is None, reason="mosquitto binary not installed (apt install mosquitto)")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -12,6 +13,7 @@ import numpy as np
 import pytest
 from conftest_io import line_map, make_session, truth_xy
 
+from tagloc.core.errors import SessionError
 from tagloc.core.geometry import planar_T
 from tagloc.eval.metrics import interpolate_groundtruth, trajectory_metrics
 from tagloc.io.session import read_tum
@@ -162,3 +164,17 @@ def test_frames_of_another_size_are_skipped_and_counted_and_none_usable_is_an_er
         f"tagloc replay: error: {every}: none of its {N} frames could be used "
         "(frame 0: image is 64x48, the calibration is for 1296x972)"
     )
+
+
+def test_replay_refuses_bad_ground_truth_before_it_writes_anything(session, tmp_path):
+    from tagloc.apps.replay import ReplayConfig, replay
+
+    s = shutil.copytree(session, tmp_path / "s")
+    gt = s / "groundtruth.tum"
+    lines = gt.read_text().splitlines(keepends=True)
+    gt.write_text("".join(lines[:9]) + "1.0 0 0 0 0 0 0 NaN\n" + "".join(lines[10:]))
+    out, log = tmp_path / "e.tum", tmp_path / "frames.jsonl"
+    with pytest.raises(SessionError) as info:
+        replay(ReplayConfig(session=s, out=out, log=log, progress=False))
+    assert str(info.value) == f"{gt}:10: qw is 'NaN' (must be finite)"
+    assert not out.exists() and not log.exists()

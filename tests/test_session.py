@@ -62,6 +62,39 @@ def test_missing_session_json_still_readable(tmp_path, rng):
     assert r.info.source == "unknown" and len(list(r.frames())) == 3 and r.skipped == []
 
 
+@pytest.mark.parametrize(
+    ("doc", "why"),
+    [
+        (
+            '{"format": "tagloc-session", "version": 99}',
+            "version 99 is newer than this tagloc reads (1); update tagloc",
+        ),
+        ('{"format": "tagloc-session", "version": "one"}', 'version must be a whole number from 1, got "one"'),
+        ('{"format": "tagloc-session", "version": true}', "version must be a whole number from 1, got true"),
+        ('{"format": "rosbag", "version": 1}', 'format is "rosbag", want "tagloc-session"'),
+        (
+            '{"version": 1, "fps": ' + "1" * 5000 + "}",
+            "not usable JSON (Exceeds the limit (4300 digits) for integer string conversion)",
+        ),
+    ],
+)
+def test_bad_session_json_refused_naming_it(tmp_path, rng, doc, why):
+    _write_session(tmp_path / "s", _images(rng, 2))
+    p = tmp_path / "s" / "session.json"
+    p.write_text(doc)
+    with pytest.raises(SessionError) as info:
+        SessionReader(tmp_path / "s")
+    assert str(info.value) == f"{p}: {why}"
+
+
+def test_session_json_without_format_or_version_read_as_version_1(tmp_path, rng):
+    # tagloc has written both keys since its first session format, so such a file is hand-made.
+    _write_session(tmp_path / "s", _images(rng, 2))
+    (tmp_path / "s" / "session.json").write_text('{"fps": 25, "source": "by hand"}')
+    r = SessionReader(tmp_path / "s")
+    assert (r.info.source, r.info.fps, len(r)) == ("by hand", 25.0, 2)
+
+
 def test_corrupt_and_missing_frames_skipped(tmp_path, rng):
     _write_session(tmp_path / "s", _images(rng), ext=".jpg")
     frames_dir = tmp_path / "s" / "frames"
@@ -88,6 +121,52 @@ def test_frames_csv_cut_mid_line(tmp_path, rng, keep):
     r = SessionReader(tmp_path / "s")
     assert list(r.index) == [0, 1, 2, 3]
     assert len([f for f in r.frames() if f.image is not None]) == 4
+
+
+@pytest.mark.parametrize("sj", [True, False])
+def test_frames_csv_malformed_last_line_refused_unless_cut_short(tmp_path, rng, sj):
+    _write_session(tmp_path / "s", _images(rng))
+    if not sj:
+        (tmp_path / "s" / "session.json").unlink()
+    csv_path = tmp_path / "s" / "frames.csv"
+    lines = csv_path.read_text().splitlines(keepends=True)
+    # Newline-terminated, so written whole: not a write cut short, whatever session.json says.
+    csv_path.write_text("".join(lines[:5]) + "4,abc\n")
+    with pytest.raises(SessionError) as info:
+        SessionReader(tmp_path / "s")
+    assert str(info.value) == f"{csv_path}:6: want 'index,timestamp_s', got '4,abc'"
+    # Unterminated: a recording cut short (dropped) only when session.json says tagloc wrote it.
+    csv_path.write_text("".join(lines[:5]) + "4,abc")
+    if sj:
+        assert list(SessionReader(tmp_path / "s").index) == [0, 1, 2, 3]
+    else:
+        with pytest.raises(SessionError) as info:
+            SessionReader(tmp_path / "s")
+        assert str(info.value) == f"{csv_path}:6: want 'index,timestamp_s', got '4,abc'"
+        # A hand-made file's unterminated last line is read like any other.
+        csv_path.write_text("".join(lines[:5]) + "4,200.5")
+        assert list(SessionReader(tmp_path / "s").index) == [0, 1, 2, 3, 4]
+
+
+@pytest.mark.parametrize("content", ["", "index,timestamp_s\n", "index,timestamp_s\n\n", "index,timestamp_s\n0,1."])
+def test_frames_csv_listing_no_frames_refused(tmp_path, rng, content):
+    _write_session(tmp_path / "s", _images(rng, 2))
+    csv_path = tmp_path / "s" / "frames.csv"
+    csv_path.write_text(content)
+    with pytest.raises(SessionError) as info:
+        SessionReader(tmp_path / "s")
+    assert str(info.value) == f"{csv_path}: lists no frames"
+
+
+def test_images_without_frames_csv_must_be_named_by_index(tmp_path, rng):
+    _write_session(tmp_path / "s", _images(rng, 2))
+    (tmp_path / "s" / "frames.csv").unlink()
+    assert list(SessionReader(tmp_path / "s").index) == [0, 1]  # the documented fallback
+    for f in (tmp_path / "s" / "frames").glob("*.png"):
+        f.rename(f.with_name("img" + f.name))
+    with pytest.raises(SessionError) as info:
+        SessionReader(tmp_path / "s")
+    assert str(info.value) == f"{tmp_path / 's'}: missing frames.csv and no image in frames/ is named by its index"
 
 
 def test_writer_refuses_existing_session(tmp_path, rng):
@@ -128,6 +207,31 @@ def test_tum_comments_and_errors(tmp_path):
     p.write_text("1.0 1 2 3 0 0 0 1\n2.0 1 x 3 0 0 0 1\n")
     with pytest.raises(SessionError, match=f"{p}:2: not a TUM line"):
         read_tum(p)
+
+
+@pytest.mark.parametrize(
+    ("line", "why"),
+    [
+        ("2.0 1 2 NaN 0 0 0 1", "z is 'NaN' (must be finite)"),
+        ("inf 1 2 3 0 0 0 1", "timestamp is 'inf' (must be finite)"),
+        ("2.0 1 2 3 0 0 0 1 4", "want 8 numbers (timestamp x y z qx qy qz qw), got 9"),
+    ],
+)
+def test_tum_line_errors_say_what_is_wrong(tmp_path, line, why):
+    p = tmp_path / "x.tum"
+    p.write_text(f"1.0 1 2 3 0 0 0 1\n{line}\n")
+    with pytest.raises(SessionError) as info:
+        read_tum(p)
+    assert str(info.value) == f"{p}:2: {why}"
+
+
+def test_bad_groundtruth_refused_when_the_session_is_opened(tmp_path, rng):
+    _write_session(tmp_path / "s", _images(rng, 2))
+    p = tmp_path / "s" / "groundtruth.tum"
+    p.write_text("0.0 0 0 0 0 0 0 1\n0.1 nan 0 0 0 0 0 1\n")
+    with pytest.raises(SessionError) as info:
+        SessionReader(tmp_path / "s")  # before any frame is read, not when groundtruth() is asked
+    assert str(info.value) == f"{p}:2: x is 'nan' (must be finite)"
 
 
 def test_groundtruth_in_session(tmp_path, rng):

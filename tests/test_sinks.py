@@ -7,12 +7,15 @@ import json
 import math
 import socket
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 from mosquitto import MOSQUITTO, Broker, Subscriber
 
 from tagloc.core.errors import InputError
+from tagloc.core.rig import default_rig
+from tagloc.core.stickermap import StickerMap
 from tagloc.core.types import (
     Detection,
     Fix,
@@ -36,6 +39,7 @@ from tagloc.io.sinks import (
     frame_result_json,
     open_sink,
 )
+from tagloc.pipeline.output import OutputConfig, Outputs
 
 
 def output(t: float = 1.25, state: TrackState = TrackState.TRACKING, yaw: float = 0.5) -> TrackerOutput:
@@ -120,6 +124,17 @@ def test_frame_log_is_reproducible_without_times(tmp_path):
     assert "times_ms" not in doc and "times_ms" not in doc["observations"][0]
     timed = frame_result_json(result(0, 0.0), include_times=True)
     assert timed["times_ms"]["detect"] == pytest.approx(5.5)
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full (Linux)")
+def test_a_frame_log_on_a_full_disk_is_named_in_the_error():
+    smap = StickerMap([42], [[0.0, 0.0]], [0.0])
+    out = Outputs(smap, default_rig(), OutputConfig(log=Path("/dev/full")), warn=lambda m: None)
+    with pytest.raises(OSError):
+        out.emit(result(0, 0.0))  # the line's flush
+    with pytest.raises(InputError) as info:
+        out.close()  # the rest of the buffer, again: reported with the file's name
+    assert str(info.value) == "/dev/full: No space left on device"
 
 
 @pytest.mark.parametrize("bad", ["udp://127.0.0.1", "tcp://host:1", "udp://:9000", "udp://h:notaport"])

@@ -328,6 +328,8 @@ class _LiveRun:
         self.t_start = time.monotonic()
         while (wait := self._wait()) is not None:
             item = self.cap.get(timeout=wait)
+            for why in self.cap.take_skipped():
+                outputs.warn_skipped(why)  # named as replay names its unreadable frames
             if item is None:
                 if self.cap.finished:
                     break

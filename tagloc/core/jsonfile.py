@@ -10,7 +10,8 @@ from tagloc.core.errors import InputError
 
 def read_json(path: Path, error: type[InputError], what: str = "") -> object:
     """The parsed contents of ``path``; ``error`` (naming the file, and the line for bad JSON) if it
-    cannot be read, is not UTF-8 text, is not valid JSON or is nested too deeply to parse.
+    cannot be read, is not UTF-8 text, is not valid JSON, is nested too deeply to parse or holds an
+    integer too long for Python to convert.
     ``what`` names the file's kind in the "cannot read" message (e.g. "rig")."""
     try:
         return json.loads(path.read_bytes().decode("utf-8"))
@@ -22,3 +23,6 @@ def read_json(path: Path, error: type[InputError], what: str = "") -> object:
         raise error(f"{path}: line {exc.lineno}: not valid JSON ({exc.msg})") from None
     except RecursionError:
         raise error(f"{path}: JSON nested too deeply") from None
+    except ValueError as exc:
+        # Valid JSON that Python refuses to convert: an integer beyond its digit limit (4300 by default).
+        raise error(f"{path}: not usable JSON ({str(exc).split(':')[0]})") from None

@@ -346,7 +346,8 @@ class PiCamera2Source(FrameSource):
         sensor_s = float(md.get("SensorTimestamp", 0)) * 1e-9
         if self._offset is None:
             self._offset = time.time() - sensor_s
-        frame = Frame(self._index, sensor_s + self._offset, image, error=None if image is not None else "empty frame")
+        error = None if image is not None else f"frame {self._index}: empty frame"
+        frame = Frame(self._index, sensor_s + self._offset, image, error=error)
         self._index += 1
         return frame
 
@@ -410,6 +411,9 @@ class CaptureThread:
         self.drop_oldest = source.live or pace
         self.stats = CaptureStats()
         self._buf: collections.deque[CapturedFrame] = collections.deque()
+        # Why each corrupt frame was skipped, until the consumer takes them (bounded: a dead camera
+        # at 30 fps must not fill the memory; every one is counted in stats.skipped regardless).
+        self._skipped_why: collections.deque[str] = collections.deque(maxlen=1000)
         self._size = buffer
         self._cond = threading.Condition()
         self._stop = threading.Event()
@@ -432,8 +436,9 @@ class CaptureThread:
                     break
                 self.stats.grabbed += 1
                 if frame.image is None:
-                    # Corrupt frames never reach the localiser; they are counted here.
+                    # Corrupt frames never reach the localiser; they are counted (and named) here.
                     self.stats.skipped += 1
+                    self._skipped_why.append(frame.error or f"frame {frame.index}: unreadable")
                     continue
                 if self.pace:
                     now = time.monotonic()
@@ -481,6 +486,13 @@ class CaptureThread:
             self.stats.delivered += 1
             self._cond.notify_all()
             return item
+
+    def take_skipped(self) -> list[str]:
+        """Why each frame skipped since the last call was skipped (``"frame N: ..."``), oldest first."""
+        out = []
+        while self._skipped_why:
+            out.append(self._skipped_why.popleft())
+        return out
 
     def join(self, timeout: float | None = None) -> None:
         """Wait until the reader has reached the end of the source (frames may still be buffered)."""
@@ -577,6 +589,10 @@ class MultiCapture:
             if timeout is not None and waited >= timeout:
                 return None
             time.sleep(0.001)
+
+    def take_skipped(self) -> list[str]:
+        """Every camera's skipped frames since the last call (see :meth:`CaptureThread.take_skipped`)."""
+        return [f"camera {c}: {why}" for c, t in enumerate(self.threads) for why in t.take_skipped()]
 
     def has_frame(self) -> bool:
         """Whether any camera has a frame waiting."""

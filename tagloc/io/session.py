@@ -104,8 +104,25 @@ def write_tum(path: str | Path, stamps: np.ndarray, poses: list[np.ndarray] | np
             f.write(tum_line(float(t), T))
 
 
+TUM_COLUMNS = ("timestamp", "x", "y", "z", "qx", "qy", "qz", "qw")
+
+
 def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """Read a TUM file: timestamps (N,) and poses (N, 4, 4). Lines starting with # are comments."""
+    return tum_poses(read_tum_table(path))
+
+
+def tum_poses(table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Timestamps (N,) and poses (N, 4, 4) of a table from :func:`read_tum_table`."""
+    # All rotations in one call: one at a time, a 20 s walk's ground truth took 0.1 s of start-up.
+    return table[:, 0], T_from_tum(table[:, 1:]) if len(table) else np.zeros((0, 4, 4))
+
+
+def read_tum_table(path: str | Path) -> np.ndarray:
+    """A TUM file's numbers (N, 8), checked line by line; :class:`SessionError` naming file and line.
+
+    Checking needs no rotation maths (scipy), so a session can be checked up front cheaply.
+    """
     path = Path(path)
     rows = []
     try:
@@ -123,16 +140,17 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
             values = [float(p) for p in parts]
         except ValueError:
             raise SessionError(f"{path}:{n}: not a TUM line (timestamp x y z qx qy qz qw)") from None
-        if len(values) != 8 or not all(map(math.isfinite, values)):
-            raise SessionError(f"{path}:{n}: want 8 finite numbers, got {len(values)}")
+        if len(values) != 8:
+            raise SessionError(f"{path}:{n}: want 8 numbers (timestamp x y z qx qy qz qw), got {len(values)}")
+        bad = next((k for k, v in enumerate(values) if not math.isfinite(v)), None)
+        if bad is not None:
+            raise SessionError(f"{path}:{n}: {TUM_COLUMNS[bad]} is {parts[bad][:20]!r} (must be finite)")
         if abs(math.hypot(*values[4:]) - 1.0) > 0.01:
             raise SessionError(f"{path}:{n}: quaternion qx qy qz qw is not of unit length")
         if max(abs(v) for v in values[1:4]) > 1e6:
             raise SessionError(f"{path}:{n}: position beyond 1000 km")
         rows.append(values)
-    table = np.array(rows, float).reshape(-1, 8)
-    # All rotations in one call: one at a time, a 20 s walk's ground truth took 0.1 s of start-up.
-    return table[:, 0], T_from_tum(table[:, 1:]) if rows else np.zeros((0, 4, 4))
+    return np.array(rows, float).reshape(-1, 8)
 
 
 def read_image(path: Path) -> tuple[np.ndarray | None, str | None]:
@@ -186,6 +204,9 @@ class SessionReader:
         self.cameras = np.zeros(0, np.int64)  # rig camera of each frame (frames.csv's camera column)
         self.index, self.timestamps = self._read_frames_csv()
         self._check_clock()
+        # Checked now, though only used after the run: a bad file must not cost a whole replay first.
+        gt = self.path / GROUNDTRUTH_FILE
+        self._groundtruth = read_tum_table(gt) if gt.exists() else None
         self.skipped: list[tuple[int, str]] = []
 
     def _need(self, name: str) -> Path:
@@ -207,6 +228,17 @@ class SessionReader:
         doc = read_json(p, SessionError)
         if not isinstance(doc, dict):
             raise SessionError(f"{p}: not a JSON object")
+        # Every tagloc writes both keys, so a file without them was made by hand: read as version 1.
+        fmt = doc.get("format", FORMAT)
+        if fmt != FORMAT:
+            raise SessionError(f"{p}: format is {json.dumps(fmt)[:40]}, want {json.dumps(FORMAT)}")
+        version = doc.get("version", VERSION)
+        if isinstance(version, bool) or not isinstance(version, int) or version < 1:
+            raise SessionError(f"{p}: version must be a whole number from 1, got {json.dumps(version)[:40]}")
+        if version > VERSION:
+            raise SessionError(
+                f"{p}: version {json.dumps(version)[:40]} is newer than this tagloc reads ({VERSION}); update tagloc"
+            )
         fps = doc.get("fps", 0.0)
         if fps is None:
             fps = 0.0
@@ -244,7 +276,9 @@ class SessionReader:
             if not files:
                 raise SessionError(f"{self.path}: missing frames.csv and no images in frames/")
             fps = self.info.fps or 30.0
-            idx = np.array([int(f.stem) for f in files if f.stem.isdigit()])
+            idx = np.array([int(f.stem) for f in files if f.stem.isdigit()], np.int64)
+            if not len(idx):
+                raise SessionError(f"{self.path}: missing frames.csv and no image in frames/ is named by its index")
             self.cameras = np.zeros(len(idx), np.int64)
             return idx, idx / fps
         index, stamps, cams = [], [], []
@@ -254,9 +288,12 @@ class SessionReader:
             raise SessionError(f"{p}: cannot read ({exc.strerror})") from exc
         if lines and not lines[-1].endswith("\n") and (self.path / SESSION_JSON).exists():
             # tagloc ends every line with a newline: an unterminated last line is a write cut short by a
-            # crash, and its number may be cut too ("12.5" -> "1"), so it is not trusted.
+            # crash, and its number may be cut too ("12.5" -> "1"), so it is not trusted. Any other
+            # line, the last one included, is the recording's own and must parse.
             lines = lines[:-1]
-        for n, row in enumerate(csv.reader(lines), 1):
+        rows = csv.reader(lines)
+        for row in rows:
+            n = rows.line_num
             if not row or (n == 1 and row[0].strip().lower() == "index"):
                 continue
             try:
@@ -264,8 +301,6 @@ class SessionReader:
                 if not 0 <= i < 10**9:
                     raise ValueError
             except (ValueError, IndexError):
-                if n == len(lines):  # a last line cut short by a crash while recording: stop there
-                    break
                 raise SessionError(f"{p}:{n}: want 'index,timestamp_s', got {','.join(row)!r}") from None
             if not np.isfinite(t):
                 raise SessionError(f"{p}:{n}: timestamp is not finite")
@@ -275,6 +310,8 @@ class SessionReader:
             index.append(i)
             stamps.append(t)
             cams.append(int(cam))
+        if not index:
+            raise SessionError(f"{p}: lists no frames")
         self.cameras = np.array(cams, np.int64)
         return np.array(index, np.int64), np.array(stamps, float)
 
@@ -315,8 +352,7 @@ class SessionReader:
 
     def groundtruth(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(timestamps (N,), T_world_body (N, 4, 4)) when the session has ground truth, else None."""
-        p = self.path / GROUNDTRUTH_FILE
-        return read_tum(p) if p.exists() else None
+        return None if self._groundtruth is None else tum_poses(self._groundtruth)
 
 
 class SessionWriter:

@@ -528,6 +528,7 @@ class FrameLog:
 
     def __init__(self, path: str | Path, include_times: bool = False):
         self.path = Path(path)
+        self.name = str(path)  # what errors and summaries call it, as the sinks' ``name``
         self.include_times = include_times
         try:
             self._f = self.path.open("w", encoding="utf-8")

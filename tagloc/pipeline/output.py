@@ -169,7 +169,7 @@ class Outputs:
         out = result.output
         if result.skipped:
             self.summary.skipped += 1
-            self._rate_limited("#skipped frames", f"skipped {result.skipped}")
+            self.warn_skipped(result.skipped)
         latency = None
         if not (result.skipped and out.t <= self._last_t):
             self._last_t = out.t
@@ -191,6 +191,11 @@ class Outputs:
         if latency is None and grabbed is not None:
             latency = (time.monotonic() - grabbed) * 1e3
         return latency
+
+    def warn_skipped(self, why: str) -> None:
+        """Warn that a frame was skipped (``why``: ``"frame N: ..."``), at most once per ``warn_every_s``
+        for all skipped frames together, whether the localiser or the capture skipped them."""
+        self._rate_limited("#skipped frames", f"skipped {why}")
 
     def emit_late(self, index: int, t: float, observations: list[Observation]) -> None:
         """Log the observations that frame ``index``'s deferred work finished after the frame was
@@ -239,7 +244,7 @@ class Outputs:
                 try:
                     c.close()
                 except OSError as exc:  # a full disk on the last flush: report it, close the rest
-                    errors.append(f"{getattr(c, 'name', c)}: {exc.strerror or exc}")
+                    errors.append(f"{getattr(c, 'name', type(c).__name__)}: {exc.strerror or exc}")
             self.summary.sinks = {s.name: s.counts() for s in self.sinks}
             if errors:
                 raise InputError("; ".join(errors))

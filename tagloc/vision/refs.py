@@ -331,13 +331,17 @@ def load_or_build_refs(
     """The bank of a map file: the cache if its key matches, else built (and cached when writable).
 
     The map is validated first (:func:`tagloc.core.stickermap.load_map`), so a bad map fails here with
-    its file and line. A stale, corrupt or foreign cache is silently replaced.
+    its file and line. A stale, corrupt or foreign cache is silently replaced. A ``cache_path`` given
+    is an output asked for: failing to write it is an :class:`InputError` naming it (checked for a
+    missing directory before the build).
     """
     map_path = Path(map_path)
     params = params or BankParams()
     smap = load_map(map_path)
     key = cache_key(map_path.read_bytes(), params)
     cache = Path(cache_path) if cache_path is not None else default_cache_path(map_path)
+    if cache_path is not None and not cache.parent.is_dir():
+        raise InputError(f"{cache}: cannot write (no directory {cache.parent})")
     if not rebuild and cache.exists():
         try:
             bank = load_refs(cache)
@@ -348,6 +352,8 @@ def load_or_build_refs(
     bank = build_refs(smap, params, progress=progress, key=key)
     try:
         save_refs(bank, cache)
-    except OSError:
-        pass  # a read-only map directory only costs a rebuild next time
+    except OSError as exc:
+        if cache_path is not None:
+            raise InputError(f"{cache}: cannot write ({exc.strerror or exc})") from None
+        # The default cache beside the map: a read-only map directory only costs a rebuild next time.
     return bank
