@@ -270,6 +270,32 @@ def test_3_a_sink_that_cannot_publish_is_warned_about_at_start_and_counted(sessi
     assert any("sink mqtt://" in line and f"dropped {k}" in line for line in summary.format())
 
 
+def test_3_a_udp_port_nobody_listens_on_is_one_warning_not_one_per_frame():
+    """ICMP refuses every other datagram to a closed port: a warning and a "publishing again" per
+    frame (104 lines in 5 s of live) before; now the warning at once and again every warn_every_s."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # a port nothing listens on once closed
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    warnings: list[str] = []
+    out = Outputs(
+        line_map(),
+        default_rig(),
+        OutputConfig(publish=[f"udp://127.0.0.1:{port}"], connect_grace_s=0.2, warn_every_s=0.5),
+        warn=warnings.append,
+    )
+    o = TrackerOutput(0.0, np.zeros(3), np.eye(3), TrackState.TRACKING, 0.0)
+    t_end = time.monotonic() + 1.3
+    k = 0
+    while time.monotonic() < t_end:
+        out.emit(FrameResult(k, k * 0.02, [], o), grabbed=time.monotonic())
+        k += 1
+        time.sleep(0.02)
+    summary = out.close()
+    assert k >= 30 and summary.sinks[f"udp://127.0.0.1:{port}"]["dropped"] >= k // 3  # refused, counted
+    assert 2 <= len(warnings) <= 3 and all("send failed (Connection refused)" in w for w in warnings)
+    assert not any("publishing again" in w for w in warnings)
+
+
 def test_3_replay_summary_counts_every_sink(session, tmp_path, capsys):
     rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     rx.bind(("127.0.0.1", 0))

@@ -169,6 +169,11 @@ class JsonLinesSink(Sink):
             self._f.flush()
 
 
+# A UDP destination counts as reached again after this long without a failed send (s): a refused
+# port fails every other send, and a warning per frame is noise (see UdpSink.status).
+UDP_RECOVERED_S = 1.0
+
+
 class UdpSink(Sink):
     """One datagram per pose to ``host:port``.
 
@@ -194,6 +199,7 @@ class UdpSink(Sink):
             raise InputError(f"{self.name}: cannot send there ({exc.strerror})") from exc
         self.errors = 0
         self._last_error = ""
+        self._last_error_t = -math.inf  # time.monotonic() of the last failed send
 
     def publish(self, message: PoseMessage) -> bool:
         if message.age_s() > self.max_age_s:
@@ -206,14 +212,18 @@ class UdpSink(Sink):
             # Network trouble (no route, ICMP refusals) must never stop localisation.
             self.errors += 1
             self._last_error = exc.strerror or str(exc)
+            self._last_error_t = time.monotonic()
             self.dropped += 1
             return False
-        self._last_error = ""
         self.sent += 1
         return True
 
     def status(self) -> str | None:
-        return f"send failed ({self._last_error})" if self._last_error else None
+        # A port nobody listens on refuses every other datagram (the ICMP refusal of one fails the
+        # next send), so one good send is no recovery: failing until UDP_RECOVERED_S without error.
+        if time.monotonic() - self._last_error_t < UDP_RECOVERED_S:
+            return f"send failed ({self._last_error})"
+        return None
 
     def close(self) -> None:
         self._sock.close()
