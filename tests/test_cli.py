@@ -1,10 +1,15 @@
-"""The command line: a run builds only its own command's parser, with the same arguments as the full one."""
+"""The command line: a run builds only its own command's parser, with the same arguments as the full one;
+a bad option is refused up front, in one line naming it."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import pytest
 
 from tagloc.cli import _command_modules, build_parser, main
+
+DEMO_MAP = str(Path(__file__).resolve().parent.parent / "maps" / "demo.csv")
 
 
 def test_each_command_parses_alone_as_in_the_full_parser(capsys):
@@ -29,3 +34,30 @@ def test_unknown_command_lists_every_command(capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert "invalid choice" in err and "replay" in err and "bench-identify" in err
+
+
+def _refused(argv: list[str], option: str, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """``argv`` ({tmp}: ``tmp_path``, {map}: the demo map) exits 2 with one line naming ``option``,
+    having written nothing (outputs go under {tmp})."""
+    rc = main([a.format(tmp=tmp_path, map=DEMO_MAP) for a in argv])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert err.count("\n") == 1 and option in err and "internal error" not in err, err
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["simulate", "--map", "{map}", "-o", "{tmp}/s", "--quiet"],
+        ["map", "grid", "-o", "{tmp}/g.csv"],
+        ["advise", "--no-progress"],
+        ["demo", "--map", "{map}", "-o", "{tmp}/d", "--quiet", "--no-rerun"],
+        ["eval", "-o", "{tmp}/e", "--quiet"],
+        ["bench", "--quick", "--no-progress"],
+        ["bench-identify", "--no-progress"],
+    ],
+    ids=lambda argv: " ".join(a for a in argv[:2] if not a.startswith("-")),
+)
+def test_negative_seed_is_refused(argv, tmp_path, capsys):
+    _refused([*argv, "--seed", "-1"], "--seed", tmp_path, capsys)

@@ -31,7 +31,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tagloc.cli import checks
     from tagloc.eval.advise import AdviseConfig, advise, format_advice
+
+    checks.seed(args.seed)
 
     cfg = AdviseConfig(
         lux=args.lux,

@@ -50,8 +50,10 @@ def run(args: argparse.Namespace) -> int:
 
         print(profile_replay(args.profile).format())
         return 0
+    from tagloc.cli import checks
     from tagloc.eval.bench import bench_command
 
+    checks.seed(args.seed)
     return bench_command(
         frames=args.frames,
         seed=args.seed,

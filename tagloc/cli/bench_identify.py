@@ -26,7 +26,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tagloc.cli import checks
     from tagloc.eval.bench_identify import identify_bench_command
+
+    checks.seed(args.seed)
 
     print(
         identify_bench_command(

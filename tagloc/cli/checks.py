@@ -13,13 +13,25 @@ from pathlib import Path
 from tagloc.core.errors import InputError
 
 
-def number(value: float | int, option: str, lo: float, hi: float, lo_open: bool = False) -> None:
-    """Refuse ``value`` unless finite and in [lo, hi] (``lo_open``: (lo, hi])."""
-    ok = isinstance(value, (int, float)) and math.isfinite(value) and value <= hi
-    ok = ok and (value > lo if lo_open else value >= lo)
+def number(
+    value: float | int, option: str, lo: float, hi: float = math.inf, lo_open: bool = False, hi_open: bool = False
+) -> None:
+    """Refuse ``value`` unless finite and in [lo, hi] (``lo_open``, ``hi_open``: that end excluded;
+    the default ``hi``: no upper bound)."""
+    # An int is never NaN or infinite, and math.isfinite cannot take one beyond a float's range.
+    ok = isinstance(value, int) or (isinstance(value, float) and math.isfinite(value))
+    ok = ok and (value > lo if lo_open else value >= lo) and (value < hi if hi_open else value <= hi)
     if not ok:
-        bracket = "(" if lo_open else "["
-        raise InputError(f"{option} must be in {bracket}{lo:g}, {hi:g}], not {value}")
+        if math.isinf(hi):
+            want = f"a number {'>' if lo_open else '>='} {lo:g}"
+        else:
+            want = f"in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+        raise InputError(f"{option} must be {want}, not {value}")
+
+
+def seed(value: int, option: str = "--seed") -> None:
+    """Refuse a seed numpy's generators cannot take (a negative one)."""
+    number(value, option, 0)
 
 
 def output_file(path: Path | None, option: str) -> None:

@@ -29,6 +29,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from tagloc.apps.demo import DemoConfig, run_demo
+    from tagloc.cli import checks
+
+    checks.seed(args.seed)
 
     print(
         run_demo(

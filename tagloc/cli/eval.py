@@ -67,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
     checks.number(args.sessions, "--sessions", 1, 1000)
     checks.number(args.seconds, "--seconds", 0, 3600, lo_open=True)
     checks.number(args.scale, "--scale", *SCALE_RANGE)
+    checks.seed(args.seed)
     modes = tuple(m.strip() for m in args.modes.split(",") if m.strip())
     unknown = [m for m in modes if m not in EVAL_MODES]
     if unknown or not modes:

@@ -107,6 +107,7 @@ def run(args: argparse.Namespace) -> int:
     checks.number(args.fps, "--fps", 0, 240, lo_open=True)
     checks.number(args.lux, "--lux", 0, 200_000, lo_open=True)
     checks.number(args.speed, "--speed", 0, 5, lo_open=True)
+    checks.seed(args.seed)
     checks.number(args.pitch, "--pitch", 0, 90, lo_open=True)
     checks.number(args.height, "--height", 0, 5, lo_open=True)
     checks.number(args.distractors, "--distractors", 0, 100)
