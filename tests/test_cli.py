@@ -61,3 +61,19 @@ def _refused(argv: list[str], option: str, tmp_path: Path, capsys: pytest.Captur
 )
 def test_negative_seed_is_refused(argv, tmp_path, capsys):
     _refused([*argv, "--seed", "-1"], "--seed", tmp_path, capsys)
+
+
+@pytest.mark.parametrize(
+    "option, value",
+    [
+        ("--jitter", "nan"),
+        ("--jitter", "inf"),
+        ("--jitter", "-0.1"),
+        ("--margin", "nan"),
+        ("--margin", "-1"),
+        ("--sequential-ids", "-5"),
+        ("--sequential-ids", "100000"),
+    ],
+)
+def test_map_grid_refuses_a_bad_number(option, value, tmp_path, capsys):
+    _refused(["map", "grid", "-o", "{tmp}/g.csv", option, value], option, tmp_path, capsys)
