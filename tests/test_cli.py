@@ -39,11 +39,12 @@ def test_unknown_command_lists_every_command(capsys):
 def _refused(argv: list[str], option: str, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     """``argv`` ({tmp}: ``tmp_path``, {map}: the demo map) exits 2 with one line naming ``option``,
     having written nothing (outputs go under {tmp})."""
+    before = sorted(tmp_path.rglob("*"))
     rc = main([a.format(tmp=tmp_path, map=DEMO_MAP) for a in argv])
     err = capsys.readouterr().err
     assert rc == 2, err
     assert err.count("\n") == 1 and option in err and "internal error" not in err, err
-    assert not list(tmp_path.iterdir())
+    assert sorted(tmp_path.rglob("*")) == before
 
 
 @pytest.mark.parametrize(
@@ -77,3 +78,57 @@ def test_negative_seed_is_refused(argv, tmp_path, capsys):
 )
 def test_map_grid_refuses_a_bad_number(option, value, tmp_path, capsys):
     _refused(["map", "grid", "-o", "{tmp}/g.csv", option, value], option, tmp_path, capsys)
+
+
+SIMULATE = ["simulate", "--map", "{map}", "-o", "{tmp}/s", "--quiet"]
+ADVISE = ["advise", "--no-progress"]
+
+
+@pytest.mark.parametrize(
+    "option, value",
+    [
+        ("--pitch", "95"),
+        ("--pitch", "0"),
+        ("--height", "0"),
+        ("--height", "6"),
+        ("--lux", "nan"),
+        ("--lux", "3e5"),
+        ("--scale", "-1"),
+        ("--scale", "5"),
+        ("--speed", "-1"),
+        ("--speed", "inf"),
+    ],
+)
+@pytest.mark.parametrize("command", [SIMULATE, ADVISE], ids=["simulate", "advise"])
+def test_simulate_and_advise_refuse_the_same_values(command, option, value, tmp_path, capsys):
+    _refused([*command, option, value], option, tmp_path, capsys)
+
+
+@pytest.mark.parametrize(
+    "option, values",
+    [("--frames", ["0"]), ("--exposures", ["0"]), ("--exposures", ["1", "nan"]), ("--exposures", ["1e6"])],
+)
+def test_advise_refuses_bad_frames_and_exposures(option, values, tmp_path, capsys):
+    _refused([*ADVISE, option, *values], option, tmp_path, capsys)
+
+
+def test_advise_takes_a_camera_standing_still(capsys):
+    """Speed 0, which a simulated walk refuses, is a question advise answers: no blur."""
+    argv = [*ADVISE, "--speed", "0", "--frames", "1", "--exposures", "2", "--scale", "0.25"]
+    assert main(argv) == 0
+    assert "recommended: --exposure-ms 2" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "option, value",
+    [("--seconds", "nan"), ("--seconds", "1e9"), ("--lux", "-1"), ("--speed", "0"), ("--speed", "100")],
+)
+def test_demo_refuses_a_bad_number(option, value, tmp_path, capsys):
+    _refused(
+        ["demo", "--map", "{map}", "-o", "{tmp}/d", "--quiet", "--no-rerun", option, value], option, tmp_path, capsys
+    )
+
+
+def test_demo_refuses_an_output_that_is_a_file(tmp_path, capsys):
+    (tmp_path / "f").write_text("")
+    _refused(["demo", "--map", "{map}", "-o", "{tmp}/f", "--quiet", "--no-rerun"], "-o", tmp_path, capsys)

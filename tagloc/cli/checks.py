@@ -29,6 +29,23 @@ def number(
         raise InputError(f"{option} must be {want}, not {value}")
 
 
+#: Ranges (lo, hi] of the options the simulator's commands share (simulate, advise, demo): one
+#: table, so that what one of them refuses the others refuse too.
+SIM_RANGES = {
+    "--seconds": (0, 3600),
+    "--lux": (0, 200_000),  # twice full sunlight
+    "--speed": (0, 5),  # m/s: a run beyond
+    "--pitch": (0, 90),  # below horizontal: the camera must see the floor
+    "--height": (0, 5),  # m
+    "--scale": (0, 4),
+}
+
+
+def sim_option(value: float, option: str, lo_open: bool = True) -> None:
+    """Refuse ``value`` outside ``option``'s range in :data:`SIM_RANGES` (``lo_open=False``: the low end taken)."""
+    number(value, option, *SIM_RANGES[option], lo_open=lo_open)
+
+
 def seed(value: int, option: str = "--seed") -> None:
     """Refuse a seed numpy's generators cannot take (a negative one)."""
     number(value, option, 0)
