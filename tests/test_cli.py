@@ -132,3 +132,22 @@ def test_demo_refuses_a_bad_number(option, value, tmp_path, capsys):
 def test_demo_refuses_an_output_that_is_a_file(tmp_path, capsys):
     (tmp_path / "f").write_text("")
     _refused(["demo", "--map", "{map}", "-o", "{tmp}/f", "--quiet", "--no-rerun"], "-o", tmp_path, capsys)
+
+
+MONITOR = ["monitor", "--from-bag", "{tmp}/no.bag2", "--map", "{map}"]
+
+
+@pytest.mark.parametrize("name", ["x.txt", "x", "x.png.gz"])
+@pytest.mark.parametrize("command", [["replay", "{tmp}/no-session"], MONITOR], ids=["replay", "monitor"])
+def test_png_output_must_be_named_png(command, name, tmp_path, capsys):
+    _refused([*command, "--png", f"{{tmp}}/{name}"], "--png", tmp_path, capsys)
+
+
+def test_calibrate_coverage_must_be_named_png(tmp_path, capsys):
+    argv = ["calibrate", "camera", "{tmp}/no-images", "-o", "{tmp}/c.yaml", "--coverage", "{tmp}/c.txt"]
+    _refused(argv, "--coverage", tmp_path, capsys)
+
+
+def test_monitor_refuses_a_save_path_that_is_a_directory(tmp_path, capsys):
+    (tmp_path / "d.rrd").mkdir()
+    _refused([*MONITOR, "--save", "{tmp}/d.rrd"], "--save", tmp_path, capsys)

@@ -72,7 +72,11 @@ def run(args: argparse.Namespace) -> int:
         print(write_board(args.out, spec, args.paper, args.dpi))
         return 0
     from tagloc.apps.calibrate import SourceConfig, calibrate_camera, format_report
+    from tagloc.cli import checks
     from tagloc.vision.calibration import CalibrationConfig
+
+    checks.output_file(args.out, "-o")
+    checks.output_file(args.coverage, "--coverage", suffixes=(".png",))
 
     result = calibrate_camera(
         args.source,

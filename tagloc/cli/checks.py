@@ -51,11 +51,16 @@ def seed(value: int, option: str = "--seed") -> None:
     number(value, option, 0)
 
 
-def output_file(path: Path | None, option: str) -> None:
-    """Refuse a file path tagloc cannot create or overwrite (a directory or a file in the way, no permission)."""
+def output_file(path: Path | None, option: str, suffixes: tuple[str, ...] = ()) -> None:
+    """Refuse a file path tagloc cannot create or overwrite (a directory or a file in the way, no
+    permission), or, given ``suffixes`` (such as ``(".png",)``), whose suffix is none of them."""
     if path is None:
         return
     path = Path(path)
+    # The writers (matplotlib, OpenCV) pick the format from the suffix, in any case.
+    if suffixes and path.suffix.lower() not in suffixes:
+        got = f"not {path.suffix!r}" if path.suffix else "not a name without one"
+        raise InputError(f"{path}: {option} wants a {' or '.join(suffixes)} file, {got}")
     if path.is_dir():
         raise InputError(f"{path}: {option} names a directory, want a file")
     _creatable(path.parent, path, option)

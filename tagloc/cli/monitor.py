@@ -51,7 +51,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from tagloc.apps.monitor import MonitorConfig, run_monitor
+    from tagloc.cli import checks
     from tagloc.io.fleet_config import FleetConfig
+
+    checks.output_file(args.save, "--save")
+    checks.output_file(args.png, "--png", suffixes=(".png",))
 
     summary = run_monitor(
         MonitorConfig(

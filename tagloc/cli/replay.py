@@ -67,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
 
     for option, path in (("--out", args.out), ("--log", args.log), ("--rerun", args.rerun)):
         checks.output_file(path, option)
+    checks.output_file(args.png, "--png", suffixes=(".png",))
 
     res = replay(
         ReplayConfig(
