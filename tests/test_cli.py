@@ -151,3 +151,29 @@ def test_calibrate_coverage_must_be_named_png(tmp_path, capsys):
 def test_monitor_refuses_a_save_path_that_is_a_directory(tmp_path, capsys):
     (tmp_path / "d.rrd").mkdir()
     _refused([*MONITOR, "--save", "{tmp}/d.rrd"], "--save", tmp_path, capsys)
+
+
+@pytest.mark.parametrize(
+    "option, value",
+    [
+        ("--trials", "0"),
+        ("--trials", "-3"),
+        ("--blurs", "a,b"),
+        ("--blurs", ","),
+        ("--blurs", "0,nan"),
+        ("--blurs", "-1"),
+        ("--blurs", "1000"),
+        ("--candidates", "-1"),
+        ("--candidates", "0"),
+        ("--candidates", "200"),
+        ("--methods", "appearance,bogus"),
+        ("--methods", ","),
+    ],
+)
+def test_bench_identify_refuses_a_bad_option(option, value, tmp_path, capsys):
+    _refused(["bench-identify", "--no-progress", option, value], option, tmp_path, capsys)
+
+
+@pytest.mark.parametrize("value", ["bogus", ",", "full,,nope"])
+def test_eval_refuses_unknown_or_no_modes(value, tmp_path, capsys):
+    _refused(["eval", "-o", "{tmp}/e", "--quiet", "--modes", value], "--modes", tmp_path, capsys)

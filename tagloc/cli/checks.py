@@ -29,6 +29,31 @@ def number(
         raise InputError(f"{option} must be {want}, not {value}")
 
 
+def numbers(text: str, option: str, lo: float, hi: float, lo_open: bool = False) -> tuple[float, ...]:
+    """The numbers of a comma-separated list such as ``0,2,4``, at least one, each as :func:`number` takes it."""
+    items = [t.strip() for t in text.split(",") if t.strip()]
+    if not items:
+        raise InputError(f"{option}: no numbers in {text!r} (want a comma-separated list such as 0,2,4)")
+    values = []
+    for item in items:
+        try:
+            values.append(float(item))
+        except ValueError:
+            raise InputError(f"{option}: {item!r} is not a number") from None
+        number(values[-1], option, lo, hi, lo_open)
+    return tuple(values)
+
+
+def names(text: str, option: str, allowed: tuple[str, ...]) -> tuple[str, ...]:
+    """The names of a comma-separated list such as ``full,orb-all``, at least one, each one of ``allowed``."""
+    given = tuple(t.strip() for t in text.split(",") if t.strip())
+    unknown = [n for n in given if n not in allowed]
+    if unknown or not given:
+        what = f"unknown {', '.join(unknown)}" if unknown else "none given"
+        raise InputError(f"{option}: {what} (want some of {', '.join(allowed)})")
+    return given
+
+
 #: Ranges (lo, hi] of the options the simulator's commands share (simulate, advise, demo): one
 #: table, so that what one of them refuses the others refuse too.
 SIM_RANGES = {
