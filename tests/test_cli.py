@@ -3,6 +3,7 @@ a bad option is refused up front, in one line naming it."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -43,7 +44,8 @@ def _refused(argv: list[str], option: str, tmp_path: Path, capsys: pytest.Captur
     rc = main([a.format(tmp=tmp_path, map=DEMO_MAP) for a in argv])
     err = capsys.readouterr().err
     assert rc == 2, err
-    assert err.count("\n") == 1 and option in err and "internal error" not in err, err
+    assert err.count("\n") == 1 and "internal error" not in err, err
+    assert re.search(rf"(?<![\w-]){re.escape(option)}(?![\w-])", err), err  # the option, not '-o' in '-of'
     assert sorted(tmp_path.rglob("*")) == before
 
 
@@ -177,3 +179,41 @@ def test_bench_identify_refuses_a_bad_option(option, value, tmp_path, capsys):
 @pytest.mark.parametrize("value", ["bogus", ",", "full,,nope"])
 def test_eval_refuses_unknown_or_no_modes(value, tmp_path, capsys):
     _refused(["eval", "-o", "{tmp}/e", "--quiet", "--modes", value], "--modes", tmp_path, capsys)
+
+
+CALIBRATE_CAMERA = ["calibrate", "camera", "{tmp}/no-images", "-o", "{tmp}/c.yaml", "--no-progress"]
+
+
+@pytest.mark.parametrize(
+    "option, value",
+    [
+        ("--step", "-1"),
+        ("--step", "0"),
+        ("--max-frames", "0"),
+        ("--max-frames", "-1"),
+        ("--max-views", "0"),
+        ("--max-views", "4"),
+        ("--square-mm", "nan"),
+        ("--square-mm", "-20"),
+        ("--square-mm", "1e300"),
+        ("--marker-mm", "nan"),
+        ("--marker-mm", "20"),
+    ],
+)
+def test_calibrate_camera_refuses_a_bad_number(option, value, tmp_path, capsys):
+    _refused([*CALIBRATE_CAMERA, option, value], option, tmp_path, capsys)
+
+
+@pytest.mark.parametrize("option, value", [("--dpi", "0"), ("--square-mm", "inf"), ("--marker-mm", "0")])
+def test_calibrate_board_refuses_a_bad_number(option, value, tmp_path, capsys):
+    _refused(["calibrate", "board", "-o", "{tmp}/b.pdf", option, value], option, tmp_path, capsys)
+
+
+@pytest.mark.parametrize("value", ["-3", "0"])
+def test_rig_fit_refuses_a_step_below_1(value, tmp_path, capsys):
+    _refused(["rig", "fit", "{tmp}/no-session", "-o", "{tmp}/rig.json", "--step", value], "--step", tmp_path, capsys)
+
+
+def test_rig_fit_refuses_an_output_that_is_a_directory(tmp_path, capsys):
+    (tmp_path / "taken").mkdir()
+    _refused(["rig", "fit", "{tmp}/no-session", "-o", "{tmp}/taken"], "-o", tmp_path, capsys)
