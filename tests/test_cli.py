@@ -217,3 +217,24 @@ def test_rig_fit_refuses_a_step_below_1(value, tmp_path, capsys):
 def test_rig_fit_refuses_an_output_that_is_a_directory(tmp_path, capsys):
     (tmp_path / "taken").mkdir()
     _refused(["rig", "fit", "{tmp}/no-session", "-o", "{tmp}/taken"], "-o", tmp_path, capsys)
+
+
+@pytest.mark.parametrize(
+    "option, value",
+    [
+        ("--readout-ms", "nan"),
+        ("--readout-ms", "1e9"),
+        ("--jitter-ms", "-1"),
+        ("--drop-fraction", "1"),
+        ("--drop-fraction", "nan"),
+        ("--drop-bursts-per-min", "inf"),
+        ("--drop-bursts-per-min", "1e9"),
+        ("--survey-sigma-cm", "inf"),
+        ("--survey-sigma-cm", "-1"),
+        ("--survey-sigma-deg", "1e9"),
+        ("--missing-fraction", "nan"),
+        ("--missing-fraction", "1.5"),
+    ],
+)
+def test_simulate_refuses_a_bad_field_condition(option, value, tmp_path, capsys):
+    _refused([*SIMULATE, option, value], option, tmp_path, capsys)

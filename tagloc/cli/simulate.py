@@ -119,6 +119,14 @@ def run(args: argparse.Namespace) -> int:
     checks.number(args.jpeg_quality, "--jpeg-quality", 1, 100)
     checks.number(args.flicker, "--flicker", 0, 100)
     checks.number(args.mains_hz, "--mains-hz", 0, 1000, lo_open=True)
+    checks.number(args.readout_ms, "--readout-ms", 0, 1000)
+    checks.number(args.jitter_ms, "--jitter-ms", 0, 1000)
+    checks.number(args.drop_fraction, "--drop-fraction", 0, 1, hi_open=True)
+    # Ten bursts of 3 or more frames a second leave a 30 fps camera no frame.
+    checks.number(args.drop_bursts_per_min, "--drop-bursts-per-min", 0, 600)
+    checks.number(args.survey_sigma_cm, "--survey-sigma-cm", 0, 100)
+    checks.number(args.survey_sigma_deg, "--survey-sigma-deg", 0, 180)
+    checks.number(args.missing_fraction, "--missing-fraction", 0, 1)
     checks.output_dir(args.out, "-o")
 
     summary = simulate_session(
