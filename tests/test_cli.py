@@ -238,3 +238,26 @@ def test_rig_fit_refuses_an_output_that_is_a_directory(tmp_path, capsys):
 )
 def test_simulate_refuses_a_bad_field_condition(option, value, tmp_path, capsys):
     _refused([*SIMULATE, option, value], option, tmp_path, capsys)
+
+
+@pytest.mark.parametrize(
+    "option, value",
+    [
+        ("--stale", "nan"),
+        ("--stale", "0"),
+        ("--max-age", "-1"),
+        ("--max-2sigma", "inf"),
+        ("--safety-radius", "-1"),
+        ("--trail", "nan"),
+        ("--refresh", "inf"),
+        ("--max-seconds", "-1"),
+        ("--print-every", "nan"),
+    ],
+)
+def test_monitor_refuses_a_bad_number(option, value, tmp_path, capsys):
+    _refused([*MONITOR, option, value], option, tmp_path, capsys)
+
+
+@pytest.mark.parametrize("option, value", [("--frames", "0"), ("--jpeg", "0"), ("--jpeg", "101"), ("--json", "{tmp}")])
+def test_bench_refuses_a_bad_option(option, value, tmp_path, capsys):
+    _refused(["bench", "--quick", "--no-progress", option, value], option, tmp_path, capsys)
