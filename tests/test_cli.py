@@ -261,3 +261,8 @@ def test_monitor_refuses_a_bad_number(option, value, tmp_path, capsys):
 @pytest.mark.parametrize("option, value", [("--frames", "0"), ("--jpeg", "0"), ("--jpeg", "101"), ("--json", "{tmp}")])
 def test_bench_refuses_a_bad_option(option, value, tmp_path, capsys):
     _refused(["bench", "--quick", "--no-progress", option, value], option, tmp_path, capsys)
+
+
+@pytest.mark.parametrize("value", ["inf", "nan", "-1"])
+def test_live_refuses_a_gain_that_is_not_a_finite_number_from_0(value, tmp_path, capsys):
+    _refused(["live", "--camera", "{tmp}/no-camera", "--map", "{map}", "--gain", value], "--gain", tmp_path, capsys)
