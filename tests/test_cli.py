@@ -1,10 +1,16 @@
-"""The command line: a run builds only its own command's parser, with the same arguments as the full one."""
+"""The command line: a run builds only its own command's parser, with the same arguments as the full one;
+a bad option is refused up front, in one line naming it."""
 
 from __future__ import annotations
+
+import re
+from pathlib import Path
 
 import pytest
 
 from tagloc.cli import _command_modules, build_parser, main
+
+DEMO_MAP = str(Path(__file__).resolve().parent.parent / "maps" / "demo.csv")
 
 
 def test_each_command_parses_alone_as_in_the_full_parser(capsys):
@@ -29,3 +35,234 @@ def test_unknown_command_lists_every_command(capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert "invalid choice" in err and "replay" in err and "bench-identify" in err
+
+
+def _refused(argv: list[str], option: str, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """``argv`` ({tmp}: ``tmp_path``, {map}: the demo map) exits 2 with one line naming ``option``,
+    having written nothing (outputs go under {tmp})."""
+    before = sorted(tmp_path.rglob("*"))
+    rc = main([a.format(tmp=tmp_path, map=DEMO_MAP) for a in argv])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert err.count("\n") == 1 and "internal error" not in err, err
+    assert re.search(rf"(?<![\w-]){re.escape(option)}(?![\w-])", err), err  # the option, not '-o' in '-of'
+    assert sorted(tmp_path.rglob("*")) == before
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["simulate", "--map", "{map}", "-o", "{tmp}/s", "--quiet"],
+        ["map", "grid", "-o", "{tmp}/g.csv"],
+        ["advise", "--no-progress"],
+        ["demo", "--map", "{map}", "-o", "{tmp}/d", "--quiet", "--no-rerun"],
+        ["eval", "-o", "{tmp}/e", "--quiet"],
+        ["bench", "--quick", "--no-progress"],
+        ["bench-identify", "--no-progress"],
+    ],
+    ids=lambda argv: " ".join(a for a in argv[:2] if not a.startswith("-")),
+)
+def test_negative_seed_is_refused(argv, tmp_path, capsys):
+    _refused([*argv, "--seed", "-1"], "--seed", tmp_path, capsys)
+
+
+@pytest.mark.parametrize(
+    "option, value",
+    [
+        ("--jitter", "nan"),
+        ("--jitter", "inf"),
+        ("--jitter", "-0.1"),
+        ("--margin", "nan"),
+        ("--margin", "-1"),
+        ("--sequential-ids", "-5"),
+        ("--sequential-ids", "100000"),
+    ],
+)
+def test_map_grid_refuses_a_bad_number(option, value, tmp_path, capsys):
+    _refused(["map", "grid", "-o", "{tmp}/g.csv", option, value], option, tmp_path, capsys)
+
+
+SIMULATE = ["simulate", "--map", "{map}", "-o", "{tmp}/s", "--quiet"]
+ADVISE = ["advise", "--no-progress"]
+
+
+@pytest.mark.parametrize(
+    "option, value",
+    [
+        ("--pitch", "95"),
+        ("--pitch", "0"),
+        ("--height", "0"),
+        ("--height", "6"),
+        ("--lux", "nan"),
+        ("--lux", "3e5"),
+        ("--scale", "-1"),
+        ("--scale", "5"),
+        ("--speed", "-1"),
+        ("--speed", "inf"),
+    ],
+)
+@pytest.mark.parametrize("command", [SIMULATE, ADVISE], ids=["simulate", "advise"])
+def test_simulate_and_advise_refuse_the_same_values(command, option, value, tmp_path, capsys):
+    _refused([*command, option, value], option, tmp_path, capsys)
+
+
+@pytest.mark.parametrize(
+    "option, values",
+    [("--frames", ["0"]), ("--exposures", ["0"]), ("--exposures", ["1", "nan"]), ("--exposures", ["1e6"])],
+)
+def test_advise_refuses_bad_frames_and_exposures(option, values, tmp_path, capsys):
+    _refused([*ADVISE, option, *values], option, tmp_path, capsys)
+
+
+def test_advise_takes_a_camera_standing_still(capsys):
+    """Speed 0, which a simulated walk refuses, is a question advise answers: no blur."""
+    argv = [*ADVISE, "--speed", "0", "--frames", "1", "--exposures", "2", "--scale", "0.25"]
+    assert main(argv) == 0
+    assert "recommended: --exposure-ms 2" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "option, value",
+    [("--seconds", "nan"), ("--seconds", "1e9"), ("--lux", "-1"), ("--speed", "0"), ("--speed", "100")],
+)
+def test_demo_refuses_a_bad_number(option, value, tmp_path, capsys):
+    _refused(
+        ["demo", "--map", "{map}", "-o", "{tmp}/d", "--quiet", "--no-rerun", option, value], option, tmp_path, capsys
+    )
+
+
+def test_demo_refuses_an_output_that_is_a_file(tmp_path, capsys):
+    (tmp_path / "f").write_text("")
+    _refused(["demo", "--map", "{map}", "-o", "{tmp}/f", "--quiet", "--no-rerun"], "-o", tmp_path, capsys)
+
+
+MONITOR = ["monitor", "--from-bag", "{tmp}/no.bag2", "--map", "{map}"]
+
+
+@pytest.mark.parametrize("name", ["x.txt", "x", "x.png.gz"])
+@pytest.mark.parametrize("command", [["replay", "{tmp}/no-session"], MONITOR], ids=["replay", "monitor"])
+def test_png_output_must_be_named_png(command, name, tmp_path, capsys):
+    _refused([*command, "--png", f"{{tmp}}/{name}"], "--png", tmp_path, capsys)
+
+
+def test_calibrate_coverage_must_be_named_png(tmp_path, capsys):
+    argv = ["calibrate", "camera", "{tmp}/no-images", "-o", "{tmp}/c.yaml", "--coverage", "{tmp}/c.txt"]
+    _refused(argv, "--coverage", tmp_path, capsys)
+
+
+def test_monitor_refuses_a_save_path_that_is_a_directory(tmp_path, capsys):
+    (tmp_path / "d.rrd").mkdir()
+    _refused([*MONITOR, "--save", "{tmp}/d.rrd"], "--save", tmp_path, capsys)
+
+
+@pytest.mark.parametrize(
+    "option, value",
+    [
+        ("--trials", "0"),
+        ("--trials", "-3"),
+        ("--blurs", "a,b"),
+        ("--blurs", ","),
+        ("--blurs", "0,nan"),
+        ("--blurs", "-1"),
+        ("--blurs", "1000"),
+        ("--candidates", "-1"),
+        ("--candidates", "0"),
+        ("--candidates", "200"),
+        ("--methods", "appearance,bogus"),
+        ("--methods", ","),
+    ],
+)
+def test_bench_identify_refuses_a_bad_option(option, value, tmp_path, capsys):
+    _refused(["bench-identify", "--no-progress", option, value], option, tmp_path, capsys)
+
+
+@pytest.mark.parametrize("value", ["bogus", ",", "full,,nope"])
+def test_eval_refuses_unknown_or_no_modes(value, tmp_path, capsys):
+    _refused(["eval", "-o", "{tmp}/e", "--quiet", "--modes", value], "--modes", tmp_path, capsys)
+
+
+CALIBRATE_CAMERA = ["calibrate", "camera", "{tmp}/no-images", "-o", "{tmp}/c.yaml", "--no-progress"]
+
+
+@pytest.mark.parametrize(
+    "option, value",
+    [
+        ("--step", "-1"),
+        ("--step", "0"),
+        ("--max-frames", "0"),
+        ("--max-frames", "-1"),
+        ("--max-views", "0"),
+        ("--max-views", "4"),
+        ("--square-mm", "nan"),
+        ("--square-mm", "-20"),
+        ("--square-mm", "1e300"),
+        ("--marker-mm", "nan"),
+        ("--marker-mm", "20"),
+    ],
+)
+def test_calibrate_camera_refuses_a_bad_number(option, value, tmp_path, capsys):
+    _refused([*CALIBRATE_CAMERA, option, value], option, tmp_path, capsys)
+
+
+@pytest.mark.parametrize("option, value", [("--dpi", "0"), ("--square-mm", "inf"), ("--marker-mm", "0")])
+def test_calibrate_board_refuses_a_bad_number(option, value, tmp_path, capsys):
+    _refused(["calibrate", "board", "-o", "{tmp}/b.pdf", option, value], option, tmp_path, capsys)
+
+
+@pytest.mark.parametrize("value", ["-3", "0"])
+def test_rig_fit_refuses_a_step_below_1(value, tmp_path, capsys):
+    _refused(["rig", "fit", "{tmp}/no-session", "-o", "{tmp}/rig.json", "--step", value], "--step", tmp_path, capsys)
+
+
+def test_rig_fit_refuses_an_output_that_is_a_directory(tmp_path, capsys):
+    (tmp_path / "taken").mkdir()
+    _refused(["rig", "fit", "{tmp}/no-session", "-o", "{tmp}/taken"], "-o", tmp_path, capsys)
+
+
+@pytest.mark.parametrize(
+    "option, value",
+    [
+        ("--readout-ms", "nan"),
+        ("--readout-ms", "1e9"),
+        ("--jitter-ms", "-1"),
+        ("--drop-fraction", "1"),
+        ("--drop-fraction", "nan"),
+        ("--drop-bursts-per-min", "inf"),
+        ("--drop-bursts-per-min", "1e9"),
+        ("--survey-sigma-cm", "inf"),
+        ("--survey-sigma-cm", "-1"),
+        ("--survey-sigma-deg", "1e9"),
+        ("--missing-fraction", "nan"),
+        ("--missing-fraction", "1.5"),
+    ],
+)
+def test_simulate_refuses_a_bad_field_condition(option, value, tmp_path, capsys):
+    _refused([*SIMULATE, option, value], option, tmp_path, capsys)
+
+
+@pytest.mark.parametrize(
+    "option, value",
+    [
+        ("--stale", "nan"),
+        ("--stale", "0"),
+        ("--max-age", "-1"),
+        ("--max-2sigma", "inf"),
+        ("--safety-radius", "-1"),
+        ("--trail", "nan"),
+        ("--refresh", "inf"),
+        ("--max-seconds", "-1"),
+        ("--print-every", "nan"),
+    ],
+)
+def test_monitor_refuses_a_bad_number(option, value, tmp_path, capsys):
+    _refused([*MONITOR, option, value], option, tmp_path, capsys)
+
+
+@pytest.mark.parametrize("option, value", [("--frames", "0"), ("--jpeg", "0"), ("--jpeg", "101"), ("--json", "{tmp}")])
+def test_bench_refuses_a_bad_option(option, value, tmp_path, capsys):
+    _refused(["bench", "--quick", "--no-progress", option, value], option, tmp_path, capsys)
+
+
+@pytest.mark.parametrize("value", ["inf", "nan", "-1"])
+def test_live_refuses_a_gain_that_is_not_a_finite_number_from_0(value, tmp_path, capsys):
+    _refused(["live", "--camera", "{tmp}/no-camera", "--map", "{map}", "--gain", value], "--gain", tmp_path, capsys)

@@ -512,7 +512,7 @@ def test_12_an_output_that_cannot_be_created_is_refused_before_the_work(session,
     [
         (["--out", "{session}/frames.csv"], "--out names one of the inputs it would overwrite"),
         (["--log", "{session}/map.csv"], "--log names one of the inputs it would overwrite"),
-        (["--png", "{session}/frames/000003.jpg"], "--png names one of the inputs it would overwrite"),
+        (["--png", "{session}/frames/000003.png"], "--png names one of the inputs it would overwrite"),
         (["--out", "{tmp}/x", "--log", "{tmp}/x"], "--out and --log name the same file"),
         (["--out", "{tmp}/x", "--rerun", "{tmp}/sub/../x"], "--out and --rerun name the same file"),
     ],

@@ -491,7 +491,7 @@ def test_cli_simulate(tmp_path, capsys):
             str(tmp_path / "y"),
         ]
     )
-    assert rc == 2 and "missing fraction" in capsys.readouterr().err
+    assert rc == 2 and "--missing-fraction" in capsys.readouterr().err
 
 
 def test_walker_leans_into_turns_and_with_acceleration(long_walk):

@@ -31,7 +31,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tagloc.cli import checks
     from tagloc.eval.advise import AdviseConfig, advise, format_advice
+
+    for option, value in (
+        ("--lux", args.lux),
+        ("--pitch", args.pitch),
+        ("--height", args.height),
+        ("--scale", args.scale),
+    ):
+        checks.sim_option(value, option)
+    # Unlike a simulated walk, advice may be for a camera standing still.
+    checks.sim_option(args.speed, "--speed", lo_open=False)
+    checks.seed(args.seed)
+    checks.number(args.frames, "--frames", 1, 10_000)
+    for exposure in args.exposures:
+        # 100 ms: a 10 fps frame. The blurred view's canvas grows with the exposure (1e6 ms: 54 GB).
+        checks.number(exposure, "--exposures", 0, 100, lo_open=True)
 
     cfg = AdviseConfig(
         lux=args.lux,

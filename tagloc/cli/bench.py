@@ -50,8 +50,15 @@ def run(args: argparse.Namespace) -> int:
 
         print(profile_replay(args.profile).format())
         return 0
+    from tagloc.cli import checks
     from tagloc.eval.bench import bench_command
 
+    checks.seed(args.seed)
+    if args.frames is not None:
+        checks.number(args.frames, "--frames", 1, 10_000)
+    if args.jpeg is not None:
+        checks.number(args.jpeg, "--jpeg", 1, 100)
+    checks.output_file(args.json, "--json")
     return bench_command(
         frames=args.frames,
         seed=args.seed,

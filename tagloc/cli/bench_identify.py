@@ -26,12 +26,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tagloc.cli import checks
     from tagloc.eval.bench_identify import identify_bench_command
+    from tagloc.vision.identify import METHODS
+
+    checks.number(args.trials, "--trials", 1, 100_000)
+    methods = checks.names(args.methods, "--methods", METHODS)
+    # 100 px: ten times the blur that defeats decoding; at 1000 px one view took over 25 s.
+    blurs = checks.numbers(args.blurs, "--blurs", 0, 100)
+    # The bench's bank holds 200 consecutive IDs and hands out the true one's 2K nearest: K up to
+    # 100 leaves enough of them even at the bank's ends.
+    checks.number(args.candidates, "--candidates", 1, 100)
+    checks.seed(args.seed)
 
     print(
         identify_bench_command(
-            methods=tuple(m.strip() for m in args.methods.split(",") if m.strip()),
-            blurs_px=tuple(float(b) for b in args.blurs.split(",") if b.strip()),
+            methods=methods,
+            blurs_px=blurs,
             trials=args.trials,
             k=args.candidates,
             seed=args.seed,

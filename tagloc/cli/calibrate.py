@@ -62,24 +62,36 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tagloc.cli import checks
     from tagloc.core.charuco import BoardSpec
 
+    checks.number(args.square_mm, "--square-mm", 0, 1000, lo_open=True)
     marker_mm = args.marker_mm if args.marker_mm is not None else 0.7 * args.square_mm
+    # The marker sits inside its square, with a white border around it.
+    checks.number(marker_mm, "--marker-mm", 0, args.square_mm, lo_open=True, hi_open=True)
     spec = BoardSpec(args.squares[0], args.squares[1], args.square_mm / 1000.0, marker_mm / 1000.0, args.dictionary)
     if args.action == "board":
         from tagloc.io.calibration_board import write_board
 
+        checks.number(args.dpi, "--dpi", 72, 2400)
         print(write_board(args.out, spec, args.paper, args.dpi))
         return 0
     from tagloc.apps.calibrate import SourceConfig, calibrate_camera, format_report
     from tagloc.vision.calibration import CalibrationConfig
+
+    checks.number(args.step, "--step", 1, 10_000)
+    checks.number(args.max_frames, "--max-frames", 1, 10_000_000)
+    # Fewer views than the fit needs could never calibrate.
+    checks.number(args.max_views, "--max-views", CalibrationConfig.min_views, 1000)
+    checks.output_file(args.out, "-o")
+    checks.output_file(args.coverage, "--coverage", suffixes=(".png",))
 
     result = calibrate_camera(
         args.source,
         args.out,
         spec,
         CalibrationConfig(max_views=args.max_views, rational=args.rational, fix_k3=args.fix_k3),
-        SourceConfig(step=max(1, args.step), max_frames=args.max_frames),
+        SourceConfig(step=args.step, max_frames=args.max_frames),
         args.coverage,
         progress=not args.no_progress,
     )

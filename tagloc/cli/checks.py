@@ -13,20 +13,79 @@ from pathlib import Path
 from tagloc.core.errors import InputError
 
 
-def number(value: float | int, option: str, lo: float, hi: float, lo_open: bool = False) -> None:
-    """Refuse ``value`` unless finite and in [lo, hi] (``lo_open``: (lo, hi])."""
-    ok = isinstance(value, (int, float)) and math.isfinite(value) and value <= hi
-    ok = ok and (value > lo if lo_open else value >= lo)
+def number(
+    value: float | int, option: str, lo: float, hi: float = math.inf, lo_open: bool = False, hi_open: bool = False
+) -> None:
+    """Refuse ``value`` unless finite and in [lo, hi] (``lo_open``, ``hi_open``: that end excluded;
+    the default ``hi``: no upper bound)."""
+    # An int is never NaN or infinite, and math.isfinite cannot take one beyond a float's range.
+    ok = isinstance(value, int) or (isinstance(value, float) and math.isfinite(value))
+    ok = ok and (value > lo if lo_open else value >= lo) and (value < hi if hi_open else value <= hi)
     if not ok:
-        bracket = "(" if lo_open else "["
-        raise InputError(f"{option} must be in {bracket}{lo:g}, {hi:g}], not {value}")
+        if math.isinf(hi):
+            want = f"a number {'>' if lo_open else '>='} {lo:g}"
+        else:
+            want = f"in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+        raise InputError(f"{option} must be {want}, not {value}")
 
 
-def output_file(path: Path | None, option: str) -> None:
-    """Refuse a file path tagloc cannot create or overwrite (a directory or a file in the way, no permission)."""
+def numbers(text: str, option: str, lo: float, hi: float, lo_open: bool = False) -> tuple[float, ...]:
+    """The numbers of a comma-separated list such as ``0,2,4``, at least one, each as :func:`number` takes it."""
+    items = [t.strip() for t in text.split(",") if t.strip()]
+    if not items:
+        raise InputError(f"{option}: no numbers in {text!r} (want a comma-separated list such as 0,2,4)")
+    values = []
+    for item in items:
+        try:
+            values.append(float(item))
+        except ValueError:
+            raise InputError(f"{option}: {item!r} is not a number") from None
+        number(values[-1], option, lo, hi, lo_open)
+    return tuple(values)
+
+
+def names(text: str, option: str, allowed: tuple[str, ...]) -> tuple[str, ...]:
+    """The names of a comma-separated list such as ``full,orb-all``, at least one, each one of ``allowed``."""
+    given = tuple(t.strip() for t in text.split(",") if t.strip())
+    unknown = [n for n in given if n not in allowed]
+    if unknown or not given:
+        what = f"unknown {', '.join(unknown)}" if unknown else "none given"
+        raise InputError(f"{option}: {what} (want some of {', '.join(allowed)})")
+    return given
+
+
+#: Ranges (lo, hi] of the options the simulator's commands share (simulate, advise, demo): one
+#: table, so that what one of them refuses the others refuse too.
+SIM_RANGES = {
+    "--seconds": (0, 3600),
+    "--lux": (0, 200_000),  # twice full sunlight
+    "--speed": (0, 5),  # m/s: a run beyond
+    "--pitch": (0, 90),  # below horizontal: the camera must see the floor
+    "--height": (0, 5),  # m
+    "--scale": (0, 4),
+}
+
+
+def sim_option(value: float, option: str, lo_open: bool = True) -> None:
+    """Refuse ``value`` outside ``option``'s range in :data:`SIM_RANGES` (``lo_open=False``: the low end taken)."""
+    number(value, option, *SIM_RANGES[option], lo_open=lo_open)
+
+
+def seed(value: int, option: str = "--seed") -> None:
+    """Refuse a seed numpy's generators cannot take (a negative one)."""
+    number(value, option, 0)
+
+
+def output_file(path: Path | None, option: str, suffixes: tuple[str, ...] = ()) -> None:
+    """Refuse a file path tagloc cannot create or overwrite (a directory or a file in the way, no
+    permission), or, given ``suffixes`` (such as ``(".png",)``), whose suffix is none of them."""
     if path is None:
         return
     path = Path(path)
+    # The writers (matplotlib, OpenCV) pick the format from the suffix, in any case.
+    if suffixes and path.suffix.lower() not in suffixes:
+        got = f"not {path.suffix!r}" if path.suffix else "not a name without one"
+        raise InputError(f"{path}: {option} wants a {' or '.join(suffixes)} file, {got}")
     if path.is_dir():
         raise InputError(f"{path}: {option} names a directory, want a file")
     _creatable(path.parent, path, option)

@@ -29,6 +29,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from tagloc.apps.demo import DemoConfig, run_demo
+    from tagloc.cli import checks
+
+    for option, value in (("--seconds", args.seconds), ("--lux", args.lux), ("--speed", args.speed)):
+        checks.sim_option(value, option)
+    checks.seed(args.seed)
+    checks.output_dir(args.out, "-o")
 
     print(
         run_demo(

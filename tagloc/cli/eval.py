@@ -60,19 +60,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from tagloc.cli import checks
-    from tagloc.core.errors import InputError
     from tagloc.eval.baselines import EVAL_MODES
     from tagloc.eval.evaluate import SCALE_RANGE, EvalConfig, run_presets
 
     checks.number(args.sessions, "--sessions", 1, 1000)
     checks.number(args.seconds, "--seconds", 0, 3600, lo_open=True)
     checks.number(args.scale, "--scale", *SCALE_RANGE)
-    modes = tuple(m.strip() for m in args.modes.split(",") if m.strip())
-    unknown = [m for m in modes if m not in EVAL_MODES]
-    if unknown or not modes:
-        raise InputError(
-            f"--modes: unknown mode {', '.join(unknown) or '(none given)'} (want some of {', '.join(EVAL_MODES)})"
-        )
+    checks.seed(args.seed)
+    modes = checks.names(args.modes, "--modes", EVAL_MODES)
     checks.output_dir(args.out, "-o")
 
     cfg = EvalConfig(

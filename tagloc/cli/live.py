@@ -85,6 +85,9 @@ def run(args: argparse.Namespace) -> int:
     for option, path in (("--log", args.log), ("--rerun-save", args.rerun_save)):
         checks.output_file(path, option)
     checks.output_dir(args.record, "--record")
+    if args.gain is not None:
+        # No upper bound: the units are the driver's. CameraSettings takes any gain >= 0, infinity too.
+        checks.number(args.gain, "--gain", 0)
     from tagloc.io.capture import CameraSettings, parse_resolution
 
     settings = CameraSettings(

@@ -127,7 +127,12 @@ def run(args: argparse.Namespace) -> int:
     checks.number(args.aisle_spacing, "--aisle-spacing", 0, MAX_FLOOR_M, lo_open=True)
     checks.number(args.spacing_min, "--spacing-min", 0, MAX_FLOOR_M, lo_open=True)
     checks.number(args.spacing_max, "--spacing-max", 0, MAX_FLOOR_M, lo_open=True)
+    checks.number(args.jitter, "--jitter", 0, MAX_FLOOR_M)
+    checks.number(args.margin, "--margin", 0, MAX_FLOOR_M)
     checks.number(args.cross_aisles, "--cross-aisles", 0, 1000)
+    if args.sequential_ids is not None:
+        checks.number(args.sequential_ids, "--sequential-ids", 0, MAX_ID)
+    checks.seed(args.seed)
     # Each aisle carries up to depth / spacing-min stickers, each cross aisle width / spacing-min.
     lines = args.width / args.aisle_spacing + 1
     estimate = lines * args.depth / args.spacing_min + args.cross_aisles * args.width / args.spacing_min

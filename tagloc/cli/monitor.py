@@ -51,7 +51,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from tagloc.apps.monitor import MonitorConfig, run_monitor
+    from tagloc.cli import checks
     from tagloc.io.fleet_config import FleetConfig
+
+    for option, value in (("--stale", args.stale), ("--max-age", args.max_age), ("--max-2sigma", args.max_2sigma)):
+        checks.number(value, option, 0, lo_open=True)
+    for option, value in (("--safety-radius", args.safety_radius), ("--trail", args.trail)):
+        checks.number(value, option, 0)
+    checks.number(args.refresh, "--refresh", 0, 1000, lo_open=True)
+    for option, value in (("--max-seconds", args.max_seconds), ("--print-every", args.print_every)):
+        if value is not None:
+            checks.number(value, option, 0, lo_open=True)
+    checks.output_file(args.save, "--save")
+    checks.output_file(args.png, "--png", suffixes=(".png",))
 
     summary = run_monitor(
         MonitorConfig(

@@ -67,9 +67,11 @@ def run(args: argparse.Namespace) -> int:
     from tagloc.io.rosbag import is_bag
     from tagloc.io.session import FRAMES_DIR, SESSION_INPUTS
 
-    outputs = [("--out", args.out), ("--log", args.log), ("--rerun", args.rerun), ("--png", args.png)]
+    outputs = [("--out", args.out), ("--log", args.log), ("--rerun", args.rerun)]
     for option, path in outputs:
         checks.output_file(path, option)
+    checks.output_file(args.png, "--png", suffixes=(".png",))
+    outputs.append(("--png", args.png))
     checks.outputs_apart(
         [*outputs, ("--bag", args.bag)],
         [*(args.session / name for name in SESSION_INPUTS), args.map, args.rig, args.calibration],

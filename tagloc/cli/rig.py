@@ -38,16 +38,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tagloc.cli import checks
     from tagloc.eval.rigfit import RigFitConfig, check_rig_file, fit_rig, format_fit
 
     if args.action == "show":
         print(check_rig_file(args.rig))
         return 0
+    checks.number(args.step, "--step", 1, 10_000)
+    checks.output_file(args.out, "-o")
     fit = fit_rig(
         args.session,
         args.out,
         args.rig,
-        RigFitConfig(camera=args.camera, decoder=args.decoder, step=max(1, args.step)),
+        RigFitConfig(camera=args.camera, decoder=args.decoder, step=args.step),
         progress=not args.no_progress,
     )
     print(format_fit(fit))

@@ -103,18 +103,30 @@ def run(args: argparse.Namespace) -> int:
     from tagloc.sim.survey import SurveyConfig
     from tagloc.sim.timing import TimingConfig
 
-    checks.number(args.seconds, "--seconds", 0, 3600, lo_open=True)
+    for option, value in (
+        ("--seconds", args.seconds),
+        ("--lux", args.lux),
+        ("--speed", args.speed),
+        ("--pitch", args.pitch),
+        ("--height", args.height),
+        ("--scale", args.scale),
+    ):
+        checks.sim_option(value, option)
     checks.number(args.fps, "--fps", 0, 240, lo_open=True)
-    checks.number(args.lux, "--lux", 0, 200_000, lo_open=True)
-    checks.number(args.speed, "--speed", 0, 5, lo_open=True)
-    checks.number(args.pitch, "--pitch", 0, 90, lo_open=True)
-    checks.number(args.height, "--height", 0, 5, lo_open=True)
+    checks.seed(args.seed)
     checks.number(args.distractors, "--distractors", 0, 100)
     checks.number(args.unmapped, "--unmapped", 0, 10_000)
     checks.number(args.jpeg_quality, "--jpeg-quality", 1, 100)
-    checks.number(args.scale, "--scale", 0, 4, lo_open=True)
     checks.number(args.flicker, "--flicker", 0, 100)
     checks.number(args.mains_hz, "--mains-hz", 0, 1000, lo_open=True)
+    checks.number(args.readout_ms, "--readout-ms", 0, 1000)
+    checks.number(args.jitter_ms, "--jitter-ms", 0, 1000)
+    checks.number(args.drop_fraction, "--drop-fraction", 0, 1, hi_open=True)
+    # Ten bursts of 3 or more frames a second leave a 30 fps camera no frame.
+    checks.number(args.drop_bursts_per_min, "--drop-bursts-per-min", 0, 600)
+    checks.number(args.survey_sigma_cm, "--survey-sigma-cm", 0, 100)
+    checks.number(args.survey_sigma_deg, "--survey-sigma-deg", 0, 180)
+    checks.number(args.missing_fraction, "--missing-fraction", 0, 1)
     checks.output_dir(args.out, "-o")
 
     summary = simulate_session(
