@@ -119,11 +119,11 @@ def test_cli_audit_and_refine_write_their_files(site, tmp_path, capsys):
         assert (tmp_path / "audit" / name).exists()
     added = load_map(tmp_path / "audit" / "unmapped.csv")
     assert list(added.ids) == [UNMAPPED] and np.isfinite(added.sigma_xy).all()
-    out = tmp_path / "refined.csv"
+    out = tmp_path / "site" / "refined.csv"  # into a directory that does not exist yet (README's example)
     assert main(["map", "refine", *sessions, "--map", survey, "-o", str(out), "--quiet"]) == 0
     refined = load_map(out)
     assert list(refined.ids) == list(site["survey"].ids)
-    assert str(MOVED) in (tmp_path / "refined.md").read_text()
+    assert str(MOVED) in (tmp_path / "site" / "refined.md").read_text()
     assert "1 moved" in capsys.readouterr().out
 
 

@@ -679,7 +679,10 @@ def refine_sessions(
     smap, map_path, walks = collect_walks(sessions, map_path, progress=progress)
     result = refine_map(walks, smap, config)
     out = Path(out)
-    save_map(result.refined, out)
     report = Path(report) if report is not None else out.with_suffix(".md")
+    # The CLI checked that these can be created, missing directories included: create them.
+    for path in (out, report):
+        path.parent.mkdir(parents=True, exist_ok=True)
+    save_map(result.refined, out)
     report.write_text(refine_markdown(result, str(map_path), [w.name for w in walks]), encoding="utf-8")
     return result
