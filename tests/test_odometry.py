@@ -862,3 +862,25 @@ def test_patch_from_the_half_level_is_the_same_floor_as_from_the_frame():
     assert np.hypot(*shift) < 0.25, shift
     coarse = RigCamera("front", default_camera().scaled(0.5), looking_forward(1.3, 55.0), legs_in_view=False)
     assert not FloorOdometry(coarse, OdometryConfig())._from_half
+
+
+def test_a_tilt_fit_that_broke_down_is_dropped_not_fused(monkeypatch):
+    """A homography tilt fit of -73 / -273 deg (seen on a flickering global-shutter walk) is no
+    measurement: dropped and counted, the step as if no fit had been made; taken, it moved the
+    step by metres and the tilt filter with it."""
+    rc, imgs = _rendered_pair()
+
+    def step(fit, **cfg):
+        monkeypatch.setattr(FloorOdometry, "_tilt_fit", lambda self, *a, **k: fit)
+        odo = FloorOdometry(rc, OdometryConfig(flow=False, **cfg))
+        odo.measure(imgs[0], 0.0)
+        return odo, odo.measure(imgs[1], 1 / FPS)
+
+    broken = (math.radians(-73.0), math.radians(-273.0))
+    odo, dropped = step(broken)
+    _, none = step(None)
+    assert odo.tilt_fits_refused == 1
+    assert np.array_equal(dropped.delta, none.delta)
+    assert abs(none.delta[0] - 0.04) < 0.01  # the 4 cm walked
+    _, taken = step(broken, tilt_fit_max=math.inf)
+    assert np.hypot(*(taken.delta[:2] - none.delta[:2])) > 0.5

@@ -257,7 +257,12 @@ class OdometryConfig:
     more to build up (1 deg per frame at the most, rare, and followed by ``lean_correction``). So 0.3
     deg keeps the fit in the physical range where the patch's perspective alone cannot pin it down
     (with 1 deg, roll traded against sideways motion on simulated walks: 11 mm per step sideways on
-    one). ``tilt_fit_roll``: fit the roll too, not only the pitch (on four simulated walks it took
+    one). ``tilt_fit_max``: a fitted change of pitch or roll beyond this (5 deg, five times the
+    most a walking torso's tilt changes in a frame) is a fit that broke down, not a measurement, and
+    is dropped (counter ``tilt_fits_refused``; the flow's own fit is judged by its residual): a homography fit on a flickering global-shutter walk
+    once returned -73 and -273 deg, the tilt filter took it, and the steps of the next 0.7 s were
+    corrected 20-30 mm sideways, the track 65 cm off and overconfident
+    (``benchmarks/flicker.py``, 30 %, 50 Hz, global shutter, seed 4). ``tilt_fit_roll``: fit the roll too, not only the pitch (on four simulated walks it took
     the sideways error summed over 0.5 s from 5 to 2.4-3.5 cm on three and raised it from 2.4 to
     4.4 cm on the fourth, a slow walk under a steep camera).
     The tilt change is used to correct the rigid match's step (the rigid map that the tilt
@@ -445,6 +450,7 @@ class OdometryConfig:
     tilt_sigma_roll: float = math.radians(1.0)
     tilt_tau_s: float = 1.0
     tilt_fit_sigma: float = math.radians(0.3)
+    tilt_fit_max: float = math.radians(5.0)
     tilt_anchor_sigma: float = math.radians(0.3)
     tilt_posture_fixes: int = 300
     tilt_gate_reset: int = 3
@@ -803,6 +809,7 @@ class FloorOdometry:
         self.flow_steps = 0  # steps the flow refined
         self.bridged = 0  # steps that bridged dropped frames (see bridge_max_dt)
         self.flow_refused = 0  # steps whose flow fit was refused (the patch's step stands)
+        self.tilt_fits_refused = 0  # fitted tilt changes beyond tilt_fit_max, dropped
         # The flow fit's median reprojection error (px) in the last measure, kept or refused; None
         # when it made none (see FloorFlow.last_residual).
         self.last_flow_residual: float | None = None
@@ -1214,6 +1221,9 @@ class FloorOdometry:
         else:
             fit = self._tilt_fit(small, psmall, W, delta, t1 - t0, R_tilt)
             fit_sigma = None
+            if fit is not None and max(abs(fit[0]), abs(fit[1] or 0.0)) > self.config.tilt_fit_max:
+                self.tilt_fits_refused += 1
+                fit = None
         torso = self._torso
         if torso is None:
             if fit is None:
