@@ -58,4 +58,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from tagloc.cli import run_guarded
+
+    raise SystemExit(run_guarded("calibrate_synthetic.py", main))

@@ -228,4 +228,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from tagloc.cli import run_guarded
+
+    raise SystemExit(run_guarded("fleet_load.py", main))

@@ -171,4 +171,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from tagloc.cli import run_guarded
+
+    raise SystemExit(run_guarded("flicker.py", main))

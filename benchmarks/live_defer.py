@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 import time
 import types
 from pathlib import Path
@@ -108,4 +107,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from tagloc.cli import run_guarded
+
+    raise SystemExit(run_guarded("live_defer.py", main))

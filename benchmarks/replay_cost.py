@@ -441,4 +441,6 @@ def _write(path: Path | None, out: dict) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from tagloc.cli import run_guarded
+
+    raise SystemExit(run_guarded("replay_cost.py", main))

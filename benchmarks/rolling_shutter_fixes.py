@@ -289,4 +289,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from tagloc.cli import run_guarded
+
+    raise SystemExit(run_guarded("rolling_shutter_fixes.py", main))

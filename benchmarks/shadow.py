@@ -70,4 +70,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from tagloc.cli import run_guarded
+
+    raise SystemExit(run_guarded("shadow.py", main))

@@ -300,4 +300,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from tagloc.cli import run_guarded
+
+    raise SystemExit(run_guarded("soak.py", main))

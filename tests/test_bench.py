@@ -114,3 +114,26 @@ def test_bad_options_are_refused(tmp_path):
         BenchConfig(near_m=2.0, far_m=1.0)
     with pytest.raises(InputError, match="does not exist"):
         bench_command(quick=True, json_path=tmp_path / "nope" / "b.json")
+
+
+BENCHMARKS = sorted((__import__("pathlib").Path(__file__).resolve().parent.parent / "benchmarks").glob("*.py"))
+
+
+@pytest.mark.parametrize("script", BENCHMARKS, ids=lambda p: p.name)
+def test_every_benchmark_script_ends_its_run_through_the_one_line_error_guard(script):
+    """A benchmark given a path that is no session prints one line, as the tagloc commands do."""
+    assert script.read_text().rstrip().endswith(f'raise SystemExit(run_guarded("{script.name}", main))')
+
+
+@pytest.mark.parametrize("name", ["fix_error.py", "covariance_growth.py", "odometry_accuracy.py"])
+def test_a_benchmark_given_no_session_says_so_in_one_line(name, tmp_path):
+    import subprocess
+    import sys
+
+    script = next(p for p in BENCHMARKS if p.name == name)
+    r = subprocess.run(
+        [sys.executable, str(script), str(tmp_path / "nope")], capture_output=True, text=True, timeout=120
+    )
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip() and "it/s" not in ln and "walk/s" not in ln]
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert lines[-1] == f"{name}: error: {tmp_path / 'nope'}: not a session directory"

@@ -12,6 +12,7 @@ import importlib
 import os
 import pkgutil
 import sys
+from collections.abc import Callable
 
 from tagloc import __version__
 from tagloc.core.errors import TaglocError
@@ -59,25 +60,32 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "_run", None):
         parser.print_help()
         return 2
+    return run_guarded(f"tagloc {args.command}", lambda: args._run(args))
+
+
+def run_guarded(name: str, run: Callable[[], int | None]) -> int:
+    """``run()``'s exit code, with every error it raises made one line on stderr prefixed ``name``
+    (the console script's subcommands, and the benchmark scripts): a :class:`TaglocError` is the
+    user's input, an ``OSError`` the system's, anything else a bug (``TAGLOC_DEBUG=1``: raised)."""
     try:
-        return int(args._run(args) or 0)
+        return int(run() or 0)
     except TaglocError as exc:
-        print(f"tagloc {args.command}: error: {exc}", file=sys.stderr)
+        print(f"{name}: error: {exc}", file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
-        print(f"tagloc {args.command}: interrupted", file=sys.stderr)
+        print(f"{name}: interrupted", file=sys.stderr)
         return 130
     except OSError as exc:
         # Trouble writing or reading that no check could foresee (a full disk, a vanished mount).
         where = f"{exc.filename}: " if exc.filename else ""
-        print(f"tagloc {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        print(f"{name}: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return 1
     except Exception as exc:  # noqa: BLE001 - a bug: one line for the user, the traceback on request
         if os.environ.get("TAGLOC_DEBUG"):
             raise
         msg = str(exc).splitlines()[0][:300] if str(exc) else ""
         print(
-            f"tagloc {args.command}: internal error: {type(exc).__name__}: {msg} "
+            f"{name}: internal error: {type(exc).__name__}: {msg} "
             "(please report it; TAGLOC_DEBUG=1 shows the traceback)",
             file=sys.stderr,
         )
