@@ -711,7 +711,7 @@ def test_cli_simulate_field_flags(tmp_path, capsys):
     assert np.isfinite(reader.map.sigma_xy).all() and (tmp_path / "f" / "map_true.csv").exists()
     assert 0 < len(reader) <= 5
     for bad, word in (
-        (["--drop-fraction", "1.5"], "drop fraction"),
+        (["--drop-fraction", "1.5"], "--drop-fraction"),
         (["--jitter-ms", "80"], "jitter"),
         (["--flicker", "150"], "--flicker"),
     ):
