@@ -28,7 +28,7 @@ from tagloc.core.types import Frame, FrameResult, TrackerOutput, TrackState
 from tagloc.io.session import SessionInfo, SessionReader, SessionWriter, read_tum
 from tagloc.io.sinks import MqttSink, PoseMessage, UdpSink
 from tagloc.pipeline.localiser import Localiser
-from tagloc.pipeline.output import OutputConfig, Outputs
+from tagloc.pipeline.output import OutputConfig, Outputs, OutputSummary
 
 REPO = Path(__file__).resolve().parent.parent
 N = 12
@@ -245,25 +245,31 @@ def test_2_network_sinks_drop_poses_older_than_the_bound():
     rx.close()
 
 
-def test_3_a_sink_that_cannot_publish_is_warned_about_at_start_and_counted(session, tmp_path):
-    from mosquitto import free_port
-
+def _publish_for(url: str, seconds: float, period: float) -> tuple[list[str], OutputSummary, int]:
+    """Emit a pose every ``period`` s for ``seconds`` s to ``url`` through :class:`Outputs` (warnings
+    after 0.2 s, repeated every 0.5 s): (the warnings, the summary, the poses emitted)."""
     warnings: list[str] = []
-    port = free_port()
     out = Outputs(
         line_map(),
         default_rig(),
-        OutputConfig(publish=[f"mqtt://127.0.0.1:{port}/t"], connect_grace_s=0.2, warn_every_s=0.5),
+        OutputConfig(publish=[url], connect_grace_s=0.2, warn_every_s=0.5),
         warn=warnings.append,
     )
     o = TrackerOutput(0.0, np.zeros(3), np.eye(3), TrackState.TRACKING, 0.0)
-    t_end = time.monotonic() + 1.3
+    t_end = time.monotonic() + seconds
     k = 0
     while time.monotonic() < t_end:
-        out.emit(FrameResult(k, k * 0.1, [], o), grabbed=time.monotonic())
+        out.emit(FrameResult(k, k * period, [], o), grabbed=time.monotonic())
         k += 1
-        time.sleep(0.05)
-    summary = out.close()
+        time.sleep(period)
+    return warnings, out.close(), k
+
+
+def test_3_a_sink_that_cannot_publish_is_warned_about_at_start_and_counted(session, tmp_path):
+    from mosquitto import free_port
+
+    port = free_port()
+    warnings, summary, k = _publish_for(f"mqtt://127.0.0.1:{port}/t", 1.3, 0.05)
     assert 2 <= len(warnings) <= 3  # at start, then again every 0.5 s while it lasts: rate-limited
     assert all(f"mqtt://127.0.0.1:{port}/t: not connected" in w for w in warnings)
     assert summary.sinks[f"mqtt://127.0.0.1:{port}/t"]["dropped"] == k
@@ -276,21 +282,7 @@ def test_3_a_udp_port_nobody_listens_on_is_one_warning_not_one_per_frame():
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # a port nothing listens on once closed
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    warnings: list[str] = []
-    out = Outputs(
-        line_map(),
-        default_rig(),
-        OutputConfig(publish=[f"udp://127.0.0.1:{port}"], connect_grace_s=0.2, warn_every_s=0.5),
-        warn=warnings.append,
-    )
-    o = TrackerOutput(0.0, np.zeros(3), np.eye(3), TrackState.TRACKING, 0.0)
-    t_end = time.monotonic() + 1.3
-    k = 0
-    while time.monotonic() < t_end:
-        out.emit(FrameResult(k, k * 0.02, [], o), grabbed=time.monotonic())
-        k += 1
-        time.sleep(0.02)
-    summary = out.close()
+    warnings, summary, k = _publish_for(f"udp://127.0.0.1:{port}", 1.3, 0.02)
     assert k >= 30 and summary.sinks[f"udp://127.0.0.1:{port}"]["dropped"] >= k // 3  # refused, counted
     assert 2 <= len(warnings) <= 3 and all("send failed (Connection refused)" in w for w in warnings)
     assert not any("publishing again" in w for w in warnings)
