@@ -13,7 +13,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from tagloc.core.errors import InputError, SessionError
+from tagloc.core.errors import InputError
 from tagloc.core.types import FrameResult
 from tagloc.eval.metrics import trajectory_metrics
 from tagloc.io.session import SessionReader
@@ -131,7 +131,6 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
     # (its quaternions pull in scipy.spatial, which a replay's start-up need not wait for).
     gt = session.groundtruth() if cfg.rerun_save or cfg.spawn else None
     fixes: dict[str, int] = {}
-    first_skip: list[str] = []  # why the first skipped frame was skipped, for a run where all were
     outputs = Outputs(
         session.map,
         session.rig,
@@ -155,8 +154,6 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
             outputs.add_sink(bag)
 
         def on_result(res: FrameResult) -> None:
-            if res.skipped is not None and not first_skip:
-                first_skip.append(res.skipped)
             for o in res.observations:
                 if o.accepted:
                     fixes[o.source.value] = fixes.get(o.source.value, 0) + 1
@@ -187,10 +184,7 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
         seconds = time.monotonic() - t0
     finally:
         summary = outputs.close()
-    skipped = int(run.counts.get("skipped", 0))
-    if len(run.stamps) and skipped == len(run.stamps):
-        # Nothing was localised: not a result to report as a run (exit 0), whatever was written.
-        raise SessionError(f"{cfg.session}: none of its {skipped} frames could be used ({first_skip[0]})")
+    run.require_frames(cfg.session)
     metrics = None
     if gt is None and not (cfg.rerun_save or cfg.spawn):
         gt = session.groundtruth()
@@ -206,4 +200,4 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
     if flickered:
         # Worth knowing on site: the lamps flicker (see the README's "Lamp flicker").
         notes.append(f"lamp flicker: divided out of {flickered} of {len(run.stamps)} frames")
-    return ReplayResult(len(run.stamps), skipped, int(run.valid.sum()), fixes, seconds, metrics, summary, notes)
+    return ReplayResult(len(run.stamps), run.skipped, int(run.valid.sum()), fixes, seconds, metrics, summary, notes)

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tagloc.core.errors import CalibrationError, SessionError
+from tagloc.core.errors import CalibrationError
 from tagloc.core.geometry import invert
 from tagloc.core.rig import Rig
 from tagloc.core.sticker import rotate_corners
@@ -190,10 +190,7 @@ def collect_walk(
         frames.append(frame_record(res, smap, session.rig, odometry.step(res)))
 
     log = run_session(session, localiser=loc, progress=progress, on_result=record)
-    skipped = [fr.skipped for fr in frames if fr.skipped]
-    if frames and len(skipped) == len(frames):
-        # A walk that saw nothing must not audit the map as if its stickers were all missing.
-        raise SessionError(f"{session.path}: none of its {len(frames)} frames could be used ({skipped[0]})")
+    log.require_frames(session.path)  # a walk that saw nothing must not find every sticker missing
     return WalkLog(session.path, session.rig, frames, dict(log.counts), log)
 
 

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from tagloc.core.errors import SessionError
 from tagloc.core.types import FrameResult
 from tagloc.io.session import SessionReader
 from tagloc.pipeline.localiser import TRACKER_STAGES, FrameProcessor, Localiser, LocaliserConfig
@@ -34,6 +35,8 @@ class RunLog:
         counts: counters from the localiser and tracker.
         frame_ms: (N,) wall time per frame, ms; tracker_ms, odometry_ms: (N,) of which in the
             tracker (``TRACKER_STAGES``: predict, candidates, update, output) and in the floor odometry.
+        skipped: frames the localiser skipped (unreadable, the wrong size, a refused time);
+            first_skipped: why the first of them was, else None.
     """
 
     stamps: np.ndarray
@@ -46,6 +49,14 @@ class RunLog:
     frame_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     tracker_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     odometry_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    skipped: int = 0
+    first_skipped: str | None = None
+
+    def require_frames(self, source: object) -> None:
+        """Refuse a run of ``source`` (a session, named in the message) none of whose frames could be
+        used: nothing was localised, and no result may be reported as if something had been."""
+        if len(self.stamps) and self.skipped == len(self.stamps):
+            raise SessionError(f"{source}: none of its {self.skipped} frames could be used ({self.first_skipped})")
 
 
 def iterate_results(
@@ -89,8 +100,11 @@ def run_session(
     stamps, poses, covs, valid, frame_ms, tracker_ms, odometry_ms = [], [], [], [], [], [], []
     fixes, rejected = [], []
     frame_t: dict[int, float] = {}  # frame index -> timestamp, for observations finished late
+    skipped: list[str] = []
     for res in iterate_results(session, loc, progress=progress, realtime=realtime):
         frame_t[res.index] = res.timestamp
+        if res.skipped is not None:
+            skipped.append(res.skipped)
         out = res.output
         stamps.append(res.timestamp)
         poses.append(out.pose)
@@ -126,4 +140,6 @@ def run_session(
         np.array(frame_ms),
         np.array(tracker_ms),
         np.array(odometry_ms),
+        skipped=len(skipped),
+        first_skipped=skipped[0] if skipped else None,
     )
