@@ -17,11 +17,15 @@ walk and a dim-sensor walk; all runs both (into OUT/standard and OUT/field) and 
 summaries. two-camera renders three fixed 20 s walks with a front-down + rear-down rig and compares
 one camera (the front one's frames alone) against both: time with a sticker in view, RMSE, NEES.
 
+With --walks, sessions one already has (each with groundtruth.tum: walks recorded on a site, or
+rendered by another simulator) are scored the same way instead; nothing is simulated.
+
 examples:
   tagloc eval --sessions 6 --seconds 20 -o out/eval
   tagloc eval --preset all --modes full -o out/eval
   tagloc eval --preset field --scale 0.5 --modes full -o out/eval-half
-  tagloc eval --preset two-camera -o out/eval/two_camera"""
+  tagloc eval --preset two-camera -o out/eval/two_camera
+  tagloc eval --walks site/walks --modes full -o out/eval-site"""
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -53,6 +57,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=1.0,
         help="standard, field: every walk's camera at this resolution factor (default 1: 1296x972; 0.5: 648x486)",
     )
+    p.add_argument(
+        "--walks",
+        type=Path,
+        nargs="+",
+        metavar="DIR",
+        help="score these sessions (or the sessions in these directories) instead of a preset's walks",
+    )
     p.add_argument("--no-hard", action="store_true", help="no missing/unmapped stickers in the odd sessions (standard)")
     p.add_argument("-o", "--out", type=Path, default=Path("out/eval"), help="output directory (default out/eval)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -60,6 +71,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from tagloc.cli import checks
+    from tagloc.core.errors import InputError
     from tagloc.eval.baselines import EVAL_MODES
     from tagloc.eval.evaluate import SCALE_RANGE, EvalConfig, run_presets
 
@@ -69,6 +81,13 @@ def run(args: argparse.Namespace) -> int:
     checks.seed(args.seed)
     modes = checks.names(args.modes, "--modes", EVAL_MODES)
     checks.output_dir(args.out, "-o")
+    if args.walks:
+        from tagloc.eval.walks import score_walks
+
+        if args.preset != "standard":
+            raise InputError("--walks scores the sessions given; --preset does not apply")
+        print(score_walks(args.walks, args.out, modes, progress=not args.quiet))
+        return 0
 
     cfg = EvalConfig(
         sessions=args.sessions,

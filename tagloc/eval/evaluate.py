@@ -11,8 +11,9 @@ Two presets of walks:
   turns and returns along the same aisles, and a walk with the less sensitive OV5647 sensor.
 
 Each scenario makes its own map and session with the simulator (cached by scenario), then runs the
-localiser modes on the same frames. Wrong-ID fixes are counted against the simulator's per-frame
-ground truth of which sticker is where in the image. Coverage counts a frame without a pose as a
+localiser modes on the same frames (:func:`score_session`, which :mod:`tagloc.eval.walks` also runs
+on sessions one already has). Wrong-ID fixes are counted against the simulator's per-frame ground
+truth of which sticker is where in the image. Coverage counts a frame without a pose as a
 miss: ``within_10cm_all`` is the share of all delivered frames with a pose within 10 cm.
 """
 
@@ -271,7 +272,7 @@ def _sensor_conditions(sc: Scenario) -> dict:
 
 def wrong_id_fixes(session: Path, log: RunLog, radius_px: float = 40.0) -> tuple[int, int]:
     """(wrong, checked): accepted fixes whose ID is not the sticker the simulator put there."""
-    gt_file = session / "groundtruth_frames.jsonl"
+    gt_file = session / GROUNDTRUTH_FRAMES
     if not gt_file.exists():
         return 0, 0
     truth: dict[int, list[tuple[int, np.ndarray]]] = {}
@@ -286,6 +287,49 @@ def wrong_id_fixes(session: Path, log: RunLog, radius_px: float = 40.0) -> tuple
         near = [sid for sid, c in truth.get(fix["frame"], []) if np.hypot(*(c - fix["centre"])) < radius_px]
         wrong += fix["id"] not in near
     return wrong, len(log.fixes)
+
+
+#: The simulator's per-frame truth of which sticker is where in each image.
+GROUNDTRUTH_FRAMES = "groundtruth_frames.jsonl"
+#: A wrong ID places its fix by about the distance between the sticker seen and the one named, so
+#: a fix further than this share of the map's median nearest-neighbour spacing from the truth
+#: counts as a wrong ID by pose; the floor keeps a dense map's bound well above a right fix's error
+#: (a few centimetres, a survey error of 2 cm and 2 degrees at 1.5 m included: about 7 cm).
+WRONG_ID_SPACING_SHARE = 0.5
+WRONG_ID_MIN_M = 0.25
+
+
+def wrong_id_distance(smap) -> float:
+    """The distance (m) from the truth beyond which :func:`wrong_id_fixes_by_pose` calls a fix's ID
+    wrong: ``WRONG_ID_SPACING_SHARE`` of the map's median nearest-neighbour spacing, at least
+    ``WRONG_ID_MIN_M``."""
+    from scipy.spatial import KDTree
+
+    xy = np.asarray(smap.xy, float)
+    if len(xy) < 2:
+        return WRONG_ID_MIN_M
+    d = KDTree(xy).query(xy, k=2)[0][:, 1]
+    return max(WRONG_ID_MIN_M, WRONG_ID_SPACING_SHARE * float(np.median(d)))
+
+
+def wrong_id_fixes_by_pose(log: RunLog, gt: tuple[np.ndarray, np.ndarray], distance_m: float) -> int:
+    """Accepted fixes none of whose body poses (``bodies`` of the fix record) lies within
+    ``distance_m`` of the ground truth at the fix's time (linearly interpolated; fixes outside the
+    ground truth's time span are not counted): for sessions without the simulator's per-frame
+    truth, such as recorded walks scored against a motion-capture trajectory."""
+    stamps, T = gt
+    if not len(stamps):
+        return 0
+    gx, gy = T[:, 0, 3], T[:, 1, 3]
+    wrong = 0
+    for fix in log.fixes:
+        t = fix["t"]
+        if not stamps[0] <= t <= stamps[-1] or not fix.get("bodies"):
+            continue
+        truth = np.array([np.interp(t, stamps, gx), np.interp(t, stamps, gy)])
+        near = min(float(np.hypot(*(np.asarray(b[:2]) - truth))) for b in fix["bodies"])
+        wrong += near > distance_m
+    return wrong
 
 
 GAP_BINS_S = (0.0, 1e-6, 0.2, 0.5, 1.0, 2.0, 5.0, math.inf)
@@ -321,6 +365,62 @@ def _timed_on_one_core(run: Callable[[], RunLog]) -> RunLog:
         cv2.setNumThreads(before)
 
 
+def score_session(path: Path, mode: str, progress: bool) -> tuple[dict, SessionReader, RunLog, tuple | None]:
+    """Run ``mode`` over the session at ``path`` and score it against its ground truth: (the row's
+    figures, the session, the run, the ground truth (stamps, T_world_body)). Wrong-ID fixes are
+    counted against the simulator's per-frame truth of which sticker is where in the image when the
+    session has it, else by pose (:func:`wrong_id_fixes_by_pose`); ``wrong_id_check`` says which."""
+    session = SessionReader(path)
+    log = _timed_on_one_core(
+        functools.partial(
+            run_session,
+            session,
+            localiser=make_localiser(mode, session.map, session.rig, map_path=session.path / "map.csv"),
+            progress=progress,
+        )
+    )
+    gt = session.groundtruth()
+    if gt is None:
+        raise InputError(f"{path}: no groundtruth.tum to score against")
+    v = log.valid
+    e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *gt)
+    m = error_metrics(e)
+    if (Path(path) / GROUNDTRUTH_FRAMES).exists():
+        wrong, check = wrong_id_fixes(Path(path), log)[0], "frames"
+    else:
+        wrong, check = wrong_id_fixes_by_pose(log, gt, wrong_id_distance(session.map)), "pose"
+    by_source: dict[str, int] = {}
+    for fx in log.fixes:
+        by_source[fx["source"]] = by_source.get(fx["source"], 0) + 1
+    row = {
+        "mode": mode,
+        **m,
+        "wrong_id_fixes": wrong,
+        "wrong_id_check": check,
+        "fixes": len(log.fixes),
+        "fixes_by_source": by_source,
+        "rejected_fixes": len(log.rejected),
+        "coverage": float(np.mean(log.valid)) if len(log.valid) else 0.0,
+        # A frame without a pose is a miss: the share of all frames with a pose within 10 cm.
+        "frames_all": int(len(log.valid)),
+        "within_10cm_all": m["within_10cm"] * m["frames"] / max(len(log.valid), 1),
+        "frame_ms_median": float(np.median(log.frame_ms)) if len(log.frame_ms) else math.nan,
+        "tracker_ms_median": float(np.median(log.tracker_ms)) if len(log.tracker_ms) else math.nan,
+        "tracker_ms_p95": float(np.percentile(log.tracker_ms, 95)) if len(log.tracker_ms) else math.nan,
+        "odometry_ms_median": float(np.median(log.odometry_ms)) if len(log.odometry_ms) else math.nan,
+        # What tracking adds to a frame over the per-frame stage: the filter, candidate
+        # selection and the floor odometry that feeds it, summed frame by frame.
+        "tracking_ms_median": float(np.median(log.tracker_ms + log.odometry_ms)) if len(log.tracker_ms) else math.nan,
+        "tracking_ms_p95": float(np.percentile(log.tracker_ms + log.odometry_ms, 95))
+        if len(log.tracker_ms)
+        else math.nan,
+        "by_time_since_fix": by_time_since_fix(log, e),
+        "nees_blocks": nees_blocks(e.stamps, e.nees).tolist(),
+        "counts": log.counts,
+    }
+    return row, session, log, gt
+
+
 def evaluate(cfg: EvalConfig, walks: list[Scenario] | None = None) -> dict:
     """Run every scenario (the preset's, or ``walks``) and mode; write ``report.md``,
     ``results.json`` and PNG plots under ``cfg.out``."""
@@ -333,55 +433,16 @@ def evaluate(cfg: EvalConfig, walks: list[Scenario] | None = None) -> dict:
     for sc in tqdm(scenarios(cfg) if walks is None else walks, desc="eval", unit="session", disable=not cfg.progress):
         path = make_session(sc, out, cfg.progress)
         for mode in cfg.modes:
-            session = SessionReader(path)
-            log = _timed_on_one_core(
-                functools.partial(
-                    run_session,
-                    session,
-                    localiser=make_localiser(mode, session.map, session.rig, map_path=session.path / "map.csv"),
-                    progress=cfg.progress,
-                )
-            )
-            gt = session.groundtruth()
-            v = log.valid
-            e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *gt)
-            m = error_metrics(e)
-            wrong, checked = wrong_id_fixes(path, log)
-            by_source: dict[str, int] = {}
-            for fx in log.fixes:
-                by_source[fx["source"]] = by_source.get(fx["source"], 0) + 1
-            row = {
-                "session": sc.name,
-                "mode": mode,
-                **asdict(sc),
-                **m,
-                "wrong_id_fixes": wrong,
-                "fixes": len(log.fixes),
-                "fixes_by_source": by_source,
-                "rejected_fixes": len(log.rejected),
-                "coverage": float(np.mean(log.valid)) if len(log.valid) else 0.0,
-                # A frame without a pose is a miss: the share of all frames with a pose within 10 cm.
-                "frames_all": int(len(log.valid)),
-                "within_10cm_all": m["within_10cm"] * m["frames"] / max(len(log.valid), 1),
-                "frame_ms_median": float(np.median(log.frame_ms)) if len(log.frame_ms) else math.nan,
-                "tracker_ms_median": float(np.median(log.tracker_ms)) if len(log.tracker_ms) else math.nan,
-                "tracker_ms_p95": float(np.percentile(log.tracker_ms, 95)) if len(log.tracker_ms) else math.nan,
-                "odometry_ms_median": float(np.median(log.odometry_ms)) if len(log.odometry_ms) else math.nan,
-                # What tracking adds to a frame over the per-frame stage: the filter, candidate
-                # selection and the floor odometry that feeds it, summed frame by frame.
-                "tracking_ms_median": float(np.median(log.tracker_ms + log.odometry_ms))
-                if len(log.tracker_ms)
-                else math.nan,
-                "tracking_ms_p95": float(np.percentile(log.tracker_ms + log.odometry_ms, 95))
-                if len(log.tracker_ms)
-                else math.nan,
-                "by_time_since_fix": by_time_since_fix(log, e),
-                "nees_blocks": nees_blocks(e.stamps, e.nees).tolist(),
-                "counts": log.counts,
-            }
-            rows.append(row)
+            row, session, log, gt = score_session(path, mode, cfg.progress)
+            rows.append({"session": sc.name, **asdict(sc), **row})
             if mode == "full":
                 plots.append(plot_run(session, log, gt, out / f"{sc.name}.png", title=f"{sc.name} ({sc.conditions()})"))
+    return write_results(rows, plots, out)
+
+
+def write_results(rows: list[dict], plots: list[Path], out: Path) -> dict:
+    """Pool ``rows`` (:func:`summarise`) and write ``results.json`` and ``report.md`` (with ``plots``)
+    into ``out``: {"rows", "summary", "report" (the report's path)}."""
     summary = summarise(rows)
     (out / "results.json").write_text(json.dumps({"rows": rows, "summary": summary}, indent=1, default=float))
     (out / "report.md").write_text(report_markdown(rows, summary, plots, out), encoding="utf-8")
@@ -466,7 +527,7 @@ def format_table(rows: list[dict], summary: dict) -> str:
     for r in rows:
         src = " ".join(f"{k[:3]}:{v}" for k, v in sorted(r["fixes_by_source"].items())) or "-"
         lines.append(
-            f"| {r['session']} | {r['mode']} | {Scenario(**_scenario_fields(r)).conditions()} |"
+            f"| {r['session']} | {r['mode']} | {_conditions(r)} |"
             f" {100 * r['rmse_m']:.1f} | {100 * r['median_m']:.1f} | {100 * r['p95_m']:.1f} | {100 * r['max_m']:.1f} |"
             f" {r['heading_rmse_deg']:.2f} | {100 * r['within_10cm']:.0f}% | {100 * r['within_25cm']:.0f}% |"
             f" {r['fixes']} ({src}) | {r['rejected_fixes']} | {r['wrong_id_fixes']} | {r['nees_mean']:.2f} |"
@@ -480,6 +541,11 @@ def format_table(rows: list[dict], summary: dict) -> str:
             f" {100 * s['within_10cm_all']:.1f}% |"
         )
     return "\n".join(lines)
+
+
+def _conditions(row: dict) -> str:
+    """A row's conditions: its own (a scored session's), else its scenario's."""
+    return row.get("conditions") or Scenario(**_scenario_fields(row)).conditions()
 
 
 def _scenario_fields(row: dict) -> dict:

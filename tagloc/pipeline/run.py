@@ -122,6 +122,7 @@ def run_session(
                     "id": obs.sticker_id,
                     "source": obs.source.value,
                     "centre": obs.detection.outer.mean(axis=0).tolist(),
+                    "bodies": [p.body.tolist() for p in obs.poses],
                     "reason": obs.gate_reason,
                 }
                 (fixes if obs.accepted else rejected).append(rec)

@@ -1,0 +1,123 @@
+"""tagloc eval --walks: sessions one already has, scored as the presets are (the bundled 2 s walk)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tagloc.cli import main
+from tagloc.core.errors import InputError
+from tagloc.eval.evaluate import GROUNDTRUTH_FRAMES, wrong_id_fixes_by_pose
+from tagloc.eval.walks import find_sessions, walk_names
+from tagloc.pipeline.run import RunLog
+
+REPO = Path(__file__).resolve().parent.parent
+WALK = REPO / "logs" / "walk2s"
+
+
+def recorded_copy(dest: Path) -> Path:
+    """The bundled walk as a site recording would be: no simulator's per-frame truth."""
+    shutil.copytree(WALK, dest, ignore=shutil.ignore_patterns("*.npz"))
+    (dest / GROUNDTRUTH_FRAMES).unlink()
+    return dest
+
+
+def rows_of(out: Path) -> list[dict]:
+    return json.loads((out / "results.json").read_text())["rows"]
+
+
+def test_walks_are_scored_as_a_preset_and_wrong_ids_by_pose_agree_with_the_frames_truth(tmp_path, capsys):
+    rec = recorded_copy(tmp_path / "site" / "walk-a")
+    assert main(["eval", "--walks", str(WALK), str(rec), "--modes", "full", "-o", str(tmp_path / "o"), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "Wrong IDs checked by the simulator's per-frame truth and by pose" in out and "### 2 walks" in out
+    sim, site = rows_of(tmp_path / "o")
+    assert (sim["wrong_id_check"], site["wrong_id_check"]) == ("frames", "pose")
+    # The same frames and localiser: the same figures, and no fix placed at the wrong sticker.
+    assert site["rmse_m"] == pytest.approx(sim["rmse_m"], abs=1e-12) and site["fixes"] == sim["fixes"] > 50
+    assert sim["wrong_id_fixes"] == site["wrong_id_fixes"] == 0
+    assert sim["rmse_m"] < 0.03 and site["conditions"].startswith("tagloc simulate: 2 s")
+    assert {p.name for p in (tmp_path / "o").glob("*.png")} == {"walk2s.png", "walk-a.png"}
+
+
+def test_fixes_placed_at_the_wrong_sticker_are_counted_by_pose(tmp_path, capsys):
+    """Two stickers seen on the walk with their IDs swapped in the map: every accepted fix of either
+    names the sticker that is not there, and the check by pose counts each one."""
+    rec = recorded_copy(tmp_path / "swapped")
+    rows = list(csv.DictReader((rec / "map.csv").open()))
+    a, b = (next(r for r in rows if r["id"] == k) for k in ("35581", "40418"))
+    a["id"], b["id"] = b["id"], a["id"]
+    with (rec / "map.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    assert main(["eval", "--walks", str(rec), "--modes", "full", "-o", str(tmp_path / "o"), "--quiet"]) == 0
+    (row,) = rows_of(tmp_path / "o")
+    swapped = row["fixes_by_source"]
+    assert row["fixes"] > 10 and row["wrong_id_fixes"] == sum(swapped.values()) == row["fixes"], row
+    assert row["rmse_m"] > 1.0
+
+
+def _log(fixes: list[dict]) -> RunLog:
+    z = np.zeros(0)
+    return RunLog(z, np.zeros((0, 3)), np.zeros((0, 3, 3)), z.astype(bool), fixes, [], {}, z, z, z)
+
+
+def test_wrong_id_by_pose_counts_a_fix_none_of_whose_poses_is_near_the_truth():
+    stamps = np.array([0.0, 1.0])
+    T = np.repeat(np.eye(4)[None], 2, axis=0)
+    T[1, 0, 3] = 1.0  # walking along x at 1 m/s
+    fixes = [
+        {"t": 0.5, "bodies": [[0.52, 0.01, 0.0]]},  # 2 cm off: right
+        {"t": 0.5, "bodies": [[2.0, 0.0, 0.0]]},  # 1.5 m off: the sticker next along
+        {"t": 0.5, "bodies": [[2.0, 0.0, 0.0], [0.5, 0.03, 0.0]]},  # IPPE's other solution is right
+        {"t": 3.0, "bodies": [[9.0, 9.0, 0.0]]},  # outside the ground truth's span: not judged
+        {"t": 0.5, "bodies": []},
+    ]
+    assert wrong_id_fixes_by_pose(_log(fixes), (stamps, T), 0.5) == 1
+    assert wrong_id_fixes_by_pose(_log(fixes), (stamps, T), 2.0) == 0
+
+
+def test_sessions_are_found_below_a_directory_and_named_apart(tmp_path):
+    a = recorded_copy(tmp_path / "eval" / "field" / "sessions" / "s00")
+    b = recorded_copy(tmp_path / "eval" / "standard" / "sessions" / "s00")
+    (tmp_path / "eval" / "notes").mkdir()
+    found = find_sessions([tmp_path / "eval"])
+    assert found == [a, b]
+    assert walk_names(found) == ["field/sessions/s00", "standard/sessions/s00"]
+    assert walk_names([a, WALK]) == ["s00", "walk2s"]
+
+
+@pytest.mark.parametrize(
+    ("make", "fragment"),
+    [
+        (lambda p: p / "missing", "no such directory"),
+        (lambda p: (p / "empty").mkdir() or p / "empty", "neither a session"),
+    ],
+)
+def test_a_path_without_sessions_is_refused(tmp_path, make, fragment):
+    with pytest.raises(InputError, match=fragment):
+        find_sessions([make(tmp_path)])
+
+
+def test_walks_without_ground_truth_or_with_the_report_inside_are_refused_before_work(tmp_path, capsys):
+    rec = recorded_copy(tmp_path / "w")
+    cases = [
+        (["--walks", str(rec), str(rec)], "named twice"),
+        (["--walks", str(rec), "-o", str(rec / "report")], "inside the session"),
+        (["--walks", str(rec), "--preset", "field"], "--preset does not apply"),
+    ]
+    for extra, fragment in cases:
+        assert main(["eval", *extra, "--modes", "full", "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert fragment in err and len(err.strip().splitlines()) == 1, err
+    (rec / "groundtruth.tum").unlink()
+    assert main(["eval", "--walks", str(rec), "--modes", "full", "-o", str(tmp_path / "o"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "no groundtruth.tum" in err and str(rec) in err
+    assert not (tmp_path / "o").exists()
