@@ -360,3 +360,43 @@ def test_live_loop_strides_the_odometry_only_when_behind(tmp_path, stride):
     else:
         assert loc.counts["odometry_strided"] == 0 and steps >= 36
         assert loc.counts["flow_skipped"] == 0
+
+
+class BlasThreadsSeen(EchoLocaliser):
+    """An echo localiser that notes how many threads BLAS had as each frame was processed."""
+
+    def __init__(self, session: Path):
+        super().__init__(session)
+        self.threads: list[int] = []
+
+    def process(self, frame: Frame) -> FrameResult:
+        from threadpoolctl import threadpool_info
+
+        self.threads.append(max(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"))
+        return super().process(frame)
+
+    def stats(self) -> dict:
+        return {}
+
+
+def test_frames_are_processed_with_one_blas_thread_and_the_process_gets_its_own_back(session):
+    """BLAS's threads spin while they wait, and on a busy computer they take the core the frame runs
+    on (see tagloc.pipeline.run.one_blas_thread): live's loop and the replay loop run the localiser
+    with one, and leave the process's own setting as it was."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from tagloc.pipeline.run import run_session
+
+    def blas_threads() -> int:
+        return max(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+
+    with threadpool_limits(limits=2, user_api="blas"):
+        assert blas_threads() == 2
+        for run in (
+            lambda loc: run_live(LiveConfig(source=str(session), pace=False), localiser=loc),
+            lambda loc: run_session(SessionReader(session), localiser=loc),
+        ):
+            loc = BlasThreadsSeen(session)
+            run(loc)
+            assert loc.threads == [1] * N
+            assert blas_threads() == 2

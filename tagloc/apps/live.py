@@ -323,7 +323,14 @@ class _LiveRun:
         return has_frame is None or not has_frame()
 
     def loop(self, outputs: Outputs, writer: SessionWriter | None) -> None:
-        """Process frames until the source ends, a limit is reached or ``stop`` is set."""
+        """Process frames until the source ends, a limit is reached or ``stop`` is set (BLAS on one
+        thread meanwhile, :func:`tagloc.pipeline.run.one_blas_thread`)."""
+        from tagloc.pipeline.run import one_blas_thread
+
+        with one_blas_thread():
+            self._loop(outputs, writer)
+
+    def _loop(self, outputs: Outputs, writer: SessionWriter | None) -> None:
         self.cap.start()
         self.t_start = time.monotonic()
         while (wait := self._wait()) is not None:

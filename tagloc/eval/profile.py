@@ -76,6 +76,7 @@ def profile_replay(session: str | Path, top: int = 25) -> ProfileSummary:
 
     from tagloc.io.session import SessionReader
     from tagloc.pipeline.localiser import Localiser
+    from tagloc.pipeline.run import one_blas_thread
 
     before = cv2.getNumThreads()
     cv2.setNumThreads(1)
@@ -84,11 +85,12 @@ def profile_replay(session: str | Path, top: int = 25) -> ProfileSummary:
         loc = Localiser(reader.map, reader.rig, map_path=Path(session) / "map.csv")
         prof = cProfile.Profile()
         frames = 0
-        prof.enable()
-        for frame in reader.frames():
-            loc.process(frame)
-            frames += 1
-        prof.disable()
+        with one_blas_thread():  # as a replay runs its frames
+            prof.enable()
+            for frame in reader.frames():
+                loc.process(frame)
+                frames += 1
+            prof.disable()
     finally:
         cv2.setNumThreads(before)
     stats = pstats.Stats(prof).stats  # {(file, line, name): (cc, nc, tt, ct, callers)}

@@ -31,7 +31,8 @@ class RunLog:
         covs: (N, 3, 3) covariances.
         valid: (N,) bool, False while the localiser had no pose yet.
         fixes: list of dicts, one per accepted fix (one a frame's deferred work made too, with that
-            frame's index and time): frame index, sticker id, source, corners centre.
+            frame's index and time): frame index, time, sticker id, source, corners centre, the
+            fix's body poses (x, y, yaw; one, or IPPE's two) and the tracker's reason.
         counts: counters from the localiser and tracker.
         frame_ms: (N,) wall time per frame, ms; tracker_ms, odometry_ms: (N,) of which in the
             tracker (``TRACKER_STAGES``: predict, candidates, update, output) and in the floor odometry.
@@ -59,10 +60,34 @@ class RunLog:
             raise SessionError(f"{source}: none of its {self.skipped} frames could be used ({self.first_skipped})")
 
 
+def one_blas_thread():
+    """A context in which BLAS (numpy's and scipy's linear algebra) runs on one thread, as the
+    localiser's frames are processed.
+
+    Its matrices are small (the tracker's 25 x 25 state, the fits' few dozen points), where a second
+    BLAS thread gains nothing; and OpenBLAS's threads spin while they wait, so on a busy computer
+    they take the time the frame needs. On this 2-core machine with both cores kept busy by other
+    processes, the Speed walk's frames cost 7.9-8.2 ms of CPU with OpenBLAS's default two threads
+    and 5.9-6.0 with one (p99 15.2-15.8 -> 8.7 ms), as on a quiet machine, where the two settings
+    measure alike (5.8-6.0 ms); the floor odometry's small eigenvalue problems were most of the
+    difference. See the README's Speed section."""
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=1, user_api="blas")
+
+
 def iterate_results(
     session: SessionReader, localiser: FrameProcessor, progress: bool = False, realtime: bool = False
 ) -> Iterator[FrameResult]:
-    """Yield the localiser's result for each frame of ``session``, in order."""
+    """Yield the localiser's result for each frame of ``session``, in order (BLAS on one thread
+    meanwhile, :func:`one_blas_thread`)."""
+    with one_blas_thread():
+        yield from _results(session, localiser, progress, realtime)
+
+
+def _results(
+    session: SessionReader, localiser: FrameProcessor, progress: bool, realtime: bool
+) -> Iterator[FrameResult]:
     it = session.frames()
     if progress:  # tqdm only when shown: its import is 10-20 ms of a quiet replay's start-up
         from tqdm import tqdm
