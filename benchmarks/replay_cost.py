@@ -182,7 +182,7 @@ def pipeline_cost(session: Path, repeat: int, whole_image: bool = False, aruco: 
             loc.floor_odometry(0)
         per: dict[str, list[float]] = {k: [] for k in _STAGES}
         n_dets = []
-        with _one_blas_thread():  # as a replay's and live's frame loops run
+        with _single_threaded():  # as a replay's and live's frame loops run
             for f in tqdm(frames, desc=f"pipeline {r + 1}/{repeat}", unit="frame", leave=False):
                 c0 = time.thread_time()
                 res = loc.process(f)
@@ -202,14 +202,14 @@ def pipeline_cost(session: Path, repeat: int, whole_image: bool = False, aruco: 
     return {"runs": runs, "frames": len(frames)}
 
 
-def _one_blas_thread():
-    """:func:`tagloc.pipeline.run.one_blas_thread`, or no limit for an older localiser without it
-    (for before/after comparisons)."""
+def _single_threaded():
+    """:func:`tagloc.pipeline.run.single_threaded`, or no limit for an older localiser without it
+    (for before/after comparisons; this script sets OpenCV to one thread itself)."""
     try:
-        from tagloc.pipeline.run import one_blas_thread
+        from tagloc.pipeline.run import single_threaded
     except ImportError:
         return contextlib.nullcontext()
-    return one_blas_thread()
+    return single_threaded()
 
 
 def aruco_units(runs: list[dict], live_p99_ms: list[float] | None = None) -> tuple[list[str], dict]:

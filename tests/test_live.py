@@ -362,41 +362,50 @@ def test_live_loop_strides_the_odometry_only_when_behind(tmp_path, stride):
         assert loc.counts["flow_skipped"] == 0
 
 
-class BlasThreadsSeen(EchoLocaliser):
-    """An echo localiser that notes how many threads BLAS had as each frame was processed."""
+class ThreadsSeen(EchoLocaliser):
+    """An echo localiser that notes how many threads BLAS and OpenCV had as each frame was processed."""
 
     def __init__(self, session: Path):
         super().__init__(session)
-        self.threads: list[int] = []
+        self.threads: list[tuple[int, int]] = []
 
     def process(self, frame: Frame) -> FrameResult:
-        from threadpoolctl import threadpool_info
-
-        self.threads.append(max(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"))
+        self.threads.append(threads_now())
         return super().process(frame)
 
     def stats(self) -> dict:
         return {}
 
 
-def test_frames_are_processed_with_one_blas_thread_and_the_process_gets_its_own_back(session):
-    """BLAS's threads spin while they wait, and on a busy computer they take the core the frame runs
-    on (see tagloc.pipeline.run.one_blas_thread): live's loop and the replay loop run the localiser
-    with one, and leave the process's own setting as it was."""
-    from threadpoolctl import threadpool_info, threadpool_limits
+def threads_now() -> tuple[int, int]:
+    """(BLAS threads, OpenCV threads) of this process."""
+    import cv2
+    from threadpoolctl import threadpool_info
+
+    return max(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"), cv2.getNumThreads()
+
+
+def test_frames_are_processed_on_one_thread_and_the_process_gets_its_own_back(session):
+    """BLAS's threads spin while they wait and OpenCV's pool costs CPU for little time (see
+    tagloc.pipeline.run.single_threaded): live's loop and the replay loop run the localiser with one
+    thread of each, and leave the process's own settings as they were."""
+    import cv2
+    from threadpoolctl import threadpool_limits
 
     from tagloc.pipeline.run import run_session
 
-    def blas_threads() -> int:
-        return max(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
-
-    with threadpool_limits(limits=2, user_api="blas"):
-        assert blas_threads() == 2
-        for run in (
-            lambda loc: run_live(LiveConfig(source=str(session), pace=False), localiser=loc),
-            lambda loc: run_session(SessionReader(session), localiser=loc),
-        ):
-            loc = BlasThreadsSeen(session)
-            run(loc)
-            assert loc.threads == [1] * N
-            assert blas_threads() == 2
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(2)
+    try:
+        with threadpool_limits(limits=2, user_api="blas"):
+            assert threads_now() == (2, 2)
+            for run in (
+                lambda loc: run_live(LiveConfig(source=str(session), pace=False), localiser=loc),
+                lambda loc: run_session(SessionReader(session), localiser=loc),
+            ):
+                loc = ThreadsSeen(session)
+                run(loc)
+                assert loc.threads == [(1, 1)] * N
+                assert threads_now() == (2, 2)
+    finally:
+        cv2.setNumThreads(before)

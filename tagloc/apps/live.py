@@ -323,11 +323,11 @@ class _LiveRun:
         return has_frame is None or not has_frame()
 
     def loop(self, outputs: Outputs, writer: SessionWriter | None) -> None:
-        """Process frames until the source ends, a limit is reached or ``stop`` is set (BLAS on one
-        thread meanwhile, :func:`tagloc.pipeline.run.one_blas_thread`)."""
-        from tagloc.pipeline.run import one_blas_thread
+        """Process frames until the source ends, a limit is reached or ``stop`` is set (BLAS and
+        OpenCV on one thread each meanwhile, :func:`tagloc.pipeline.run.single_threaded`)."""
+        from tagloc.pipeline.run import single_threaded
 
-        with one_blas_thread():
+        with single_threaded():
             self._loop(outputs, writer)
 
     def _loop(self, outputs: Outputs, writer: SessionWriter | None) -> None:

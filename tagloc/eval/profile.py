@@ -76,7 +76,7 @@ def profile_replay(session: str | Path, top: int = 25) -> ProfileSummary:
 
     from tagloc.io.session import SessionReader
     from tagloc.pipeline.localiser import Localiser
-    from tagloc.pipeline.run import one_blas_thread
+    from tagloc.pipeline.run import single_threaded
 
     before = cv2.getNumThreads()
     cv2.setNumThreads(1)
@@ -85,7 +85,7 @@ def profile_replay(session: str | Path, top: int = 25) -> ProfileSummary:
         loc = Localiser(reader.map, reader.rig, map_path=Path(session) / "map.csv")
         prof = cProfile.Profile()
         frames = 0
-        with one_blas_thread():  # as a replay runs its frames
+        with single_threaded():  # as a replay runs its frames
             prof.enable()
             for frame in reader.frames():
                 loc.process(frame)

@@ -8,6 +8,7 @@ thing. Any :class:`tagloc.pipeline.localiser.FrameProcessor` runs: tagloc's
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -60,28 +61,37 @@ class RunLog:
             raise SessionError(f"{source}: none of its {self.skipped} frames could be used ({self.first_skipped})")
 
 
-def one_blas_thread():
-    """A context in which BLAS (numpy's and scipy's linear algebra) runs on one thread, as the
-    localiser's frames are processed.
+@contextlib.contextmanager
+def single_threaded() -> Iterator[None]:
+    """A context in which BLAS (numpy's and scipy's linear algebra) and OpenCV run on one thread
+    each, as the localiser processes its frames; the process's own settings come back after.
 
-    Its matrices are small (the tracker's 25 x 25 state, the fits' few dozen points), where a second
-    BLAS thread gains nothing; and OpenBLAS's threads spin while they wait, so on a busy computer
-    they take the time the frame needs. On this 2-core machine with both cores kept busy by other
-    processes, the Speed walk's frames cost 7.9-8.2 ms of CPU with OpenBLAS's default two threads
-    and 5.9-6.0 with one (p99 15.2-15.8 -> 8.7 ms), as on a quiet machine, where the two settings
-    measure alike (5.8-6.0 ms); the floor odometry's small eigenvalue problems were most of the
-    difference. See the README's Speed section."""
+    Real time means one core (the vest's budget; the benchmarks measure it so), and the frame's
+    work is small: the tracker's 25 x 25 state, the fits' few dozen points, images of 1296 x 972.
+    OpenBLAS's threads spin while they wait, so on a busy computer they take the time the frame
+    needs: with both cores of this machine kept busy by other processes, the Speed walk's frames
+    cost 7.9-8.2 ms of CPU with OpenBLAS's default two threads and 5.9-6.0 with one (p99 15.2-15.8
+    -> 8.7 ms), alike on a quiet machine. OpenCV's thread pool, on a quiet machine, took 8.1 ms of
+    CPU a frame against 5.6-5.8 on one thread, for 0.2-0.4 ms less wall time. See the README's
+    Speed section."""
+    import cv2
     from threadpoolctl import threadpool_limits
 
-    return threadpool_limits(limits=1, user_api="blas")
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        with threadpool_limits(limits=1, user_api="blas"):
+            yield
+    finally:
+        cv2.setNumThreads(before)
 
 
 def iterate_results(
     session: SessionReader, localiser: FrameProcessor, progress: bool = False, realtime: bool = False
 ) -> Iterator[FrameResult]:
-    """Yield the localiser's result for each frame of ``session``, in order (BLAS on one thread
-    meanwhile, :func:`one_blas_thread`)."""
-    with one_blas_thread():
+    """Yield the localiser's result for each frame of ``session``, in order (BLAS and OpenCV on one
+    thread each meanwhile, :func:`single_threaded`)."""
+    with single_threaded():
         yield from _results(session, localiser, progress, realtime)
 
 
