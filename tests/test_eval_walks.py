@@ -98,6 +98,7 @@ def test_sessions_are_found_below_a_directory_and_named_apart(tmp_path):
     [
         (lambda p: p / "missing", "no such directory"),
         (lambda p: (p / "empty").mkdir() or p / "empty", "neither a session"),
+        (lambda p: (p / "f.txt").write_text("x") and p / "f.txt", "not a directory"),
     ],
 )
 def test_a_path_without_sessions_is_refused(tmp_path, make, fragment):

@@ -34,7 +34,7 @@ def find_sessions(paths: list[Path]) -> list[Path]:
     for path in paths:
         path = Path(path)
         if not path.is_dir():
-            raise InputError(f"{path}: no such directory")
+            raise InputError(f"{path}: " + ("not a directory" if path.exists() else "no such directory"))
         if (path / FRAMES_CSV).is_file():
             found.append(path)
             continue
