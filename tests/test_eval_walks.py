@@ -112,6 +112,7 @@ def test_walks_without_ground_truth_or_with_the_report_inside_are_refused_before
         (["--walks", str(rec), str(rec)], "named twice"),
         (["--walks", str(rec), "-o", str(rec / "report")], "inside the session"),
         (["--walks", str(rec), "--preset", "field"], "--preset does not apply"),
+        (["--walks", str(rec), "--seed", "2", "--scale", "0.5"], "--seed, --scale do not apply"),
     ]
     for extra, fragment in cases:
         assert main(["eval", *extra, "--modes", "full", "--quiet"]) == 2

@@ -84,8 +84,18 @@ def run(args: argparse.Namespace) -> int:
     if args.walks:
         from tagloc.eval.walks import score_walks
 
-        if args.preset != "standard":
-            raise InputError("--walks scores the sessions given; --preset does not apply")
+        defaults = (
+            ("--preset", args.preset, "standard"),
+            ("--sessions", args.sessions, 6),
+            ("--seconds", args.seconds, 20.0),
+            ("--seed", args.seed, 1),
+            ("--scale", args.scale, 1.0),
+            ("--no-hard", args.no_hard, False),
+        )
+        unused = [option for option, value, default in defaults if value != default]
+        if unused:
+            verb = "does" if len(unused) == 1 else "do"
+            raise InputError(f"--walks scores the sessions given; {', '.join(unused)} {verb} not apply")
         print(score_walks(args.walks, args.out, modes, progress=not args.quiet))
         return 0
 
