@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from tagloc.core.errors import InputError
+from tagloc.core.stickermap import StickerMap
 from tagloc.eval.baselines import MODES, make_localiser
 from tagloc.eval.consistency import nees_blocks, nees_test
 from tagloc.eval.metrics import TrajectoryErrors, error_metrics, trajectory_errors
@@ -299,7 +300,7 @@ WRONG_ID_SPACING_SHARE = 0.5
 WRONG_ID_MIN_M = 0.25
 
 
-def wrong_id_distance(smap) -> float:
+def wrong_id_distance(smap: StickerMap) -> float:
     """The distance (m) from the truth beyond which :func:`wrong_id_fixes_by_pose` calls a fix's ID
     wrong: ``WRONG_ID_SPACING_SHARE`` of the map's median nearest-neighbour spacing, at least
     ``WRONG_ID_MIN_M``."""
@@ -365,12 +366,17 @@ def _timed_on_one_core(run: Callable[[], RunLog]) -> RunLog:
         cv2.setNumThreads(before)
 
 
-def score_session(path: Path, mode: str, progress: bool) -> tuple[dict, SessionReader, RunLog, tuple | None]:
+def score_session(
+    path: Path, mode: str, progress: bool
+) -> tuple[dict, SessionReader, RunLog, tuple[np.ndarray, np.ndarray]]:
     """Run ``mode`` over the session at ``path`` and score it against its ground truth: (the row's
     figures, the session, the run, the ground truth (stamps, T_world_body)). Wrong-ID fixes are
     counted against the simulator's per-frame truth of which sticker is where in the image when the
     session has it, else by pose (:func:`wrong_id_fixes_by_pose`); ``wrong_id_check`` says which."""
     session = SessionReader(path)
+    gt = session.groundtruth()
+    if gt is None:
+        raise InputError(f"{path}: no groundtruth.tum to score against")
     log = _timed_on_one_core(
         functools.partial(
             run_session,
@@ -379,9 +385,6 @@ def score_session(path: Path, mode: str, progress: bool) -> tuple[dict, SessionR
             progress=progress,
         )
     )
-    gt = session.groundtruth()
-    if gt is None:
-        raise InputError(f"{path}: no groundtruth.tum to score against")
     v = log.valid
     e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *gt)
     m = error_metrics(e)
