@@ -123,3 +123,24 @@ def test_walks_without_ground_truth_or_with_the_report_inside_are_refused_before
     err = capsys.readouterr().err
     assert "no groundtruth.tum" in err and str(rec) in err
     assert not (tmp_path / "o").exists()
+
+
+def test_ground_truth_that_covers_no_frame_is_refused_and_a_plot_survives_it(tmp_path, capsys):
+    """A ground truth from another clock (1000 s later) cannot score the walk: refused in one line
+    before any work. Scored anyway (a preset's own path), the row has no error and the plot no error
+    panel, rather than an internal error."""
+    from tagloc.eval.evaluate import plot_run, score_session
+
+    rec = recorded_copy(tmp_path / "late")
+    lines = (rec / "groundtruth.tum").read_text().splitlines()
+    shifted = [
+        ln if ln.startswith("#") else " ".join([f"{float(ln.split()[0]) + 1000:.6f}", *ln.split()[1:]]) for ln in lines
+    ]
+    (rec / "groundtruth.tum").write_text("\n".join(shifted) + "\n")
+    assert main(["eval", "--walks", str(rec), "--modes", "full", "-o", str(tmp_path / "o"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "does not cover any frame" in err and len(err.strip().splitlines()) == 1, err
+    row, session, log, gt = score_session(rec, "full", progress=False)
+    assert row["frames"] == 0 and np.isnan(row["rmse_m"])
+    png = plot_run(session, log, gt, tmp_path / "late.png")
+    assert png is not None and png.stat().st_size > 0

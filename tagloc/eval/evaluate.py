@@ -667,8 +667,8 @@ def plot_run(
     ax0.set_ylabel("y (m)")
     ax0.legend(loc="best", fontsize=8)
     ax0.set_title(textwrap.fill(title, 70), fontsize=9)  # a field walk's conditions run long
-    if gt is not None and v.any():
-        e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *gt)
+    e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *gt) if gt is not None and v.any() else None
+    if e is not None and len(e.position):  # (no estimate inside the ground truth's span: no error plot)
         covs = log.covs[v][e.inside]
         sig = np.sqrt(np.maximum(np.linalg.eigvalsh(covs[:, :2, :2])[:, 1], 0))
         ax1.fill_between(e.stamps, 0, 100 * 2 * sig, color="tab:blue", alpha=0.2, label="2 sigma (major axis)")
@@ -676,10 +676,12 @@ def plot_run(
         for f in log.fixes:
             ax1.axvline(f["t"], c="tab:green", lw=0.3, alpha=0.5)
         ax1.set_ylim(0, max(30.0, float(np.percentile(100 * e.position, 99)) * 1.2))
+        ax1.legend(loc="upper right", fontsize=8)
+        ax1.set_title("error and stated uncertainty (green: fixes)", fontsize=9)
+    else:
+        ax1.set_title("no estimate inside the ground truth's time span", fontsize=9)
     ax1.set_xlabel("time (s)")
     ax1.set_ylabel("cm")
-    ax1.legend(loc="upper right", fontsize=8)
-    ax1.set_title("error and stated uncertainty (green: fixes)", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -18,6 +18,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numpy as np
+
 from tagloc.core.errors import InputError
 from tagloc.io.session import FRAMES_CSV, GROUNDTRUTH_FILE, SessionReader
 
@@ -64,8 +66,9 @@ def walk_names(sessions: list[Path]) -> list[str]:
 
 
 def check_walks(sessions: list[Path], out: Path) -> list[SessionReader]:
-    """Open every session before any work: each must read and hold ``groundtruth.tum``, and ``out``
-    must not lie inside one (its report and plots would be written among the session's files)."""
+    """Open every session before any work: each must read and hold a ``groundtruth.tum`` that covers
+    some of its frames' time, and ``out`` must not lie inside one (its report and plots would be
+    written among the session's files)."""
     readers = []
     real_out = Path(os.path.realpath(out))
     for path in sessions:
@@ -73,8 +76,16 @@ def check_walks(sessions: list[Path], out: Path) -> list[SessionReader]:
         if real_out == real or real in real_out.parents:
             raise InputError(f"{out}: -o lies inside the session {path}; choose a directory outside it")
         reader = SessionReader(path)
-        if not (Path(path) / GROUNDTRUTH_FILE).is_file():
+        gt = reader.groundtruth()
+        if gt is None:
             raise InputError(f"{path}: no {GROUNDTRUTH_FILE} to score against")
+        frames = np.asarray(reader.timestamps, float)
+        if len(gt[0]) == 0 or len(frames) == 0 or gt[0][-1] < frames[0] or gt[0][0] > frames[-1]:
+            span = f"{gt[0][0]:.3f}-{gt[0][-1]:.3f} s" if len(gt[0]) else "no poses"
+            raise InputError(
+                f"{path}: {GROUNDTRUTH_FILE} ({span}) does not cover any frame "
+                f"({frames[0]:.3f}-{frames[-1]:.3f} s in frames.csv): it cannot score the walk"
+            )
         readers.append(reader)
     return readers
 
