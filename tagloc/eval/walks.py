@@ -80,7 +80,7 @@ def check_walks(sessions: list[Path], out: Path) -> list[SessionReader]:
         if gt is None:
             raise InputError(f"{path}: no {GROUNDTRUTH_FILE} to score against")
         frames = np.asarray(reader.timestamps, float)
-        if len(gt[0]) == 0 or len(frames) == 0 or gt[0][-1] < frames[0] or gt[0][0] > frames[-1]:
+        if len(gt[0]) == 0 or gt[0][-1] < frames[0] or gt[0][0] > frames[-1]:  # (frames.csv lists >= 1)
             span = f"{gt[0][0]:.3f}-{gt[0][-1]:.3f} s" if len(gt[0]) else "no poses"
             raise InputError(
                 f"{path}: {GROUNDTRUTH_FILE} ({span}) does not cover any frame "
