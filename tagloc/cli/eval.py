@@ -28,19 +28,41 @@ examples:
   tagloc eval --walks site/walks --modes full -o out/eval-site"""
 
 
+# The options that choose a preset's walks, with their defaults: beside --walks, which scores the
+# sessions given, any of them set otherwise is refused.
+PRESET_OPTIONS = {
+    "--preset": "standard",
+    "--sessions": 6,
+    "--seconds": 20.0,
+    "--seed": 1,
+    "--scale": 1.0,
+    "--no-hard": False,
+}
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--preset",
         choices=("standard", "field", "all", "two-camera"),
-        default="standard",
+        default=PRESET_OPTIONS["--preset"],
         help="set of walks (default standard)",
     )
-    p.add_argument("--sessions", type=int, default=6, help="number of simulated sessions (standard; default 6)")
-    p.add_argument("--seconds", type=float, default=20.0, help="length of each session, s (standard; default 20)")
+    p.add_argument(
+        "--sessions",
+        type=int,
+        default=PRESET_OPTIONS["--sessions"],
+        help="number of simulated sessions (standard; default 6)",
+    )
+    p.add_argument(
+        "--seconds",
+        type=float,
+        default=PRESET_OPTIONS["--seconds"],
+        help="length of each session, s (standard; default 20)",
+    )
     p.add_argument(
         "--seed",
         type=int,
-        default=1,
+        default=PRESET_OPTIONS["--seed"],
         help="seed for the scenario conditions (standard; default 1); field: other than 1, held-out walks "
         "with the field walks' conditions and fresh seeds",
     )
@@ -54,7 +76,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--scale",
         type=float,
-        default=1.0,
+        default=PRESET_OPTIONS["--scale"],
         help="standard, field: every walk's camera at this resolution factor (default 1: 1296x972; 0.5: 648x486)",
     )
     p.add_argument(
@@ -64,7 +86,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="DIR",
         help="score these sessions (or the sessions in these directories) instead of a preset's walks",
     )
-    p.add_argument("--no-hard", action="store_true", help="no missing/unmapped stickers in the odd sessions (standard)")
+    p.add_argument(
+        "--no-hard",
+        action="store_true",
+        default=PRESET_OPTIONS["--no-hard"],
+        help="no missing/unmapped stickers in the odd sessions (standard)",
+    )
     p.add_argument("-o", "--out", type=Path, default=Path("out/eval"), help="output directory (default out/eval)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -84,15 +111,7 @@ def run(args: argparse.Namespace) -> int:
     if args.walks:
         from tagloc.eval.walks import score_walks
 
-        defaults = (
-            ("--preset", args.preset, "standard"),
-            ("--sessions", args.sessions, 6),
-            ("--seconds", args.seconds, 20.0),
-            ("--seed", args.seed, 1),
-            ("--scale", args.scale, 1.0),
-            ("--no-hard", args.no_hard, False),
-        )
-        unused = [option for option, value, default in defaults if value != default]
+        unused = [o for o, default in PRESET_OPTIONS.items() if getattr(args, o[2:].replace("-", "_")) != default]
         if unused:
             verb = "does" if len(unused) == 1 else "do"
             raise InputError(f"--walks scores the sessions given; {', '.join(unused)} {verb} not apply")

@@ -19,11 +19,9 @@ miss: ``within_10cm_all`` is the share of all delivered frames with a pose withi
 
 from __future__ import annotations
 
-import functools
 import json
 import math
 import textwrap
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -353,19 +351,6 @@ def by_time_since_fix(log: RunLog, e: TrajectoryErrors) -> list[list[float]]:
     ]
 
 
-def _timed_on_one_core(run: Callable[[], RunLog]) -> RunLog:
-    """``run()`` with OpenCV on one thread: real time means one core of the vest's computer, and the
-    per-frame timings in the report are taken inside it."""
-    import cv2
-
-    before = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
-        return run()
-    finally:
-        cv2.setNumThreads(before)
-
-
 def score_session(
     path: Path, mode: str, progress: bool
 ) -> tuple[dict, SessionReader, RunLog, tuple[np.ndarray, np.ndarray]]:
@@ -377,14 +362,10 @@ def score_session(
     gt = session.groundtruth()
     if gt is None:
         raise InputError(f"{path}: no groundtruth.tum to score against")
-    log = _timed_on_one_core(
-        functools.partial(
-            run_session,
-            session,
-            localiser=make_localiser(mode, session.map, session.rig, map_path=session.path / "map.csv"),
-            progress=progress,
-        )
-    )
+    # (run_session runs the frames on one thread each for BLAS and OpenCV: real time means one core
+    # of the vest's computer, and the report's per-frame timings are taken inside it.)
+    loc = make_localiser(mode, session.map, session.rig, map_path=session.path / "map.csv")
+    log = run_session(session, localiser=loc, progress=progress)
     v = log.valid
     e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *gt)
     m = error_metrics(e)

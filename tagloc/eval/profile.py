@@ -71,28 +71,22 @@ def _label(func: tuple[str, int, str]) -> str:
 
 
 def profile_replay(session: str | Path, top: int = 25) -> ProfileSummary:
-    """Replay ``session`` under cProfile (OpenCV on one thread) and summarise where the time went."""
-    import cv2
-
+    """Replay ``session`` under cProfile (BLAS and OpenCV on one thread each, as a replay runs) and
+    summarise where the time went."""
     from tagloc.io.session import SessionReader
     from tagloc.pipeline.localiser import Localiser
     from tagloc.pipeline.run import single_threaded
 
-    before = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
+    with single_threaded():  # as a replay runs its frames
         reader = SessionReader(session)
         loc = Localiser(reader.map, reader.rig, map_path=Path(session) / "map.csv")
         prof = cProfile.Profile()
         frames = 0
-        with single_threaded():  # as a replay runs its frames
-            prof.enable()
-            for frame in reader.frames():
-                loc.process(frame)
-                frames += 1
-            prof.disable()
-    finally:
-        cv2.setNumThreads(before)
+        prof.enable()
+        for frame in reader.frames():
+            loc.process(frame)
+            frames += 1
+        prof.disable()
     stats = pstats.Stats(prof).stats  # {(file, line, name): (cc, nc, tt, ct, callers)}
     total = sum(v[2] for v in stats.values())
     stages = []

@@ -161,14 +161,12 @@ def read_image(path: Path) -> tuple[np.ndarray | None, str | None]:
     stuffed or a restart marker, so FF D9 near the end appears only when the file is complete.
     """
     try:
+        st = path.stat()
         # A device or pipe in the frames (a symlink to /dev/zero) would be read without end.
-        if not stat.S_ISREG(path.stat().st_mode):
+        if not stat.S_ISREG(st.st_mode):
             return None, f"{path.name}: not a regular file"
-        if path.stat().st_size > MAX_FRAME_BYTES:
-            return (
-                None,
-                f"{path.name}: {path.stat().st_size / 1e6:.0f} MB, more than any frame ({MAX_FRAME_BYTES / 1e6:.0f} MB)",
-            )
+        if st.st_size > MAX_FRAME_BYTES:
+            return None, f"{path.name}: {st.st_size / 1e6:.0f} MB, more than any frame ({MAX_FRAME_BYTES / 1e6:.0f} MB)"
         data = path.read_bytes()
     except OSError as exc:
         return None, f"{path.name}: cannot read ({exc.strerror})"
