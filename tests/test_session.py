@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -31,6 +33,21 @@ def _write_session(path, images, ext=".png", stamps=None) -> np.ndarray:
         for i, (t, img) in enumerate(zip(stamps, images)):
             w.write(i, float(t), img)
     return stamps
+
+
+def _session_with(tmp_path, rng, name: str, content: str) -> Path:
+    """A two-frame session whose file ``name`` holds ``content``: that file's path."""
+    _write_session(tmp_path / "s", _images(rng, 2))
+    p = tmp_path / "s" / name
+    p.write_text(content)
+    return p
+
+
+def _refused_on_open(session: Path, message: str) -> None:
+    """Opening ``session`` raises a SessionError saying exactly ``message``."""
+    with pytest.raises(SessionError) as info:
+        SessionReader(session)
+    assert str(info.value) == message
 
 
 def test_png_round_trip_exact(tmp_path, rng):
@@ -79,12 +96,8 @@ def test_missing_session_json_still_readable(tmp_path, rng):
     ],
 )
 def test_bad_session_json_refused_naming_it(tmp_path, rng, doc, why):
-    _write_session(tmp_path / "s", _images(rng, 2))
-    p = tmp_path / "s" / "session.json"
-    p.write_text(doc)
-    with pytest.raises(SessionError) as info:
-        SessionReader(tmp_path / "s")
-    assert str(info.value) == f"{p}: {why}"
+    p = _session_with(tmp_path, rng, "session.json", doc)
+    _refused_on_open(tmp_path / "s", f"{p}: {why}")
 
 
 def test_session_json_without_format_or_version_read_as_version_1(tmp_path, rng):
@@ -132,17 +145,13 @@ def test_frames_csv_malformed_last_line_refused_unless_cut_short(tmp_path, rng, 
     lines = csv_path.read_text().splitlines(keepends=True)
     # Newline-terminated, so written whole: not a write cut short, whatever session.json says.
     csv_path.write_text("".join(lines[:5]) + "4,abc\n")
-    with pytest.raises(SessionError) as info:
-        SessionReader(tmp_path / "s")
-    assert str(info.value) == f"{csv_path}:6: want 'index,timestamp_s', got '4,abc'"
+    _refused_on_open(tmp_path / "s", f"{csv_path}:6: want 'index,timestamp_s', got '4,abc'")
     # Unterminated: a recording cut short (dropped) only when session.json says tagloc wrote it.
     csv_path.write_text("".join(lines[:5]) + "4,abc")
     if sj:
         assert list(SessionReader(tmp_path / "s").index) == [0, 1, 2, 3]
     else:
-        with pytest.raises(SessionError) as info:
-            SessionReader(tmp_path / "s")
-        assert str(info.value) == f"{csv_path}:6: want 'index,timestamp_s', got '4,abc'"
+        _refused_on_open(tmp_path / "s", f"{csv_path}:6: want 'index,timestamp_s', got '4,abc'")
         # A hand-made file's unterminated last line is read like any other.
         csv_path.write_text("".join(lines[:5]) + "4,200.5")
         assert list(SessionReader(tmp_path / "s").index) == [0, 1, 2, 3, 4]
@@ -150,12 +159,8 @@ def test_frames_csv_malformed_last_line_refused_unless_cut_short(tmp_path, rng, 
 
 @pytest.mark.parametrize("content", ["", "index,timestamp_s\n", "index,timestamp_s\n\n", "index,timestamp_s\n0,1."])
 def test_frames_csv_listing_no_frames_refused(tmp_path, rng, content):
-    _write_session(tmp_path / "s", _images(rng, 2))
-    csv_path = tmp_path / "s" / "frames.csv"
-    csv_path.write_text(content)
-    with pytest.raises(SessionError) as info:
-        SessionReader(tmp_path / "s")
-    assert str(info.value) == f"{csv_path}: lists no frames"
+    csv_path = _session_with(tmp_path, rng, "frames.csv", content)
+    _refused_on_open(tmp_path / "s", f"{csv_path}: lists no frames")
 
 
 def test_images_without_frames_csv_must_be_named_by_index(tmp_path, rng):
@@ -164,9 +169,9 @@ def test_images_without_frames_csv_must_be_named_by_index(tmp_path, rng):
     assert list(SessionReader(tmp_path / "s").index) == [0, 1]  # the documented fallback
     for f in (tmp_path / "s" / "frames").glob("*.png"):
         f.rename(f.with_name("img" + f.name))
-    with pytest.raises(SessionError) as info:
-        SessionReader(tmp_path / "s")
-    assert str(info.value) == f"{tmp_path / 's'}: missing frames.csv and no image in frames/ is named by its index"
+    _refused_on_open(
+        tmp_path / "s", f"{tmp_path / 's'}: missing frames.csv and no image in frames/ is named by its index"
+    )
 
 
 def test_writer_refuses_existing_session(tmp_path, rng):
@@ -226,12 +231,9 @@ def test_tum_line_errors_say_what_is_wrong(tmp_path, line, why):
 
 
 def test_bad_groundtruth_refused_when_the_session_is_opened(tmp_path, rng):
-    _write_session(tmp_path / "s", _images(rng, 2))
-    p = tmp_path / "s" / "groundtruth.tum"
-    p.write_text("0.0 0 0 0 0 0 0 1\n0.1 nan 0 0 0 0 0 1\n")
-    with pytest.raises(SessionError) as info:
-        SessionReader(tmp_path / "s")  # before any frame is read, not when groundtruth() is asked
-    assert str(info.value) == f"{p}:2: x is 'nan' (must be finite)"
+    p = _session_with(tmp_path, rng, "groundtruth.tum", "0.0 0 0 0 0 0 0 1\n0.1 nan 0 0 0 0 0 1\n")
+    # Before any frame is read, not when groundtruth() is asked.
+    _refused_on_open(tmp_path / "s", f"{p}:2: x is 'nan' (must be finite)")
 
 
 def test_groundtruth_in_session(tmp_path, rng):
