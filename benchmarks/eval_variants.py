@@ -78,7 +78,8 @@ def run_walk(job: tuple[str, dict, str]) -> dict:
         "wrong_ids": wrong_id_fixes(Path(path), log)[0],
         "sq_position": float(np.sum(position**2)),
         "sq_heading": m["heading_rmse_deg"] ** 2 * n if n else 0.0,
-        "frames": n,
+        "frames": n,  # with a pose, scored
+        "frames_all": m["frames"],
         "nees_blocks": m["nees_blocks"],
     }
 

@@ -125,7 +125,9 @@ def test_every_benchmark_script_ends_its_run_through_the_one_line_error_guard(sc
     assert script.read_text().rstrip().endswith(f'raise SystemExit(run_guarded("{script.name}", main))')
 
 
-@pytest.mark.parametrize("name", ["fix_error.py", "covariance_growth.py", "odometry_accuracy.py"])
+@pytest.mark.parametrize(
+    "name", ["fix_error.py", "covariance_growth.py", "odometry_accuracy.py", "survey_sensitivity.py"]
+)
 def test_a_benchmark_given_no_session_says_so_in_one_line(name, tmp_path):
     import subprocess
     import sys
@@ -137,3 +139,27 @@ def test_a_benchmark_given_no_session_says_so_in_one_line(name, tmp_path):
     lines = [ln for ln in r.stderr.splitlines() if ln.strip() and "it/s" not in ln and "walk/s" not in ln]
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert lines[-1] == f"{name}: error: {tmp_path / 'nope'}: not a session directory"
+
+
+def test_the_survey_sensitivity_map_scales_each_stickers_error_and_states_its_sigmas(monkeypatch):
+    """Factor 0 is the true map, 1 the survey, 0.5 half way (a yaw error across +-180 deg wrapped)."""
+    import math
+    import sys
+
+    import numpy as np
+
+    from tagloc.core.stickermap import StickerMap
+
+    monkeypatch.syspath_prepend(str(BENCHMARKS[0].parent))
+    sys.modules.pop("survey_sensitivity", None)
+    from survey_sensitivity import scaled_map
+
+    true = StickerMap([1, 2], [[0.0, 0.0], [2.0, 1.0]], [math.radians(179.0), 0.5])
+    # Listed in another order; sticker 1's yaw error is +2 deg across the wrap, sticker 2's -1 deg.
+    surveyed = StickerMap([2, 1], [[2.02, 0.99], [-0.01, 0.03]], [0.5 - math.radians(1.0), math.radians(-179.0)])
+    for f in (0.0, 0.5, 1.0):
+        m = scaled_map(true, surveyed, f, 0.015, 1.5)
+        assert m.ids.tolist() == [1, 2]
+        assert np.allclose(m.xy, [[-0.01 * f, 0.03 * f], [2.0 + 0.02 * f, 1.0 - 0.01 * f]], atol=1e-12)
+        assert np.allclose(np.degrees(m.yaw), [179.0 + 2.0 * f, math.degrees(0.5) - 1.0 * f], atol=1e-9)
+        assert np.allclose(m.sigma_xy, 0.015 * f) and np.allclose(np.degrees(m.sigma_yaw), 1.5 * f)
