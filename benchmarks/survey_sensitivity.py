@@ -4,7 +4,7 @@ error scaled.
 Run (from the repository root, on sessions rendered with survey error, e.g. the field preset's)::
 
     PYTHONPATH=$PWD python benchmarks/survey_sensitivity.py out/eval/field/sessions/* \\
-        [--factors 0,0.33,0.67,1] [-o out/survey_sensitivity] [--jobs 2] [--json F]
+        [--factors 0,0.33,0.67,1] [-o out/survey_sensitivity] [--jobs 2] [--json F] [--plot F.png]
 
 A simulated session carries the map it was localised with (``map.csv``, the survey) and the one
 its stickers were rendered at (``map_true.csv``). For each factor ``f`` every session is replayed
@@ -14,7 +14,8 @@ the session was simulated with. So ``f`` = 0 is an exact map stated exact, and `
 session's own survey stated as it was made. Nothing is rendered again: the copies under ``-o``
 link every file of the session but the map. Per factor, pooled by frame over the walks as ``tagloc
 eval`` pools them: horizontal RMSE, the worst walk, heading RMSE, mean position NEES and its
-verdict, the share of all frames within 10 cm (a frame without a pose is a miss), wrong-ID fixes.
+verdict, the share of all frames within 10 cm (a frame without a pose is a miss), wrong-ID fixes;
+``--plot`` draws the pooled and the worst walk's RMSE against the survey, with issue 14's goals.
 
 The question it answers: how well must a site be surveyed (or its map refined, ``tagloc map
 refine``) for a given accuracy.
@@ -74,7 +75,7 @@ def copy_name(session: Path) -> str:
 def prepare(session: Path, factor: float, out: Path) -> Path:
     """A copy of ``session`` under ``out/x<factor>/sessions/`` with its map's error scaled by
     ``factor`` (every other file linked); returns its path."""
-    dest = out / f"x{factor:.2f}" / "sessions" / copy_name(session)
+    dest = out / f"x{factor:g}" / "sessions" / copy_name(session)
     if dest.exists():
         shutil.rmtree(dest)
     dest.mkdir(parents=True)
@@ -87,6 +88,37 @@ def prepare(session: Path, factor: float, out: Path) -> Path:
     return dest
 
 
+def plot(summary: dict, sigma_m: float, sigma_deg: float, path: Path) -> None:
+    """PNG of the pooled RMSE and the worst walk's against the survey sigma, with the 2 and 3 cm goals."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    f = np.array([float(k) for k in summary])
+    # Along the position sigma (the yaw's scales with it), or the yaw's when the survey had no position error.
+    if sigma_m > 0:
+        x, label = (
+            100 * f * sigma_m,
+            f"map survey sigma per axis, cm (and {sigma_deg / (100 * sigma_m):g} deg of yaw per cm)",
+        )
+    else:
+        x, label = f * sigma_deg, "map survey sigma of yaw, deg"
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.plot(x, [p["rmse_cm"] for p in summary.values()], "o-", label="all walks, pooled")
+    ax.plot(x, [p["worst_cm"] for p in summary.values()], "s--", label="worst walk")
+    ax.axhline(2.0, color="0.5", lw=0.8, ls=":", label="goals: 2 cm pooled, 3 cm every walk")
+    ax.axhline(3.0, color="0.5", lw=0.8, ls=":")
+    ax.set_xlabel(label)
+    ax.set_ylabel("horizontal RMSE, cm")
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("sessions", type=Path, nargs="+", help="simulated sessions with map_true.csv and survey error")
@@ -94,9 +126,10 @@ def main() -> None:
     ap.add_argument("-o", "--out", type=Path, default=Path("out/survey_sensitivity"), help="where the copies go")
     ap.add_argument("--jobs", type=int, default=1, help="processes (default 1)")
     ap.add_argument("--json", type=Path, help="write the rows and the pooled figures here")
+    ap.add_argument("--plot", type=Path, help="write a PNG of RMSE against the survey here")
     args = ap.parse_args()
     try:
-        factors = [float(f) for f in args.factors.split(",")]
+        factors = list(dict.fromkeys(float(f) for f in args.factors.split(",")))
     except ValueError:
         raise SystemExit(f"survey_sensitivity: --factors {args.factors!r}: not comma-separated numbers") from None
     if not all(math.isfinite(f) and f >= 0 for f in factors):
@@ -107,7 +140,13 @@ def main() -> None:
             raise InputError(f"{s}: not a session directory")
         if not (s / "map_true.csv").exists():
             raise SystemExit(f"survey_sensitivity: {s}: no map_true.csv (not a simulated session)")
-        simulated_survey(s)  # refuse a session without one before any work
+    surveys = {simulated_survey(s) for s in sessions}  # refuses a session without one before any work
+    if surveys == {(0.0, 0.0)}:
+        raise SystemExit("survey_sensitivity: the sessions were simulated with an exact map: no survey error to scale")
+    if len(surveys) > 1:
+        raise SystemExit(
+            "survey_sensitivity: the sessions were simulated with different surveys: give one kind at a time"
+        )
     names = [copy_name(s) for s in sessions]
     if len(set(names)) < len(names):
         raise SystemExit("survey_sensitivity: two sessions of the same name (give each once)")
@@ -128,7 +167,7 @@ def main() -> None:
     )
     summary = {}
     for f in factors:
-        group = [r for r in rows if r["preset"] == f"x{f:.2f}"]
+        group = [r for r in rows if r["preset"] == f"x{f:g}"]
         p = pooled(group)
         frames = sum(r["frames_all"] for r in group)
         within = sum(r["within_10cm_all"] * r["frames_all"] for r in group)
@@ -144,6 +183,9 @@ def main() -> None:
         )
     if args.json:
         args.json.write_text(json.dumps({"factors": factors, "rows": rows, "summary": summary}, indent=1))
+    if args.plot:
+        plot(summary, sigma_m, sigma_deg, args.plot)
+        print(f"plot: {args.plot}")
 
 
 if __name__ == "__main__":
