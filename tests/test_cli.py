@@ -26,7 +26,9 @@ def test_each_command_parses_alone_as_in_the_full_parser(capsys):
     argv = ["replay", "some/session", "--quiet", "--mode", "decoded-only"]
     alone, whole = vars(build_parser("replay").parse_args(argv)), vars(full.parse_args(argv))
     assert alone.keys() == whole.keys()
-    assert {k: v for k, v in alone.items() if k != "_run"} == {k: v for k, v in whole.items() if k != "_run"}
+    assert {k: v for k, v in alone.items() if not k.startswith("_")} == {
+        k: v for k, v in whole.items() if not k.startswith("_")
+    }
 
 
 def test_unknown_command_lists_every_command(capsys):
@@ -35,6 +37,24 @@ def test_unknown_command_lists_every_command(capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert "invalid choice" in err and "replay" in err and "bench-identify" in err
+
+
+@pytest.mark.parametrize(
+    "argv, prog",
+    [
+        (["replay", "logs/walk2s", "--bogus"], "tagloc replay"),
+        (["eval", "--bogus", "3"], "tagloc eval"),
+        (["map", "grid", "-o", "x.csv", "--bogus"], "tagloc map"),
+    ],
+)
+def test_an_unknown_option_is_refused_by_its_commands_own_parser(argv, prog, capsys):
+    """The message names the command and shows its usage, not the top level's."""
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.splitlines()[-1].startswith(f"{prog}: error: unrecognized arguments: --bogus"), err
+    assert f"usage: {prog}" in err and "usage: tagloc [-h]" not in err
 
 
 def _refused(argv: list[str], option: str, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
