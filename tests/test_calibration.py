@@ -107,6 +107,9 @@ def test_ros_camera_info_dump(tmp_path):
         (CAMERA_INFO.replace("width: 1280\n", ""), "width/height"),
         (CAMERA_INFO.replace("K: [1010.5", "K: [-1010.5"), "not a valid intrinsic"),
         (CAMERA_INFO.replace("K: [1010.5", "K: [.nan"), "NaN or inf"),
+        (CAMERA_INFO.replace("K: [1010.5", "K: [1e-300"), "focal length"),
+        (CAMERA_INFO.replace("K: [1010.5", "K: [1e300"), "focal length"),
+        (CAMERA_INFO.replace("D: [0.11,", "D: [1e300,"), "distortion coefficient is beyond"),
         (CAMERA_INFO.replace("D: [0.11, -0.23, 0.001, -0.002, 0.05]", "D: [0.1, 0.2, 0.3]"), "distortion"),
         (CAMERA_INFO.replace("K: [1010.5", "K: [abc"), "not a list of numbers"),
         (OST.replace("image_width: 1280", "image_width: 0"), "not positive"),
@@ -170,6 +173,39 @@ def test_rig_round_trip(tmp_path):
         assert b.camera.K == pytest.approx(a.camera.K) and b.camera.dist == pytest.approx(a.camera.dist)
     override = load_rig(tmp_path / "rig.json", calibration=side)
     assert all(c.camera is side for c in override.cameras)
+
+
+def test_a_written_rig_keeps_its_calibrations_beside_it_under_plain_names(tmp_path):
+    """A rig naming its calibrations by an absolute path or a folder (as a site's may) is written, as
+    a recording's, with each calibration beside rig.json: the originals are not written over, and
+    the copy stands alone. Two cameras whose files share a name get distinct ones."""
+    original = tmp_path / "site" / "abs.yaml"
+    original.parent.mkdir()
+    original.write_text("# the site's own file, with a comment\n")
+    before = original.read_bytes()
+    rig = Rig(
+        [
+            RigCamera("front", default_camera(), looking_forward(1.3, 55.0), str(original)),
+            RigCamera("left", default_camera(), looking_forward(1.2, 60.0, yaw_deg=90.0), "cams/left.yaml"),
+        ]
+    )
+    out = tmp_path / "rec"
+    out.mkdir()
+    save_rig(rig, out / "rig.json")
+    assert original.read_bytes() == before
+    assert sorted(p.name for p in out.iterdir()) == ["abs.yaml", "left.yaml", "rig.json"]
+    assert [c["calibration"] for c in json.loads((out / "rig.json").read_text())["cameras"]] == [
+        "abs.yaml",
+        "left.yaml",
+    ]
+    back = load_rig(out / "rig.json")
+    assert back.cameras[0].camera.K == pytest.approx(default_camera().K)
+    twins = Rig([RigCamera(n, default_camera(), looking_forward(1.3, 55.0), f"{n}/camera.yaml") for n in ("a", "b")])
+    save_rig(twins, out / "twins.json")
+    assert [c["calibration"] for c in json.loads((out / "twins.json").read_text())["cameras"]] == [
+        "camera0.yaml",
+        "camera1.yaml",
+    ]
 
 
 def _rig_doc(T) -> str:

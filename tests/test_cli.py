@@ -286,3 +286,26 @@ def test_bench_refuses_a_bad_option(option, value, tmp_path, capsys):
 @pytest.mark.parametrize("value", ["inf", "nan", "-1"])
 def test_live_refuses_a_gain_that_is_not_a_finite_number_from_0(value, tmp_path, capsys):
     _refused(["live", "--camera", "{tmp}/no-camera", "--map", "{map}", "--gain", value], "--gain", tmp_path, capsys)
+
+
+@pytest.mark.parametrize(
+    "extra, option",
+    [
+        (["--config", "{s}", "--record", "{s}"], "--record"),
+        (["--map", "{s}/map.csv", "--rig", "{s}/rig.json", "--record-bag", "{s}"], "--record-bag"),
+        (["--config", "{s}", "--log", "{s}/map.csv"], "--log"),
+        (["--config", "{s}", "--rerun-save", "{s}/rig.json"], "--rerun-save"),
+    ],
+)
+def test_live_refuses_an_output_over_its_inputs(extra, option, tmp_path, capsys):
+    """Before any work: a recording into the directory it reads its set-up from, or a log over the map."""
+    import shutil
+
+    s = tmp_path / "site"
+    shutil.copytree(Path(__file__).resolve().parent.parent / "logs" / "walk2s", s)
+    before = {p: p.read_bytes() for p in s.rglob("*") if p.is_file()}
+    argv = ["live", "--camera", str(s), "--no-pace", "--max-frames", "2", *(a.format(s=s) for a in extra)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and option in err and "internal error" not in err, err
+    assert {p: p.read_bytes() for p in s.rglob("*") if p.is_file()} == before

@@ -283,3 +283,32 @@ def test_a_monitor_that_cannot_reach_its_broker_says_so(demo_map_path, capsys):
     assert out.rstrip().endswith(
         f"warning: never connected to the broker 127.0.0.1:{port}: no vest's messages were received"
     )
+
+
+def test_the_monitor_and_the_mqtt_sink_open_no_listening_socket(monkeypatch):
+    """paho's loop thread wakes itself through a socket pair it builds by listening on 127.0.0.1;
+    tagloc hands it a Unix pair instead, for the sink and the monitor's subscriber alike."""
+    import socket
+
+    from tagloc.io.fleet import FleetState, FleetSubscriber
+    from tagloc.io.sinks import MqttSink
+
+    listened = []
+    real_listen = socket.socket.listen
+
+    def listen(self, *args):
+        listened.append(self.getsockname())
+        return real_listen(self, *args)
+
+    monkeypatch.setattr(socket.socket, "listen", listen)
+    with socket.socket() as s:  # a port nothing listens on once this closes
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    listened.clear()
+    sub = FleetSubscriber("127.0.0.1", port, "tagloc/+/pose", FleetState(FleetConfig()))
+    sink = MqttSink("127.0.0.1", port, "tagloc/v1/pose")
+    try:
+        assert listened == []
+    finally:
+        sub.close()
+        sink.close(flush_s=0.0)

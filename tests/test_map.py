@@ -255,6 +255,8 @@ def test_survey_sigma_columns_round_trip(tmp_path):
     [
         ("id,x_m,y_m,yaw_deg,sigma_m\n1,0,0,0,-0.01\n", "m.csv:2: sigma_m '-0.01' is negative"),
         ("id,x_m,y_m,yaw_deg,sigma_m\n1,0,0,0,abc\n", "m.csv:2: sigma_m 'abc' is not a number"),
+        ("id,x_m,y_m,yaw_deg,sigma_m\n1,0,0,0,1e300\n", "m.csv:2: sigma_m '1e300' is more than 10"),
+        ("id,x_m,y_m,yaw_deg,sigma_deg\n1,0,0,0,200\n", "m.csv:2: sigma_deg '200' is more than 180"),
         ("id,x_m,y_m,yaw_deg,colour\n1,0,0,0,red\n", "m.csv:1: header"),
         ("id,x_m,y_m,yaw_deg,sigma_m,sigma_m\n1,0,0,0,1,1\n", "m.csv:1: header"),
     ],

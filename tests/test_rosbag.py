@@ -331,3 +331,18 @@ def test_an_unreadable_source_directory_is_named_as_given(tmp_path, monkeypatch)
     monkeypatch.setattr(Path, "exists", refused)
     with pytest.raises(SessionError, match=rf"^{re.escape(str(d))}: no permission to read$"):
         is_bag(d)
+
+
+def test_a_raw_image_whose_rows_are_shorter_than_its_width_is_refused():
+    """``step`` below width x bytes per pixel cannot hold a row: the message is undecodable, not an error."""
+    from types import SimpleNamespace
+
+    from tagloc.io.rosbag import _image_to_grey
+
+    def msg(enc: str, step: int, w: int = 100, h: int = 10) -> SimpleNamespace:
+        return SimpleNamespace(encoding=enc, height=h, width=w, step=step, data=bytes(h * max(step, 1)), is_bigendian=0)
+
+    assert _image_to_grey(msg("bgr8", 100), "sensor_msgs/msg/Image") is None
+    assert _image_to_grey(msg("mono16", 150), "sensor_msgs/msg/Image") is None
+    assert _image_to_grey(msg("bgr8", 300), "sensor_msgs/msg/Image").shape == (10, 100)
+    assert _image_to_grey(msg("mono8", 128), "sensor_msgs/msg/Image").shape == (10, 100)

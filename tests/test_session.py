@@ -174,6 +174,18 @@ def test_images_without_frames_csv_must_be_named_by_index(tmp_path, rng):
     )
 
 
+def test_digits_that_are_not_ascii_are_refused_in_one_line_not_an_internal_error(tmp_path, rng):
+    """'\u00b2' (superscript two) is a digit to str.isdigit() but not to int()."""
+    csv_path = _session_with(tmp_path, rng, "frames.csv", "index,timestamp_s,camera\n0,0.0,0\n1,0.1,\u00b2\n")
+    _refused_on_open(tmp_path / "s", f"{csv_path}:3: camera '\u00b2' is not a camera of the rig (0-0)")
+    csv_path.unlink()
+    for f in (tmp_path / "s" / "frames").glob("*.png"):
+        f.rename(f.with_name("\u00b2" + f.name[1:]))
+    _refused_on_open(
+        tmp_path / "s", f"{tmp_path / 's'}: missing frames.csv and no image in frames/ is named by its index"
+    )
+
+
 def test_writer_refuses_existing_session(tmp_path, rng):
     _write_session(tmp_path / "s", _images(rng, 2))
     with pytest.raises(SessionError, match="already holds a session"):
@@ -256,3 +268,25 @@ def test_a_frame_that_is_a_device_or_huge_is_skipped_not_read(tmp_path, monkeypa
     monkeypatch.setattr(session_io, "MAX_FRAME_BYTES", 1000)
     img, why = read_image(big)
     assert img is None and "more than any frame" in why
+
+
+def _png_declaring(width: int, height: int) -> bytes:
+    """A small PNG whose header declares ``width`` x ``height`` pixels (its data is a few bytes)."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body) & 0xFFFFFFFF)
+
+    header = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    return (
+        b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(bytes(1000))) + chunk(b"IEND", b"")
+    )
+
+
+def test_a_frame_declaring_more_pixels_than_opencv_allows_is_skipped_not_an_error(tmp_path):
+    """OpenCV raises for such a file instead of returning None; the frame is corrupt like any other."""
+    bomb = tmp_path / "000003.png"
+    bomb.write_bytes(_png_declaring(60000, 60000))
+    img, why = read_image(bomb)
+    assert img is None and why == "000003.png is corrupt or unreadable"

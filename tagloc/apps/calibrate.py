@@ -51,7 +51,7 @@ def _frames(source: str, cfg: SourceConfig) -> Iterator[tuple[int, np.ndarray | 
         for i, f in enumerate(files[: cfg.max_frames]):
             yield i, cv2.imread(str(f), cv2.IMREAD_GRAYSCALE), f.name
         return
-    if source.isdigit():
+    if source.isascii() and source.isdigit():
         cap = cv2.VideoCapture(int(source))
         name = f"camera {source}"
     elif path.is_file():

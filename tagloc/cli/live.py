@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from tagloc.core.errors import InputError
+
 NAME = "live"
 HELP = "localise live from a camera (or a video/stream/session played as one) and publish poses"
 DESCRIPTION = """Localise from a camera, a stream URL, a video file or a session directory, and publish one
@@ -78,6 +80,28 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bag-images", action="store_true", help="also put the camera images and CameraInfo in the bag")
 
 
+def _outputs_apart_from_inputs(args: argparse.Namespace, checks) -> None:
+    """Refuse an output that would overwrite what the run reads: ``--log`` or ``--rerun-save`` naming
+    an input file, or ``--record`` / ``--record-bag`` naming a directory that holds inputs (a
+    recording writes its own map.csv, rig.json and calibrations there)."""
+    import os
+
+    from tagloc.io.session import FRAMES_DIR, SESSION_INPUTS
+
+    sources = [Path(c) for c in args.camera if Path(c).exists()]
+    dirs = [d for d in (args.config, *(c for c in sources if c.is_dir())) if d is not None]
+    files = [args.map, args.rig, args.calibration, *(c for c in sources if c.is_file())]
+    files += [d / name for d in dirs for name in SESSION_INPUTS]
+    checks.outputs_apart(
+        [("--log", args.log), ("--rerun-save", args.rerun_save)], files, [d / FRAMES_DIR for d in dirs]
+    )
+    setup = [f for f in (args.map, args.rig, args.calibration) if f is not None]
+    holding = {os.path.realpath(d) for d in dirs} | {os.path.realpath(Path(f).parent) for f in setup}
+    for option, out in (("--record", args.record), ("--record-bag", args.record_bag)):
+        if out is not None and os.path.realpath(out) in holding:
+            raise InputError(f"{out}: {option} names a directory holding the run's inputs; choose a new one")
+
+
 def run(args: argparse.Namespace) -> int:
     from tagloc.apps.live import LiveConfig, run_live
     from tagloc.cli import checks
@@ -85,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
     for option, path in (("--log", args.log), ("--rerun-save", args.rerun_save)):
         checks.output_file(path, option)
     checks.output_dir(args.record, "--record")
+    _outputs_apart_from_inputs(args, checks)
     if args.gain is not None:
         # No upper bound: the units are the driver's. CameraSettings takes any gain >= 0, infinity too.
         checks.number(args.gain, "--gain", 0)

@@ -18,6 +18,13 @@ import yaml
 from tagloc.core.errors import CalibrationError
 
 MAX_SIZE_PX = 100_000  # an image side beyond this is a typo, not a sensor
+# Focal lengths a real lens and sensor give, in pixels: a fisheye on a small sensor has a few
+# hundred, a long lens on a large one tens of thousands. Outside, the file is wrong (and the
+# projection's arithmetic overflows near 0 and infinity).
+MIN_FOCAL_PX, MAX_FOCAL_PX = 1.0, 1e6
+# OpenCV's distortion coefficients: fitted lenses give |k| up to tens (the rational model's
+# numerator and denominator terms together); 1e4 is no lens.
+MAX_DISTORTION = 1e4
 
 
 @dataclass
@@ -125,6 +132,12 @@ def _check(camera: Camera, path: Path) -> Camera:
         raise CalibrationError(f"{path}: calibration contains NaN or inf")
     if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1 or np.any(K[2, :2] != 0) or K[1, 0] != 0:
         raise CalibrationError(f"{path}: camera_matrix is not a valid intrinsic matrix: {K.tolist()}")
+    if not (MIN_FOCAL_PX <= K[0, 0] <= MAX_FOCAL_PX and MIN_FOCAL_PX <= K[1, 1] <= MAX_FOCAL_PX):
+        raise CalibrationError(
+            f"{path}: focal length fx {K[0, 0]:g}, fy {K[1, 1]:g} px is outside {MIN_FOCAL_PX:g}-{MAX_FOCAL_PX:g} px"
+        )
+    if np.max(np.abs(camera.dist), initial=0.0) > MAX_DISTORTION:
+        raise CalibrationError(f"{path}: a distortion coefficient is beyond +-{MAX_DISTORTION:g}")
     if not (0 < camera.width <= MAX_SIZE_PX and 0 < camera.height <= MAX_SIZE_PX):
         raise CalibrationError(
             f"{path}: image size {camera.width}x{camera.height} is not positive and at most {MAX_SIZE_PX} px a side"

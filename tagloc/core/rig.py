@@ -229,19 +229,34 @@ def load_rig(path: str | Path, calibration: Camera | None = None) -> Rig:
     return Rig(_shared_height(out, height))
 
 
+def local_calibration_names(rig: Rig) -> list[str]:
+    """A plain file name per camera for its calibration beside a written ``rig.json``: the rig's own
+    name's last part (``cams/front.yaml`` -> ``front.yaml``), or ``camera<k>.yaml`` where two
+    cameras' would be the same."""
+    names = [Path(c.calibration_file).name or f"camera{k}.yaml" for k, c in enumerate(rig.cameras)]
+    if len(set(names)) < len(names):
+        names = [f"camera{k}.yaml" for k in range(len(names))]
+    return names
+
+
 def save_rig(rig: Rig, path: str | Path, write_calibrations: bool = True) -> None:
-    """Write ``rig.json`` (and, by default, each camera's calibration file next to it)."""
+    """Write ``rig.json``; by default with each camera's calibration written beside it, under a plain
+    file name (:func:`local_calibration_names`) that ``rig.json`` then names: a rig loaded from
+    elsewhere may name its calibrations by an absolute path or a folder, and a copy of it (a
+    recording's) must neither write over those files nor depend on them. Without
+    ``write_calibrations`` the rig's own names are kept (a rig written beside its calibrations)."""
     path = Path(path)
+    names = local_calibration_names(rig) if write_calibrations else [c.calibration_file for c in rig.cameras]
     doc = {
         "vest_height_m": round(float(rig.vest_point[2]), 6),
         "cameras": [
-            {"name": c.name, "calibration": c.calibration_file, "T_body_camera": np.round(c.T_body_camera, 12).tolist()}
+            {"name": c.name, "calibration": name, "T_body_camera": np.round(c.T_body_camera, 12).tolist()}
             | ({"readout_s": c.readout_s} if c.readout_s > 0 else {})
             | ({"legs_in_view": bool(c.legs_in_view)} if c.legs_in_view is not None else {})
-            for c in rig.cameras
+            for c, name in zip(rig.cameras, names)
         ],
     }
     path.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
     if write_calibrations:
-        for c in rig.cameras:
-            save_calibration(c.camera, path.parent / c.calibration_file)
+        for c, name in zip(rig.cameras, names):
+            save_calibration(c.camera, path.parent / name)

@@ -120,12 +120,19 @@ def _coord(text: str, where: str, column: str) -> float:
     return value
 
 
+# Largest survey sigmas a map may state: beyond them a sticker's place or turn is not surveyed at all
+# (and a sigma squared must stay a finite float).
+MAX_SIGMA = {"sigma_m": 10.0, "sigma_deg": 180.0}
+
+
 def _sigma(text: str, where: str, column: str) -> float:
     if not text.strip():
         return math.nan
     value = _number(text, where, column)
     if value < 0:
         raise MapError(f"{where}: {column} {text.strip()!r} is negative")
+    if value > MAX_SIGMA[column]:
+        raise MapError(f"{where}: {column} {text.strip()!r} is more than {MAX_SIGMA[column]:g}")
     return value
 
 

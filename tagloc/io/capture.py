@@ -374,10 +374,10 @@ def open_source(spec: str, settings: CameraSettings | None = None) -> FrameSourc
     settings = settings or CameraSettings()
     if spec == "picam" or spec.startswith("picam:"):
         num = spec.partition(":")[2] or "0"
-        if not num.isdigit():
+        if not (num.isascii() and num.isdigit()):
             raise InputError(f"{spec}: want picam or picam:N")
         return PiCamera2Source(int(num), settings)
-    if spec.isdigit():
+    if spec.isascii() and spec.isdigit():
         src: FrameSource = VideoSource(int(spec), live=True)
     elif Path(spec).is_dir():
         src = SessionSource(Path(spec))

@@ -26,7 +26,7 @@ import numpy as np
 
 from tagloc.core.errors import InputError
 from tagloc.io.fleet_config import FleetConfig
-from tagloc.io.sinks import SCHEMA
+from tagloc.io.sinks import SCHEMA, unix_socketpair
 
 STATES = ("initialising", "tracking", "lost", "unknown")
 EPOCH_MIN_S = 1e9  # t above this (Sept 2001) is an epoch timestamp, below it a session's own clock
@@ -301,7 +301,8 @@ class FleetSubscriber:
         self.client.on_subscribe = lambda c, u, mid, rcs, p: self.subscribed.set()
         self.client.on_message = self._on_message
         self.client.connect_async(host, port, keepalive=keepalive)
-        self.client.loop_start()
+        with unix_socketpair(mqtt):  # tagloc opens no listening socket (see unix_socketpair)
+            self.client.loop_start()
 
     def _on_connect(self, client, userdata, flags, reason_code, properties) -> None:
         if reason_code.is_failure:

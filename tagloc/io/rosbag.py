@@ -42,7 +42,7 @@ from tagloc.core.geometry import planar_T
 from tagloc.core.rig import Rig, default_rig, load_rig
 from tagloc.core.stickermap import StickerMap, load_map
 from tagloc.core.types import Frame, FrameResult, TrackState
-from tagloc.io.session import SessionInfo, SessionWriter
+from tagloc.io.session import SessionInfo, SessionWriter, decode_grey
 from tagloc.io.sinks import SCHEMA, PoseMessage, Sink
 
 # ROS asks for a huge variance on axes that are not measured (z, roll, pitch of a planar pose), so that
@@ -375,12 +375,13 @@ def is_bag(path: str | Path) -> bool:
 def _image_to_grey(msg: object, msgtype: str) -> np.ndarray | None:
     """(H, W) uint8 from a CompressedImage or Image message, None if it cannot be decoded."""
     if msgtype.endswith("CompressedImage"):
-        return cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_GRAYSCALE)
+        return decode_grey(bytes(msg.data))
     enc = msg.encoding.lower()
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     data = np.frombuffer(bytes(msg.data), np.uint8)
     channels = {"mono8": 1, "8uc1": 1, "bgr8": 3, "rgb8": 3, "8uc3": 3, "bgra8": 4, "rgba8": 4, "mono16": 2, "16uc1": 2}
-    if enc not in channels or h <= 0 or w <= 0 or data.size < h * step:
+    # A row (step bytes) must hold the width's pixels, and the data every row.
+    if enc not in channels or h <= 0 or w <= 0 or step < channels[enc] * w or data.size < h * step:
         return None
     rows = data[: h * step].reshape(h, step)
     if enc in ("mono16", "16uc1"):
@@ -560,7 +561,7 @@ def _convert(w: SessionWriter, i: int, t: float, msg: object, msgtype: str) -> b
     """Write one bag image message to the session ``w``: False when it is skipped (undecodable)."""
     if msg is not None and msgtype.endswith("CompressedImage") and "jpeg" in msg.format.lower():
         data = bytes(msg.data)
-        if cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE) is not None:
+        if decode_grey(data) is not None:
             w.write_encoded(i, t, data, ".jpg")
             return True
     img = None if msg is None else _image_to_grey(msg, msgtype)

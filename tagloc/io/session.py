@@ -172,10 +172,21 @@ def read_image(path: Path) -> tuple[np.ndarray | None, str | None]:
         return None, f"{path.name}: cannot read ({exc.strerror})"
     if path.suffix.lower() in (".jpg", ".jpeg") and b"\xff\xd9" not in data[-64:]:
         return None, f"{path.name} is corrupt: JPEG cut short (no end-of-image marker)"
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE) if data else None
+    img = decode_grey(data)
     if img is None:
         return None, f"{path.name} is corrupt or unreadable"
     return img, None
+
+
+def decode_grey(data: bytes) -> np.ndarray | None:
+    """An encoded image (JPEG, PNG, ...) as (H, W) uint8 grey, or None when it cannot be decoded: OpenCV
+    raises, rather than returning None, for some files (one declaring more pixels than it allows)."""
+    if not data:
+        return None
+    try:
+        return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
+    except cv2.error:
+        return None
 
 
 def frame_stem(index: int, camera: int = 0) -> str:
@@ -274,7 +285,7 @@ class SessionReader:
             if not files:
                 raise SessionError(f"{self.path}: missing frames.csv and no images in frames/")
             fps = self.info.fps or 30.0
-            idx = np.array([int(f.stem) for f in files if f.stem.isdigit()], np.int64)
+            idx = np.array([int(f.stem) for f in files if f.stem.isascii() and f.stem.isdigit()], np.int64)
             if not len(idx):
                 raise SessionError(f"{self.path}: missing frames.csv and no image in frames/ is named by its index")
             self.cameras = np.zeros(len(idx), np.int64)
@@ -303,7 +314,7 @@ class SessionReader:
             if not np.isfinite(t):
                 raise SessionError(f"{p}:{n}: timestamp is not finite")
             cam = row[2].strip() if len(row) > 2 else "0"
-            if not cam.isdigit() or int(cam) >= len(self.rig):
+            if not (cam.isascii() and cam.isdigit()) or int(cam) >= len(self.rig):
                 raise SessionError(f"{p}:{n}: camera {cam!r} is not a camera of the rig (0-{len(self.rig) - 1})")
             index.append(i)
             stamps.append(t)

@@ -230,7 +230,7 @@ class UdpSink(Sink):
 
 
 @contextlib.contextmanager
-def _unix_socketpair(mqtt_module: object) -> Iterator[None]:
+def unix_socketpair(mqtt_module: object) -> Iterator[None]:
     """Make paho's wake-up socket pair a Unix one while it starts its thread.
 
     paho builds the pair from a TCP socket that briefly listens on 127.0.0.1; tagloc opens no
@@ -322,7 +322,7 @@ class MqttSink(Sink):
         self._client.on_disconnect = self._on_disconnect
         self._client.on_publish = self._on_publish
         self._client.connect_async(host, port, keepalive=keepalive, clean_start=True)
-        with _unix_socketpair(mqtt):
+        with unix_socketpair(mqtt):
             self._client.loop_start()
 
     def _on_connect(
