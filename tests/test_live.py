@@ -409,3 +409,20 @@ def test_frames_are_processed_on_one_thread_and_the_process_gets_its_own_back(se
                 assert threads_now() == (2, 2)
     finally:
         cv2.setNumThreads(before)
+
+
+def test_a_bad_session_source_is_refused_before_the_reference_bank_is_built(session, tmp_path, monkeypatch):
+    """Building a large map's bank takes a minute: a source that cannot be played is named first."""
+    import tagloc.vision.refs as refs
+
+    def no_bank(*args, **kwargs):
+        raise AssertionError("the reference bank was built before the source was checked")
+
+    monkeypatch.setattr(refs, "load_or_build_refs", no_bank)
+    monkeypatch.setattr(refs, "build_refs", no_bank)
+    bad = tmp_path / "bad"
+    shutil.copytree(session, bad)
+    lines = (bad / "frames.csv").read_text().splitlines()
+    (bad / "frames.csv").write_text("\n".join([*lines[:3], lines[1], *lines[3:]]) + "\n")  # a time repeated
+    with pytest.raises(SessionError, match="frames.csv"):
+        run_live(LiveConfig(source=str(bad), config_dir=session, mode="full", pace=False))

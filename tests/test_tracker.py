@@ -1000,3 +1000,90 @@ def test_search_prior_leaves_out_the_frame_intervals_walking_noise(rng):
     assert np.trace(tr.prior()[1][:2, :2]) > np.trace(tr.search_prior()[1][:2, :2])
     assert tr.update([noisy_fix(straight(t2), rng, TrackerConfig())], 1, IdSource.DECODED, t2).accepted
     np.testing.assert_array_equal(tr.search_prior()[1], tr.prior()[1])
+
+
+# -- restarts and the alternatives offered (found by a review of the tracker) ----------------------
+_STILL = np.diag([1e-6, 1e-6, 1e-6])  # an odometry step's covariance: standing still, well measured
+
+
+def _step(t0: float, t1: float):
+    from tagloc.vision.odometry import OdometryStep
+
+    return OdometryStep(t0, t1, np.zeros(3), _STILL, 0.5)
+
+
+def _tracked_at_origin(tr: Tracker, camera: str = "A", frames: int = 10) -> float:
+    """Stand at the origin over sticker 1 for ``frames`` frames (fixes and odometry); the last time."""
+    dt = 1 / 30
+    tr.predict(0.0, camera)
+    tr.update([make_fix([0, 0, 0])], 1, IdSource.DECODED, 0.0)
+    for k in range(1, frames):
+        t = k * dt
+        tr.predict(t, camera)
+        tr.update_odometry(_step(t - dt, t), camera)
+        tr.update([make_fix([0, 0, 0])], 1, IdSource.DECODED, t)
+    return (frames - 1) * dt
+
+
+def test_a_restart_cannot_be_undone_by_a_fix_overruling_the_old_tracks_odometry_step():
+    """A fix refused by the new track must not be judged against the old track's state before the
+    frame's odometry step (and that state written into the new filter)."""
+    tr = Tracker()
+    t = _tracked_at_origin(tr)
+    dt = 1 / 30
+    for sid in (7, 8, 7):  # the operator is elsewhere: three decoded fixes of two other stickers
+        t += dt
+        tr.predict(t, "A")
+        assert tr.update_odometry(_step(t - dt, t), "A").accepted
+        r = tr.update([make_fix([0.6, 0, 0])], sid, IdSource.DECODED, t)
+    assert r.accepted and r.reason.startswith("reinitialised") and tr.stats["reinitialisations"] == 1
+    # Sticker 1 in the same frame agrees with the old track only: refused, the new track stands.
+    r = tr.update([make_fix([0, 0, 0])], 1, IdSource.DECODED, t)
+    assert not r.accepted and tr.stats["odometry_overruled"] == 0
+    assert tr.output().pose[0] == pytest.approx(0.6, abs=0.01)
+
+
+def test_a_late_fix_starts_the_track_where_the_operator_is_now_with_the_lag_in_its_covariance():
+    """A decoded fix 0.2 s older than the filter (another camera's frame) starts the track: the pose is
+    predicted over the lag, so a walker 0.28 m further on is within the stated uncertainty."""
+    v = 1.4
+    tr = Tracker()
+    tr.predict(1.0, "A")
+    r = tr.update([make_fix([v * 0.8, 0, 0])], 5, IdSource.DECODED, 0.8)
+    assert r.accepted and r.reason == "initialised"
+    o = tr.output()
+    assert o.t == pytest.approx(1.0)
+    sd = math.sqrt(o.cov[0, 0])
+    assert sd > 0.1  # (0.01 before: the fix's own, as if it were current)
+    assert abs(v * 1.0 - o.pose[0]) < 3 * sd
+    tr.predict(1.0 + 1 / 30, "A")
+    assert tr.update([make_fix([v * (1.0 + 1 / 30), 0, 0])], 6, IdSource.DECODED, 1.0 + 1 / 30).accepted
+
+
+def test_a_kidnapped_track_is_replaced_when_two_cameras_fixes_interleave_a_frame_apart():
+    """Camera B's fixes come 50 ms behind camera A's (within max_lag_s): each extends the competing
+    hypothesis instead of discarding it, so the track moves to where both cameras place it."""
+    tr = Tracker()
+    t = _tracked_at_origin(tr)
+    dt = 1 / 30
+    for _ in range(30):
+        t += dt
+        tr.predict(t, "A")
+        tr.update_odometry(_step(t - dt, t), "A")
+        tr.update([make_fix([0.6, 0, 0])], 7, IdSource.DECODED, t)
+        tr.update([make_fix([0.6, 0, 0])], 8, IdSource.DECODED, t - 0.05)
+        if tr.stats["reinitialisations"]:
+            break
+    assert tr.stats["reinitialisations"] == 1 and t < 0.5  # a few frames, not lost_after_s
+    o = tr.output()
+    assert o.state is TrackState.TRACKING and o.pose[0] == pytest.approx(0.6, abs=0.02)
+
+
+def test_chosen_indexes_the_fixes_offered_even_when_an_unusable_one_is_left_out():
+    tr = Tracker()
+    tr.predict(0.0)
+    tr.update([make_fix([0, 0, 0])], 1, IdSource.DECODED, 0.0)
+    tr.predict(1 / 30)
+    blown = make_fix([3.0, 1.0, 2.0], FIX_COV * 1e18)  # a solver blow-up: refused as unusable
+    r = tr.update([blown, make_fix([0, 0, 0])], 1, IdSource.DECODED, 1 / 30)
+    assert r.accepted and r.chosen == 1

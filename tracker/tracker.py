@@ -106,6 +106,7 @@ class _Hypothesis:
     ids: set[int]
     count: int
     own: bool = False  # its first fix came from the track's own anchor (see reinit_own_sticker_s)
+    last: int = 0  # which of the last offered alternatives it fused
 
 
 _SOURCES = (IdSource.DECODED, IdSource.CHECKED, IdSource.ORB, IdSource.APPEARANCE)
@@ -187,6 +188,7 @@ class Tracker:
         # The filter (mean, covariance, clones, _last_odo_t) just before the odometry step fused at
         # the filter's current time, while no fix has been fused after it (see overrule_odometry).
         self._before_step: tuple[float, Hashable, np.ndarray, np.ndarray, CloneSet, float] | None = None
+        self._last_hyp_choice = 0  # which offered alternative the hypothesis fused last
         # The state covariance (DIM, DIM) as it stood at the filter's previous time, while nothing
         # has been fused at the current one (see search_prior); None otherwise. The filter replaces
         # its arrays rather than writing into them, so keeping the reference keeps the values.
@@ -421,6 +423,8 @@ class Tracker:
         self._clones.clear()
         if self._t is not None:
             self._clones_dropped_t = self._t
+        # Nor can a fix overrule a step of the track that was: its state before the step is history.
+        self._before_step = None
 
     def _gap_noise(self, dt: float, stat: str = "frame_gaps") -> None:
         """Widen yaw and yaw rate after ``dt`` s no odometry could follow (see ``gap_yaw_accel_psd``).
@@ -487,10 +491,11 @@ class Tracker:
     # -- fixes --------------------------------------------------------------------------------------
     def _clean(
         self, fixes: list[PoseFix], sticker_id: int, survey: SurveyPrior | None
-    ) -> list[tuple[np.ndarray, np.ndarray, MapTerm | None]]:
-        """(body (3,), cov (3, 3) SPD, map term or None) of the usable fixes, in the order given."""
-        out = []
-        for f in fixes:
+    ) -> tuple[list[tuple[np.ndarray, np.ndarray, MapTerm | None]], list[int]]:
+        """(body (3,), cov (3, 3) SPD, map term or None) of the usable fixes, in the order given, and
+        each one's index among ``fixes`` (what :attr:`UpdateResult.chosen` reports)."""
+        out, where = [], []
+        for i, f in enumerate(fixes):
             z = np.asarray(f.body, float).ravel()
             C = np.asarray(f.cov, float)
             if z.shape != (3,) or C.shape != (3, 3) or not (np.all(np.isfinite(z)) and np.all(np.isfinite(C))):
@@ -505,7 +510,8 @@ class Tracker:
                 prior = np.diag([survey.sigma_m**2, survey.sigma_m**2, survey.sigma_yaw**2])
                 term = MapTerm(int(sticker_id), map_error_jacobian(z[:2], survey.sticker_xy), prior)
             out.append((z, sym_spd(C, self.config.min_eig), term))
-        return out
+            where.append(i)
+        return out, where
 
     def update(
         self,
@@ -531,7 +537,7 @@ class Tracker:
             return UpdateResult(False, "invalid timestamp")
         if source is IdSource.NONE:
             return UpdateResult(False, "unidentified sticker")
-        alts = self._clean(fixes, sticker_id, survey)
+        alts, where = self._clean(fixes, sticker_id, survey)
         if not alts:
             self._stats["invalid_fixes"] += 1
             return UpdateResult(False, "no usable fix (empty, NaN or malformed)")
@@ -544,9 +550,9 @@ class Tracker:
         row_time_s = float(row_time_s) if math.isfinite(row_time_s) else 0.0
         lag = late - row_time_s  # negative: the sticker's rows were read after the filter's time
 
-        early = self._without_track(alts, sticker_id, source, t)
+        early = self._without_track(alts, sticker_id, source, t, lag)
         if early is not None:
-            return early
+            return dataclasses.replace(early, chosen=where[early.chosen]) if early.chosen is not None else early
 
         k, nis = self._best(alts, lag)
         k, nis, how = self._overrule_step(alts, lag, source, k, nis)
@@ -558,33 +564,33 @@ class Tracker:
             self._accept(sticker_id, source, t)
             if source is IdSource.DECODED:
                 self._hyp = None
-            return UpdateResult(True, how, nis, k)
+            return UpdateResult(True, how, nis, where[k])
 
         reason = f"gated: NIS {nis:.1f} > {self._gate[source]:.1f}"
         if source is IdSource.DECODED and self._state is TrackState.LOST:
-            self._start(alts[0], sticker_id, source, t)
+            self._start(alts[0], sticker_id, source, t, lag)
             self._stats["reinitialisations"] += 1
             self._stats["reinit_lost"] += 1
-            return UpdateResult(True, f"reinitialised (lost, {reason})", nis, 0)
+            return UpdateResult(True, f"reinitialised (lost, {reason})", nis, where[0])
         if source is IdSource.DECODED and self._feed_hypothesis(alts, sticker_id, t):
             return UpdateResult(
                 True,
                 f"reinitialised: {self.config.reinit_fixes} consistent decoded fixes "
                 f"disagreed with the track ({reason})",
                 nis,
-                0,
+                where[self._last_hyp_choice],
             )
         self._stats[f"rejected_{source.value}"] += 1
-        return UpdateResult(False, reason, nis, k)
+        return UpdateResult(False, reason, nis, where[k])
 
-    def _without_track(self, alts, sticker_id: int, source: IdSource, t: float) -> UpdateResult | None:
+    def _without_track(self, alts, sticker_id: int, source: IdSource, t: float, lag: float) -> UpdateResult | None:
         """What becomes of a fix while there is no track to gate it against (initialising: a decoded
         one starts it; lost: only decoded ones are taken), or None when there is a track."""
         if self._state is TrackState.INITIALISING:
             if source is not IdSource.DECODED:
                 self._stats["ignored_initialising"] += 1
                 return UpdateResult(False, "initialising: only a decoded sticker starts the track")
-            self._start(alts[0], sticker_id, source, t)
+            self._start(alts[0], sticker_id, source, t, lag)
             self._stats["initialisations"] += 1
             return UpdateResult(True, "initialised", chosen=0)
         if self._state is TrackState.LOST and source is not IdSource.DECODED:
@@ -656,12 +662,21 @@ class Tracker:
         self._forgot = False
 
     def _start(
-        self, alt: tuple[np.ndarray, np.ndarray, MapTerm | None], sticker_id: int, source: IdSource, t: float
+        self,
+        alt: tuple[np.ndarray, np.ndarray, MapTerm | None],
+        sticker_id: int,
+        source: IdSource,
+        t: float,
+        lag: float = 0.0,
     ) -> None:
-        """(Re)start the track from one fix: pose from it, speed and yaw rate unknown."""
+        """(Re)start the track from one fix, ``lag`` s older than the filter's time: pose from it, speed
+        and yaw rate unknown, predicted over the lag (a late fix's pose is where the operator was)."""
         self._hyp = None
         self._drop_clones()
-        self._ekf = self._new_filter(alt)
+        ekf = self._new_filter(alt)
+        if lag > 0.0 and not _checked(lambda: ekf.advance(lag))[0]:
+            self._stats["numeric_errors"] += 1
+        self._ekf = ekf
         self._P_before_predict = None
         # A fresh track: its sticker set and last-fix time start from this fix alone.
         self._track_ids = set()
@@ -680,7 +695,8 @@ class Tracker:
         """Add a rejected decoded fix to the competing hypothesis; True when it replaced the track."""
         cfg = self.config
         h = self._hyp
-        if h is not None and (t < h.t or t - h.t0 > cfg.reinit_window_s):
+        # A fix a little older than the hypothesis (another camera's frame, within max_lag_s) extends it.
+        if h is not None and (t < h.t - cfg.max_lag_s or t - h.t0 > cfg.reinit_window_s):
             h = None
         if h is not None:
             ok, fused = _checked(lambda: self._extend_hypothesis(h, alts, sticker_id, t))
@@ -696,8 +712,12 @@ class Tracker:
         # bad odometry step moved it), or whose own anchor of a moment ago now disagrees with it
         # while nothing else supports it, has nothing else to defend.
         unsupported = self._track_ids <= h.ids or (h.own and self._last_fix_t < h.t0)
+        self._last_hyp_choice = h.last
         if h.count < cfg.reinit_fixes or (len(h.ids) < cfg.reinit_min_ids and not unsupported):
             return False
+        # The hypothesis stands at its last fix's time; the track it replaces, at the filter's.
+        if self._t is not None and self._t > h.t and not _checked(lambda: h.ekf.advance(self._t - h.t))[0]:
+            self._stats["numeric_errors"] += 1
         self._ekf = h.ekf
         self._hyp = None
         self._P_before_predict = None
@@ -709,16 +729,22 @@ class Tracker:
         return True
 
     def _extend_hypothesis(self, h: _Hypothesis, alts, sticker_id: int, t: float) -> bool:
-        """Fuse the best of ``alts`` into the hypothesis if it passes its gate; False if none does."""
-        h.ekf.advance(t - h.t)
-        h.t = t
-        nis, i = min((h.ekf.innovation(z, C, 0.0, term).nis, i) for i, (z, C, term) in enumerate(alts))
+        """Fuse the best of ``alts`` into the hypothesis if it passes its gate; False if none does. A fix
+        older than the hypothesis (within ``max_lag_s``) is fused through retrodiction."""
+        lag = 0.0
+        if t >= h.t:
+            h.ekf.advance(t - h.t)
+            h.t = t
+        else:
+            lag = h.t - t
+        nis, i = min((h.ekf.innovation(z, C, lag, term).nis, i) for i, (z, C, term) in enumerate(alts))
         if not nis <= self.config.gate:  # NaN included
             return False
         z, C, term = alts[i]
-        h.ekf.fuse(z, C, 0.0, term)
+        h.ekf.fuse(z, C, lag, term)
         h.ids.add(int(sticker_id))
         h.count += 1
+        h.last = i
         return True
 
     # -- odometry ---------------------------------------------------------------------------------

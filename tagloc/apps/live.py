@@ -154,13 +154,27 @@ def run_live(
     ``open_source(cfg.source)``.
     """
     _check_limits(cfg)
-    if localiser is None:
-        localiser = _make_localiser(cfg)
+    # A source handed in (tests, benchmarks) is the one camera; otherwise one per --camera, opened
+    # (a session's frames.csv checked, say) before the reference bank, which can take a minute.
+    sources = [source] if source is not None else None
+    try:
+        if localiser is None:
+            from tagloc.pipeline.localiser import load_setup
+
+            smap, rig = load_setup(
+                map_path=cfg.map, calibration=cfg.calibration, rig_path=cfg.rig, config_dir=cfg.config_dir
+            )
+            sources = sources or _open_sources(cfg, len(rig))
+            localiser = _make_localiser(cfg, smap, rig)
+        sources = sources or _open_sources(cfg, len(localiser.rig))
+        if hasattr(localiser, "warm_up"):
+            localiser.warm_up()  # set-up the first frame would pay, before the clock starts
+    except BaseException:
+        for s in sources or []:
+            if s is not source:
+                s.close()
+        raise
     stop = stop or threading.Event()
-    if hasattr(localiser, "warm_up"):
-        localiser.warm_up()  # set-up the first frame would pay, before the clock starts
-    # A source handed in (tests, benchmarks) is the one camera; otherwise one per --camera.
-    sources = [source] if source is not None else _open_sources(cfg, len(localiser.rig))
     source = sources[0]
     reports = [s.settings_report() if hasattr(s, "settings_report") else {} for s in sources]
     for c, (s, rep) in enumerate(zip(sources, reports)):
@@ -260,11 +274,16 @@ def _check_limits(cfg: LiveConfig) -> None:
         raise InputError(f"--buffer must be 1 to 1000 frames, not {cfg.buffer}")
 
 
-def _make_localiser(cfg: LiveConfig):
+def _make_localiser(cfg: LiveConfig, smap=None, rig=None):
+    """The configured localiser, its reference bank prepared, on map ``smap`` and ``rig`` when the
+    caller has loaded them (else they are loaded here)."""
     from tagloc.eval.baselines import make_localiser
     from tagloc.pipeline.localiser import load_setup
 
-    smap, rig = load_setup(map_path=cfg.map, calibration=cfg.calibration, rig_path=cfg.rig, config_dir=cfg.config_dir)
+    if smap is None or rig is None:
+        smap, rig = load_setup(
+            map_path=cfg.map, calibration=cfg.calibration, rig_path=cfg.rig, config_dir=cfg.config_dir
+        )
     map_path = cfg.map or (Path(cfg.config_dir) / MAP_FILE if cfg.config_dir else None)
     refs = None
     if cfg.mode != "decoded-only":
