@@ -583,3 +583,61 @@ def test_10_readme_setup_is_two_commands_without_sudo_that_ci_also_runs():
 
 def test_errors_are_tagloc_errors():
     assert issubclass(SessionError, TaglocError) and issubclass(CalibrationError, TaglocError)
+
+
+class _Kept:
+    """A sink that keeps what it is given."""
+
+    name = "kept"
+
+    def __init__(self) -> None:
+        self.sent, self.dropped, self.messages = 0, 0, []
+
+    def publish(self, message) -> bool:
+        self.messages.append(message)
+        self.sent += 1
+        return True
+
+    def counts(self) -> dict[str, int]:
+        return {"sent": self.sent, "dropped": self.dropped}
+
+    def status(self) -> str | None:
+        return None
+
+    def close(self) -> None:
+        pass
+
+
+def _emitted(results) -> tuple[list, list[str], OutputSummary]:
+    """(messages a sink got, warnings, summary) of ``results`` (index, t, skipped why or None) through Outputs."""
+    warnings: list[str] = []
+    out = Outputs(line_map(), default_rig(), OutputConfig(), warn=warnings.append)
+    kept = _Kept()
+    out.add_sink(kept)
+    for index, t, skipped in results:
+        o = TrackerOutput(t, np.zeros(3), np.eye(3) * 1e-4, TrackState.TRACKING, 0.1)
+        out.emit(FrameResult(index, t, [], o, skipped=skipped))
+    return kept.messages, warnings, out.close()
+
+
+def test_a_skipped_frames_prediction_is_never_published():
+    """An unreadable frame's result is the filter's prediction: logged and counted, not sent, even
+    when it is later than the last pose published (live's capture withholds such frames too)."""
+    messages, _, summary = _emitted([(0, 1.0, None), (1, 1.033, "frame 1: corrupt"), (2, 1.067, None)])
+    assert [m.index for m in messages] == [0, 2]
+    assert (summary.published, summary.refused, summary.skipped) == (2, 1, 1)
+
+
+def test_published_stamps_carry_on_across_a_reset_source_clock():
+    """After the localiser restarts on a clock that went back 9 s, the poses published go on from the
+    last stamp (a receiver keyed on time would drop them as older); one warning says so."""
+    dt = 1 / 30
+    results = [(k, 10.0 + k * dt, None) for k in range(3)] + [(3 + k, 1.0 + k * dt, None) for k in range(3)]
+    messages, warnings, summary = _emitted(results)
+    stamps = [m.output.t for m in messages]
+    assert np.all(np.diff(stamps) > 0)
+    assert np.allclose(np.diff(stamps), dt)
+    assert summary.clock_resets == 1 and sum("clock went back" in w for w in warnings) == 1
+    # Two cameras' frames at the same stamp are not a reset.
+    messages, _, summary = _emitted([(0, 2.0, None), (1, 2.0, None), (2, 2.033, None)])
+    assert [m.output.t for m in messages] == [2.0, 2.0, 2.033] and summary.clock_resets == 0

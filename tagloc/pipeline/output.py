@@ -7,9 +7,11 @@ JSON lines log and the Rerun view; :meth:`Outputs.close` closes them all once an
 Guarantees kept here, whatever the sink:
 
 - No pose is published twice or stale: the result of a skipped frame (refused timestamp, wrong
-  size, unreadable) whose output is not later than the last one published is logged, never
-  published. (After a reset source clock the localiser restarts the track, and stamps follow
-  the new clock.)
+  size, unreadable) is logged, never published: its output is the filter's prediction, not a
+  measurement of that frame (live's capture withholds the frames it cannot decode the same way).
+- Published stamps only increase, per run: after a reset source clock the localiser restarts the
+  track on the new clock, and the poses published from then on are stamped on from the last one
+  (the new clock plus an offset, warned once); the frame log keeps the source's own times.
 - A pose older than ``max_age_s`` (from the frame's grab, live only) is never sent by a network sink
   (see :class:`tagloc.io.sinks.MqttSink`); offline replays have no age.
 - A sink that cannot publish is reported on the warning stream as soon as it is noticed (after a
@@ -21,6 +23,8 @@ To add a destination, give :class:`Outputs` a :class:`~tagloc.io.sinks.Sink` (``
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import sys
 import time
 from collections.abc import Callable
@@ -81,9 +85,10 @@ class OutputSummary:
     """Counts of one run's outputs.
 
     Attributes:
-        published: results handed to the sinks; refused: results of skipped frames not published
-            because their stamp was not after the last published one; skipped: results of frames the localiser
-            skipped (unreadable, wrong size, refused timestamp).
+        published: results handed to the sinks; refused: results of skipped frames, not published;
+            skipped: results of frames the localiser skipped (unreadable, wrong size, refused
+            timestamp); clock_resets: times the published stamps were carried on across a reset
+            source clock.
         sinks: per sink name: its counters (``sent``, ``dropped``, and for MQTT ``confirmed``,
             ``unconfirmed``, ``stale``).
         warnings: warning lines emitted.
@@ -92,6 +97,7 @@ class OutputSummary:
     published: int = 0
     refused: int = 0
     skipped: int = 0
+    clock_resets: int = 0
     sinks: dict[str, dict[str, int]] = field(default_factory=dict)
     warnings: int = 0
 
@@ -109,7 +115,7 @@ class OutputSummary:
         if self.skipped:
             lines.append(f"skipped by the localiser: {self.skipped} frames (unreadable, wrong size or bad timestamp)")
         if self.refused:
-            lines.append(f"not published: {self.refused} frames whose timestamp was not after the last pose's")
+            lines.append(f"not published: {self.refused} skipped frames (the filter's prediction, not a pose of them)")
         return lines
 
 
@@ -130,6 +136,8 @@ class Outputs:
         self.log: FrameLog | None = None
         self.view = None
         self._last_t = -float("inf")
+        self._offset = 0.0  # added to the source's stamps since its clock was last reset
+        self._interval = 1.0 / 30.0  # the last step between two published stamps (s)
         self._started = time.monotonic()
         self._warned: dict[str, float] = {}  # sink name -> when its last warning went out
         self._closed = False
@@ -171,8 +179,8 @@ class Outputs:
             self.summary.skipped += 1
             self.warn_skipped(result.skipped)
         latency = None
-        if not (result.skipped and out.t <= self._last_t):
-            self._last_t = out.t
+        if not result.skipped:
+            out = self._stamped(out)
             age_ms = None if grabbed is None else (time.monotonic() - grabbed) * 1e3
             msg = PoseMessage(
                 self.config.vest, result.index, out, age_ms, grabbed=grabbed if self.config.drop_stale else None
@@ -191,6 +199,26 @@ class Outputs:
         if latency is None and grabbed is not None:
             latency = (time.monotonic() - grabbed) * 1e3
         return latency
+
+    def _stamped(self, out):
+        """``out`` stamped for publication: the source's time plus the offset of its clock resets, so
+        the stamps only increase (a receiver keyed on time, tagloc's monitor among them, would drop
+        every pose after a reset as older)."""
+        t = out.t + self._offset
+        if t < self._last_t:
+            # Not skipped, yet before the last (the filter's time never goes back, two cameras' equal
+            # stamps aside): the localiser restarted on a reset clock.
+            self._offset = self._last_t + self._interval - out.t
+            self.summary.clock_resets += 1
+            self._warn(
+                f"the source's clock went back {self._last_t - t:.3f} s; published times carry on from "
+                f"{self._last_t:.3f} s (offset {self._offset:+.3f} s)"
+            )
+            t = out.t + self._offset
+        elif math.isfinite(self._last_t) and t > self._last_t:
+            self._interval = t - self._last_t
+        self._last_t = t
+        return out if self._offset == 0.0 else dataclasses.replace(out, t=t)
 
     def warn_skipped(self, why: str) -> None:
         """Warn that a frame was skipped (``why``: ``"frame N: ..."``), at most once per ``warn_every_s``
