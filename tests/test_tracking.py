@@ -91,6 +91,24 @@ def test_ambiguous_matches_carry_nothing():
     assert match_tracked(dets, [_tracked()], 0, 1 / 30, CFG, only(7)) == [None, None]
 
 
+def test_a_missed_sticker_does_not_pass_its_name_to_the_sticker_beside_it():
+    """Tracked sticker A is missed this frame; U, seen beside it in the previous frame but not named,
+    is now where A is predicted (within a side): U could be either, so it is decoded, not named A.
+    Without U's previous sight (nothing to compete) the carry stands, as before."""
+    a_prev = SQUARE + [400.0, 200.0]
+    u_prev = a_prev + [61.0, 0.0]  # a sticker laid next to A (1.02 sides to its right)
+    u_now = u_prev + [-3.0, 0.0]
+    # The tracker predicts A's image 3 px to the right; U's sight ends up 55 px (0.92 sides) from A's.
+    motion = lambda tr: np.array([3.0, 0.0])  # noqa: E731
+    kw = dict(config=CFG, candidates=only(7), image_motion=motion)
+    assert match_tracked([Detection(u_now)], [_tracked(a_prev)], 0, 1 / 30, **kw)[0] is not None
+    assert match_tracks([Detection(u_now)], [_tracked(a_prev)], 0, 1 / 30, **kw, others=[u_prev]) == [None]
+    # Both seen, moved alike: A keeps its name (U is 1.02 sides off A's prediction), U is decoded.
+    both = [Detection(a_prev + [3.0, 0.0]), Detection(u_prev + [3.0, 0.0])]
+    (a, u) = match_tracks(both, [_tracked(a_prev)], 0, 1 / 30, **kw, others=[u_prev])
+    assert a is not None and a.identity.sticker_id == 7 and u is None
+
+
 @pytest.mark.parametrize("spacing", [(1.2, 1.6), (0.7, 0.9)], ids=["sparse", "dense"])
 def test_tracking_saves_decodes_without_changing_fixes_or_taking_a_wrong_id(tmp_path, spacing):
     from tagloc.eval.evaluate import wrong_id_fixes

@@ -372,10 +372,16 @@ def match_tracks(
     config: TrackingConfig,
     candidates: Callable[[Detection], list[int]],
     image_motion: Callable[[Tracked], np.ndarray | None] | None = None,
+    others: list[np.ndarray] | None = None,
 ) -> list[TrackMatch | None]:
     """:func:`match_tracked`, with the stickers due for re-decoding matched too (``due`` True), so
     that they can be re-checked against their tracked identity instead of decoded from scratch.
-    Every track of the previous frame takes part in the one-to-one pairing, due or not.
+    Every track of the previous frame takes part in the one-to-one pairing, due or not, and so do
+    ``others``: the outlines (4, 2) of that frame's other detections in this camera (not named by a
+    read), each moved as the nearest track moved. A detection that could be one of them as well as
+    a tracked sticker is not carried: when the tracked sticker is missed, the sticker next to it
+    must not take its name (found by a review: an unmapped sticker laid 11 cm from a mapped one
+    carried the mapped one's ID for three frames).
 
     ``image_motion(track)``: how far (px (2,)) the tracker predicts the track's sticker moved in
     the image since its frame, or None; the detection is then compared with the tracked outline
@@ -388,16 +394,24 @@ def match_tracks(
     for k in live:
         moved_px = image_motion(tracked[k]) if image_motion is not None else None
         expected[k] = tracked[k].outer if moved_px is None else tracked[k].outer + moved_px
-    pairs: list[tuple[int, int, int]] = []  # (detection, tracked, shift)
+    # The other detections, as competitors only (index -1 - j), moved as the nearest track moved.
+    previous = {k: tracked[k].outer for k in live}
+    if live:
+        centres = np.array([tracked[k].outer.mean(axis=0) for k in live])
+        for j, outline in enumerate(others or []):
+            near = live[int(np.argmin(np.linalg.norm(centres - outline.mean(axis=0), axis=1)))]
+            previous[-1 - j] = outline
+            expected[-1 - j] = outline + (expected[near] - tracked[near].outer)
+    pairs: list[tuple[int, int, int]] = []  # (detection, tracked or -1 - other, shift)
     for i, det in enumerate(detections):
-        for k in live:
-            side = min(_shortest_side(det.outer), _shortest_side(tracked[k].outer))
+        for k in expected:
+            side = min(_shortest_side(det.outer), _shortest_side(previous[k]))
             shift, moved, change = _shape_match(det.outer, expected[k])
             if moved <= config.max_centre_shift * side and change <= config.max_shape_change * side:
                 pairs.append((i, k, shift))
     out: list[TrackMatch | None] = [None] * len(detections)
     for i, k, shift in pairs:
-        if sum(p[0] == i for p in pairs) != 1 or sum(p[1] == k for p in pairs) != 1:
+        if k < 0 or sum(p[0] == i for p in pairs) != 1 or sum(p[1] == k for p in pairs) != 1:
             continue
         ident = tracked[k].identity
         # The tracker's most likely sticker here must be the tracked one. Its gate may admit
@@ -580,6 +594,8 @@ class Localiser:
         self._pending_anchors: list[tuple[float, float, float]] = []  # fixes' (t, pitch, roll) held for it
         self._failed: list[FailedRead] = []  # detections of the previous frame nothing named
         self._tracked: list[Tracked] = []  # decoded stickers of the previous frame whose fixes were accepted
+        # Per camera: (time, outlines (4, 2)) of the previous frame's detections that no track holds.
+        self._others: dict[int, tuple[float, list[np.ndarray]]] = {}
         # Per camera: (time of its previous frame, that frame's detected quads, frames since the
         # last scheduled whole-image search, whether the regions were crowded) for the region
         # search (TrackingConfig.search_every).
@@ -673,6 +689,7 @@ class Localiser:
                 self.config.tracking,
                 lambda det: self._candidates(det, rig_cam, timer),
                 lambda tr: self._image_motion(tr, rig_cam),
+                self._others_seen(frame.camera, t),
             )
             if self.config.sticker_tracking
             else [None] * len(detections)
@@ -779,13 +796,22 @@ class Localiser:
         may carry their identity into the next frame. Identification among candidates does not."""
         ages = {tr.identity.sticker_id: tr.age for tr in self._tracked}
         self._tracked = []
+        others = []
         for obs, c, r in zip(observations, carried, read):
             ident = obs.identity
             if ident is None or not r or obs.fix is None or obs.fix.accepted is not True:
+                others.append(obs.detection.outer.copy())
                 continue
             age = ages.get(ident.sticker_id, 0) + 1 if c is not None else 0
             self._tracked.append(Tracked(obs.detection.outer.copy(), ident, camera, t, age))
+        self._others[camera] = (t, others)
         self._predict_tracked()
+
+    def _others_seen(self, camera: int, t: float) -> list[np.ndarray]:
+        """The outlines of ``camera``'s previous frame's detections that no track holds (see
+        :func:`match_tracks`'s ``others``), if that frame is recent enough to match against."""
+        seen = self._others.get(camera)
+        return seen[1] if seen is not None and 0.0 < t - seen[0] <= self.config.tracking.max_gap_s else []
 
     def _predict_tracked(self) -> None:
         """Note where the tracker now puts each tracked sticker (:attr:`Tracked.predicted_px`)."""
@@ -830,6 +856,7 @@ class Localiser:
         self.tracker = Tracker(self.config.tracker)
         self._odometry.clear()
         self._tracked = []
+        self._others = {}
         self._failed = []
         self._pending = []
         self._searched = {}
