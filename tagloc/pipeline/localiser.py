@@ -1067,6 +1067,10 @@ class Localiser:
             # Decoded and accepted: carried into the next frame (see _track).
             if identity.source == IdSource.DECODED and fix.accepted is True:
                 self._tracked.append(Tracked(det.outer.copy(), identity, camera, t, 0))
+                # ... and no longer one of that frame's unnamed detections (see match_tracks).
+                seen = self._others.get(camera)
+                if seen is not None and seen[0] == t:
+                    self._others[camera] = (t, [o for o in seen[1] if not np.array_equal(o, det.outer)])
                 self._predict_tracked()
         self.counts["lsq_deferred"] += ran
         return ran
