@@ -73,13 +73,13 @@ def run_walk(job: tuple[str, dict, str]) -> dict:
         "heading_deg": m["heading_rmse_deg"],
         "nees": m["nees_mean"],
         # A frame without a pose is a miss: the share of all frames with a pose within 10 cm.
-        "within_10cm_all": float(np.sum(position <= 0.10)) / max(m["frames"], 1),
+        "within_10cm_all": float(np.sum(position <= 0.10)) / max(m["frames_in_gt"], 1),
         "fixes": m["fixes"],
         "wrong_ids": wrong_id_fixes(Path(path), log)[0],
         "sq_position": float(np.sum(position**2)),
         "sq_heading": m["heading_rmse_deg"] ** 2 * n if n else 0.0,
         "frames": n,  # with a pose, scored
-        "frames_all": m["frames"],
+        "frames_all": m["frames_in_gt"],
         "nees_blocks": m["nees_blocks"],
     }
 
@@ -88,10 +88,11 @@ def pooled(rows: list[dict]) -> dict:
     """Per-preset figures pooled by frame."""
     n = sum(r["frames"] for r in rows)
     test = nees_test(np.array([b for r in rows for b in r["nees_blocks"]], float).reshape(-1, 3))
+    scored = [r for r in rows if r["frames"] > 0]  # (a walk without a scored frame has NaN figures)
     return {
-        "rmse_cm": 100 * math.sqrt(sum(r["sq_position"] for r in rows) / max(n, 1)),
-        "heading_deg": math.sqrt(sum(r["sq_heading"] for r in rows) / max(n, 1)),
-        "nees": sum(r["nees"] * r["frames"] for r in rows) / max(n, 1),
+        "rmse_cm": 100 * math.sqrt(sum(r["sq_position"] for r in rows) / n) if n else math.nan,
+        "heading_deg": math.sqrt(sum(r["sq_heading"] for r in rows) / n) if n else math.nan,
+        "nees": sum(r["nees"] * r["frames"] for r in scored) / n if n else math.nan,
         "nees_verdict": test.verdict,
         "wrong_ids": sum(r["wrong_ids"] for r in rows),
     }

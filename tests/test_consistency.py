@@ -53,3 +53,15 @@ def test_calibration_on_filters_consistent_by_construction():
 def test_empty_input():
     test = nees_test(np.zeros((0, 3)))
     assert test.frames == 0 and np.isnan(test.mean) and test.verdict == "no data"
+
+
+def test_a_lone_walks_few_blocks_widen_its_bounds_and_one_block_judges_nothing():
+    """Four 5 s blocks estimate the mean's variance loosely: the bounds widen by t(3) / z, so a lone
+    20 s run of an honest filter is rejected about as often as nominal (19 % before); one block
+    cannot estimate it at all."""
+    ind, eff = calibrate(trials=200, sessions=1, seed=0, scales=(1.0,))[1.0]
+    assert eff < 0.1
+    rng = np.random.default_rng(6)
+    nees = rng.chisquare(2, 120)  # 4 s: one block
+    test = nees_test(nees_blocks(np.arange(120) / 30.0, nees))
+    assert test.verdict == "too short" and np.isfinite(test.bounds_independent).all()

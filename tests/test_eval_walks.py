@@ -144,3 +144,43 @@ def test_ground_truth_that_covers_no_frame_is_refused_and_a_plot_survives_it(tmp
     assert row["frames"] == 0 and np.isnan(row["rmse_m"])
     png = plot_run(session, log, gt, tmp_path / "late.png")
     assert png is not None and png.stat().st_size > 0
+
+
+def test_pooling_weights_by_frame_and_a_walk_with_nothing_scored_does_not_blank_it():
+    """Found by a review: one walk without a scored frame had made the pooled RMSE, heading and NEES
+    NaN, and coverage was a plain mean of walks (a 90 s walk counting as a 20 s one)."""
+    import math
+
+    from tagloc.eval.evaluate import summarise
+    from tagloc.eval.metrics import frames_in_span
+
+    def row(frames, rmse, coverage, frames_run):
+        nan = math.nan
+        return {
+            "mode": "full",
+            "frames": frames,
+            "rmse_m": rmse if frames else nan,
+            "within_10cm": 1.0 if frames else nan,
+            "within_25cm": 1.0 if frames else nan,
+            "heading_rmse_deg": 0.5 if frames else nan,
+            "nees_mean": 2.0 if frames else nan,
+            "nees_blocks": [[frames, 2.0 * frames, 8.0 * frames]] if frames else [],
+            "wrong_id_fixes": 0,
+            "fixes": 1,
+            "rejected_fixes": 0,
+            "coverage": coverage,
+            "frames_run": frames_run,
+            "frames_all": frames_run,
+            "within_10cm_all": coverage,
+            "by_time_since_fix": [[0, 0.0, 0.0]],
+            **{k: 1.0 for k in ("tracker_ms_median", "tracker_ms_p95", "odometry_ms_median")},
+            **{k: 1.0 for k in ("tracking_ms_median", "tracking_ms_p95", "frame_ms_median")},
+        }
+
+    rows = [row(2700, 0.03, 1.0, 2700), row(600, 0.01, 1.0, 600), row(0, 0.0, 0.0, 600)]
+    s = summarise(rows)["full"]
+    assert s["rmse_m"] == pytest.approx(math.sqrt((2700 * 0.03**2 + 600 * 0.01**2) / 3300))
+    assert s["heading_rmse_deg"] == pytest.approx(0.5) and s["nees_mean"] == pytest.approx(2.0)
+    assert s["coverage"] == pytest.approx(3300 / 3900)  # by frame, not (1 + 1 + 0) / 3
+    # A jittered last frame just past the ground truth's end is no miss: it is not counted at all.
+    assert frames_in_span(np.array([0.0, 0.5, 1.0, 1.0003]), np.array([0.0, 1.0])) == 3

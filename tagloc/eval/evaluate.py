@@ -31,7 +31,7 @@ from tagloc.core.errors import InputError
 from tagloc.core.stickermap import StickerMap
 from tagloc.eval.baselines import MODES, make_localiser
 from tagloc.eval.consistency import nees_blocks, nees_test
-from tagloc.eval.metrics import TrajectoryErrors, error_metrics, trajectory_errors
+from tagloc.eval.metrics import TrajectoryErrors, error_metrics, frames_in_span, trajectory_errors
 from tagloc.io.session import FRAMES_CSV, SessionReader
 from tagloc.pipeline.run import RunLog, run_session
 
@@ -385,9 +385,11 @@ def score_session(
         "fixes_by_source": by_source,
         "rejected_fixes": len(log.rejected),
         "coverage": float(np.mean(log.valid)) if len(log.valid) else 0.0,
-        # A frame without a pose is a miss: the share of all frames with a pose within 10 cm.
-        "frames_all": int(len(log.valid)),
-        "within_10cm_all": m["within_10cm"] * m["frames"] / max(len(log.valid), 1),
+        "frames_run": int(len(log.valid)),
+        # A frame without a pose is a miss: the share of the frames the ground truth covers with a
+        # pose within 10 cm of it.
+        "frames_all": frames_in_span(log.stamps, gt[0]),
+        "within_10cm_all": m["within_10cm"] * m["frames"] / max(frames_in_span(log.stamps, gt[0]), 1),
         "frame_ms_median": float(np.median(log.frame_ms)) if len(log.frame_ms) else math.nan,
         "tracker_ms_median": float(np.median(log.tracker_ms)) if len(log.tracker_ms) else math.nan,
         "tracker_ms_p95": float(np.percentile(log.tracker_ms, 95)) if len(log.tracker_ms) else math.nan,
@@ -433,24 +435,36 @@ def write_results(rows: list[dict], plots: list[Path], out: Path) -> dict:
     return {"rows": rows, "summary": summary, "report": str(out / "report.md")}
 
 
+def _pooled(rows: list[dict], key: str, squared: bool = False) -> float:
+    """``key`` pooled over ``rows`` by scored frames (RMS when ``squared``); a walk with none scored
+    has no figures (NaN) and no weight; NaN when no walk has any."""
+    scored = [r for r in rows if r["frames"] > 0]
+    if not scored:
+        return math.nan
+    w = np.array([r["frames"] for r in scored], float)
+    w = w / w.sum()
+    v = np.array([r[key] for r in scored], float)
+    return float(np.sqrt(np.sum(w * v**2))) if squared else float(np.sum(w * v))
+
+
 def summarise(rows: list[dict]) -> dict:
     """Overall figures per mode (errors pooled by frame over all sessions)."""
     summary = {}
     for mode in dict.fromkeys(r["mode"] for r in rows):
         rs = [r for r in rows if r["mode"] == mode]
-        n = np.array([r["frames"] for r in rs], float)
-        w = n / max(n.sum(), 1)
         summary[mode] = {
-            "rmse_m": float(np.sqrt(np.sum(w * np.array([r["rmse_m"] for r in rs]) ** 2))),
-            "within_10cm": float(np.sum(w * np.array([r["within_10cm"] for r in rs]))),
-            "within_25cm": float(np.sum(w * np.array([r["within_25cm"] for r in rs]))),
-            "heading_rmse_deg": float(np.sqrt(np.sum(w * np.array([r["heading_rmse_deg"] for r in rs]) ** 2))),
-            "nees_mean": float(np.sum(w * np.array([r["nees_mean"] for r in rs]))),
+            "rmse_m": _pooled(rs, "rmse_m", squared=True),
+            "within_10cm": _pooled(rs, "within_10cm"),
+            "within_25cm": _pooled(rs, "within_25cm"),
+            "heading_rmse_deg": _pooled(rs, "heading_rmse_deg", squared=True),
+            "nees_mean": _pooled(rs, "nees_mean"),
             **_nees_summary(rs),
             "wrong_id_fixes": int(sum(r["wrong_id_fixes"] for r in rs)),
             "fixes": int(sum(r["fixes"] for r in rs)),
             "rejected_fixes": int(sum(r["rejected_fixes"] for r in rs)),
-            "coverage": float(np.mean([r["coverage"] for r in rs])),
+            "coverage": float(
+                np.sum([r["coverage"] * r["frames_run"] for r in rs]) / max(sum(r["frames_run"] for r in rs), 1)
+            ),
             "within_10cm_all": float(
                 np.sum([r["within_10cm_all"] * r["frames_all"] for r in rs]) / max(sum(r["frames_all"] for r in rs), 1)
             ),

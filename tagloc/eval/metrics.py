@@ -112,3 +112,12 @@ def error_metrics(e: TrajectoryErrors) -> dict:
         nees_mean=float(np.mean(e.nees)),
     )
     return out
+
+
+def frames_in_span(stamps: np.ndarray, gt_stamps: np.ndarray) -> int:
+    """How many of a run's frame ``stamps`` (N,) s lie within the ground truth's span (the frames it
+    can score; a frame just past the span's end, by a jittered stamp, is neither hit nor miss)."""
+    stamps, gt_stamps = np.asarray(stamps, float).ravel(), np.asarray(gt_stamps, float).ravel()
+    if len(gt_stamps) == 0:
+        return 0
+    return int(np.sum((stamps >= gt_stamps.min()) & (stamps <= gt_stamps.max())))

@@ -27,7 +27,7 @@ import numpy as np
 from tagloc.core.camera import Camera, default_camera
 from tagloc.core.rig import Rig, RigCamera, default_rig, looking_forward
 from tagloc.eval.consistency import nees_blocks, nees_test
-from tagloc.eval.metrics import error_metrics, trajectory_errors
+from tagloc.eval.metrics import error_metrics, frames_in_span, trajectory_errors
 from tagloc.io.session import FRAMES_CSV, SessionReader
 from tagloc.pipeline.localiser import LocaliserConfig
 from tagloc.pipeline.run import RunLog, run_session
@@ -119,10 +119,12 @@ def make_walk(cfg: MultiCamConfig, seed: int) -> Path:
 
 def score_run(session: SessionReader, log: RunLog) -> dict:
     """Accuracy, NEES and counters of one run against the session's ground truth."""
-    e = trajectory_errors(log.stamps[log.valid], log.poses[log.valid], log.covs[log.valid], *session.groundtruth())
+    gt = session.groundtruth()
+    e = trajectory_errors(log.stamps[log.valid], log.poses[log.valid], log.covs[log.valid], *gt)
     m = error_metrics(e)
     return {
         "frames": len(log.stamps),
+        "frames_in_gt": frames_in_span(log.stamps, gt[0]),  # the frames the ground truth can score
         "coverage": float(np.mean(log.valid)) if len(log.valid) else 0.0,
         "fixes": len(log.fixes),
         "rmse_m": m["rmse_m"],
