@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tagloc.eval.consistency import nees_test
+from tagloc.eval.consistency import bounds_text, nees_test
 from tagloc.eval.evaluate import wrong_id_fixes
 from tagloc.eval.multicam import score_run
 from tagloc.io.session import SessionReader
@@ -126,7 +126,7 @@ def main() -> None:
     for r in rows:
         # The walk's own verdict, by its effective-sample bounds (as tagloc eval judges each walk).
         t = nees_test(np.array(r["nees_blocks"], float).reshape(-1, 3))
-        verdict = f"{t.verdict} [{t.bounds_effective[0]:.2f}, {t.bounds_effective[1]:.2f}]"
+        verdict = f"{t.verdict} {bounds_text(t.bounds_effective)}"
         print(
             f"{r['variant']:24s} {r['walk']:10s} {r['rmse_cm']:8.2f} {r['heading_deg']:8.2f} {r['nees']:6.2f}"
             f" {verdict:>28s} {100 * r['within_10cm_all']:6.1f}% {r['fixes']:6d} {r['wrong_ids']:6d}"

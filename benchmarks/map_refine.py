@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from tagloc.core.stickermap import StickerMap, load_map, save_map
+from tagloc.eval.consistency import bounds_text
 from tagloc.eval.mapbench import (
     MISSING,
     MOVED,
@@ -175,10 +176,9 @@ def main() -> None:
     for n in names:
         s = res.pooled(n)
         summary[n] = s
-        lo, hi = s["nees_bounds_95_effective"]
         print(
             f"| {n} | {s['frames']} | {s['rmse_m'] * 100:.2f} | {s['heading_rmse_deg']:.2f} | {s['nees_mean']:.2f}"
-            f" ({lo:.2f}-{hi:.2f}) | {s['nees_verdict']} | {s['fixes']} | {s['gated_fixes']} | {s['wrong_id_fixes']} |"
+            f" {bounds_text(s['nees_bounds_95_effective'])} | {s['nees_verdict']} | {s['fixes']} | {s['gated_fixes']} | {s['wrong_id_fixes']} |"
         )
     figures = {
         "seen": len(res.seen),

@@ -37,7 +37,7 @@ from tqdm import tqdm
 from tagloc.core.errors import InputError
 from tagloc.core.geometry import wrap_angle
 from tagloc.core.stickermap import StickerMap, load_map, save_map
-from tagloc.eval.consistency import nees_test
+from tagloc.eval.consistency import bounds_text, nees_test
 
 
 def simulated_survey(session: Path) -> tuple[float, float]:
@@ -175,7 +175,7 @@ def main() -> None:
         worst = max(group, key=lambda r: r["rmse_cm"])
         p |= {"worst_walk": worst["walk"], "worst_cm": worst["rmse_cm"], "within_10cm_all": within / max(frames, 1)}
         summary[f"{f:g}"] = p
-        verdict = f"{t.verdict} [{t.bounds_effective[0]:.2f}, {t.bounds_effective[1]:.2f}]"
+        verdict = f"{t.verdict} {bounds_text(t.bounds_effective)}"
         print(
             f"{f:6.2f} {f'{100 * f * sigma_m:.2f} / {f * sigma_deg:.2f}':>14s} {p['rmse_cm']:8.2f}"
             f" {worst['rmse_cm']:6.2f} {worst['walk']:>16s} {p['heading_deg']:8.2f} {p['nees']:6.2f} {verdict:>28s}"

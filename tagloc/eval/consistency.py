@@ -42,6 +42,12 @@ def chi2_mean_bounds(samples: float, dof: int = 2, prob: float = 0.95) -> tuple[
     return float(chi2.ppf(tail, dof * n) / n), float(chi2.ppf(1.0 - tail, dof * n) / n)
 
 
+def bounds_text(bounds: tuple[float, float] | list[float]) -> str:
+    """``[lo, hi]`` to two decimals, or ``[none: one block]`` where a run is too short to have bounds."""
+    lo, hi = (float(v) for v in bounds)
+    return f"[{lo:.2f}, {hi:.2f}]" if math.isfinite(lo) and math.isfinite(hi) else "[none: one block]"
+
+
 def nees_blocks(stamps: np.ndarray, nees: np.ndarray, block_s: float = NEES_BLOCK_S) -> np.ndarray:
     """(B, 3) per block of ``block_s`` seconds from the first stamp: [frames, sum of NEES, sum of NEES^2].
 

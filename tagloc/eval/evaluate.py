@@ -30,7 +30,7 @@ import numpy as np
 from tagloc.core.errors import InputError
 from tagloc.core.stickermap import StickerMap
 from tagloc.eval.baselines import MODES, make_localiser
-from tagloc.eval.consistency import nees_blocks, nees_test
+from tagloc.eval.consistency import NEES_BLOCK_S, bounds_text, nees_blocks, nees_test
 from tagloc.eval.metrics import TrajectoryErrors, error_metrics, frames_in_span, trajectory_errors
 from tagloc.io.session import FRAMES_CSV, SessionReader
 from tagloc.pipeline.run import RunLog, run_session
@@ -561,10 +561,10 @@ def format_summary(preset: str, summary: dict) -> str:
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for mode, s in summary.items():
-        lo, hi = s["nees_bounds_95_effective"]
         lines.append(
             f"| {mode} | {100 * s['rmse_m']:.2f} | {100 * s['worst_rmse_m']:.2f} | {100 * s['within_10cm_all']:.1f}% |"
-            f" {s['heading_rmse_deg']:.2f} | {s['nees_mean']:.2f} | [{lo:.2f}, {hi:.2f}] | {s['nees_verdict']} |"
+            f" {s['heading_rmse_deg']:.2f} | {s['nees_mean']:.2f} | {bounds_text(s['nees_bounds_95_effective'])} |"
+            f" {s['nees_verdict']} |"
             f" {s['wrong_id_fixes']} |"
         )
     return "\n".join(lines)
@@ -575,11 +575,15 @@ def format_notes(summary: dict) -> str:
     parts = ["## Consistency", ""]
     for mode, s in summary.items():
         lo, hi = s["nees_bounds_95"]
-        elo, ehi = s["nees_bounds_95_effective"]
+        effective = (
+            f"95% bounds {bounds_text(s['nees_bounds_95_effective'])} for the {s['nees_effective_samples']:.0f}"
+            " independent samples the frames are worth (batch means)"
+            if s["nees_verdict"] != "too short"
+            else f"one {NEES_BLOCK_S:g} s block, too short to say how many independent samples the frames are worth"
+        )
         parts.append(
-            f"- {mode}: mean position NEES {s['nees_mean']:.2f} (2 DoF), **{s['nees_verdict']}**: 95% bounds"
-            f" [{elo:.2f}, {ehi:.2f}] for the {s['nees_effective_samples']:.0f} independent samples the frames"
-            f" are worth (batch means); [{lo:.2f}, {hi:.2f}] if every frame were independent, which they are"
+            f"- {mode}: mean position NEES {s['nees_mean']:.2f} (2 DoF), **{s['nees_verdict']}**: {effective};"
+            f" [{lo:.2f}, {hi:.2f}] if every frame were independent, which they are"
             f" not (below the bounds: conservative; above: overconfident)"
         )
     full = summary.get("full")

@@ -26,7 +26,7 @@ import numpy as np
 
 from tagloc.core.camera import Camera, default_camera
 from tagloc.core.rig import Rig, RigCamera, default_rig, looking_forward
-from tagloc.eval.consistency import nees_blocks, nees_test
+from tagloc.eval.consistency import bounds_text, nees_blocks, nees_test
 from tagloc.eval.metrics import error_metrics, frames_in_span, trajectory_errors
 from tagloc.io.session import FRAMES_CSV, SessionReader
 from tagloc.pipeline.localiser import LocaliserConfig
@@ -194,10 +194,9 @@ def format_rows(rows: list[dict], summary: dict[str, dict] | None = None) -> str
             f" {100 * r['max_m']:.1f} | {r['heading_rmse_deg']:.2f} | {r['nees_mean']:.2f} |"
         )
     for name, s in (summary or {}).items():
-        lo, hi = s["nees_bounds_95_effective"]
         lines.append(
             f"| **all** | {name} | | {s['sticker_in_view']:.0%} | | {s['fixes']} | | **{100 * s['rmse_m']:.2f}** | |"
-            f" | {s['nees_mean']:.2f} ({s['nees_verdict']}, 95% [{lo:.2f}, {hi:.2f}]) |"
+            f" | {s['nees_mean']:.2f} ({s['nees_verdict']}, 95% {bounds_text(s['nees_bounds_95_effective'])}) |"
         )
     return "\n".join(lines)
 
