@@ -10,8 +10,11 @@ The cached sessions under ``OUT/<preset>/sessions/*`` are replayed as they are (
 rendered) through :class:`tagloc.pipeline.localiser.Localiser` with the default
 :class:`tagloc.pipeline.localiser.LocaliserConfig` (variant ``default``, always run) and with each
 ``--variant NAME=JSON``: a JSON object of dotted field paths into the configuration (``tracker.``,
-``odometry_config.``, ``pose.``, ...) and their values. Per walk: horizontal RMSE, heading RMSE,
-mean position NEES, share of all frames within 10 cm (a frame without a pose is a miss), fixes
+``odometry_config.``, ``pose.``, ...) and their values. A variant that defers work
+(``defer_lsq``, ``defer_odometry``) runs in live's order
+(:class:`tagloc.eval.baselines.LiveOrderLocaliser`, as eval's ``full-live``; before 2026-11-29
+its deferred decodes were dropped, never run). Per walk: horizontal RMSE, heading RMSE, mean
+position NEES, share of all frames within 10 cm (a frame without a pose is a miss), fixes
 fused and wrong-ID fixes (as ``tagloc eval`` counts them). Per preset, pooled by frame like
 ``tagloc eval``'s summary: RMSE, heading, NEES and its verdict against the effective-sample bound.
 """
@@ -27,11 +30,12 @@ from pathlib import Path
 
 import numpy as np
 
+from tagloc.eval.baselines import LiveOrderLocaliser
 from tagloc.eval.consistency import bounds_text, nees_test
 from tagloc.eval.evaluate import wrong_id_fixes
 from tagloc.eval.multicam import score_run
 from tagloc.io.session import SessionReader
-from tagloc.pipeline.localiser import LocaliserConfig
+from tagloc.pipeline.localiser import Localiser, LocaliserConfig
 from tagloc.pipeline.run import run_session
 
 
@@ -61,7 +65,13 @@ def run_walk(job: tuple[str, dict, str]) -> dict:
     cv2.setNumThreads(1)
     name, overrides, path = job
     session = SessionReader(path)
-    log = run_session(session, configure(overrides))
+    cfg = configure(overrides)
+    loc = Localiser(session.map, session.rig, cfg, map_path=session.map_path)
+    if cfg.defer_lsq or cfg.defer_odometry:
+        # Live's order: the work a frame defers runs before the next frame, as tagloc live and eval's
+        # full-live run it. Driven as a replay, a deferred decode would be dropped, never run.
+        loc = LiveOrderLocaliser(loc)
+    log = run_session(session, localiser=loc)
     m = score_run(session, log)
     position = np.asarray(m["errors"][1], float)  # the scored frames' horizontal errors, m
     n = len(position)
