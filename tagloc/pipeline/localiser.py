@@ -594,8 +594,6 @@ class Localiser:
         self._pending_anchors: list[tuple[float, float, float]] = []  # fixes' (t, pitch, roll) held for it
         self._failed: list[FailedRead] = []  # detections of the previous frame nothing named
         self._tracked: list[Tracked] = []  # decoded stickers of the previous frame whose fixes were accepted
-        # Per camera: (time, outlines (4, 2)) of the previous frame's detections that no track holds.
-        self._others: dict[int, tuple[float, list[np.ndarray]]] = {}
         # Per camera: (time of its previous frame, that frame's detected quads, frames since the
         # last scheduled whole-image search, whether the regions were crowded) for the region
         # search (TrackingConfig.search_every).
@@ -676,6 +674,7 @@ class Localiser:
         with timer("detect"):
             regions, since, crowded = self._search_plan(frame.camera, rig_cam, t)
             detections = detect(gray, rig_cam.camera, method=self.config.detector, regions=regions)
+        previous = self._searched.get(frame.camera)
         self._searched[frame.camera] = (t, [d.outer.copy() for d in detections], since, crowded)
         self.counts["region_searches"] += regions is not None
         self.counts["detections"] += len(detections)
@@ -689,7 +688,7 @@ class Localiser:
                 self.config.tracking,
                 lambda det: self._candidates(det, rig_cam, timer),
                 lambda tr: self._image_motion(tr, rig_cam),
-                self._others_seen(frame.camera, t),
+                self._untracked(previous, frame.camera, t),
             )
             if self.config.sticker_tracking
             else [None] * len(detections)
@@ -796,22 +795,25 @@ class Localiser:
         may carry their identity into the next frame. Identification among candidates does not."""
         ages = {tr.identity.sticker_id: tr.age for tr in self._tracked}
         self._tracked = []
-        others = []
         for obs, c, r in zip(observations, carried, read):
             ident = obs.identity
             if ident is None or not r or obs.fix is None or obs.fix.accepted is not True:
-                others.append(obs.detection.outer.copy())
                 continue
             age = ages.get(ident.sticker_id, 0) + 1 if c is not None else 0
             self._tracked.append(Tracked(obs.detection.outer.copy(), ident, camera, t, age))
-        self._others[camera] = (t, others)
         self._predict_tracked()
 
-    def _others_seen(self, camera: int, t: float) -> list[np.ndarray]:
-        """The outlines of ``camera``'s previous frame's detections that no track holds (see
-        :func:`match_tracks`'s ``others``), if that frame is recent enough to match against."""
-        seen = self._others.get(camera)
-        return seen[1] if seen is not None and 0.0 < t - seen[0] <= self.config.tracking.max_gap_s else []
+    def _untracked(
+        self, previous: tuple[float, list[np.ndarray], int, bool] | None, camera: int, t: float
+    ) -> list[np.ndarray]:
+        """The outlines of ``camera``'s previous frame's detections (``previous``: its entry of the
+        region search's memory) that no track holds (see :func:`match_tracks`'s ``others``; a
+        deferred decode that named one after its frame made it a track), if that frame is recent
+        enough to match against."""
+        if previous is None or not 0.0 < t - previous[0] <= self.config.tracking.max_gap_s:
+            return []
+        held = [tr.outer for tr in self._tracked if tr.camera == camera and tr.t == previous[0]]
+        return [o for o in previous[1] if not any(np.array_equal(o, h) for h in held)]
 
     def _predict_tracked(self) -> None:
         """Note where the tracker now puts each tracked sticker (:attr:`Tracked.predicted_px`)."""
@@ -856,7 +858,6 @@ class Localiser:
         self.tracker = Tracker(self.config.tracker)
         self._odometry.clear()
         self._tracked = []
-        self._others = {}
         self._failed = []
         self._pending = []
         self._searched = {}
@@ -1067,10 +1068,6 @@ class Localiser:
             # Decoded and accepted: carried into the next frame (see _track).
             if identity.source == IdSource.DECODED and fix.accepted is True:
                 self._tracked.append(Tracked(det.outer.copy(), identity, camera, t, 0))
-                # ... and no longer one of that frame's unnamed detections (see match_tracks).
-                seen = self._others.get(camera)
-                if seen is not None and seen[0] == t:
-                    self._others[camera] = (t, [o for o in seen[1] if not np.array_equal(o, det.outer)])
                 self._predict_tracked()
         self.counts["lsq_deferred"] += ran
         return ran
