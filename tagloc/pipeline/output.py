@@ -34,7 +34,7 @@ from pathlib import Path
 from tagloc.core.errors import InputError
 from tagloc.core.rig import Rig
 from tagloc.core.stickermap import StickerMap
-from tagloc.core.types import Frame, FrameResult, Observation
+from tagloc.core.types import Frame, FrameResult, Observation, TrackerOutput
 from tagloc.io.sinks import FrameLog, PoseMessage, Sink, TumSink, open_sink
 
 
@@ -85,9 +85,9 @@ class OutputSummary:
     """Counts of one run's outputs.
 
     Attributes:
-        published: results handed to the sinks; refused: results of skipped frames, not published;
-            skipped: results of frames the localiser skipped (unreadable, wrong size, refused
-            timestamp); clock_resets: times the published stamps were carried on across a reset
+        published: results handed to the sinks; skipped: results of frames the localiser skipped
+            (unreadable, wrong size, refused timestamp), none of them published (``refused``, the
+            same count); clock_resets: times the published stamps were carried on across a reset
             source clock.
         sinks: per sink name: its counters (``sent``, ``dropped``, and for MQTT ``confirmed``,
             ``unconfirmed``, ``stale``).
@@ -95,11 +95,15 @@ class OutputSummary:
     """
 
     published: int = 0
-    refused: int = 0
     skipped: int = 0
     clock_resets: int = 0
     sinks: dict[str, dict[str, int]] = field(default_factory=dict)
     warnings: int = 0
+
+    @property
+    def refused(self) -> int:
+        """Results not published: every skipped frame's (its output is the filter's prediction)."""
+        return self.skipped
 
     def format(self) -> list[str]:
         """One line per sink."""
@@ -174,13 +178,12 @@ class Outputs:
         ``frame`` (with its image) is for Rerun; ``grabbed`` is when it was grabbed
         (``time.monotonic()``, live only). Returns the grab-to-publication latency, ms (None offline).
         """
-        out = result.output
+        latency = None
         if result.skipped:
             self.summary.skipped += 1
             self.warn_skipped(result.skipped)
-        latency = None
-        if not result.skipped:
-            out = self._stamped(out)
+        else:
+            out = self._stamped(result.output)
             age_ms = None if grabbed is None else (time.monotonic() - grabbed) * 1e3
             msg = PoseMessage(
                 self.config.vest, result.index, out, age_ms, grabbed=grabbed if self.config.drop_stale else None
@@ -189,8 +192,6 @@ class Outputs:
                 s.publish(msg)
             self.summary.published += 1
             latency = None if grabbed is None else (time.monotonic() - grabbed) * 1e3
-        else:
-            self.summary.refused += 1
         self.check()
         if self.log is not None:
             self.log.write(result)
@@ -200,7 +201,7 @@ class Outputs:
             latency = (time.monotonic() - grabbed) * 1e3
         return latency
 
-    def _stamped(self, out):
+    def _stamped(self, out: TrackerOutput) -> TrackerOutput:
         """``out`` stamped for publication: the source's time plus the offset of its clock resets, so
         the stamps only increase (a receiver keyed on time, tagloc's monitor among them, would drop
         every pose after a reset as older)."""
