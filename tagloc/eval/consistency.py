@@ -13,9 +13,10 @@ means are nearly independent; the variance of the mean estimated from them, agai
 frame-to-frame variance, gives ``N_eff = var(frame NEES) / var(mean)``, and the bounds are the
 chi-square ones for ``N_eff`` samples, widened for the few blocks that estimate it: their half-widths
 times t(B - 1) / z, the Student quantile for B blocks against the normal one (four blocks, one 20 s
-walk: 3.18 / 1.96; without it a lone walk's verdict rejected 14-15 % of consistent runs, found by a
-review). One block cannot estimate it: "too short". Calibrated by :func:`calibrate` (500 trials,
-seed 1): a lone 20 s run rejects 6 % of consistent runs (19 % before the widening), 54 % and 38 %
+walk: 3.18 / 1.96; without it a lone walk's verdict rejected too many consistent runs: 14-15 % of
+a review's AR(1) series, 19 % of :func:`calibrate`'s). One block cannot estimate it: "too short".
+Calibrated by :func:`calibrate` (500 trials, seed 1): a lone 20 s run rejects 6 % of consistent
+runs (19 % before the widening), 54 % and 38 %
 of those whose covariance is off by a factor 0.5 and 2; six pooled runs reject 8 % of consistent
 ones and all of those off by 2. The bound for independent frames rejects 77-80 % of the
 consistent ones. Both bounds are reported.

@@ -369,6 +369,7 @@ def score_session(
     v = log.valid
     e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *gt)
     m = error_metrics(e)
+    in_gt = frames_in_span(log.stamps, gt[0])
     if (Path(path) / GROUNDTRUTH_FRAMES).exists():
         wrong, check = wrong_id_fixes(Path(path), log)[0], "frames"
     else:
@@ -388,8 +389,8 @@ def score_session(
         "frames_run": int(len(log.valid)),
         # A frame without a pose is a miss: the share of the frames the ground truth covers with a
         # pose within 10 cm of it.
-        "frames_all": frames_in_span(log.stamps, gt[0]),
-        "within_10cm_all": m["within_10cm"] * m["frames"] / max(frames_in_span(log.stamps, gt[0]), 1),
+        "frames_all": in_gt,
+        "within_10cm_all": m["within_10cm"] * m["frames"] / max(in_gt, 1),
         "frame_ms_median": float(np.median(log.frame_ms)) if len(log.frame_ms) else math.nan,
         "tracker_ms_median": float(np.median(log.tracker_ms)) if len(log.tracker_ms) else math.nan,
         "tracker_ms_p95": float(np.percentile(log.tracker_ms, 95)) if len(log.tracker_ms) else math.nan,
