@@ -26,7 +26,7 @@ from tagloc.core.errors import CalibrationError, InputError, SessionError, Taglo
 from tagloc.core.rig import default_rig
 from tagloc.core.types import Frame, FrameResult, TrackerOutput, TrackState
 from tagloc.io.session import SessionInfo, SessionReader, SessionWriter, read_tum
-from tagloc.io.sinks import MqttSink, PoseMessage, UdpSink
+from tagloc.io.sinks import MqttSink, PoseMessage, Sink, UdpSink
 from tagloc.pipeline.localiser import Localiser
 from tagloc.pipeline.output import OutputConfig, Outputs, OutputSummary
 
@@ -585,27 +585,19 @@ def test_errors_are_tagloc_errors():
     assert issubclass(SessionError, TaglocError) and issubclass(CalibrationError, TaglocError)
 
 
-class _Kept:
+class _Kept(Sink):
     """A sink that keeps what it is given."""
 
     name = "kept"
 
     def __init__(self) -> None:
-        self.sent, self.dropped, self.messages = 0, 0, []
+        super().__init__()
+        self.messages = []
 
     def publish(self, message) -> bool:
         self.messages.append(message)
         self.sent += 1
         return True
-
-    def counts(self) -> dict[str, int]:
-        return {"sent": self.sent, "dropped": self.dropped}
-
-    def status(self) -> str | None:
-        return None
-
-    def close(self) -> None:
-        pass
 
 
 def _emitted(results) -> tuple[list, list[str], OutputSummary]:
