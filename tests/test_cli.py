@@ -267,6 +267,7 @@ def test_simulate_refuses_a_bad_field_condition(option, value, tmp_path, capsys)
         ("--stale", "0"),
         ("--max-age", "-1"),
         ("--max-2sigma", "inf"),
+        ("--max-skew", "0"),
         ("--safety-radius", "-1"),
         ("--trail", "nan"),
         ("--refresh", "inf"),

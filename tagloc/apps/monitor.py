@@ -4,6 +4,10 @@ Live: subscribes (connects out; never listens) to ``mqtt://HOST:PORT/tagloc/+/po
 message to a :class:`tagloc.io.fleet.FleetState` and redraws the fleet in Rerun ``refresh_hz`` times a
 second. From a bag: the ``/tagloc/*/pose_json`` (or ``/tagloc/*/pose``) messages in bag-time order,
 the bag's clock standing in for the monitor's.
+
+Live, staleness and the redraw and print schedules follow ``time.monotonic()``; the wall clock
+(``time.time()``) is only shown and compared with the vests' clocks, so an NTP step of the host's
+clock neither keeps a silent vest current nor stops the status lines.
 """
 
 from __future__ import annotations
@@ -50,15 +54,23 @@ class MonitorConfig:
     print_every_s: float | None = None
 
 
-def status_text(state: FleetState, now: float) -> str:
-    """One block of text: the time, the fleet's counts and one line per warning (for a terminal)."""
+def status_text(state: FleetState, now: float, wall: float | None = None) -> str:
+    """One block of text: the time, the fleet's counts and one line per warning (for a terminal).
+
+    ``now``: the staleness clock (as given to ``state.handle``); ``wall``: epoch seconds shown
+    (default ``now``).
+    """
     c = state.counts()
     warnings = state.warnings(now)
+    resets = f", {c['timeline_resets']} timeline resets" if c["timeline_resets"] else ""
     head = (
-        f"{time.strftime('%H:%M:%S', time.localtime(now))} {c['vests']} vests, {len(warnings)} warnings; "
-        f"{c['received']} messages ({c['invalid']} invalid, {c['expired']} expired)"
+        f"{time.strftime('%H:%M:%S', time.localtime(now if wall is None else wall))} {c['vests']} vests, "
+        f"{len(warnings)} warnings; {c['received']} messages ({c['invalid']} invalid, {c['expired']} expired{resets})"
     )
-    return "\n".join([head] + [f"  {w.vest}: {w.kind}: {w.text}" for w in warnings])
+    lines = [head] + [f"  {w.vest}: {w.kind}: {w.text}" for w in warnings]
+    if state.last_error:
+        lines.append(f"  last invalid message: {state.last_error}")
+    return "\n".join(lines)
 
 
 @dataclass
@@ -70,13 +82,16 @@ class MonitorSummary:
     seconds: float
     broker: str | None = None  # why the broker's messages may be missing (live), else None
     broker_reached: bool = True  # False: a live monitor never reached its broker (the CLI exits 1)
+    last_error: str | None = None  # why the last invalid message was refused
 
     def format(self) -> str:
         c = self.counts
         lines = [
             f"{c['vests']} vests; {c['received']} messages ({c['invalid']} invalid, {c['reordered']} out of order, "
-            f"{c['expired']} expired) in {self.seconds:.1f} s"
+            f"{c['expired']} expired; {c['timeline_resets']} timeline resets) in {self.seconds:.1f} s"
         ]
+        if self.last_error is not None:
+            lines.append(f"last invalid message: {self.last_error}")
         if self.broker is not None:
             lines.append(f"warning: {self.broker}")
         lines += [f"warning: {w.vest}: {w.kind}: {w.text}" for w in self.warnings]
@@ -116,7 +131,7 @@ def run_monitor(
         from tagloc.io.fleet_plot import plot_fleet
 
         plot_fleet(state, smap, now, cfg.png)
-    return MonitorSummary(state.counts(), state.warnings(now), time.monotonic() - t0, broker, reached)
+    return MonitorSummary(state.counts(), state.warnings(now), time.monotonic() - t0, broker, reached, state.last_error)
 
 
 def _from_bag(cfg: MonitorConfig, view) -> tuple[FleetState, float]:
@@ -144,25 +159,26 @@ def _from_bag(cfg: MonitorConfig, view) -> tuple[FleetState, float]:
 def _live(
     cfg: MonitorConfig, view, stop: threading.Event, subscribed: threading.Event | None
 ) -> tuple[FleetState, float, str | None, bool]:
-    """Follow the broker until stopped: (the fleet, the time, a note if the broker was not reached
-    or was lost, whether it was ever reached)."""
+    """Follow the broker until stopped: (the fleet, the time on its staleness clock, a note if the
+    broker was not reached or was lost, whether it was ever reached)."""
     host, port, topic = parse_mqtt_url(cfg.url)
     state = FleetState(cfg.fleet)
     sub = FleetSubscriber(host, port, topic, state, client_id="tagloc-monitor", subscribed=subscribed)
     restore = _stop_on_signals(stop)
+    # The subscriber stamps staleness with time.monotonic(): ``now`` below is on the same clock.
     t0 = time.monotonic()
     period = 1.0 / cfg.refresh_hz
-    next_print = time.time() + (cfg.print_every_s or 0.0)
+    next_print = t0 + (cfg.print_every_s or 0.0)
     try:
         while not stop.is_set():
-            if cfg.max_seconds is not None and time.monotonic() - t0 >= cfg.max_seconds:
+            now, wall = time.monotonic(), time.time()
+            if cfg.max_seconds is not None and now - t0 >= cfg.max_seconds:
                 break
-            now = time.time()
             with sub.lock:
                 if view is not None:
-                    view.update(state, now)
+                    view.update(state, now, wall=wall)
                 if cfg.print_every_s and now >= next_print:
-                    print(status_text(state, now), flush=True)
+                    print(status_text(state, now, wall), flush=True)
                     if not sub.connected.is_set():
                         print(f"  not connected to the broker {host}:{port} (retrying)", flush=True)
                     next_print = now + cfg.print_every_s
@@ -179,7 +195,7 @@ def _live(
         note = f"never connected to the broker {host}:{port}: no vest's messages were received"
     elif not still:
         note = f"the connection to the broker {host}:{port} was lost before the end"
-    return state, time.time(), note, ever
+    return state, time.monotonic(), note, ever
 
 
 def _stop_on_signals(stop: threading.Event):

@@ -10,9 +10,10 @@ HELP = "show every vest on the map in Rerun, live from MQTT (or from a recorded 
 DESCRIPTION = """Subscribe to the vests' pose topics on an MQTT broker (connects out, never listens) and show the
 fleet in Rerun: the map from above with sticker IDs, each vest labelled with its state colour, its
 2-sigma ellipse, a safety circle and its trail, and a warning panel for vests that are stale (no
-message for --stale s), expired (pose older than --max-age s on arrival, epoch clocks), lost, or too
-uncertain (2-sigma above --max-2sigma m). --print-every S also prints the warnings to the terminal
-(with no viewer, the way to watch); a summary is printed at the end.
+new pose for --stale s), expired (pose older than --max-age s on arrival, epoch clocks), lost, or too
+uncertain (2-sigma above --max-2sigma m). Invalid messages are counted, never shown; among them, a
+time more than --max-skew s ahead of the monitor's clock. --print-every S also prints the warnings
+to the terminal (with no viewer, the way to watch); a summary is printed at the end.
 
 examples:
   tagloc monitor mqtt://broker:1883/tagloc/+/pose --map map.csv --spawn
@@ -41,6 +42,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stale", type=float, default=d.stale_s, help=f"s without a message: stale (default {d.stale_s})")
     p.add_argument("--max-age", type=float, default=d.max_age_s, help=f"s old on arrival: expired ({d.max_age_s})")
     p.add_argument("--max-2sigma", type=float, default=d.max_2sigma_m, help=f"m: too uncertain ({d.max_2sigma_m})")
+    p.add_argument(
+        "--max-skew",
+        type=float,
+        default=d.max_skew_s,
+        help=f"s a message's time may be ahead of the monitor's clock before it is refused ({d.max_skew_s})",
+    )
     p.add_argument("--safety-radius", type=float, default=d.safety_radius_m, help=f"m ({d.safety_radius_m})")
     p.add_argument("--trail", type=float, default=d.trail_s, help=f"s of trail per vest ({d.trail_s})")
     p.add_argument("--refresh", type=float, default=10.0, help="redraws per second (default 10)")
@@ -54,7 +61,12 @@ def run(args: argparse.Namespace) -> int:
     from tagloc.cli import checks
     from tagloc.io.fleet_config import FleetConfig
 
-    for option, value in (("--stale", args.stale), ("--max-age", args.max_age), ("--max-2sigma", args.max_2sigma)):
+    for option, value in (
+        ("--stale", args.stale),
+        ("--max-age", args.max_age),
+        ("--max-2sigma", args.max_2sigma),
+        ("--max-skew", args.max_skew),
+    ):
         checks.number(value, option, 0, lo_open=True)
     for option, value in (("--safety-radius", args.safety_radius), ("--trail", args.trail)):
         checks.number(value, option, 0)
@@ -77,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
                 stale_s=args.stale,
                 max_age_s=args.max_age,
                 max_2sigma_m=args.max_2sigma,
+                max_skew_s=args.max_skew,
                 safety_radius_m=args.safety_radius,
                 trail_s=args.trail,
             ),

@@ -5,11 +5,15 @@ from a bag) with the time they were received, keeps each vest's last pose and a 
 vests to warn about (:meth:`FleetState.warnings`). It knows nothing of MQTT or viewers, so its logic is
 tested directly; :mod:`tagloc.apps.monitor` feeds it and draws it (:mod:`tagloc.io.fleet_view`).
 
-Clocks: ``received`` is the monitor's clock (any monotonic seconds, e.g. ``time.time()``). A
-message's ``t`` is the vest's frame clock: epoch seconds for a live camera, a session's own clock in
-replay. The message's age on arrival is judged from the vest's wall clock at publication and its
-latency (``wall_t``, ``latency_ms``, sent by live vests), else from ``t`` when it is on the epoch
-(``EPOCH_MIN_S``), and only when the monitor's clock is the epoch too (``clock_is_epoch``).
+Clocks: ``received`` is the monitor's clock for a message's age on arrival (``time.time()`` live:
+epoch seconds, comparable with the vest's; the bag's clock in replay). ``seen`` is the clock
+staleness is judged on (``time.monotonic()`` live, so that a step of the host's wall clock neither
+hides nor invents a silent vest; ``received`` by default, as from a bag). A message's ``t`` is the
+vest's frame clock: epoch seconds for a live camera, a session's own clock in replay. The message's
+age on arrival is judged from the vest's wall clock at publication and its latency (``wall_t``,
+``latency_ms``, sent by live vests), else from ``t`` when it is on the epoch (``EPOCH_MIN_S``), and
+only when the monitor's clock is the epoch too (``clock_is_epoch``); so is a time ahead of arrival
+(``FleetConfig.max_skew_s``).
 """
 
 from __future__ import annotations
@@ -59,40 +63,95 @@ class MessageError(ValueError):
     """A message that is not a valid tagloc pose message (counted by the monitor, never fatal)."""
 
 
+def _short(v: object) -> str:
+    """``repr(v)``, cut short: a sender's value is quoted in every status line until the next error."""
+    try:
+        r = repr(v)
+    except RecursionError:  # JSON nested nearly as deep as the decoder allows
+        return "(nested too deeply)"
+    return r if len(r) <= 40 else r[:37] + "..."
+
+
+def _is_number(v: object) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
 def _number(doc: dict, key: str, required: bool = True) -> float | None:
+    """``doc[key]`` as a finite float (None if absent and not ``required``); raises MessageError."""
     v = doc.get(key)
     if v is None and not required:
         return None
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+    if not _is_number(v):
         raise MessageError(f"{key!r} is not a finite number")
-    return float(v)
+    try:
+        f = float(v)
+    except OverflowError:  # JSON integers are unbounded: 1 followed by 400 zeros is valid JSON
+        raise MessageError(f"{key!r} is too large for a float") from None
+    if not math.isfinite(f):
+        raise MessageError(f"{key!r} is not a finite number")
+    return f
 
 
-def parse_message(payload: bytes | str | dict) -> PoseDoc:
-    """Validate a pose message (raw JSON or an already decoded document); raises MessageError."""
+def _covariance(v: object, tol: float) -> np.ndarray:
+    """A message's ``cov`` as a (3, 3) float array, if it is a covariance; raises MessageError.
+
+    Symmetric and positive definite up to ``tol`` (the sender's rounding, see FleetConfig.cov_tol):
+    the ellipse is drawn from it, and a negative or lopsided one would draw a confident 0 m ellipse.
+    """
+    if not (isinstance(v, (list, tuple)) and len(v) == 3 and all(isinstance(r, (list, tuple)) for r in v)):
+        raise MessageError("'cov' is not a 3x3 matrix")
+    if not all(len(r) == 3 and all(_is_number(e) for e in r) for r in v):
+        raise MessageError("'cov' is not a 3x3 matrix of numbers")
+    try:
+        cov = np.array(v, float)
+    except OverflowError:
+        raise MessageError("'cov' has a number too large for a float") from None
+    if not np.all(np.isfinite(cov)):
+        raise MessageError("'cov' is not a finite 3x3 matrix")
+    if np.abs(cov - cov.T).max() > tol:
+        raise MessageError("'cov' is not symmetric")
+    # eigvalsh's own error is a few float epsilons of the matrix's norm (an initialising vest's
+    # variances are 1e6 m^2), on top of the sender's rounding.
+    floor = -(tol + 3 * np.finfo(float).eps * np.abs(cov).max())
+    if not np.all(np.diag(cov) > 0) or np.linalg.eigvalsh(cov)[0] < floor:
+        raise MessageError("'cov' is not positive definite")
+    return cov
+
+
+def parse_message(payload: bytes | str | dict, cov_tol: float = FleetConfig.cov_tol) -> PoseDoc:
+    """Validate a pose message (raw JSON or an already decoded document); raises MessageError.
+
+    Nothing a sender can put in a payload raises anything else.
+    """
     if isinstance(payload, dict):
         doc = payload
     else:
         try:
             doc = json.loads(payload)
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise MessageError(f"not JSON ({exc})") from None
+        except RecursionError:
+            raise MessageError("not JSON (nested too deeply)") from None
+        except ValueError as exc:  # JSONDecodeError, UnicodeDecodeError, and integers over 4300 digits
+            raise MessageError(f"not JSON ({str(exc)[:120]})") from None
     if not isinstance(doc, dict):
         raise MessageError("not a JSON object")
     if doc.get("schema") != SCHEMA:
-        raise MessageError(f"schema {doc.get('schema')!r} is not {SCHEMA!r}")
+        raise MessageError(f"schema {_short(doc.get('schema'))} is not {SCHEMA!r}")
     vest = doc.get("vest")
     if not isinstance(vest, str) or not vest:
         raise MessageError("no vest ID")
+    try:
+        return _pose_doc(doc, vest, cov_tol)
+    except MessageError as exc:
+        # Which vest sent it is what the robot manager needs to chase it up.
+        raise MessageError(f"{vest[:40]}: {exc}") from None
+
+
+def _pose_doc(doc: dict, vest: str, cov_tol: float) -> PoseDoc:
+    """The rest of :func:`parse_message`, once the document is an object from ``vest``."""
     state = doc.get("state")
     if state not in STATES:
-        raise MessageError(f"state {state!r} is not one of {', '.join(STATES)}")
-    try:
-        cov = np.array(doc.get("cov"), float)
-    except (TypeError, ValueError):
-        raise MessageError("'cov' is not a 3x3 matrix") from None
-    if cov.shape != (3, 3) or not np.all(np.isfinite(cov)):
-        raise MessageError("'cov' is not a finite 3x3 matrix")
+        raise MessageError(f"state {_short(state)} is not one of {', '.join(STATES)}")
+    cov = _covariance(doc.get("cov"), cov_tol)
     index = doc.get("index", -1)
     last_id = doc.get("last_id")
     return PoseDoc(
@@ -123,18 +182,28 @@ class VestTrack:
     """What the monitor knows about one vest.
 
     Attributes:
-        last: its newest message; received: when it arrived (monitor clock).
+        last: its newest message; received: when it arrived (monitor clock, as ``handle``'s
+            ``received``); seen: the same on the staleness clock (``handle``'s ``seen``).
         messages: messages taken; reordered: messages older than ``last`` (ignored);
         expired: messages that were older than ``max_age_s`` on arrival (counted, still shown as stale).
+        timeline_resets: times the vest was followed onto a new, older timeline (``timeline_reset_n``).
+        older_run: messages in a row older than ``last`` (the run a timeline reset counts).
+        dropped_since: messages from the vest since ``last`` that were not taken, and why the
+            latest was not (``drop_reason``): the stale warning says so rather than "no message".
         trail: (t, x, y) of recent posed messages.
     """
 
     vest: str
     last: PoseDoc
     received: float
+    seen: float
     messages: int = 0
     reordered: int = 0
     expired: int = 0
+    timeline_resets: int = 0
+    older_run: int = 0
+    dropped_since: int = 0
+    drop_reason: str = ""
     last_age_s: float | None = None
     trail: deque = field(default_factory=deque)
 
@@ -164,36 +233,82 @@ class FleetState:
         self.invalid = 0
         self.last_error: str | None = None
 
-    def handle(self, payload: bytes | str | dict, received: float) -> VestTrack | None:
-        """Take one message received at ``received``; returns the vest's track, or None if it was invalid."""
+    def refuse(self, error: str) -> None:
+        """Count a message as invalid, with why (shown as the last invalid message)."""
+        self.invalid += 1
+        self.last_error = error
+
+    def handle(self, payload: bytes | str | dict, received: float, seen: float | None = None) -> VestTrack | None:
+        """Take one message received at ``received``; returns the vest's track, or None if it was invalid.
+
+        ``seen``: the arrival on the staleness clock (see the module's docstring; default ``received``).
+        """
+        cfg = self.config
+        seen = received if seen is None else seen
         self.received += 1
         try:
-            doc = parse_message(payload)
+            doc = parse_message(payload, cfg.cov_tol)
         except MessageError as exc:
-            self.invalid += 1
-            self.last_error = str(exc)
+            self.refuse(str(exc))
             return None
         track = self.vests.get(doc.vest)
+        lead = self.lead_s(doc, received)
+        if lead is not None and lead[1] > cfg.max_skew_s:
+            # Taken, a time from the future would make every genuine message after it look older.
+            self.refuse(
+                f"{doc.vest}: {lead[0]} is {lead[1]:.3g} s ahead of the monitor's clock "
+                f"(bound {cfg.max_skew_s:g} s): the vest's clock or message is wrong"
+            )
+            if track is not None:
+                track.dropped_since += 1
+                track.drop_reason = "ahead of the monitor's clock"
+            return None
         if track is None:
-            track = self.vests[doc.vest] = VestTrack(doc.vest, doc, received)
+            track = self.vests[doc.vest] = VestTrack(doc.vest, doc, received, seen)
         elif doc.t < track.last.t or (doc.t == track.last.t and doc.index <= track.last.index):
-            # QoS 0 over one TCP connection keeps order; a vest restarting its session clock does not.
-            # An older message must never replace a newer pose, so it is counted and dropped.
-            track.reordered += 1
-            return track
+            # QoS 0 over one TCP connection keeps order, so an older message is a duplicate or a vest
+            # that restarted its session clock. An older message must never replace a newer pose, so
+            # it is counted and dropped, until a run of them shows a new timeline (or that the newest
+            # was a corrupt time): then the vest is followed there.
+            track.older_run += 1
+            if track.older_run < cfg.timeline_reset_n:
+                track.reordered += 1
+                track.dropped_since += 1
+                track.drop_reason = "older than the pose shown"
+                return track
+            track.timeline_resets += 1
+            track.trail.clear()  # the old timeline's points would neither age out nor join the new ones
+        track.older_run = track.dropped_since = 0
         track.messages += 1
-        track.last, track.received = doc, received
+        track.last, track.received, track.seen = doc, received, seen
         age = self.age_on_arrival(doc, received)
         track.last_age_s = age
-        if age is not None and age > self.config.max_age_s:
+        if age is not None and age > cfg.max_age_s:
             track.expired += 1
         if doc.state != "initialising":
             track.trail.append((doc.t, doc.x, doc.y))
-            while track.trail and (
-                len(track.trail) > self.config.trail_max or doc.t - track.trail[0][0] > self.config.trail_s
-            ):
+            while track.trail and (len(track.trail) > cfg.trail_max or doc.t - track.trail[0][0] > cfg.trail_s):
                 track.trail.popleft()
         return track
+
+    def lead_s(self, doc: PoseDoc, received: float) -> tuple[str, float] | None:
+        """(which time, seconds) of the message's time furthest ahead of its arrival, or None when the
+        monitor's clock is not the epoch or the message has no epoch time.
+
+        Both times are of the frame's grab, which precedes any arrival: ``t`` when on the epoch, and
+        the grab on the vest's wall clock, ``wall_t`` less ``latency_ms`` (``wall_t`` alone without a
+        latency). Less the latency, because a bag tagloc writes has the frame's ``t`` for its clock.
+        """
+        if not self.clock_is_epoch or received < EPOCH_MIN_S:
+            return None
+        times = [("'t'", doc.t)] if doc.t >= EPOCH_MIN_S else []
+        if doc.wall_t is not None:
+            if doc.latency_ms is None:
+                times.append(("'wall_t'", doc.wall_t))
+            else:
+                times.append(("'wall_t' less 'latency_ms'", doc.wall_t - doc.latency_ms / 1e3))
+        leads = [(which, v - received) for which, v in times]
+        return max(leads, key=lambda kv: kv[1]) if leads else None
 
     def age_on_arrival(self, doc: PoseDoc, received: float) -> float | None:
         """Seconds between the frame's grab and the message's arrival, or None when unknown.
@@ -211,14 +326,21 @@ class FleetState:
         return received - doc.t
 
     def warnings(self, now: float) -> list[VestWarning]:
-        """Vests to warn about at monitor time ``now``, stale first, then by vest ID."""
+        """Vests to warn about at ``now`` on the staleness clock (``handle``'s ``seen``), stale first,
+        then by vest ID."""
         cfg = self.config
         out: list[VestWarning] = []
         for vest in sorted(self.vests):
             tr = self.vests[vest]
-            silent = now - tr.received
+            silent = now - tr.seen
             if silent > cfg.stale_s:
-                out.append(VestWarning(vest, "stale", f"no message for {silent:.2f} s (bound {cfg.stale_s:g} s)"))
+                bound = f"(bound {cfg.stale_s:g} s)"
+                if tr.dropped_since:
+                    # Messages do arrive: saying "no message" would send someone after the network.
+                    text = f"no new pose for {silent:.2f} s {bound}: its {tr.dropped_since} messages since were {tr.drop_reason}"
+                else:
+                    text = f"no message for {silent:.2f} s {bound}"
+                out.append(VestWarning(vest, "stale", text))
             if tr.last_age_s is not None and tr.last_age_s > cfg.max_age_s:
                 out.append(
                     VestWarning(
@@ -237,13 +359,15 @@ class FleetState:
         return sorted(out, key=lambda w: (order[w.kind], w.vest))
 
     def counts(self) -> dict[str, int]:
-        """Totals over the fleet: received, invalid, reordered, expired messages and vests seen."""
+        """Totals over the fleet: received, invalid, reordered, expired messages, vests seen and
+        timeline resets (vests followed onto a restarted clock)."""
         return {
             "vests": len(self.vests),
             "received": self.received,
             "invalid": self.invalid,
             "reordered": sum(t.reordered for t in self.vests.values()),
             "expired": sum(t.expired for t in self.vests.values()),
+            "timeline_resets": sum(t.timeline_resets for t in self.vests.values()),
         }
 
 
@@ -267,8 +391,10 @@ class FleetSubscriber:
     """Subscribe to vests' pose topics on an MQTT broker and feed a :class:`FleetState`.
 
     Connects out only (never listens), QoS 0, re-subscribes on every reconnection. Messages are
-    handled in paho's network thread under ``lock``; read ``state`` under the same lock.
-    ``on_message(track_or_None, payload, received)`` is called after each message (for measurements).
+    handled in paho's network thread under ``lock``; read ``state`` under the same lock. Each is
+    stamped with ``wall_clock()`` (``received``: its age) and ``clock()`` (``seen``: staleness; judge
+    ``state.warnings`` on the same clock). ``on_message(track_or_None, payload, received)`` is
+    called after each message (for measurements).
     """
 
     def __init__(
@@ -288,7 +414,9 @@ class FleetSubscriber:
         self.topic = topic
         self.lock = threading.Lock()
         self.subscribed = subscribed if subscribed is not None else threading.Event()  # set on the broker's SUBACK
-        self._time = time.time
+        self.wall_clock = time.time
+        self.clock = time.monotonic
+        self.hook_errors = 0  # on_message calls that raised (the network thread goes on)
         self._hook = on_message
         self.client = mqtt.Client(callback_api_version=mqtt.CallbackAPIVersion.VERSION2, client_id=client_id)
         self.client.reconnect_delay_set(1, 2)
@@ -312,11 +440,20 @@ class FleetSubscriber:
         client.subscribe(self.topic, qos=0)
 
     def _on_message(self, client, userdata, message) -> None:
-        received = self._time()
+        # paho's network thread dies with any exception raised here, and with it the subscription:
+        # the monitor would go on showing every vest going stale. So nothing escapes.
+        received, seen = self.wall_clock(), self.clock()
         with self.lock:
-            track = self.state.handle(message.payload, received)
+            try:
+                track = self.state.handle(message.payload, received, seen)
+            except Exception as exc:  # noqa: BLE001 - parse_message raises MessageError only; this is the backstop
+                track = None
+                self.state.refuse(f"could not handle a message: {type(exc).__name__}: {str(exc)[:120]}")
         if self._hook is not None:
-            self._hook(track, message.payload, received)
+            try:
+                self._hook(track, message.payload, received)
+            except Exception:  # noqa: BLE001 - a measurement hook must not stop the subscription either
+                self.hook_errors += 1
 
     def close(self) -> None:
         self.client.disconnect()

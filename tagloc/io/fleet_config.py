@@ -11,7 +11,7 @@ class FleetConfig:
     """Bounds of the fleet view (SI units).
 
     Attributes:
-        stale_s: a vest with no message for longer than this is stale. 1 s: 30 missed messages at
+        stale_s: a vest with no new pose for longer than this is stale. 1 s: 30 missed messages at
             30 fps, and 1.3 m walked at nominal speed, as far as the safety circle reaches.
         max_age_s: a message older than this on arrival is expired (needs epoch clocks on both
             sides). 0.5 s: half the staleness bound, so a pose arriving that late is not shown as current.
@@ -21,6 +21,24 @@ class FleetConfig:
             keep-out distance; 1.0 m by default, configurable per site).
         trail_s: seconds of trail kept per vest.
         trail_max: most trail points kept per vest (bounds memory at high message rates).
+        max_skew_s: a message whose epoch ``t`` or ``wall_t`` is further ahead of its arrival than
+            this is refused (only when the monitor's clock is the epoch). Both are stamped before the
+            message leaves the vest, so with clocks in sync they are behind its arrival; NTP keeps a
+            LAN's clocks within milliseconds, so a lead of seconds is a wrong clock or a corrupt time.
+            Taken, such a message would hold the vest's genuine poses back as "out of order". 2 s:
+            hundreds of times NTP's error (room for a client still converging after boot), yet a
+            message taken just inside it holds the vest's next poses back for 2 s at most (1 s at
+            30 fps once ``timeline_reset_n`` takes over), about the staleness bound.
+        timeline_reset_n: after this many messages in a row from one vest older than its newest, the
+            vest is taken to have restarted its clock (a new session) and its new timeline is
+            followed. One MQTT connection at QoS 0 never reorders, so a run this long is a restart (or
+            one corrupt far-future time before it), not reordering. 30: 1 s at 30 fps, the
+            staleness bound, so a restarted vest is back within about the time it is flagged stale.
+        cov_tol: tolerance (m^2, rad^2) of the covariance checks: mirrored entries may differ, and the
+            smallest eigenvalue be negative, by this much. The sender rounds each entry to 1e-9
+            (``TrackerOutput.to_json``): mirrored entries then differ by at most one step (1e-9), and
+            the eigenvalues move by at most the rounding's norm, 3 entries x 0.5e-9 = 1.5e-9 (a
+            39 micrometre sigma: nothing a real covariance needs and nothing a broken one hides in).
     """
 
     stale_s: float = 1.0
@@ -29,3 +47,6 @@ class FleetConfig:
     safety_radius_m: float = 1.0
     trail_s: float = 30.0
     trail_max: int = 1000
+    max_skew_s: float = 2.0
+    timeline_reset_n: int = 30
+    cov_tol: float = 1.5e-9

@@ -48,7 +48,7 @@ def plot_floor(ax, smap: StickerMap, labels: bool = True, box: tuple[float, floa
 
 
 def plot_fleet(state: FleetState, smap: StickerMap, now: float, path: str | Path, title: str = "") -> None:
-    """Write the fleet at monitor time ``now`` as a PNG: the floor plan with every vest, and the warnings."""
+    """Write the fleet at ``now`` (its staleness clock) as a PNG: the floor plan with every vest, and the warnings."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -87,7 +87,8 @@ def plot_fleet(state: FleetState, smap: StickerMap, now: float, path: str | Path
     lines += [
         "",
         f"messages: {c['received']} received, {c['invalid']} invalid,",
-        f"{c['reordered']} out of order, {c['expired']} expired",
+        f"{c['reordered']} out of order, {c['expired']} expired,",
+        f"{c['timeline_resets']} timeline resets",
         "",
         "green tracking, red lost, orange warning, grey stale;",
         f"dashed: {cfg.safety_radius_m:g} m safety circle; solid: 2-sigma ellipse",

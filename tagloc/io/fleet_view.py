@@ -10,9 +10,9 @@ Entity tree::
     fleet/vests/safety          safety circles (FleetConfig.safety_radius_m)
     fleet/vests/trails          recent trails
     warnings                    markdown: stale, expired, lost and too-uncertain vests
-    counts/{vests,received,invalid,expired,warnings}   time series
+    counts/{vests,received,invalid,expired,timeline_resets,warnings}   time series
 
-Timeline ``time``: the monitor's clock (a timestamp for live MQTT, the bag's clock for recorded fleets).
+Timeline ``time``: the monitor's clock (the wall clock for live MQTT, the bag's clock for recorded fleets).
 Colours: tracking green, lost red, initialising/unknown blue-grey; a vest with a warning is drawn
 orange, a stale one grey.
 """
@@ -79,14 +79,16 @@ class FleetView:
         self._network = attach_sinks(self.rec, fleet_blueprint(smap), save, spawn, connect, "use --save instead")
         log_floor_plan(self.rec, smap, "fleet")
 
-    def update(self, state: FleetState, now: float, timestamp: bool = True) -> None:
-        """Draw every vest as of monitor time ``now`` (``timestamp``: ``now`` is epoch seconds)."""
+    def update(self, state: FleetState, now: float, timestamp: bool = True, wall: float | None = None) -> None:
+        """Draw every vest as of ``now`` on the fleet's staleness clock, on the timeline at ``wall``
+        (default ``now``; ``timestamp``: it is epoch seconds)."""
         rr = import_rerun()
         rec = self.rec
+        at = now if wall is None else wall
         if timestamp:
-            rec.set_time("time", timestamp=now)
+            rec.set_time("time", timestamp=at)
         else:
-            rec.set_time("time", duration=now)
+            rec.set_time("time", duration=at)
         cfg = state.config
         warnings = state.warnings(now)
         flagged = {w.vest for w in warnings}
@@ -122,7 +124,7 @@ class FleetView:
         )
         rec.log("warnings", rr.TextDocument(warnings_markdown(state, now), media_type=rr.MediaType.MARKDOWN))
         counts = state.counts()
-        for key in ("vests", "received", "invalid", "expired"):
+        for key in ("vests", "received", "invalid", "expired", "timeline_resets"):
             rec.log(f"counts/{key}", rr.Scalars(float(counts[key])))
         rec.log("counts/warnings", rr.Scalars(float(len(flagged))))
 
@@ -148,7 +150,7 @@ def warnings_markdown(state: FleetState, now: float) -> str:
     lines += [
         "",
         f"messages: {c['received']} received, {c['invalid']} invalid, {c['reordered']} out of order, "
-        f"{c['expired']} expired",
+        f"{c['expired']} expired; {c['timeline_resets']} timeline resets",
     ]
     if state.last_error:
         lines.append(f"last invalid message: {state.last_error}")

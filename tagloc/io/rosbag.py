@@ -573,11 +573,12 @@ def _convert(w: SessionWriter, i: int, t: float, msg: object, msgtype: str) -> b
 
 @dataclass
 class BagPose:
-    """A pose message read back from a bag: receive time (bag clock, s), topic and the JSON document."""
+    """A pose message read back from a bag: receive time (bag clock, s), topic and the JSON document
+    (or the message's text when it is not JSON: the monitor counts it invalid)."""
 
     t_bag: float
     topic: str
-    doc: dict
+    doc: dict | str
 
 
 def read_pose_messages(path: str | Path) -> Iterator[BagPose]:
@@ -600,8 +601,10 @@ def read_pose_messages(path: str | Path) -> Iterator[BagPose]:
             if conn.msgtype == STRING_TYPE:
                 try:
                     doc = json.loads(msg.data)
-                except json.JSONDecodeError:
-                    continue
+                except (ValueError, RecursionError):
+                    # Not JSON, or JSON Python will not decode (an integer of over 4300 digits, nesting
+                    # past the recursion limit): passed on as text, for the monitor to count and explain.
+                    doc = msg.data
             else:
                 doc = _doc_from_pose(conn.topic, msg)
             yield BagPose(ns / 1e9, conn.topic, doc)
