@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from tagloc.cli import main
 from tagloc.core.camera import default_camera
 from tagloc.core.errors import InputError
-from tagloc.core.geometry import invert
+from tagloc.core.geometry import invert, make_T
 from tagloc.core.rig import Rig, RigCamera, default_rig, load_rig, looking_forward, save_rig
 from tagloc.core.stickermap import load_map
 from tagloc.eval.rigfit import CameraFix, RigFitConfig, fit_rig_fixes, mount_angles, mount_T
@@ -94,6 +94,27 @@ def test_warns_when_the_walk_constrains_little():
     assert "no straight stretch" in " ".join(fit_rig_fixes(still, prior).warnings)
     with pytest.raises(InputError, match="no decoded sticker"):
         fit_rig_fixes([], prior)
+
+
+def test_no_fallback_warning_when_every_fix_is_on_a_straight_stretch():
+    """Every fix on a straight stretch is the best case, not the fallback to all fixes: no warning.
+    Standing still (no stretch) does take the fallback and says so."""
+    true = mount_T(1.21, 48.0, 3.0, -4.0)
+    fixes, t = [], 0.0
+    for leg in range(4):  # four 8 m legs up and down an aisle, 15 fixes/s, a 2 s turn between them
+        sign = 1.0 if leg % 2 == 0 else -1.0
+        R = np.diag([sign, sign, 1.0])
+        for k in range(90):
+            x = (0.0 if sign > 0 else 8.0) + sign * 1.33 * k / 15.0
+            fixes.append(CameraFix(t, k // 8 + 100 * leg, make_T(R, (x, 2.0, 0.0)) @ true))
+            t += 1 / 15.0
+        t += 2.0
+    fit = fit_rig_fixes(fixes, looking_forward(1.3, 55.0))
+    assert len(fit.stretches) == 4 and all(any(a <= f.t <= b for a, b, *_ in fit.stretches) for f in fixes)
+    assert fit.warnings == []
+    assert fit.height_m.value == pytest.approx(1.21, abs=1e-6)
+    still = [CameraFix(0.1 * k, k // 5, true) for k in range(100)]
+    assert any("from all fixes" in w for w in fit_rig_fixes(still, looking_forward(1.3, 55.0)).warnings)
 
 
 def test_cli_on_a_rendered_walk(tmp_path, capsys):

@@ -293,8 +293,11 @@ def fit_rig_fixes(fixes: list[CameraFix], prior: np.ndarray, cfg: RigFitConfig |
     runs = straight_stretches(t, T[:, :2, 3], heading, cfg)
     warnings = []
     straight = np.concatenate([r[0] for r in runs]) if runs else np.zeros(0, int)
-    use = straight if len(np.unique(groups[straight])) >= cfg.min_passes else np.arange(len(fixes))
-    if len(use) == len(fixes) and len(fixes):
+    on_straights = len(np.unique(groups[straight])) >= cfg.min_passes
+    use = straight if on_straights else np.arange(len(fixes))
+    # Warn on the fallback itself: a walk with every fix on a straight stretch (the best case)
+    # also uses all of them.
+    if not on_straights:
         warnings.append(
             "height, pitch and roll from all fixes (too few on straight stretches): leaning in turns may bias them"
         )
