@@ -124,6 +124,86 @@ def test_malformed_ros_files_refused(tmp_path, text, fragment):
     assert "\n" not in str(info.value)
 
 
+@pytest.mark.parametrize("model", ["plumb_bob", "rational_polynomial", None])
+def test_ros_pinhole_distortion_models_read(tmp_path, model):
+    p = tmp_path / "ost.yaml"
+    text = OST if model is not None else OST.replace("distortion_model: plumb_bob\n", "")  # absent: plumb_bob
+    if model == "rational_polynomial":
+        text = text.replace("plumb_bob", model).replace(
+            "cols: 5\n  data: [0.11, -0.23, 0.001, -0.002, 0.05]",
+            "cols: 8\n  data: [0.11, -0.23, 0.001, -0.002, 0.05, 0.1, 0, 0]",
+        )
+    p.write_text(text)
+    cam = load_calibration(p)
+    assert cam.dist.size == (8 if model == "rational_polynomial" else 5)
+
+
+def _fisheye_opencv(p):
+    """What OpenCV's calibration sample writes after calibrating with cv2.fisheye."""
+    fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", 1280)
+    fs.write("image_height", 960)
+    fs.write("fisheye_model", 1)
+    fs.write("camera_matrix", K)
+    fs.write("distortion_coefficients", DIST[:4].reshape(-1, 1))
+    fs.release()
+    return p
+
+
+@pytest.mark.parametrize(
+    "write, fragment",
+    [
+        (lambda p: p.write_text(OST.replace("plumb_bob", "equidistant")), "distortion_model 'equidistant'"),
+        (lambda p: p.write_text(CAMERA_INFO.replace("plumb_bob", "fisheye")), "distortion_model 'fisheye'"),
+        (lambda p: p.write_text(OST.replace("plumb_bob", "[1, 2]")), "distortion_model '[1, 2]'"),
+        (_fisheye_opencv, "fisheye_model 1"),
+    ],
+    ids=["ost-equidistant", "camera-info-fisheye", "not-a-name", "opencv-fisheye-sample"],
+)
+def test_calibrations_in_another_distortion_model_refused(tmp_path, write, fragment):
+    """A fisheye's k1..k4 read as OpenCV's k1, k2, p1, p2 put a point 50 degrees off-axis 155 px
+    from where the lens images it: such a file is refused, in one line naming it and the model."""
+    p = tmp_path / "camera.yaml"
+    write(p)
+    with pytest.raises(CalibrationError) as info:
+        load_calibration(p)
+    msg = str(info.value)
+    assert msg.startswith(f"{p}: {fragment}") and "is not supported" in msg and "\n" not in msg
+
+
+def test_opencv_file_naming_its_distortion_model(tmp_path):
+    p = tmp_path / "cv.yaml"
+    for model, ok in (("plumb_bob", True), ("equidistant", False)):
+        fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_WRITE)
+        fs.write("image_width", 1280)
+        fs.write("image_height", 960)
+        fs.write("fisheye_model", 0)  # OpenCV's sample after cv2.calibrateCamera: fine
+        fs.write("distortion_model", model)
+        fs.write("camera_matrix", K)
+        fs.write("distortion_coefficients", DIST)
+        fs.release()
+        if ok:
+            _same(load_calibration(p))
+        else:
+            with pytest.raises(CalibrationError, match=f"{p}: distortion_model 'equidistant' is not supported"):
+                load_calibration(p)
+
+
+def test_bag_camera_info_in_another_distortion_model_refused():
+    from types import SimpleNamespace
+
+    from tagloc.core.errors import InputError
+    from tagloc.io.rosbag import camera_from_info
+
+    msg = SimpleNamespace(k=K.ravel(), d=DIST, width=1280, height=960, distortion_model="plumb_bob")
+    _same(camera_from_info(msg))
+    msg.distortion_model = ""  # a driver's unset string: ROS's default, plumb_bob
+    _same(camera_from_info(msg))
+    msg.distortion_model, msg.d = "equidistant", DIST[:4]
+    with pytest.raises(InputError, match="CameraInfo distortion_model 'equidistant' is not supported"):
+        camera_from_info(msg)
+
+
 def test_malformed_opencv_files_refused(tmp_path):
     p = tmp_path / "cv.yaml"
     fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_WRITE)

@@ -4,6 +4,9 @@ Two file formats are read: OpenCV FileStorage YAML (what ``cv2.calibrateCamera``
 ``cv2.FileStorage``: ``camera_matrix``, ``distortion_coefficients``, ``image_width``,
 ``image_height``) and ROS ``camera_info`` YAML (``camera_calibration``'s output, or a dumped
 ``sensor_msgs/CameraInfo`` with ``K``/``D``/``width``/``height``). tagloc writes the OpenCV form.
+Only OpenCV's pinhole distortion is read: a ROS ``distortion_model`` other than plumb_bob or
+rational_polynomial (e.g. equidistant, a fisheye) is refused, as is an OpenCV file marked
+``fisheye_model: 1`` (OpenCV's calibration sample run with cv2.fisheye).
 """
 
 from __future__ import annotations
@@ -25,6 +28,11 @@ MIN_FOCAL_PX, MAX_FOCAL_PX = 1.0, 1e6
 # OpenCV's distortion coefficients: fitted lenses give |k| up to tens (the rational model's
 # numerator and denominator terms together); 1e4 is no lens.
 MAX_DISTORTION = 1e4
+# ROS camera_info distortion models whose coefficients are OpenCV's pinhole model (k1, k2, p1, p2[,
+# k3[, k4, k5, k6]]), the one tagloc projects with; a missing model is plumb_bob (ROS's default).
+# Any other, e.g. equidistant (fisheye k1..k4 of the angle), is a different projection: its
+# coefficients read as OpenCV's move a point 50 degrees off-axis by 155 px (focal length 420 px).
+PINHOLE_MODELS = ("plumb_bob", "rational_polynomial")
 
 
 @dataclass
@@ -152,6 +160,21 @@ def _check(camera: Camera, path: Path) -> Camera:
     return camera
 
 
+def _unsupported_model(what: str) -> str:
+    return (
+        f"{what} is not supported (tagloc reads {' and '.join(PINHOLE_MODELS)}, OpenCV's pinhole model); "
+        "calibrate the camera with 'tagloc calibrate camera' (--rational for a wide lens)"
+    )
+
+
+def distortion_model_problem(model: object) -> str | None:
+    """Why a ROS ``distortion_model`` cannot be read as OpenCV's coefficients, or None when it can.
+    None (no such field) and "" (a CameraInfo message's unset string) are ROS's default, plumb_bob."""
+    if model is None or model == "" or model in PINHOLE_MODELS:
+        return None
+    return _unsupported_model(f"distortion_model {str(model)[:40]!r}")
+
+
 def _size(value: object, path: Path, name: str) -> int:
     """An image side in pixels; the message echoes what the file says, not a conversion of it."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or value != value:
@@ -192,6 +215,16 @@ def _read_opencv(path: Path) -> Camera:
         missing = [n for n in sorted(names) if fs.getNode(n).empty()]
         if missing:
             raise CalibrationError(f"{path}: missing {', '.join(missing)}")
+        # OpenCV's calibration sample writes fisheye_model (1 for cv2.fisheye's k1..k4); other
+        # tools copy ROS's distortion_model string.
+        fisheye = fs.getNode("fisheye_model")
+        if not fisheye.empty() and (fisheye.isInt() or fisheye.isReal()) and fisheye.real() != 0:
+            why = _unsupported_model(f"fisheye_model {fisheye.real():g} (cv2.fisheye's k1..k4)")
+            raise CalibrationError(f"{path}: {why}")
+        node = fs.getNode("distortion_model")
+        model = None if node.empty() else node.string() if node.isString() else "(not a name)"
+        if why := distortion_model_problem(model):
+            raise CalibrationError(f"{path}: {why}")
         K = fs.getNode("camera_matrix").mat()
         dist = fs.getNode("distortion_coefficients").mat()
         if K is None or dist is None or K.shape != (3, 3):
@@ -211,6 +244,8 @@ def _ros_matrix(node: object, path: Path, name: str) -> np.ndarray:
 
 
 def _load_ros(path: Path, doc: dict) -> Camera:
+    if why := distortion_model_problem(doc.get("distortion_model")):
+        raise CalibrationError(f"{path}: {why}")
     if "camera_matrix" in doc:  # camera_calibration's ost.yaml
         K = _ros_matrix(doc["camera_matrix"], path, "camera_matrix")
         dist = _ros_matrix(doc.get("distortion_coefficients", [0, 0, 0, 0, 0]), path, "distortion_coefficients")

@@ -36,7 +36,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from tagloc.core.camera import Camera, load_calibration
+from tagloc.core.camera import Camera, distortion_model_problem, load_calibration
 from tagloc.core.errors import BackendUnavailable, InputError, SessionError
 from tagloc.core.geometry import planar_T
 from tagloc.core.rig import Rig, default_rig, load_rig
@@ -310,6 +310,8 @@ def camera_from_info(msg: object) -> Camera:
     D = np.asarray(getattr(msg, "d", None) if hasattr(msg, "d") else msg.D, float)
     if K.size != 9 or not np.all(np.isfinite(K)) or K[0] <= 0:
         raise InputError("CameraInfo holds no calibration (K is empty or zero)")
+    if why := distortion_model_problem(getattr(msg, "distortion_model", None)):
+        raise InputError(f"CameraInfo {why}, and give it with --calibration")
     return Camera(K.reshape(3, 3), D if D.size else np.zeros(5), int(msg.width), int(msg.height))
 
 
