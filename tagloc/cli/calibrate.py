@@ -13,7 +13,8 @@ camera: find the board (OpenCV's CharucoDetector) in a folder of images, a video
 (an index such as 0), keep a well-spread subset of views, fit K and distortion (cv2.calibrateCameraExtended),
 write OpenCV FileStorage YAML (what --calibration reads) and a coverage PNG next to it, and print
 the RMS reprojection error and each parameter's standard deviation. Move the board over the whole
-image, near and far, tilted up to about 45 degrees each way.
+image, near and far, tilted 20-45 degrees each way: views that all show the board nearly parallel
+to the image (no view tilted 3 degrees) cannot give the focal length and are refused.
 
 examples:
   tagloc calibrate board -o board.pdf
