@@ -242,9 +242,9 @@ def test_the_expected_id_check_never_names_a_sticker_the_map_has_wrong(tmp_path,
     checks = []
     real = decode_mod._check_expected
 
-    def spy(rect, sticker_id, config, result, grid):
-        named = real(rect, sticker_id, config, result, grid)
-        checks.append((sticker_id, named))
+    def spy(rect, sticker_ids, config, result, grid):
+        named = real(rect, sticker_ids, config, result, grid)
+        checks.append((sticker_ids[0] if sticker_ids else None, named))
         return named
 
     monkeypatch.setattr(decode_mod, "_check_expected", spy)

@@ -155,7 +155,17 @@ class LocaliserConfig:
             the least-squares stage (3-5 ms): the first sight of a sticker the track predicts no
             longer costs a frame's budget. Such a sticker is carried to the next frames as a
             decoded one is (sticker tracking, re-checked when due). Only with a track (the
-            tracker's candidates) and the "zxing" or "both" decoder.
+            tracker's candidates) and the "zxing" or "both" decoder. The expected sticker must
+            also lead its rivals by the same margin: the tracker's other candidates there and
+            its look-alikes in the map (:mod:`tagloc.vision.decode.lookalike`).
+        lookalike_min_corr: a mapped sticker whose data modules correlate with the expected one's
+            at or above this, in some rotation, on the modules the check compares, is its rival.
+            A sticker scores against another's modules about their correlation times its own
+            raster's quality (the true sticker's best rotation: 0.62 median under the blur that
+            defeats the symbol readers), so one below 0.3 cannot reach the check's 0.5; on
+            ``maps/demo.csv`` each sticker's closest look-alike correlates 0.26-0.65 (median 0.39),
+            and 206 of its 214 stickers have at least one rival at 0.3 (four on average: about
+            0.05 ms of module scoring each, only when the quick stages read nothing).
         skip_flow_after_fix: when the camera's last frame was placed by a read fix (a sticker
             decoded, checked or carried, its fix accepted) and the tracker predicts that sticker at
             least ``skip_flow_margin_px`` inside this frame, the frame will very likely be placed
@@ -202,6 +212,7 @@ class LocaliserConfig:
     defer_odometry: bool = False
     tilt_gate_chi2: float = 13.8
     check_expected: bool = True
+    lookalike_min_corr: float = 0.3
     skip_flow_after_fix: bool = False
     skip_flow_margin_px: float = 80.0
     deflicker: DeflickerConfig | None = field(default_factory=DeflickerConfig)
@@ -449,11 +460,11 @@ def read_sticker(
     backend: str,
     candidates: list[int] | None = None,
     config: DecodeConfig | None = None,
-    expected: Callable[[], int | None] | None = None,
+    expected: Callable[[], list[int]] | None = None,
 ) -> Read:
     """Decode one detection against the map (``candidates``: the tracker's, which may confirm a lone
-    libdmtx read; ``expected``: gives the tracker's most likely one, whose module check may name an
-    unread sticker, as a CHECKED identity; see :func:`tagloc.vision.decode.decode`)."""
+    libdmtx read; ``expected``: gives the tracker's most likely one and its rivals, whose module
+    check may name an unread sticker, as a CHECKED identity; see :func:`tagloc.vision.decode.decode`)."""
     res = decode(gray, detection, camera, backend=backend, candidates=candidates, config=config, expected=expected)
     if res.sticker_id is None:
         return Read(rejected=res.rejected)
@@ -568,6 +579,7 @@ class Localiser:
         self.tracker = Tracker(self.config.tracker)
         self._refs = refs
         self._map_path = map_path
+        self._lookalikes = None  # the map's look-alikes (the expected-ID check's rivals), made on first use
         self._deflickers: dict[int, Deflicker] = {}  # per rig camera
         self._odometry: dict[int, FloorOdometry | None] = {}  # per rig camera; None: camera sees too little floor
         self._step = None  # this frame's odometry step, for the rolling-shutter correction
@@ -602,7 +614,10 @@ class Localiser:
         # fix the tracker accepted in the frame (see skip_flow_after_fix).
         self._read_fixed: dict[int, bool] = {}
         self.counts["region_searches"] = 0  # frames searched only around expected stickers
-        self.counts.update(refused_timestamps=0, clock_resets=0, wrong_size_frames=0)
+        self.counts.update(refused_timestamps=0, clock_resets=0, wrong_size_frames=0, repeated_frames=0)
+        # Each camera's last image (index, array): a driver that hands the same buffer over again is
+        # caught (see _check_repeat).
+        self._last_image: dict[int, tuple[int, np.ndarray]] = {}
         self._last_t: float | None = None  # timestamp of the last frame accepted
         # Per (camera, sticker): the last few (frame time, canonical corners (N, 2) px) it was solved
         # at, for its corners' image velocity (rolling shutter, see rs_image_velocity_max_dt).
@@ -622,7 +637,12 @@ class Localiser:
         return {**self.counts, **{f"tracker_{k}": v for k, v in self.tracker.stats.items()}}
 
     def process(self, frame: Frame) -> FrameResult:
-        """Run one frame through the pipeline and return what was seen and the pose after it."""
+        """Run one frame through the pipeline and return what was seen and the pose after it.
+
+        A frame that cannot be this camera's (wrong size), repeats its previous image, or is not
+        after the last frame in time is refused: ``FrameResult.skipped`` says why and the pose is
+        the filter's latest. ``frame.image`` is kept until the camera's next frames (see
+        :class:`~tagloc.core.types.Frame`)."""
         timer = StageTimer()
         t = frame.timestamp
         self.counts["frames"] += 1
@@ -632,7 +652,7 @@ class Localiser:
             # at the filter's time, so it is fused before the filter moves on.
             with timer("odometry"):
                 self._run_pending_odometry()
-        refused = self._check_size(frame) or self._check_time(frame)
+        refused = self._check_size(frame) or self._check_repeat(frame) or self._check_time(frame)
         if refused:
             # The filter stays where it was: the output is its latest estimate, stamped with its own time.
             self.counts["skipped"] += 1
@@ -835,6 +855,33 @@ class Localiser:
         now = self.tracker.sticker_pixels(self.map, rig_cam, [tr.identity.sticker_id]).get(tr.identity.sticker_id)
         return None if now is None else now - tr.predicted_px
 
+    def _check_repeat(self, frame: Frame) -> str | None:
+        """Why the frame is refused as its camera's previous image over again, or None.
+
+        A sensor's noise never gives two equal frames; a driver that re-delivers a buffer (or a
+        caller that fills one array in place) does. Measured as a step, such a frame says the
+        camera did not move, confidently (one in five frames repeated on a 4 s walk took it from
+        2.3 to 8.3 cm RMSE), so it is refused as a dropped frame is. A few rows are compared first:
+        real frames differ there, and the whole image is compared only when they agree."""
+        if frame.image is None:
+            return None
+        last = self._last_image.get(frame.camera)
+        self._last_image[frame.camera] = (frame.index, frame.image)
+        if last is None:
+            return None
+        prev = last[1]
+        if prev is not frame.image and (
+            prev.shape != frame.image.shape
+            or not np.array_equal(prev[::61], frame.image[::61])
+            or not np.array_equal(prev, frame.image)
+        ):
+            return None
+        self.counts["repeated_frames"] += 1
+        return (
+            f"frame {frame.index}: the same image as camera {frame.camera}'s frame {last[0]} "
+            "(a re-delivered buffer, or one array filled in place: each frame needs its own)"
+        )
+
     def _check_time(self, frame: Frame) -> str | None:
         """Why the frame's timestamp is refused, or None (then it becomes the last accepted time)."""
         t = frame.timestamp
@@ -897,6 +944,7 @@ class Localiser:
             blur.prepare()
             if self.config.check_expected:
                 verify.prepare()
+                self.lookalikes.prepare()
         if self.config.odometry:
             for c in range(len(self.rig)):
                 self.floor_odometry(c)
@@ -904,6 +952,15 @@ class Localiser:
             from tagloc.vision.identify import prepare
 
             prepare(self._refs)
+
+    @property
+    def lookalikes(self):
+        """The map's look-alikes (:class:`tagloc.vision.decode.lookalike.LookAlikes`), made on first use."""
+        if self._lookalikes is None:
+            from tagloc.vision.decode.lookalike import LookAlikes
+
+            self._lookalikes = LookAlikes(self.map.ids, self.config.lookalike_min_corr)
+        return self._lookalikes
 
     def floor_odometry(self, camera: int) -> FloorOdometry | None:
         """The floor odometry of rig camera ``camera`` (made on first use), or None if that camera
@@ -1085,15 +1142,16 @@ class Localiser:
         expected = None
         if self.config.check_expected:
 
-            def expected() -> int | None:
+            def expected() -> list[int]:
                 # Asked only when the quick stages read nothing; timed as decoding, which it is part
-                # of. With libdmtx the candidates are already there, most likely first.
-                best = (
+                # of. With libdmtx the candidates are already there, most likely first. The most
+                # likely one, then its rivals: the other candidates and its look-alikes in the map.
+                ranked = (
                     cands
                     if cands is not None
-                    else self.tracker.candidates(self.map, rig_cam, det.outer.mean(axis=0), k=1)
+                    else self.tracker.candidates(self.map, rig_cam, det.outer.mean(axis=0), k=self.config.candidates)
                 )
-                return best[0] if best else None
+                return [*ranked, *self.lookalikes.rivals(ranked[0])] if ranked else []
 
         with timer("decode"):
             read = read_sticker(gray, det, rig_cam.camera, self.map, self.config.decoder, cands, config, expected)

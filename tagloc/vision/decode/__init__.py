@@ -43,7 +43,7 @@ Modules: :mod:`~tagloc.vision.decode.grid` (the raster's module grid), :mod:`~ta
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -117,7 +117,7 @@ def decode(
     backend: str = "zxing",
     config: DecodeConfig | None = None,
     candidates: Iterable[int] | None = None,
-    expected: Callable[[], int | None] | None = None,
+    expected: Callable[[], Sequence[int]] | None = None,
 ) -> DecodeResult:
     """Decode the sticker at ``detection`` in ``gray``, the (H, W) uint8 frame of ``camera``.
 
@@ -125,9 +125,11 @@ def decode(
         backend: "zxing" (default: best measured read rate and speed), "libdmtx", or "both"
             (zxing first, libdmtx when zxing read nothing).
         candidates: IDs the tracker expects here; they may corroborate a lone libdmtx symbol.
-        expected: gives the one ID the tracker finds most likely here (None: none), asked only
-            when stages 1-2 read nothing: its module check may then name the sticker before the
-            least-squares stage (``DecodeConfig.expected_min_score``; stage "expected").
+        expected: gives the ID the tracker finds most likely here, then its rivals (the tracker's
+            other candidates, the map's look-alikes of it: :mod:`~tagloc.vision.decode.lookalike`);
+            empty: none. Asked only when stages 1-2 read nothing: the first ID's module check may
+            then name the sticker before the least-squares stage, if it leads every rival
+            (``DecodeConfig.expected_min_score``, ``expected_min_margin``; stage "expected").
     Returns:
         A :class:`DecodeResult`; ``sticker_id`` is None unless the symbols agree and verify, or
         the expected ID's modules match.
@@ -162,15 +164,17 @@ def decode(
 
 def _check_expected(
     rect: np.ndarray,
-    sticker_id: int | None,
+    sticker_ids: Sequence[int],
     config: DecodeConfig,
     result: DecodeResult,
     grid: Callable[[], tuple[np.ndarray, int, np.ndarray]],
 ) -> bool:
-    """Fill ``result`` with ``sticker_id`` if its modules match the raster in one rotation clearly
-    (``expected_min_score``, ``expected_min_margin``); True then."""
-    if sticker_id is None:
+    """Fill ``result`` with ``sticker_ids[0]`` if its modules match the raster in one rotation clearly
+    (``expected_min_score``, ``expected_min_margin``) and lead every other ID's (its rivals) in
+    any rotation by ``expected_min_margin``; True then."""
+    if not sticker_ids:
         return False
+    sticker_id = int(sticker_ids[0])
     samples = grid()[0]
     # On the modules that tell the ID from its decade (a neighbour's symbols share the rest) ...
     scores = np.array([verify_id(rect, sticker_id, r, samples=samples, distinct=True) for r in range(4)])
@@ -183,6 +187,13 @@ def _check_expected(
     whole = verify_id(rect, sticker_id, best, samples=samples)
     if whole < config.expected_min_score:
         return False
+    # A look-alike seen where the expected sticker should be scores about their modules'
+    # correlation (up to ~0.65) against the expected one; seen itself, it scores higher still.
+    for rival in dict.fromkeys(int(i) for i in sticker_ids[1:] if int(i) != sticker_id):
+        other = max(verify_id(rect, rival, r, samples=samples, distinct=True) for r in range(4))
+        if scores[best] - other < config.expected_min_margin:
+            result.rival = rival
+            return False
     result.sticker_id, result.rotation, result.stage = int(sticker_id), best, "expected"
     result.verify_score, result.rejected = float(min(scores[best], whole)), None
     return True

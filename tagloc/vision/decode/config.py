@@ -72,6 +72,8 @@ class DecodeResult:
         verify_score: :func:`verify_id` of the accepted (or rejected-by-verification) ID, else None.
         stage: which stage decided ("zxing", "grid", "lsq", "libdmtx", or "expected": no symbol was
             read, the expected ID's modules matched; not a Data Matrix read), or None.
+        rival: the ID that kept the expected ID from being named (its modules scored within
+            ``expected_min_margin`` of the expected one's), else None.
     """
 
     sticker_id: int | None = None
@@ -80,3 +82,4 @@ class DecodeResult:
     rejected: str | None = None
     verify_score: float | None = None
     stage: str | None = None
+    rival: int | None = None

@@ -1,0 +1,99 @@
+"""Stickers whose data modules look alike, for the expected-ID check's rivals.
+
+The expected-ID check (:func:`tagloc.vision.decode.decode`, stage "expected") names a sticker no
+symbol of which was read when the one ID the tracker expects there matches the raster's data
+modules. Two IDs from different decades normally share about half their modules by chance
+(correlation ~0), but Reed-Solomon codewords of some pairs agree far more: on a sharp raster 12867
+scores 0.65 against 43247's modules (both on ``maps/demo.csv``, 1.87 m apart), above the check's
+0.5. A sticker seen where the tracker expects its look-alike, blurred past the symbol readers, was
+then named as the look-alike. So the check also scores the expected ID's look-alikes in the map
+(:class:`LookAlikes`) and names the sticker only when it leads every one of them.
+
+Patterns are ±1 vectors of the 256 interior data modules in the raster's orientation (dark -1),
+exactly the modules :func:`tagloc.vision.decode.verify.verify_id` correlates.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from functools import lru_cache
+
+import numpy as np
+
+from tagloc.core.sticker import _sticker_grid
+from tagloc.vision.decode.grid import MODULE_PX, QUAD_ORIGIN, RASTER_PX
+from tagloc.vision.decode.verify import _decade_shared
+
+__all__ = ["LookAlikes", "data_patterns"]
+
+
+@lru_cache(maxsize=4)
+def _sample_index(rotation: int) -> np.ndarray:
+    """(256,) flat indices into the sticker's exact 200 x 200 grid of the interior data modules'
+    centres as the raster turned by ``rotation`` shows them (quadrant-major, as ``verify_id``)."""
+    idx = np.rot90(np.arange(RASTER_PX * RASTER_PX).reshape(RASTER_PX, RASTER_PX), -rotation)
+    centres = MODULE_PX + MODULE_PX // 2 + MODULE_PX * np.arange(1, 9)  # interior rows/cols 1..8
+    out = [idx[r0 + centres[:, None], c0 + centres[None, :]].ravel() for r0, c0 in QUAD_ORIGIN]
+    return np.concatenate(out)
+
+
+def data_patterns(sticker_ids: Iterable[int], rotation: int = 0) -> np.ndarray:
+    """(N, 256) int8 data-module patterns (-1 dark, +1 light) of the IDs at ``rotation``."""
+    index = _sample_index(rotation)
+    ids = list(sticker_ids)
+    out = np.empty((len(ids), index.size), np.int8)
+    for k, sid in enumerate(ids):
+        out[k] = np.where(_sticker_grid(int(sid)).ravel()[index] < 128, -1, 1)
+    return out
+
+
+def _centred_unit(a: np.ndarray) -> np.ndarray:
+    a = a.astype(np.float32)
+    a -= a.mean(axis=-1, keepdims=True)
+    return a / (np.linalg.norm(a, axis=-1, keepdims=True) + 1e-9)
+
+
+class LookAlikes:
+    """The look-alikes of each sticker of a map among the map's other stickers.
+
+    ``rivals(y)``: the mapped IDs whose modules, in some rotation, correlate with ``y``'s at or
+    above ``min_corr`` on the modules the expected-ID check compares (those that tell ``y`` from its
+    decade: ``verify_id(..., distinct=True)``). A raster of such a sticker scores about that
+    correlation times its own quality against ``y``, so a rival below ``min_corr`` cannot reach the
+    check's 0.5 with its 0.2 lead (see :class:`tagloc.vision.decode.config.DecodeConfig`).
+
+    The map's patterns are made on the first call (~0.13 ms a sticker: 25 ms for 200 stickers,
+    6 s for 50,000), each sticker's rivals when first asked for (one (4, N) product) and kept.
+    """
+
+    def __init__(self, map_ids: Iterable[int], min_corr: float = 0.3):
+        self.ids = np.array(sorted({int(i) for i in map_ids}), np.int64)
+        self.min_corr = float(min_corr)
+        self._patterns: np.ndarray | None = None
+        self._rivals: dict[int, list[int]] = {}
+
+    def prepare(self) -> None:
+        """Make the map's patterns now (``Localiser.warm_up``), not at the first check."""
+        if self._patterns is None:
+            self._patterns = data_patterns(self.ids, 0).astype(np.float32)
+
+    def rivals(self, sticker_id: int) -> list[int]:
+        """Mapped IDs (other than ``sticker_id``) that look like it in some rotation, most alike first."""
+        sid = int(sticker_id)
+        hit = self._rivals.get(sid)
+        if hit is not None:
+            return hit
+        self.prepare()
+        assert self._patterns is not None
+        best = np.full(len(self.ids), -1.0, np.float32)
+        # y turned by r against every mapped sticker upright: the same as y upright against each
+        # turned by -r (a correlation is unchanged when both vectors' modules are permuted alike).
+        for r in range(4):
+            keep = ~_decade_shared(r).ravel()
+            y = _centred_unit(data_patterns([sid], r)[0][keep])
+            z = _centred_unit(self._patterns[:, keep])
+            best = np.maximum(best, z @ y)
+        found = np.flatnonzero((best >= self.min_corr) & (self.ids != sid))
+        out = [int(self.ids[k]) for k in found[np.argsort(-best[found])]]
+        self._rivals[sid] = out
+        return out
