@@ -244,10 +244,12 @@ def test_rig_round_trip(tmp_path):
             RigCamera("left", side, looking_forward(1.2, 60.0, yaw_deg=90.0, y_m=0.1), "left.yaml"),
         ]
     )
+    rig.cameras[1].stamp_offset_s = -0.031
     save_rig(rig, tmp_path / "rig.json")
     assert (tmp_path / "camera.yaml").exists() and (tmp_path / "left.yaml").exists()
     back = load_rig(tmp_path / "rig.json")
     assert [c.name for c in back.cameras] == ["front", "left"]
+    assert [c.stamp_offset_s for c in back.cameras] == [None, -0.031]
     for a, b in zip(rig.cameras, back.cameras):
         assert b.T_body_camera == pytest.approx(a.T_body_camera, abs=1e-12)
         assert b.camera.K == pytest.approx(a.camera.K) and b.camera.dist == pytest.approx(a.camera.dist)
@@ -331,6 +333,16 @@ def test_bad_rig_files_refused(tmp_path):
     p.write_text(_rig_doc(np.eye(4).tolist()))
     with pytest.raises(CalibrationError, match="camera.yaml: cannot read"):
         load_rig(p)  # the calibration it names is missing
+
+
+@pytest.mark.parametrize("offset", ['"0.01"', "true", "1.5", "NaN"])
+def test_a_stamp_offset_that_is_not_seconds_within_one_is_refused(tmp_path, offset):
+    save_calibration(default_camera(), tmp_path / "camera.yaml")
+    doc = json.loads(_rig_doc(np.eye(4).tolist()))
+    doc["cameras"][0]["stamp_offset_s"] = "@"
+    (tmp_path / "rig.json").write_text(json.dumps(doc).replace('"@"', offset))
+    with pytest.raises(CalibrationError, match="stamp_offset_s"):
+        load_rig(tmp_path / "rig.json")
 
 
 def test_rig_file_with_an_integer_too_long_to_convert_refused(tmp_path):

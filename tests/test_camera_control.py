@@ -289,3 +289,70 @@ def test_live_with_two_cameras_records_both(tmp_path):
     assert set(rec.cameras) == {0, 1} and np.all(np.diff(rec.timestamps) > 0)
     with pytest.raises(InputError, match="rig has 2"):
         run_live(LiveConfig(source=str(a), more_cameras=[str(b), str(b)]), localiser=loc)
+
+
+def test_frame_time_puts_each_stamp_at_the_middle_rows_exposure_centre():
+    """30 ms read-out, 4 ms exposure: the middle row's exposure centre is 15 - 2 = 13 ms after the
+    frame's start (the first row's read-out) and 15 + 2 = 17 ms before its grab (the last row's)."""
+    ft = capture.frame_time
+    assert ft(10.0, capture.STAMP_FRAME_START, 0.030, 0.004) == pytest.approx(10.013)
+    assert ft(10.0, capture.STAMP_GRAB, 0.030, 0.004) == pytest.approx(9.983)
+    assert ft(10.0, capture.STAMP_FRAME, 0.030, 0.004) == 10.0  # a file's stamps are frame times
+    assert ft(10.0, capture.STAMP_GRAB, 0.030, 0.004, offset_s=-0.040) == pytest.approx(9.960)  # measured
+    assert ft(10.0, capture.STAMP_FRAME_START, 0.0, 0.0) == 10.0  # global shutter, exposure unknown
+
+
+def test_driver_stamps_on_the_monotonic_clock_are_frame_starts(monkeypatch, v4l2):
+    """A V4L2 buffer stamp on the monotonic clock (the kernel's) is the frame's start: it is moved to
+    the epoch by the clocks' difference, not aligned to the first grab, and converted with the
+    rig camera's read-out and the requested exposure."""
+    import time as _time
+
+    mono0 = _time.monotonic()
+
+    def read(self):
+        self.n += 1
+        self.props[cv2.CAP_PROP_POS_MSEC] = (mono0 - 0.050 + self.n / 30) * 1e3  # 50 ms before "now"
+        return True, np.full((480, 640, 3), self.n % 256, np.uint8)
+
+    monkeypatch.setattr(FakeV4L2, "read", read)
+    src = open_source("0", CameraSettings(exposure_ms=4.0))
+    src.set_timing(0.030)
+    epoch = _time.time() - _time.monotonic()
+    frames = [src.read() for _ in range(3)]
+    assert src.clock == "driver" and src.stamp_at == capture.STAMP_FRAME_START
+    for k, f in enumerate(frames, start=1):
+        assert f.timestamp == pytest.approx(mono0 - 0.050 + k / 30 + epoch + 0.015 - 0.002, abs=2e-3)
+    src.close()
+
+
+def test_picamera2_sensor_timestamps_become_frame_times(monkeypatch):
+    """picamera2's SensorTimestamp (the frame's start, on the monotonic clock) plus half the read-out
+    minus half the frame's own ExposureTime."""
+    import time as _time
+
+    def get_metadata(self):
+        return {"SensorTimestamp": int((_time.monotonic() - 0.040) * 1e9), "ExposureTime": 6000}
+
+    monkeypatch.setitem(sys.modules, "picamera2", types.SimpleNamespace(Picamera2=FakePicamera2))
+    monkeypatch.setattr(FakeRequest, "get_metadata", get_metadata)
+    src = open_source("picam")
+    src.set_timing(0.024)
+    before = _time.time()
+    f = src.read()
+    assert src.stamp_at == capture.STAMP_FRAME_START
+    # 40 ms before the read, then + 12 ms (half the read-out) - 3 ms (half the exposure).
+    assert f.timestamp - before == pytest.approx(-0.040 + 0.012 - 0.003, abs=3e-3)
+    src.close()
+
+
+def test_live_gives_each_camera_its_rig_cameras_read_out_and_offset(tmp_path, v4l2):
+    """``tagloc live`` hands each source its rig camera's read-out and measured stamp offset."""
+    import dataclasses
+
+    sess = make_session(tmp_path / "s", 3, 10.0)
+    loc = Echo(sess)
+    loc.rig.cameras[0] = dataclasses.replace(loc.rig.cameras[0], readout_s=0.025, stamp_offset_s=-0.031)
+    src = open_source("0")
+    run_live(LiveConfig(source="0", max_frames=2), localiser=loc, source=src)
+    assert (src.readout_s, src.stamp_offset_s) == (0.025, -0.031)

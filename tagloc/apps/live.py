@@ -167,6 +167,11 @@ def run_live(
             sources = sources or _open_sources(cfg, len(rig))
             localiser = _make_localiser(cfg, smap, rig)
         sources = sources or _open_sources(cfg, len(localiser.rig))
+        for s, rig_cam in zip(sources, localiser.rig.cameras):
+            # A camera's stamps become frame times (the middle row's exposure centre) with its
+            # read-out: see tagloc.io.capture.frame_time.
+            if hasattr(s, "set_timing"):
+                s.set_timing(rig_cam.readout_s, rig_cam.stamp_offset_s)
         if hasattr(localiser, "warm_up"):
             localiser.warm_up()  # set-up the first frame would pay, before the clock starts
     except BaseException:

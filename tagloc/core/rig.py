@@ -24,7 +24,10 @@ says whether the camera sees the wearer's own feet and legs (pitched steeply dow
 sees the leading foot once per step): the floor odometry then leaves out the floor they can cover
 (:class:`tagloc.vision.odometry.OdometryConfig` ``legs_reach_m``). Absent, it is decided from the
 mount: a forward camera that sees the floor within that reach of the vest point sees the feet
-(:func:`tagloc.vision.odometry.legs_zone`).
+(:func:`tagloc.vision.odometry.legs_zone`). An optional ``"stamp_offset_s"`` (seconds, within +-1)
+is what to add to a live camera's timestamps to get the frame's time, when the driver's own stamp
+is known to sit elsewhere than :func:`tagloc.io.capture.frame_time` assumes (measured, say);
+absent, that conversion applies. Replays take their recorded stamps as frame times.
 """
 
 from __future__ import annotations
@@ -56,6 +59,9 @@ class RigCamera:
     vest_height_m: float | None = None  # height of the vest point in the body frame; None: the camera's
     # The camera sees the wearer's feet and legs; None: decided from the mount (see the module docstring).
     legs_in_view: bool | None = None
+    # Seconds from a live source's stamp to the frame's time; None: the source's own rule
+    # (tagloc.io.capture.frame_time).
+    stamp_offset_s: float | None = None
 
     def __post_init__(self) -> None:
         if self.vest_height_m is None:
@@ -218,8 +224,14 @@ def load_rig(path: str | Path, calibration: Camera | None = None) -> Rig:
         legs = entry.get("legs_in_view")
         if legs is not None and not isinstance(legs, bool):
             raise CalibrationError(f"{where}: legs_in_view must be true or false, got {legs!r}")
+        offset = entry.get("stamp_offset_s")
+        if offset is not None and (
+            isinstance(offset, bool) or not isinstance(offset, (int, float)) or not abs(float(offset)) < 1.0
+        ):
+            raise CalibrationError(f"{where}: stamp_offset_s {offset!r} must be a number of seconds within +-1")
         rc = RigCamera(name, cam, _check_T(entry["T_body_camera"], where), calib_file, float(readout))
         rc.legs_in_view = legs
+        rc.stamp_offset_s = None if offset is None else float(offset)
         out.append(rc)
     height = doc.get("vest_height_m")
     if height is not None and (
@@ -253,6 +265,7 @@ def save_rig(rig: Rig, path: str | Path, write_calibrations: bool = True) -> Non
             {"name": c.name, "calibration": name, "T_body_camera": np.round(c.T_body_camera, 12).tolist()}
             | ({"readout_s": c.readout_s} if c.readout_s > 0 else {})
             | ({"legs_in_view": bool(c.legs_in_view)} if c.legs_in_view is not None else {})
+            | ({"stamp_offset_s": c.stamp_offset_s} if c.stamp_offset_s is not None else {})
             for c, name in zip(rig.cameras, names)
         ],
     }

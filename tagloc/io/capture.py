@@ -15,12 +15,18 @@ camera index through OpenCV's capture properties (V4L2 on Linux: manual exposure
 us, analogue gain); what the driver accepted is read back (:meth:`FrameSource.settings_report`),
 because drivers round, clamp or ignore requests without an error.
 
-Timestamps: a live camera or stream is stamped at grab time with a monotonic clock shifted once to
-the epoch (so steps never jump with NTP, yet other machines can read the time). When the driver
-gives each buffer its own timestamp (V4L2 through ``CAP_PROP_POS_MSEC``, picamera2's
-``SensorTimestamp``), that clock is used instead, shifted once to the epoch at the first frame: it
-does not carry the jitter of when Python got round to the frame. A video file or a session uses its
-own clock (frame number / fps, or the recorded timestamps).
+Timestamps: the localiser takes a frame's time to be the middle row's exposure centre (see
+:mod:`tagloc.core.rig`), and no driver stamps that instant, so a live source converts its stamps
+(:func:`frame_time`, from the rig camera's read-out and the frame's exposure, given by
+:meth:`FrameSource.set_timing`). When the driver gives each buffer its own timestamp (V4L2 through
+``CAP_PROP_POS_MSEC``, picamera2's ``SensorTimestamp``) on the kernel's monotonic clock, that
+stamp is used, moved to the epoch by the clocks' difference: it marks the start of the frame (the
+first row's read-out) and carries no jitter from when Python got round to the frame. Otherwise a
+frame is stamped when it is grabbed, on a monotonic clock shifted once to the epoch (so steps never
+jump with NTP, yet other machines can read the time): that is after its last row was read out. A
+driver whose stamps are on another clock is aligned to the first frame's grab, as a grab stamp. A
+rig camera's ``stamp_offset_s`` replaces the conversion with a measured offset. A video file or a
+session uses its own clock (frame number / fps, or the recorded timestamps) as frame times.
 
 Pacing: by default a file or session is played *as if live*, at its own rate: the capture thread
 runs ahead of nothing, and when processing falls behind the oldest buffered frames are dropped,
@@ -46,6 +52,9 @@ from tagloc.io.session import CLOCK_JUMP_S, SessionReader
 
 #: OpenCV's V4L2 backend passes CAP_PROP_AUTO_EXPOSURE through to V4L2's exposure_auto menu: 1 = manual.
 V4L2_MANUAL_EXPOSURE = 1
+#: A driver stamp this much older than the monotonic clock when its frame arrives, or more, is not
+#: on that clock (a frame arrives within a few frame intervals of its start).
+_MAX_DRIVER_LAG_S = 1.0
 
 
 @dataclass
@@ -127,6 +136,35 @@ def parse_resolution(text: str) -> tuple[int, int]:
     return w, h
 
 
+#: Where a source's raw stamp sits in its frame (see :func:`frame_time`).
+STAMP_FRAME = "frame"  # the frame's time already (files, sessions)
+STAMP_FRAME_START = "frame start"  # the first row's read-out begins (V4L2 buffers, picamera2)
+STAMP_GRAB = "grab"  # the frame reached tagloc: its last row was read out before
+
+
+def frame_time(
+    stamp: float, stamp_at: str, readout_s: float, exposure_s: float, offset_s: float | None = None
+) -> float:
+    """The frame's time, the middle row's exposure centre (s), from a source's stamp (s).
+
+    A rolling shutter reads row after row over ``readout_s``; each row is exposed for ``exposure_s``
+    up to its read-out. A stamp at the frame's start marks the first row's read-out: that row was
+    exposed over [stamp - E, stamp], and the middle row is read readout/2 later, so its centre is
+    stamp + readout/2 - E/2. A grab stamp comes after the last row's read-out, readout/2 after the
+    middle row's, so stamp - readout/2 - E/2; the transfer and queueing between (a USB camera's
+    compression, a few ms to a frame) are not known here and are not counted: measure them and give
+    the rig camera's ``stamp_offset_s``, which replaces the rule (stamp + offset). A global shutter
+    (readout 0) reads every row at once. Unknown exposure: 0 (the time is then up to E/2 late).
+    """
+    if offset_s is not None:
+        return stamp + offset_s
+    if stamp_at == STAMP_FRAME_START:
+        return stamp + 0.5 * readout_s - 0.5 * exposure_s
+    if stamp_at == STAMP_GRAB:
+        return stamp - 0.5 * readout_s - 0.5 * exposure_s
+    return stamp
+
+
 class FrameSource:
     """A source of greyscale frames. ``read()`` returns a frame (image None if corrupt) or None at the end."""
 
@@ -134,6 +172,21 @@ class FrameSource:
     fps = 0.0
     end_reason = "end of source"  # set by read() before it returns None
     clock = "file"  # where timestamps come from: "file", "grab" (monotonic at read) or "driver"
+    stamp_at = STAMP_FRAME  # where the raw stamps sit in the frame (see frame_time)
+    readout_s = 0.0  # the rig camera's read-out and stamp offset (set_timing)
+    stamp_offset_s: float | None = None
+
+    def set_timing(self, readout_s: float, stamp_offset_s: float | None = None) -> None:
+        """Convert this camera's stamps to frame times with its rig camera's read-out (s) and, when
+        measured, its ``stamp_offset_s`` (see :func:`frame_time`); a file keeps its own clock."""
+        self.readout_s = float(readout_s)
+        self.stamp_offset_s = stamp_offset_s
+
+    def _frame_time(self, stamp: float, exposure_s: float = 0.0) -> float:
+        """``stamp`` as a frame time (live sources); a file's or session's stamps are frame times."""
+        if not self.live:
+            return stamp
+        return frame_time(stamp, self.stamp_at, self.readout_s, exposure_s, self.stamp_offset_s)
 
     def read(self) -> Frame | None:
         raise NotImplementedError
@@ -148,7 +201,7 @@ class FrameSource:
 
     def settings_report(self) -> dict:
         """What the source runs at (as read back from the driver) and its timestamp clock."""
-        return {"clock": self.clock, "fps": self.fps}
+        return {"clock": self.clock, "fps": self.fps, "stamp": self.stamp_at}
 
 
 def _grey(image: np.ndarray | None) -> np.ndarray | None:
@@ -183,6 +236,7 @@ class VideoSource(FrameSource):
         # Epoch time of monotonic zero, fixed once: stamps are monotonic but readable elsewhere.
         self._epoch_offset = time.time() - time.monotonic()
         self.clock = "grab" if live else "file"
+        self.stamp_at = STAMP_GRAB if live else STAMP_FRAME
         self._requested: CameraSettings | None = None
         self._driver_offset = 0.0  # epoch - driver clock, fixed at the first frame
         self._last_driver = -math.inf
@@ -219,6 +273,7 @@ class VideoSource(FrameSource):
             "fps": self.fps,
             "resolution": [int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))],
             "backend": cap.getBackendName() if hasattr(cap, "getBackendName") else "",
+            "stamp": self.stamp_at,
         }
         if self.live:
             out["exposure_ms"] = float(cap.get(cv2.CAP_PROP_EXPOSURE)) / 10.0
@@ -229,28 +284,39 @@ class VideoSource(FrameSource):
         return out
 
     def _stamp(self) -> float:
-        """This frame's time: the driver's buffer timestamp while it gives rising ones, else grab time.
+        """This frame's time: from the driver's buffer timestamp while it gives rising ones, else from
+        the grab time, each converted to the frame's time (:func:`frame_time`).
 
         A driver clock that stops rising is abandoned for good (never mixed back in), and stamps
         never go backwards across the switch.
         """
         if not self.live:
             return self._index / self.fps
-        grab = time.monotonic() + self._epoch_offset
-        stamp = grab
+        now = time.monotonic()
+        grab = now + self._epoch_offset
+        stamp, stamp_at = grab, STAMP_GRAB
         if self.clock == "driver":
             driver_s = float(self._cap.get(cv2.CAP_PROP_POS_MSEC) or 0.0) * 1e-3
             if driver_s > self._last_driver:
                 self._last_driver = driver_s
-                stamp = driver_s + self._driver_offset
+                stamp, stamp_at = driver_s + self._driver_offset, self.stamp_at
             else:
                 self.clock = "grab (driver clock stopped rising)"
+                self.stamp_at = STAMP_GRAB
         elif self.clock == "grab" and self._index == 0:
             driver_s = float(self._cap.get(cv2.CAP_PROP_POS_MSEC) or 0.0) * 1e-3
             if driver_s > 0:  # the driver stamps its buffers: use that clock from now on
-                self._driver_offset = grab - driver_s
                 self._last_driver = driver_s
                 self.clock = "driver"
+                if 0.0 <= now - driver_s < _MAX_DRIVER_LAG_S:
+                    # V4L2 stamps buffers on the monotonic clock at the frame's start.
+                    self._driver_offset = self._epoch_offset
+                    self.stamp_at = STAMP_FRAME_START
+                else:  # another clock: aligned to this grab, and read as one
+                    self._driver_offset = grab - driver_s
+                stamp, stamp_at = driver_s + self._driver_offset, self.stamp_at
+        exposure = self._requested.exposure_ms * 1e-3 if self._requested and self._requested.exposure_ms else 0.0
+        stamp = frame_time(stamp, stamp_at, self.readout_s, exposure, self.stamp_offset_s)
         stamp = max(stamp, self._last_stamp + 1e-6)
         self._last_stamp = stamp
         return stamp
@@ -295,8 +361,11 @@ class PiCamera2Source(FrameSource):
 
     The Y plane of a YUV420 stream is the greyscale frame. Exposure (us) and analogue gain are set as
     controls with auto exposure off; the frame duration limits fix the frame rate. Each frame is
-    stamped with the request's ``SensorTimestamp`` (ns, start of exposure on the kernel's clock),
-    shifted once to the epoch.
+    stamped with the request's ``SensorTimestamp`` (ns on the kernel's monotonic clock: the frame's
+    start as the CSI receiver saw it, per the picamera2 maintainers; libcamera's own documentation
+    calls it the first row's start of exposure, an exposure earlier), moved to the epoch by the
+    clocks' difference and converted to the frame's time with the frame's ``ExposureTime``
+    (:func:`frame_time`).
     """
 
     live = True
@@ -328,6 +397,7 @@ class PiCamera2Source(FrameSource):
         self.fps = float(settings.fps or 30.0)
         self._index = 0
         self._offset: float | None = None
+        self._last_stamp = -math.inf
         self._metadata: dict = {}
 
     def apply_settings(self, settings: CameraSettings) -> None:
@@ -345,15 +415,31 @@ class PiCamera2Source(FrameSource):
         image = np.ascontiguousarray(yuv[:h]) if yuv is not None and yuv.size else None
         sensor_s = float(md.get("SensorTimestamp", 0)) * 1e-9
         if self._offset is None:
-            self._offset = time.time() - sensor_s
+            now = time.monotonic()
+            if 0.0 <= now - sensor_s < _MAX_DRIVER_LAG_S:
+                self._offset = time.time() - now
+                self.stamp_at = STAMP_FRAME_START
+            else:  # not the monotonic clock: aligned to this frame's arrival, and read as a grab stamp
+                self._offset = time.time() - sensor_s
+                self.stamp_at = STAMP_GRAB
+        exposure = float(md.get("ExposureTime", 0) or 0) * 1e-6
+        stamp = self._frame_time(sensor_s + self._offset, exposure)
+        stamp = max(stamp, self._last_stamp + 1e-6)
+        self._last_stamp = stamp
         error = None if image is not None else f"frame {self._index}: empty frame"
-        frame = Frame(self._index, sensor_s + self._offset, image, error=error)
+        frame = Frame(self._index, stamp, image, error=error)
         self._index += 1
         return frame
 
     def settings_report(self) -> dict:
         md = self._metadata
-        out: dict = {"clock": self.clock, "fps": self.fps, "resolution": list(self._size), "backend": "picamera2"}
+        out: dict = {
+            "clock": self.clock,
+            "fps": self.fps,
+            "resolution": list(self._size),
+            "backend": "picamera2",
+            "stamp": self.stamp_at,
+        }
         if "ExposureTime" in md:
             out["exposure_ms"] = float(md["ExposureTime"]) / 1000.0
         if "AnalogueGain" in md:
