@@ -161,7 +161,9 @@ def test_a_blank_square_that_failed_decoding_skips_least_squares_until_its_retry
     every = loc.config.tracking.lsq_retry_every
     skipped = []
     for i in range(2 * every):
-        res = loc.process(Frame(i, i / 30, img))
+        frame = img.copy()
+        frame[0, i] ^= 1  # a sensor's noise: never the same image twice (see Localiser._check_repeat)
+        res = loc.process(Frame(i, i / 30, frame))
         assert len(res.observations) == 1 and res.observations[0].identity is None
         skipped.append(loc.counts["lsq_skipped"])
     # Frame 0 runs it; then it is left out every frame but each ``every``-th.
