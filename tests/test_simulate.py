@@ -33,6 +33,7 @@ from tagloc.sim.simulate import (
     simulate_session,
     true_corners,
 )
+from tagloc.sim.timing import TimingConfig, frame_schedule
 from tagloc.sim.walk import WalkConfig, plan_walk
 
 
@@ -450,6 +451,57 @@ def test_rolling_shutter_ground_truth(tmp_path):
                 assert img[mask > 0].mean() < 0.62 * img[ring > 0].mean()
                 checked += 1
     assert checked >= 2
+
+
+def test_rig_cameras_have_their_own_jitter_and_drops(tmp_path):
+    """Free-running cameras have their own drivers and queues: independent jitter and dropped frames;
+    camera 0 keeps a single camera's schedule."""
+    from tagloc.eval.multicam import front_rear_rig
+
+    timing = TimingConfig(jitter_s=0.002, drop_fraction=0.25)
+    out = tmp_path / "two"
+    cfg = sim_config(seconds=2.0, fps=15.0, scale=0.25, rig=front_rear_rig(), timing=timing)
+    simulate_session(aisle_map(rows=1), out, cfg, progress=False)
+    reader = SessionReader(out)  # refuses stamps that do not increase
+    recs = read_groundtruth_frames(out)
+    assert [r["stamp"] for r in recs] == pytest.approx(list(reader.timestamps), abs=1e-6)
+    stagger = 1 / 30.0  # 1 / (2 cameras * 15 fps)
+    cams = [{r["index"] // 2: r for r in recs if r["camera"] == c} for c in (0, 1)]
+    single = frame_schedule(30, 15.0, timing, 3)  # the schedule of a one-camera session
+    assert sorted(cams[0]) == single.index.tolist()
+    assert [cams[0][k]["stamp"] for k in sorted(cams[0])] == pytest.approx(single.stamp.tolist(), abs=1e-6)
+    # Each camera loses about a quarter of its 30 frames (binomial: 7.5 +- 2.4), and not the same ones.
+    lost = [set(range(30)) - set(c) for c in cams]
+    assert all(3 <= len(x) <= 13 for x in lost)
+    assert len(lost[0] ^ lost[1]) >= 4
+    sim = reader.info.extra["simulation"]
+    assert sim["dropped_frames_per_camera"] == [len(x) for x in lost]
+    assert sim["dropped_frames"] == len(lost[0]) + len(lost[1])
+    # Jitter: each camera's stamps within +-2 ms of its true times, and independent between the
+    # cameras (the difference of two uniform +-2 ms errors has a standard deviation of 1.63 ms).
+    both = sorted(set(cams[0]) & set(cams[1]))
+    jit = np.array([[cams[c][k]["stamp"] - cams[c][k]["t"] for c in (0, 1)] for k in both])
+    assert np.all(np.abs(jit) <= 0.002 + 1e-6)
+    assert np.array([cams[1][k]["t"] - cams[0][k]["t"] for k in both]) == pytest.approx(stagger, abs=1e-6)
+    assert np.std(jit[:, 1] - jit[:, 0]) == pytest.approx(0.00163, rel=0.4)
+
+
+def test_delivered_frames_follow_the_stamps():
+    """With jitter of half the stagger or more, two cameras' stamps can swap or meet: frames.csv is in
+    stamp order and a stamp that meets the one before it (in microseconds) is put 1 us after it."""
+    from tagloc.sim.simulate import _delivered
+    from tagloc.sim.timing import FrameSchedule
+
+    stagger = 1 / 60.0
+    k = np.array([0, 1])
+    cam0 = FrameSchedule(k, k / 30.0, k / 30.0 + 0.009, 0, 0)
+    cam1 = FrameSchedule(k, k / 30.0, k / 30.0 + np.array([0.009 - stagger + 2e-7, -0.009]), 0, 0)
+    shots = _delivered([cam0, cam1], stagger)
+    assert [(s.camera, s.k) for s in shots] == [(0, 0), (1, 0), (1, 1), (0, 1)]
+    assert [s.stamp for s in shots] == pytest.approx(
+        [0.009, 0.009001, 1 / 30 + stagger - 0.009, 1 / 30 + 0.009], abs=1e-9
+    )
+    assert [s.t for s in shots] == pytest.approx([0.0, stagger, 1 / 30 + stagger, 1 / 30])
 
 
 def test_cli_simulate(tmp_path, capsys):

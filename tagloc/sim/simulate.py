@@ -19,8 +19,10 @@ floor but not in the map appear with ``in_map: false``. Frame ``k`` is exposed a
 :func:`tagloc.sim.render.row_delay_s`). ``stamp`` is the timestamp written to ``frames.csv``: ``t``
 plus the driver's jitter; dropped frames have no record, no image and no ``frames.csv`` line, and
 ``groundtruth.tum`` holds the delivered frames at their true times ``t`` (see
-:mod:`tagloc.sim.timing`). With survey error (:mod:`tagloc.sim.survey`) the session's ``map.csv`` is
-the surveyed map and ``map_true.csv`` the stickers' true poses, which the frames show.
+:mod:`tagloc.sim.timing`). The cameras of a rig run free: each has its own jitter, drops and bursts
+(camera 0 those of a one-camera session), and ``frames.csv`` and the records follow the stamps.
+With survey error (:mod:`tagloc.sim.survey`) the session's ``map.csv`` is the surveyed map and
+``map_true.csv`` the stickers' true poses, which the frames show.
 
 :func:`render_view` renders one frame from a given camera pose (with an optional straight motion
 that makes a chosen blur length), for tests and benchmarks of the other stages.
@@ -70,8 +72,9 @@ CAMERA_SEED_STEP = 7919
 # about the centre of mass, ground truth at the vest point's vertical projection; 4: the tilt drift
 # and the walking speed's variation have the body's inertia, so their rates are not white noise;
 # 5: the frames are the same, but the session's rig states ``legs_in_view``, which a rig made
-# before would have decided from its mount).
-SIM_REVISION = 5
+# before would have decided from its mount; 6: each camera of a rig has its own jitter and dropped
+# frames, one-camera sessions unchanged).
+SIM_REVISION = 6
 
 
 @dataclass
@@ -348,13 +351,13 @@ def simulate_session(
         for c, rc in enumerate(rig.cameras)
     ]
     n_all = int(math.floor(config.seconds * config.fps + 1e-9))
-    schedule = frame_schedule(n_all, config.fps, config.timing, config.seed)
-    n = len(schedule.index)
+    # Free-running cameras have their own drivers and queues: each its own jitter, drops and bursts.
+    schedules = [frame_schedule(n_all, config.fps, config.timing, config.seed, camera=c) for c in range(n_cams)]
     # Free-running cameras are never simultaneous: camera c is exposed c / (n_cams * fps) after camera 0.
     stagger = 1.0 / (n_cams * config.fps)
-    # Ground truth at the frames' true times; frames.csv gets the driver's jittered stamps.
-    stamps = schedule.true_t
-    gt_stamps = (stamps[:, None] + stagger * np.arange(n_cams)).ravel()
+    shots = _delivered(schedules, stagger)
+    # Ground truth at the frames' true times; frames.csv gets the drivers' jittered stamps.
+    gt_stamps = np.sort(np.array([shot.t for shot in shots], float))
     given_map = surveyed_map(smap, config.survey, config.seed)
     out = Path(out_dir)
     unmapped = [int(i) for i in floor.stickers.ids[~floor.in_map]]
@@ -372,10 +375,15 @@ def simulate_session(
                 for k in np.flatnonzero(~floor.in_map)
             ],
             "groundtruth_frames": "groundtruth_frames.jsonl",
-            "dropped_frames": schedule.dropped,
-            "drop_bursts": schedule.bursts,
+            "dropped_frames": sum(sc.dropped for sc in schedules),
+            "drop_bursts": sum(sc.bursts for sc in schedules),
         }
     }
+    if n_cams > 1:
+        sim_info["simulation"] |= {
+            "dropped_frames_per_camera": [sc.dropped for sc in schedules],
+            "drop_bursts_per_camera": [sc.bursts for sc in schedules],
+        }
     info = SessionInfo(
         source="simulated",
         fps=config.fps,
@@ -396,30 +404,27 @@ def simulate_session(
             save_map(smap, out / "map_true.csv")
         write_tum(out / GROUNDTRUTH_FILE, gt_stamps, walk.T_world_body(gt_stamps, rig.vest_point))
         with (out / "groundtruth_frames.jsonl").open("w", encoding="utf-8") as gt:
-            for j in tqdm(range(n), desc="simulate", unit="frame", disable=not progress):
-                for c, (renderer, pose_at) in enumerate(zip(renderers, poses)):
-                    rec, stat = _simulate_frame(
-                        writer,
-                        renderer,
-                        pose_at,
-                        walk,
-                        floor,
-                        config,
-                        schedule,
-                        j,
-                        c,
-                        n_cams,
-                        stagger,
-                        readout,
-                        rig.vest_point,
-                    )
-                    gt.write(json.dumps(rec) + "\n")
-                    gt.flush()
-                    stats.append(stat)
+            for shot in tqdm(shots, desc="simulate", unit="frame", disable=not progress):
+                rec, stat = _simulate_frame(
+                    writer,
+                    renderers[shot.camera],
+                    poses[shot.camera],
+                    walk,
+                    floor,
+                    config,
+                    shot,
+                    n_cams,
+                    readout,
+                    rig.vest_point,
+                )
+                gt.write(json.dumps(rec) + "\n")
+                gt.flush()
+                stats.append(stat)
     s = np.array(stats).reshape(-1, 4)
+    n = len(shots)
     return SimSummary(
         out,
-        n * n_cams,
+        n,
         time.perf_counter() - t_wall,
         float(s[:, 0].mean()) if n else 0.0,
         float(s[:, 1].mean()) if n else 0.0,
@@ -430,6 +435,39 @@ def simulate_session(
     )
 
 
+@dataclass(frozen=True, order=True)
+class _Shot:
+    """One delivered frame: its driver's stamp, true (middle-row) time, rig camera and frame number
+    (ordered by stamp first)."""
+
+    stamp: float
+    t: float
+    camera: int
+    k: int
+
+
+def _delivered(schedules: list, stagger: float) -> list[_Shot]:
+    """The frames the cameras' drivers deliver (camera c's ``schedules[c]``, exposed ``c * stagger``
+    after camera 0's), in the order of their stamps, as a recorder merging the cameras' queues writes them.
+
+    The cameras' jitter is independent, so with jitter of half the stagger or more two cameras'
+    stamps can swap (against the true times) or meet: a stamp that would not come after the one
+    before it once rounded to frames.csv's microseconds is put one microsecond after it, the
+    resolution the recorder's clock has there (frames.csv's stamps must increase).
+    """
+    shots = sorted(
+        _Shot(float(sc.stamp[j]) + c * stagger, float(sc.true_t[j]) + c * stagger, c, int(sc.index[j]))
+        for c, sc in enumerate(schedules)
+        for j in range(len(sc.index))
+    )
+    out: list[_Shot] = []
+    for shot in shots:
+        if out and round(shot.stamp, 6) <= round(out[-1].stamp, 6):
+            shot = replace(shot, stamp=round(out[-1].stamp, 6) + 1e-6)
+        out.append(shot)
+    return out
+
+
 def _simulate_frame(
     writer: SessionWriter,
     renderer: Renderer,
@@ -437,21 +475,17 @@ def _simulate_frame(
     walk: Walk,
     floor: Floor,
     config: SimConfig,
-    schedule,
-    j: int,
-    camera: int,
+    shot: _Shot,
     n_cams: int,
-    stagger: float,
     readout: float,
     vest_point: np.ndarray,
 ) -> tuple[dict, tuple]:
-    """Render and write frame ``j`` of the schedule for rig camera ``camera``; its ground-truth record.
+    """Render and write the delivered frame ``shot`` with ``renderer`` (its camera's); its ground-truth record.
 
     One camera: index = the schedule's frame number (sessions as before). Several: index = frame
     number * cameras + camera, unique over the session, and each record names its camera.
     """
-    k = int(schedule.index[j])
-    t = float(schedule.true_t[j]) + camera * stagger
+    k, t, camera = shot.k, shot.t, shot.camera
     index = k if n_cams == 1 else k * n_cams + camera
     seed = [config.seed, 23, k] if camera == 0 else [config.seed, 23, k, camera]
     T_world_body = walk.T_world_body(t, vest_point)
@@ -459,7 +493,7 @@ def _simulate_frame(
     res = renderer.render(
         pose_at, t, config.lux, np.random.default_rng(seed), frame_interval_s=1.0 / config.fps, body=body
     )
-    stamp = float(schedule.stamp[j]) + camera * stagger
+    stamp = shot.stamp
     writer.write(index, stamp, res.image, camera)
     rec = {"index": index} | ({"camera": camera} if n_cams > 1 else {})
     rec |= {

@@ -14,6 +14,10 @@ session records is what the driver hands over:
 Dropped frames are absent from ``frames.csv``; the remaining frames keep their sequence numbers
 (the index column skips), as V4L2 sequence numbers do. Seeded: the same config and seed give the
 same schedule.
+
+Each camera of a rig runs free, on its own driver and buffer queue: its jitter, drops and bursts
+are its own, drawn from the seed and the camera's number (``camera``). Camera 0 draws exactly what
+a single camera does, so a one-camera session does not change with this.
 """
 
 from __future__ import annotations
@@ -72,12 +76,17 @@ class FrameSchedule:
     bursts: int
 
 
-def frame_schedule(n: int, fps: float, timing: TimingConfig, seed: int) -> FrameSchedule:
-    """The frames out of ``n`` at ``fps`` that the driver delivers under ``timing``, and their stamps."""
+def frame_schedule(n: int, fps: float, timing: TimingConfig, seed: int, camera: int = 0) -> FrameSchedule:
+    """The frames out of ``n`` at ``fps`` that rig camera ``camera``'s driver delivers under ``timing``,
+    and their stamps, in the camera's own time (frame ``k`` exposed at ``k / fps``)."""
     if timing.jitter_s >= 0.5 / fps:
         # Stamps +-jitter around frames 1/fps apart could swap order: no driver does that.
         raise InputError(f"timing: jitter {timing.jitter_s * 1e3:g} ms reorders frames at {fps:g} fps")
-    rng = np.random.default_rng([seed, 31])
+    if camera < 0:
+        raise InputError(f"timing: camera {camera} is not a rig camera's number")
+    # Free-running cameras have their own drivers and queues: an independent draw per camera. Camera 0
+    # keeps the single camera's seed, so one-camera sessions are what they were before.
+    rng = np.random.default_rng([seed, 31] if camera == 0 else [seed, 31, camera])
     keep = np.ones(n, bool)
     if timing.drop_fraction > 0:
         keep &= rng.random(n) >= timing.drop_fraction
