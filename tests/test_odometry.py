@@ -229,7 +229,9 @@ def test_a_turn_that_slowed_in_a_smeared_patch_is_not_locked_to_the_last_one():
     """In a fast turn at 60 lux the patch is smeared along the turn, ECC's correlation is flat in the
     turn and it stops near where it starts: from the last frame's 7 degrees it measured 7.0 where
     the body turned 3 (the lock that ran a live track 6 m off on the field walk f01). Starts a grid
-    step either side of the turn under way compete (``turn_check_rate``) and find the 3."""
+    step either side of the turn under way compete (``turn_check_rate``) and find the 3. Whether a
+    given smeared pair locks depends on the noise and the view (9 of 24 lux, noise and pose cases
+    did, under the blur sampling of simulator revisions 5 and 6 alike): this pose locks under both."""
     from tagloc.core.geometry import planar_T
     from tagloc.sim.floor import Floor, FloorConfig
     from tagloc.sim.simulate import render_view
@@ -238,7 +240,7 @@ def test_a_turn_that_slowed_in_a_smeared_patch_is_not_locked_to_the_last_one():
     smap = grid_map(GridMapConfig(width_m=8, depth_m=8, spacing_min_m=1.6, spacing_max_m=2.0, seed=4))
     floor = Floor(smap, FloorConfig(), seed=4)
     turn = math.radians(3.0)
-    poses = [planar_T(3.1, 2.3, 0.4)]
+    poses = [planar_T(4.0, 4.5, -0.5)]
     poses.append(poses[0] @ planar_T(0.03, 0.0, turn))
     spin = np.array([0.0, 0.0, turn * FPS])  # turning through each exposure too: the smear
     imgs = [
@@ -255,7 +257,7 @@ def test_a_turn_that_slowed_in_a_smeared_patch_is_not_locked_to_the_last_one():
         assert step is not None
         return float(step.delta[2])
 
-    # Without the check it stays near the last turn: 7.0 degrees sampled from the frame, 5.8 from its
+    # Without the check it stays near the last turn: 6.6 degrees sampled from the frame, 6.5 from its
     # half-resolution level (``patch_from_half``), either way far from the 3.
     assert abs(measured_turn(math.inf) - turn) > math.radians(2.5)
     assert abs(measured_turn(OdometryConfig().turn_check_rate) - turn) < math.radians(0.3)

@@ -24,6 +24,7 @@ from tagloc.sim.render import (
     electrons_per_lux_s,
     expected_blur_px,
     exposure_time,
+    subframe_offsets,
 )
 from tagloc.sim.simulate import (
     SimConfig,
@@ -99,6 +100,38 @@ def test_motion_blur_matches_f_v_t_over_d(blur):
     assert w_sharp < 1.5
     # A box blur of length L has a 10-90 % width of 0.8 L; interpolation adds a fraction of a pixel.
     assert edge_width_10_90(prof) == pytest.approx(0.8 * expected_blur_px(cam.fx, v, t_exp, D), abs=0.8)
+
+
+def test_short_motion_blur_is_rendered_at_its_length():
+    """A 1 px blur (walking at 300 lux) is rendered, from two sub-frames at the middles of the
+    exposure's halves, and matches a render sampled every 0.02 px; 0.25 px, under the lens's PSF, is not."""
+    assert subframe_offsets(1.0, 0.004, ExposureConfig()) == pytest.approx([-0.001, 0.001])
+    assert subframe_offsets(0.25, 0.004, ExposureConfig()) == pytest.approx([0.0])
+    assert subframe_offsets(3.0, 0.006, ExposureConfig()) == pytest.approx(np.arange(-2.5, 3) * 0.001)
+    assert len(subframe_offsets(30.0, 0.006, ExposureConfig())) == 16
+    cam = small_camera()
+    floor = Floor(StickerMap([7], [[0.0, 0.0]], [0.3]), FloorConfig(texture=False))
+    T = camera_pose_looking_at((0.0, 0.0), height_m=0.5, pitch_deg=90.0)  # a 128 px sticker
+    # Linear, noise-free, fine ADC: white paper at ~170 DN, so that only the blur differs.
+    lin = dict(noise=False, sensor=SensorConfig(gamma=1.0, adc_bits=16), exposure_s=0.004, gain=20.0)
+    sharp = render_view(floor, cam, T, 300.0, **lin).image.astype(float)
+    fine = ExposureConfig(px_per_subframe=0.02, max_subframes=100)
+    res = render_view(floor, cam, T, 300.0, blur_px=1.0, blur_direction_deg=30.0, **lin)
+    ref = render_view(floor, cam, T, 300.0, blur_px=1.0, blur_direction_deg=30.0, exposure=fine, **lin)
+    assert res.blur_px == pytest.approx(1.0, abs=0.01) and res.subframes == 2 and ref.subframes == 50
+    img, ref_img = res.image.astype(float), ref.image.astype(float)
+    changed = np.abs(ref_img - sharp) > 1  # the pixels the blur changes: the sticker's edges
+
+    def rms(d):
+        return float(np.sqrt((d[changed] ** 2).mean()))
+
+    # Measured: the blur changes those pixels by 4.7 DN RMS; the render is 1.1 DN off the reference
+    # (one sub-frame, the sharp image, was 4.7 DN off).
+    assert rms(ref_img - sharp) == pytest.approx(4.7, abs=1.0)
+    assert rms(img - sharp) > 0.75 * rms(ref_img - sharp)
+    assert rms(img - ref_img) < 0.3 * rms(ref_img - sharp)
+    under = render_view(floor, cam, T, 300.0, blur_px=0.25, blur_direction_deg=30.0, **lin)
+    assert under.subframes == 1 and np.array_equal(under.image.astype(float), sharp)
 
 
 def test_exposure_policy_and_gain():

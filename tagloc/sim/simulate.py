@@ -73,7 +73,8 @@ CAMERA_SEED_STEP = 7919
 # and the walking speed's variation have the body's inertia, so their rates are not white noise;
 # 5: the frames are the same, but the session's rig states ``legs_in_view``, which a rig made
 # before would have decided from its mount; 6: each camera of a rig has its own jitter and dropped
-# frames, one-camera sessions unchanged).
+# frames, and motion blur is rendered from 0.3 px up, one sub-frame per 0.5 px, where blur up to
+# 1.5 px was rendered sharp and longer blur with one per 1.5 px).
 SIM_REVISION = 6
 
 
