@@ -23,6 +23,26 @@ def _same(cam: Camera, K_=K, dist=DIST, size=(1280, 960)) -> None:
     assert (cam.width, cam.height) == size
 
 
+def test_projection_stops_where_the_distortion_folds_back():
+    """Far off the axis OpenCV's distortion polynomial folds back: the default camera's (k1 = 0.1,
+    k2 = -0.2) stops growing at tan(angle) = 1.078 (47 deg), and a point 58 deg left of the axis
+    (half-FOV 27 deg) lands right of the image's centre. project_in_view refuses it."""
+    cam = default_camera()
+    assert cam.fold_radius() == pytest.approx(1.078, abs=0.002)  # r(1 + 0.1 r^2 - 0.2 r^4) peaks at r^2 = 1.161
+    left_58 = np.array([[-np.tan(np.radians(58)), 0.0, 1.0]])
+    assert cam.project(left_58)[0, 0] == pytest.approx(762.1, abs=0.5)
+    assert cam.project_in_view(left_58) is None
+    # Short of the fold it is project(); behind the camera or on its plane, nothing.
+    pts = np.array([[0.3, -0.2, 1.5], [-1.0, 0.1, 1.0]])
+    np.testing.assert_array_equal(cam.project_in_view(pts), cam.project(pts))
+    assert cam.project_in_view(np.array([[0.0, 0.0, -1.0]])) is None
+    assert cam.project_in_view(np.array([[0.0, 0.0, 0.01]])) is None
+    # A strong barrel lens folds at 1 / sqrt(3 |k1|); no distortion never folds.
+    barrel = Camera(cam.K, np.array([-0.45, 0.0, 0.0, 0.0, 0.0]), cam.width, cam.height)
+    assert barrel.fold_radius() == pytest.approx(1 / np.sqrt(1.35), abs=0.002)
+    assert Camera(cam.K, np.zeros(5), cam.width, cam.height).fold_radius() == np.inf
+
+
 def test_opencv_round_trip(tmp_path):
     p = tmp_path / "camera.yaml"
     save_calibration(Camera(K, DIST, 1280, 960), p)

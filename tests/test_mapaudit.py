@@ -10,14 +10,19 @@ floor (missing) and without one that is (unmapped).
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from tagloc.cli import main
 from tagloc.core.errors import InputError
+from tagloc.core.geometry import invert
+from tagloc.core.rig import default_rig
+from tagloc.core.sticker import OUTER_CORNERS
 from tagloc.core.stickermap import StickerMap, load_map, save_map
-from tagloc.eval.mapaudit import AuditConfig, _hard, _Tally, audit_walks
+from tagloc.eval.mapaudit import AuditConfig, _expected, _hard, _Tally, audit_walks
 from tagloc.eval.mapbench import (
     MISSING,
     MOVED,
@@ -30,7 +35,7 @@ from tagloc.eval.mapbench import (
     strip_site,
     without,
 )
-from tagloc.eval.mapobs import collect_walk
+from tagloc.eval.mapobs import FrameRecord, Sighting, WalkLog, collect_walk
 from tagloc.eval.maprefine import RefineConfig, refine_map
 from tagloc.sim.simulate import SimConfig, simulate_session
 
@@ -169,3 +174,101 @@ def test_a_walk_with_no_usable_frame_is_refused_not_audited(site, tmp_path, caps
         f"{walk}: none of its {n} frames could be used (frame 0: 000000.jpg is corrupt: JPEG cut short (no end-of-image marker))"
     )
     assert not (tmp_path / "a").exists()
+
+
+def _floor_point(T_world_camera: np.ndarray, x_n: float, y_n: float) -> np.ndarray:
+    """(x, y) where the camera's ray through normalised image point (x_n, y_n) meets the floor."""
+    ray = T_world_camera[:3, :3] @ np.array([x_n, y_n, 1.0])
+    c = T_world_camera[:3, 3]
+    return (c - c[2] / ray[2] * ray)[:2]
+
+
+def _one_frame(rig, sightings=()) -> tuple[WalkLog, FrameRecord]:
+    """A walk of one frame, the body at the origin facing +x, tracked to 1 cm."""
+    fr = FrameRecord(0, 0.0, np.zeros(3), np.diag([1e-4, 1e-4, 1e-4]), "tracking", list(sightings))
+    return WalkLog(Path("synthetic"), rig, [fr]), fr
+
+
+def _pixels(rig, T_world_camera: np.ndarray, smap: StickerMap, sid: int) -> np.ndarray:
+    """The outer corners of ``sid`` as cv2.projectPoints puts them, without the fold check."""
+    pts = (invert(T_world_camera) @ smap.T_world_sticker(sid))[:3] @ np.vstack([OUTER_CORNERS.T, np.ones((1, 4))])
+    return rig[0].camera.project(pts.T)
+
+
+def test_in_view_skips_a_sticker_that_the_lens_folds_back_into_the_image():
+    """A sticker 57 deg left of the axis (half-FOV 27 deg) is not in view, although the distortion
+    polynomial, evaluated that far out, puts its corners well inside the image (the review's 1025)."""
+    rig = default_rig()
+    T_wc = rig[0].T_body_camera  # body at the origin
+    far = _floor_point(T_wc, -math.tan(math.radians(57)), 0.35)
+    near = _floor_point(T_wc, 0.0, 0.0)  # on the optical axis: in view
+    smap = StickerMap(np.array([1, 2]), np.array([far, near]), np.zeros(2))
+    assert np.linalg.norm(T_wc[:3, 3] - [*far, 0.0]) < AuditConfig().max_distance_m
+    cam, m = rig[0].camera, AuditConfig().margin_px
+    px = _pixels(rig, T_wc, smap, 1)
+    assert np.all((px > m) & (px < np.array([cam.width, cam.height]) - 1 - m))  # where the polynomial puts it
+    walk, fr = _one_frame(rig)
+    assert [int(smap.ids[row]) for row, _ in _expected(walk, fr, smap, AuditConfig())] == [2]
+
+
+def test_in_view_uses_the_camera_pose_the_accepted_fix_measured():
+    """The camera is turned 10 deg from its nominal mount (the torso's twist and lean in a turn): a
+    sticker inside the image through the mount but outside it through the camera that the frame's
+    accepted fix measured is not in view, and one the other way round is."""
+    rig = default_rig()
+    T_nominal = rig[0].T_body_camera
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_euler("z", 10, degrees=True).as_matrix()
+    T_actual = turn @ T_nominal
+    x_edge = 0.42  # normalised x of a sticker near the image's side edge (0.50 at 1296 px)
+    only_nominal = _floor_point(T_nominal, x_edge, 0.0)
+    only_actual = _floor_point(T_actual, -x_edge, 0.0)
+    assert _camera_x(T_actual, only_nominal) > 0.53 and _camera_x(T_nominal, only_actual) < -0.53
+    centre = _floor_point(T_actual, 0.0, 0.1)
+    smap = StickerMap(np.array([1, 2, 3]), np.array([only_nominal, only_actual, centre]), np.zeros(3))
+    fix = Sighting(0, np.zeros(2), 3, "decoded", in_map=True, accepted=True)
+    fix.T_camera_sticker = invert(T_actual) @ smap.T_world_sticker(3)
+    walk, fr = _one_frame(rig, [fix])
+    assert sorted(int(smap.ids[row]) for row, _ in _expected(walk, fr, smap, AuditConfig())) == [2, 3]
+    # A fix the tracker refused is no measurement of where the camera is: the nominal mount it is.
+    fix.accepted = False
+    assert sorted(int(smap.ids[row]) for row, _ in _expected(walk, fr, smap, AuditConfig())) == [1, 3]
+
+
+def _camera_x(T_world_camera: np.ndarray, xy: np.ndarray) -> float:
+    """Normalised image x of floor point ``xy`` in the camera."""
+    p = invert(T_world_camera) @ np.array([xy[0], xy[1], 0.0, 1.0])
+    return float(p[0] / p[2])
+
+
+REMOVED = 1044  # the sticker taken off the floor in the review's walks
+
+
+@pytest.fixture(scope="module")
+def turning_walks(tmp_path_factory) -> dict:
+    """The review's two 5 s walks (seed 1, 150 and 120 lux) over the strip without sticker 1044: the
+    walk ends in a turn, where the torso leans 6-9 deg, and passes stickers far off the axis."""
+    root = tmp_path_factory.mktemp("turning")
+    truth = strip_site()
+    # Through a map file, as `tagloc simulate --map` reads it: the walk is planned over the map, and
+    # the file's rounding (yaw to 0.001 deg) is enough to plan another one.
+    save_map(without(truth, REMOVED), root / "floor.csv")
+    sessions = []
+    for lux in (150.0, 120.0):
+        path = root / f"lux{lux:.0f}"
+        cfg = SimConfig(seconds=5.0, lux=lux, seed=1, sensor_preset="standard")
+        simulate_session(load_map(root / "floor.csv"), path, cfg, progress=False)
+        sessions.append(path)
+    save_map(truth, root / "strip.csv")
+    smap = load_map(root / "strip.csv")
+    walks = [collect_walk(s, smap, map_path=root / "strip.csv") for s in sessions]
+    return {"root": root, "map": smap, "sessions": sessions, "walks": walks}
+
+
+def test_audit_calls_only_the_removed_sticker_missing(turning_walks):
+    """Before the fold check and the measured camera pose, 1021 (outside the leaning camera's view)
+    and 1025 (58 deg off the axis, folded into the image) were called missing too."""
+    res = audit_walks(turning_walks["walks"], turning_walks["map"])
+    missing = res.of("missing")
+    assert [f.sticker_id for f in missing] == [REMOVED]
+    assert missing[0].passes == 2 and missing[0].frames >= 20  # both walks pass it, ~18 frames each

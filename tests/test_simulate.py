@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 
 from tagloc.cli import main
-from tagloc.core.camera import Camera
+from tagloc.core.camera import Camera, default_camera
 from tagloc.core.errors import InputError
+from tagloc.core.rig import looking_forward
+from tagloc.core.sticker import INNER_CORNERS, OUTER_CORNERS
 from tagloc.core.stickermap import StickerMap, save_map
 from tagloc.io.session import SessionReader
 from tagloc.sim.floor import Floor, FloorConfig
@@ -48,6 +50,20 @@ def aisle_map(rows: int = 3, length_m: float = 12.0, spacing_m: float = 1.5, ais
 
 def small_camera(f: float = 640.0, w: int = 320, h: int = 240, dist: tuple = (0, 0, 0, 0, 0)) -> Camera:
     return Camera(np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]]), np.array(dist, float), w, h)
+
+
+def test_ground_truth_leaves_out_a_sticker_the_lens_folds_into_the_image():
+    """A wide lens (k1 = -0.45, folding at 50 deg off the axis) puts a sticker 50-51 deg to the left
+    onto the image's left side if the polynomial is evaluated there; it is not in view."""
+    cam = Camera(default_camera().K, np.array([-0.45, 0.0, 0.0, 0.0, 0.0]), 1296, 972)
+    T_wc = looking_forward(1.3, 55.0)
+    ray = T_wc[:3, :3] @ np.array([-1.2, 0.2, 1.0])
+    xy = (T_wc[:3, 3] - T_wc[2, 3] / ray[2] * ray)[:2]
+    smap = StickerMap(np.array([7]), xy[None], np.zeros(1))
+    pts = np.vstack([OUTER_CORNERS, INNER_CORNERS]) + [*xy, 0.0]
+    px = cam.project((pts - T_wc[:3, 3]) @ T_wc[:3, :3])
+    assert np.all((px > 0) & (px < (1295, 971)))  # where the folded polynomial puts it
+    assert true_corners(smap, cam, T_wc, 7) is None
 
 
 # -- physics ---------------------------------------------------------------------------------------

@@ -11,7 +11,9 @@ rational_polynomial (e.g. equidistant, a fisheye) is refused, as is an OpenCV fi
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 
 import cv2
@@ -33,6 +35,15 @@ MAX_DISTORTION = 1e4
 # Any other, e.g. equidistant (fisheye k1..k4 of the angle), is a different projection: its
 # coefficients read as OpenCV's move a point 50 degrees off-axis by 155 px (focal length 420 px).
 PINHOLE_MODELS = ("plumb_bob", "rational_polynomial")
+# Points nearer than this in front of the camera (m) are not projected: the pinhole division blows
+# up at the camera's plane, and nothing tagloc looks at (the floor, 1 m and more below the vest) is
+# that close.
+MIN_DEPTH_M = 0.05
+# How far off the optical axis the search for the distortion's fold goes, as tan(angle): 10 is 84
+# deg, beyond any lens tagloc models; a polynomial still growing there is taken never to fold.
+FOLD_SEARCH_MAX = 10.0
+# Steps of that search: 1e-3 in tan(angle) (under 0.06 deg), so the fold is found within a step.
+FOLD_SEARCH_STEPS = 10_000
 
 
 @dataclass
@@ -77,6 +88,29 @@ class Camera:
         img, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), self.K, self.dist)
         return img.reshape(-1, 2)
 
+    def fold_radius(self) -> float:
+        """How far off the optical axis (as tan(angle), the normalised radius) the projection is
+        faithful: where OpenCV's radial distortion stops growing with the angle, or inf if it never
+        does. Beyond it the polynomial folds back towards the image centre, so :meth:`project` puts
+        points far outside the field of view into the image: the default camera's k1 = 0.1,
+        k2 = -0.2 fold at 1.08 (47 deg), and a point 58 deg left of the axis (the half-FOV is 27
+        deg) lands at x = 762 px, right of the centre of the 1296 px image. Radial terms only: the
+        tangential terms of a fitted lens are a small correction where the radial polynomial still
+        grows."""
+        return _fold_radius(tuple(float(d) for d in self.dist))
+
+    def project_in_view(self, points_cam: np.ndarray, min_depth: float = MIN_DEPTH_M) -> np.ndarray | None:
+        """:meth:`project` of camera-frame points (N, 3), or None when any point is nearer than
+        ``min_depth`` in front of the camera (or behind it) or beyond :meth:`fold_radius`, where the
+        pixel it would be given is not where the point is. Points inside the fold radius project
+        faithfully, so testing their pixels against the image's bounds tells whether they are in it."""
+        pts = np.asarray(points_cam, float).reshape(-1, 3)
+        if np.any(pts[:, 2] < min_depth):
+            return None
+        if np.any(np.hypot(pts[:, 0], pts[:, 1]) >= self.fold_radius() * pts[:, 2]):
+            return None
+        return self.project(pts)
+
     def undistort_pixels(self, pixels: np.ndarray) -> np.ndarray:
         """Map distorted pixels (N, 2) to ideal (undistorted) pixels of the same K, (N, 2)."""
         pts = np.asarray(pixels, float).reshape(-1, 1, 2)
@@ -92,6 +126,29 @@ class Camera:
         K[0, 2] = (self.K[0, 2] + 0.5) * factor - 0.5
         K[1, 2] = (self.K[1, 2] + 0.5) * factor - 0.5
         return Camera(K, self.dist.copy(), round(self.width * factor), round(self.height * factor))
+
+
+@lru_cache(maxsize=64)
+def _fold_radius(dist: tuple[float, ...]) -> float:
+    """The first normalised radius where r * radial(r) of OpenCV's model stops increasing (or its
+    rational denominator reaches 0); inf if neither happens up to ``FOLD_SEARCH_MAX``. Cached: the
+    audit and the simulator ask for every sticker of every frame, with one or two lenses."""
+    k = np.zeros(8)
+    radial = [dist[i] for i in (0, 1, 4, 5, 6, 7) if i < len(dist)]  # k1, k2, k3, k4, k5, k6
+    k[: len(radial)] = radial
+    r = np.linspace(0.0, FOLD_SEARCH_MAX, FOLD_SEARCH_STEPS + 1)[1:]
+    r2 = r * r
+    num = 1 + r2 * (k[0] + r2 * (k[1] + r2 * k[2]))
+    den = 1 + r2 * (k[3] + r2 * (k[4] + r2 * k[5]))
+    bad = den <= 0
+    rd = r * num / np.where(bad, 1.0, den)
+    bad[1:] |= np.diff(rd) <= 0
+    bad[0] |= rd[0] <= 0
+    first = int(np.argmax(bad))
+    if not bad[first]:
+        return math.inf
+    # The last radius before the fold (the first sample, if the lens folds at once).
+    return float(r[max(first - 1, 0)])
 
 
 # The focal length (px) of the reference camera (default_camera) for which tagloc's pixel and

@@ -260,16 +260,10 @@ def simulate_walk(smap: StickerMap, config: SimConfig) -> Walk:
 
 
 def _project_corners(camera: Camera, T_world_camera: np.ndarray, pts_world: np.ndarray) -> np.ndarray | None:
-    """Distorted pixels (N, 2) of world points, or None if any is behind or far outside the view."""
+    """Distorted pixels (N, 2) of world points, or None if any is behind or far outside the view
+    (beyond where the distortion polynomial folds back into the image: :meth:`Camera.project_in_view`)."""
     pc = pts_world @ np.linalg.inv(T_world_camera)[:3, :3].T + np.linalg.inv(T_world_camera)[:3, 3]
-    if np.any(pc[:, 2] < 0.05):
-        return None
-    xn = pc[:, :2] / pc[:, 2:]
-    # Far outside the field of view the distortion polynomial folds back into the image.
-    lim = 1.3 * np.array([camera.width, camera.height]) / np.array([camera.fx, camera.fy])
-    if np.any(np.abs(xn) > lim):
-        return None
-    return camera.project(pc)
+    return camera.project_in_view(pc)
 
 
 def visible_stickers(floor: Floor, renderer: Renderer, pose_at, t: float, readout_s: float = 0.0) -> list[dict]:
