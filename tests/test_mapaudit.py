@@ -272,3 +272,40 @@ def test_audit_calls_only_the_removed_sticker_missing(turning_walks):
     missing = res.of("missing")
     assert [f.sticker_id for f in missing] == [REMOVED]
     assert missing[0].passes == 2 and missing[0].frames >= 20  # both walks pass it, ~18 frames each
+
+
+@pytest.mark.parametrize(
+    ("args", "victim", "fragment"),
+    [
+        # The refined map over the survey it refines.
+        (["refine", "S", "--map", "site.csv", "-o", "site.csv"], "site.csv", "-o names one of the inputs"),
+        # The report over the map.
+        (["refine", "S", "--map", "site.csv", "-o", "new.csv", "--report", "site.csv"], "site.csv", "--report names"),
+        # The default report (OUT with .md) over a map that is named so.
+        (["refine", "S", "--map", "site.md", "-o", "site.csv"], "site.md", "the report names one of the inputs"),
+        # The default report over the refined map itself.
+        (["refine", "S", "--map", "site.csv", "-o", "same.md"], "site.csv", "-o is the refined map (a .csv)"),
+        (["refine", "S", "--map", "site.csv", "-o", "a.csv", "--report", "a.csv"], "site.csv", "name the same file"),
+        # Over a session's own files.
+        (["refine", "S", "--map", "site.csv", "-o", "S/map.csv"], "S/map.csv", "-o names one of the inputs"),
+        (["refine", "S", "--map", "site.csv", "-o", "S/frames/x.csv"], "site.csv", "-o names one of the inputs"),
+        # The audit's unmapped.csv (or report) over the map it audits, or over the session's map.csv.
+        (["audit", "S", "--map", "out/unmapped.csv", "-o", "out"], "out/unmapped.csv", "-o (unmapped.csv) names"),
+        (["audit", "S", "-o", "S"], "S/map.csv", None),  # beside the session's files: allowed, nothing named alike
+    ],
+)
+def test_map_outputs_never_overwrite_inputs(tmp_path, capsys, monkeypatch, args, victim, fragment):
+    """Refused before any session is read, one line naming the file; the input is left as it was."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "S" / "frames").mkdir(parents=True)
+    (tmp_path / "out").mkdir()
+    text = "id,x_m,y_m,yaw_deg\n1,0.0,0.0,0.0\n"
+    for name in ("site.csv", "site.md", "S/map.csv", "out/unmapped.csv"):
+        (tmp_path / name).write_text(text)
+    code = main(["map", *args, "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert (tmp_path / victim).read_text() == text
+    if fragment is None:
+        assert code == 2 and "missing camera.yaml" in err[-1]  # went on to read the (empty) session
+        return
+    assert code == 2 and len(err) == 1 and fragment in err[0], err

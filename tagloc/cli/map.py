@@ -90,6 +90,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     r.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
+def _outputs_apart(args: argparse.Namespace, checks, outputs: list[tuple[str, Path]]) -> None:
+    """Refuse outputs that name the same file or one the run reads: the map (``--map``, or the
+    first session's map.csv), a session's own files or its frames."""
+    from tagloc.io.session import FRAMES_DIR, MAP_FILE, SESSION_INPUTS
+
+    smap = args.map if args.map is not None else args.sessions[0] / MAP_FILE
+    inputs = [smap, *(s / name for s in args.sessions for name in SESSION_INPUTS)]
+    checks.outputs_apart(outputs, inputs, [s / FRAMES_DIR for s in args.sessions])
+
+
 def run(args: argparse.Namespace) -> int:
     from tagloc.cli import checks
     from tagloc.sim.mapgen import GridMapConfig, map_info, write_grid_map
@@ -98,24 +108,30 @@ def run(args: argparse.Namespace) -> int:
         print(map_info(args.map))
         return 0
     if args.action == "audit":
-        from tagloc.eval.mapaudit import audit_sessions
+        from tagloc.eval.mapaudit import AUDIT_FILES, audit_sessions
 
         checks.output_dir(args.out, "-o")
+        _outputs_apart(args, checks, [(f"-o ({name})", args.out / name) for name in AUDIT_FILES])
         res = audit_sessions(args.sessions, args.out, args.map, progress=not args.quiet)
         counts = ", ".join(f"{len(res.of(k))} {k}" for k in ("missing", "unmapped", "misplaced", "hard"))
         print(f"{args.out / 'report.md'}: {counts} (of {len(res.map)} mapped stickers, {res.frames} frames)")
         return 0
     if args.action == "refine":
-        from tagloc.eval.maprefine import RefineConfig, refine_sessions
+        from tagloc.eval.maprefine import RefineConfig, default_report, refine_sessions
 
         checks.number(args.sigma_m, "--sigma-m", 0, 100.0, lo_open=True)
         checks.number(args.sigma_deg, "--sigma-deg", 0, 180.0, lo_open=True)
+        if args.out.suffix.lower() == ".md":
+            # The report's default name is OUT with .md: it would be written over the refined map.
+            raise InputError(f"{args.out}: -o is the refined map (a .csv); the Markdown report goes to --report")
         checks.output_file(args.out, "-o")
-        checks.output_file(args.report, "--report")
+        report = args.report if args.report is not None else default_report(args.out)
+        checks.output_file(report, "--report" if args.report is not None else "the report (OUT with .md)")
+        _outputs_apart(args, checks, [("-o", args.out), ("--report" if args.report else "the report", report)])
         cfg = RefineConfig(
             default_sigma_m=args.sigma_m, default_sigma_deg=args.sigma_deg, odometry=not args.no_odometry
         )
-        res = refine_sessions(args.sessions, args.map, args.out, args.report, cfg, progress=not args.quiet)
+        res = refine_sessions(args.sessions, args.map, args.out, report, cfg, progress=not args.quiet)
         moved = [c.sticker_id for c in res.changes if c.moved]
         print(
             f"{args.out}: {len(res.changes)} stickers refined from {res.frames_used} frames"

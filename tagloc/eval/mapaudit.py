@@ -509,6 +509,10 @@ def plot_audit(result: AuditResult, path: str | Path) -> None:
     plt.close(fig)
 
 
+# The files write_audit puts in the output directory (the CLI keeps them apart from the inputs).
+AUDIT_FILES = ("report.md", "floorplan.png", "audit.json", "unmapped.csv")
+
+
 def write_audit(result: AuditResult, out_dir: str | Path, map_name: str) -> Path:
     """Write ``report.md``, ``floorplan.png``, ``audit.json`` and ``unmapped.csv`` (map rows with
     sigma columns, ready to add) to ``out_dir``; returns the report's path."""

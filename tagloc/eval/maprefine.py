@@ -666,6 +666,11 @@ def refine_markdown(result: RefineResult, map_name: str, walks: list[str]) -> st
     return "\n".join(lines) + "\n"
 
 
+def default_report(out: str | Path) -> Path:
+    """Where the report goes when none is named: the refined map's name with ``.md``."""
+    return Path(out).with_suffix(".md")
+
+
 def refine_sessions(
     sessions: list[str | Path],
     map_path: str | Path,
@@ -679,7 +684,7 @@ def refine_sessions(
     smap, map_path, walks = collect_walks(sessions, map_path, progress=progress)
     result = refine_map(walks, smap, config)
     out = Path(out)
-    report = Path(report) if report is not None else out.with_suffix(".md")
+    report = Path(report) if report is not None else default_report(out)
     # The CLI checked that these can be created, missing directories included: create them.
     for path in (out, report):
         path.parent.mkdir(parents=True, exist_ok=True)
