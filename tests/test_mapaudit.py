@@ -9,6 +9,7 @@ floor (missing) and without one that is (unmapped).
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -309,3 +310,40 @@ def test_map_outputs_never_overwrite_inputs(tmp_path, capsys, monkeypatch, args,
         assert code == 2 and "missing camera.yaml" in err[-1]  # went on to read the (empty) session
         return
     assert code == 2 and len(err) == 1 and fragment in err[0], err
+
+
+def test_ids_read_only_while_untracked_are_listed_without_a_position():
+    """A walk that never tracked (here: 100 frames initialising) is unchecked, and the IDs it decoded
+    that the map lacks are still listed as unmapped, without a position; none goes to unmapped.csv."""
+    rig = default_rig()
+    smap = StickerMap(np.array([5, 6]), np.array([[100.0, 100.0], [101.0, 100.0]]), np.zeros(2))
+    frames = []
+    for k in range(100):
+        read = Sighting(0, np.array([600.0, 500.0]), 1000 + k // 50, "decoded", in_map=False)
+        frames.append(FrameRecord(k, k / 30, np.zeros(3), np.eye(3), "initialising", [read]))
+    res = audit_walks([WalkLog(Path("lost"), rig, frames)], smap)
+    assert res.unchecked == ["lost"] and res.walk_tracked == [0] and res.walk_frames == [100]
+    assert [(f.sticker_id, f.frames) for f in res.unplaced] == [(1000, 50), (1001, 50)]
+    assert res.of("unmapped") == res.unplaced and all(math.isnan(f.x) for f in res.unplaced)
+    assert "none tracked: no position" in res.unplaced[0].detail
+
+
+def test_audit_with_another_floors_map_is_refused_not_an_all_clear(site, tmp_path, capsys):
+    """No sticker of the map is on the walked floor: the tracker never tracks, so nothing is checked.
+    Exit 2 and one line saying so, with the IDs the walk read; the report says it at the top."""
+    other = tmp_path / "other.csv"
+    save_map(StickerMap(np.array([5, 6]), np.array([[100.0, 100.0], [101.0, 100.0]]), np.zeros(2)), other)
+    walk = site["sessions"][1]
+    code = main(["map", "audit", str(walk), "--map", str(other), "-o", str(tmp_path / "a"), "--quiet"])
+    out, err = capsys.readouterr()
+    err = err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and out == ""
+    assert f"{tmp_path / 'a' / 'report.md'}: NOT CHECKED: with {other} the tracker hardly tracked walk2" in err[0]
+    assert "(walk2 0 of 240 frames tracked, under 20%)" in err[0] and "IDs the map lacks (10" in err[0]
+    report = (tmp_path / "a" / "report.md").read_text()
+    assert "**NOT CHECKED" in report.split("| class |")[0]  # above the counts
+    doc = json.loads((tmp_path / "a" / "audit.json").read_text())
+    assert doc["unchecked_walks"] == ["walk2"] and doc["walk_tracked_frames"] == [0]
+    assert doc["counts"]["unmapped"] >= 20  # the strip's stickers it read, none with a position
+    assert all(f["x"] is None for f in doc["findings"])
+    assert not (tmp_path / "a" / "unmapped.csv").exists()

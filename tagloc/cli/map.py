@@ -113,8 +113,26 @@ def run(args: argparse.Namespace) -> int:
         checks.output_dir(args.out, "-o")
         _outputs_apart(args, checks, [(f"-o ({name})", args.out / name) for name in AUDIT_FILES])
         res = audit_sessions(args.sessions, args.out, args.map, progress=not args.quiet)
+        report = args.out / "report.md"
+        read = [f.sticker_id for f in res.of("unmapped")]
+        if res.unchecked:
+            # Nothing tracked, nothing checked: every class empty is no all-clear. A refusal (exit 2),
+            # with what the walks did read; the report says the same at its top.
+            seen = (
+                f"they decoded {len(read)} IDs the map lacks ({' '.join(map(str, read[:12]))}"
+                f"{' ...' if len(read) > 12 else ''}): is it this floor's map?"
+                if read
+                else "they decoded no ID the map lacks: too dark, or off the mapped floor?"
+            )
+            raise InputError(
+                f"{report}: NOT CHECKED: with {args.map or args.sessions[0] / 'map.csv'} the tracker hardly"
+                f" tracked {', '.join(res.unchecked)} ({res.unchecked_text()}, under"
+                f" {res.min_tracked_fraction:.0%}); {seen}"
+            )
         counts = ", ".join(f"{len(res.of(k))} {k}" for k in ("missing", "unmapped", "misplaced", "hard"))
-        print(f"{args.out / 'report.md'}: {counts} (of {len(res.map)} mapped stickers, {res.frames} frames)")
+        if res.unplaced:
+            counts += f" ({len(res.unplaced)} unmapped without a position)"
+        print(f"{report}: {counts} (of {len(res.map)} mapped stickers, {res.frames} frames)")
         return 0
     if args.action == "refine":
         from tagloc.eval.maprefine import RefineConfig, default_report, refine_sessions

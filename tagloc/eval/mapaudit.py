@@ -5,7 +5,9 @@ From the walks' sightings (:mod:`tagloc.eval.mapobs`):
 - **missing**: mapped stickers that the tracked pose put fully inside the image and within detection
   range on several passes, never identified and (almost) never detected where they should be;
 - **unmapped**: decoded stickers that are not in the map, placed through the tracked pose and the
-  sticker's pose in the camera, with an uncertainty, ready to add;
+  sticker's pose in the camera, with an uncertainty, ready to add; those decoded only while the
+  track was lost are listed without a position (with the wrong map nothing is ever tracked, and
+  the IDs that the walks read but the map lacks are what shows it);
 - **misplaced**: mapped stickers whose survey prior the joint refinement (:mod:`tagloc.eval.maprefine`)
   rejected: the rest of the walk puts them elsewhere, by the estimated offset;
 - **hard to read**: stickers detected often but decoded far less often than the others (worn, dirty).
@@ -59,6 +61,14 @@ class AuditConfig:
         hard_min_detections: frames with a detection needed before judging readability.
         hard_max_relative_rate: hard to read when the decode rate is below this share of the
             median decode rate of the stickers seen as often (the same walks' blur and light).
+        min_tracked_fraction: a walk with fewer of its frames tracked (as above) than this share
+            checked next to nothing of the map, and the audit says so instead of an all-clear (the
+            CLI exits 2): the map is not this floor's, or the walk was off the mapped floor or
+            too dark to read. A walk on the mapped floor is tracked from its first fixes on:
+            simulated walks were tracked in 100 % of their frames on the 0.4 m strip and 66-97 % on
+            an aisle with stickers 1.5 m apart (the 66 % walk reached its first sticker after
+            3.3 s); with a map of another floor, in none. A fifth leaves room for a walk that
+            starts or strays off the mapped floor.
         refine: the joint refinement that finds misplaced stickers.
     """
 
@@ -72,6 +82,7 @@ class AuditConfig:
     max_missing_detect_fraction: float = 0.1
     hard_min_detections: int = 10
     hard_max_relative_rate: float = 0.4
+    min_tracked_fraction: float = 0.2
     refine: RefineConfig = field(default_factory=RefineConfig)
 
 
@@ -106,7 +117,11 @@ class Finding:
 
 @dataclass
 class AuditResult:
-    """Everything the audit found, and the walks it used."""
+    """Everything the audit found, and the walks it used.
+
+    ``walk_frames``, ``walk_tracked``: per walk, its frames and those tracked well enough to check
+    the map against; ``unchecked``: the walks with too few of those (``min_tracked_fraction``).
+    """
 
     map: StickerMap
     walks: list[str]
@@ -115,9 +130,29 @@ class AuditResult:
     findings: list[Finding]
     refine: RefineResult | None
     trajectories: list[np.ndarray]  # per walk (N, 2) tracked positions used
+    walk_frames: list[int] = field(default_factory=list)
+    walk_tracked: list[int] = field(default_factory=list)
+    unchecked: list[str] = field(default_factory=list)
+    min_tracked_fraction: float = AuditConfig.min_tracked_fraction
 
     def of(self, kind: str) -> list[Finding]:
         return [f for f in self.findings if f.kind == kind]
+
+    @property
+    def unplaced(self) -> list[Finding]:
+        """Unmapped stickers decoded only while the track was lost: IDs without a position."""
+        return [f for f in self.of("unmapped") if not math.isfinite(f.x)]
+
+    def unchecked_text(self) -> str:
+        """What the walks in ``unchecked`` were, in one sentence (empty when there are none)."""
+        if not self.unchecked:
+            return ""
+        per = [
+            f"{name} {k} of {n}"
+            for name, n, k in zip(self.walks, self.walk_frames, self.walk_tracked)
+            if name in self.unchecked
+        ]
+        return ", ".join(per) + " frames tracked"
 
 
 def _tracked(fr: FrameRecord, config: AuditConfig) -> bool:
@@ -190,8 +225,12 @@ def _sticker_in_world(walk: WalkLog, fr: FrameRecord, camera: int, T_camera_stic
 
 def _unmapped(walks: list[WalkLog], smap: StickerMap, config: AuditConfig) -> list[Finding]:
     samples: dict[int, list[tuple[float, str, np.ndarray, float]]] = {}
+    reads: dict[int, list[str]] = {}  # every frame that decoded it, tracked or not
     for walk in walks:
         for fr in walk.frames:
+            for s in fr.sightings:
+                if s.decoded and not s.in_map and s.sticker_id is not None:
+                    reads.setdefault(int(s.sticker_id), []).append(f"{walk.name}:{fr.index}")
             if not _tracked(fr, config):
                 continue
             pos_var = float(np.linalg.eigvalsh(fr.cov[:2, :2]).max())
@@ -226,6 +265,21 @@ def _unmapped(walks: list[WalkLog], smap: StickerMap, config: AuditConfig) -> li
                 frames=len(rows),
                 detail=f"decoded in {len(rows)} frames on {n_pass} passes",
                 evidence=[r[1] for r in rows],
+            )
+        )
+    # Read, but never in a tracked frame: no position to give, but the ID is not in the map (with
+    # the wrong map nothing is tracked, and these IDs are what says so).
+    for sid in sorted(set(reads) - set(samples)):
+        out.append(
+            Finding(
+                "unmapped",
+                sid,
+                math.nan,
+                math.nan,
+                math.nan,
+                frames=len(reads[sid]),
+                detail=f"decoded in {len(reads[sid])} frames, none tracked: no position",
+                evidence=reads[sid],
             )
         )
     return out
@@ -369,14 +423,20 @@ def audit_walks(walks: list[WalkLog], smap: StickerMap, config: AuditConfig | No
     findings = _missing(tally, smap, config) + _unmapped(walks, smap, config) + _misplaced(refined, tally)
     findings += _hard(tally, smap, config)
     trajectories = [np.array([fr.pose[:2] for fr in w.frames if _tracked(fr, config)]).reshape(-1, 2) for w in walks]
+    n_frames = [len(w.frames) for w in walks]
+    n_tracked = [len(t) for t in trajectories]
     return AuditResult(
         smap,
         [w.name for w in walks],
-        sum(len(w.frames) for w in walks),
-        sum(len(t) for t in trajectories),
+        sum(n_frames),
+        sum(n_tracked),
         findings,
         refined,
         trajectories,
+        n_frames,
+        n_tracked,
+        [w.name for w, n, k in zip(walks, n_frames, n_tracked) if k < config.min_tracked_fraction * n],
+        config.min_tracked_fraction,
     )
 
 
@@ -401,6 +461,16 @@ def audit_markdown(result: AuditResult, map_name: str) -> str:
         f"{len(result.walks)} walks ({', '.join(result.walks)}), {result.frames} frames, {result.tracked_frames}"
         f" tracked well enough to check the map against; {len(result.map)} mapped stickers.",
         "",
+    ]
+    if result.unchecked:
+        lines += [
+            f"**NOT CHECKED: the tracker hardly tracked {', '.join(result.unchecked)} with this map"
+            f" ({result.unchecked_text()}, under {result.min_tracked_fraction:.0%}), so nothing was"
+            " checked where they walked, and empty classes below are no all-clear. Is this the map of the"
+            " floor they walked? The unmapped class lists the IDs they decoded that the map lacks.**",
+            "",
+        ]
+    lines += [
         "| class | count | IDs |",
         "|---|---|---|",
     ]
@@ -423,6 +493,9 @@ def audit_markdown(result: AuditResult, map_name: str) -> str:
             lines += ["| id | x m | y m | yaw deg | why | evidence |", "|---|---|---|---|---|---|"]
         for f in fs:
             pos = f"| {f.sticker_id} | {f.x:.3f} | {f.y:.3f} | {math.degrees(f.yaw):.1f} |"
+            if not math.isfinite(f.x):  # decoded only while the track was lost
+                lines.append(f"| {f.sticker_id} | - | - | - | - | - | - | {f.detail}; {_evidence(f.evidence)} |")
+                continue
             if kind in ("unmapped", "misplaced"):
                 off = (
                     ""
@@ -466,7 +539,7 @@ def plot_audit(result: AuditResult, path: str | Path) -> None:
         ax.plot(traj[:, 0], traj[:, 1], lw=0.7, c="tab:cyan", alpha=0.7, label="walks" if k == 0 else None, zorder=1)
     markers = {"missing": "x", "unmapped": "P", "misplaced": "o", "hard": "D"}
     for kind in KIND_TITLES:
-        fs = result.of(kind)
+        fs = [f for f in result.of(kind) if math.isfinite(f.x)]  # the unplaced have no place to mark
         if not fs:
             continue
         xy = np.array([[f.x, f.y] for f in fs])
@@ -515,7 +588,8 @@ AUDIT_FILES = ("report.md", "floorplan.png", "audit.json", "unmapped.csv")
 
 def write_audit(result: AuditResult, out_dir: str | Path, map_name: str) -> Path:
     """Write ``report.md``, ``floorplan.png``, ``audit.json`` and ``unmapped.csv`` (map rows with
-    sigma columns, ready to add) to ``out_dir``; returns the report's path."""
+    sigma columns, ready to add: the unmapped stickers with a position) to ``out_dir``; returns the
+    report's path."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "report.md").write_text(audit_markdown(result, map_name) + "\n", encoding="utf-8")
@@ -525,11 +599,14 @@ def write_audit(result: AuditResult, out_dir: str | Path, map_name: str) -> Path
         "walks": result.walks,
         "frames": result.frames,
         "tracked_frames": result.tracked_frames,
+        "walk_frames": result.walk_frames,
+        "walk_tracked_frames": result.walk_tracked,
+        "unchecked_walks": result.unchecked,
         "counts": {kind: len(result.of(kind)) for kind in KIND_TITLES},
         "findings": [_plain({**asdict(f), "yaw_deg": math.degrees(f.yaw)}) for f in result.findings],
     }
     (out / "audit.json").write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
-    um = result.of("unmapped")
+    um = [f for f in result.of("unmapped") if math.isfinite(f.x)]  # rows need a position
     if um:
         save_map(
             StickerMap(
