@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.sparse import diags
 from scipy.spatial.transform import Rotation
 
 from tagloc.cli import main
@@ -37,7 +38,7 @@ from tagloc.eval.mapbench import (
     without,
 )
 from tagloc.eval.mapobs import FrameRecord, Sighting, WalkLog, collect_walk
-from tagloc.eval.maprefine import RefineConfig, refine_map
+from tagloc.eval.maprefine import RefineConfig, refine_map, refine_markdown
 from tagloc.sim.simulate import SimConfig, simulate_session
 
 
@@ -347,3 +348,63 @@ def test_audit_with_another_floors_map_is_refused_not_an_all_clear(site, tmp_pat
     assert doc["counts"]["unmapped"] >= 20  # the strip's stickers it read, none with a position
     assert all(f["x"] is None for f in doc["findings"])
     assert not (tmp_path / "a" / "unmapped.csv").exists()
+
+
+def _offsets(res) -> tuple[dict[int, float], dict[int, float]]:
+    """Per refined sticker, its distance from its prior (the truth, for an exact map) and sigma_m."""
+    return (
+        {c.sticker_id: math.hypot(*(c.refined[:2] - c.prior[:2])) for c in res.changes},
+        {c.sticker_id: c.sigma_m for c in res.changes},
+    )
+
+
+def test_refine_drops_the_odometry_link_a_turn_contradicts(turning_walks):
+    """The review's case: the exact map (2 cm / 2 deg default priors) refined from a 5 s walk that
+    ends in a turn. 1000, 1001 and 1020 are tied to the rest only by the odometry across the turn,
+    which is off by several sigma; the link's residual is small only because the three stickers
+    moved to absorb it. Before: 2.3-3.2 cm off with 1.0 cm sigmas; now as without the links."""
+    smap, walk = turning_walks["map"], turning_walks["walks"][0]
+    res = refine_map([walk], smap)
+    err, sigma = _offsets(res)
+    assert res.odometry_links > 100 and res.links_dropped >= 1
+    assert max(err[i] for i in (1000, 1001, 1020)) < 0.005
+    assert max(err[i] / sigma[i] for i in err) < 2.0
+    plain, _ = _offsets(refine_map([walk], smap, RefineConfig(odometry=False)))
+    assert rms(np.array(list(err.values()))) < 1.2 * rms(np.array(list(plain.values())))
+    assert "links dropped as inconsistent" in refine_markdown(res, "strip.csv", ["lux150"])
+
+
+def test_covariance_is_scaled_per_residual_class(turning_walks):
+    """Links three times noisier than stated (their residuals tripled) raise the links' variance
+    factor ninefold and weight the link rows down by it, while the corners (generous at 0.5 px)
+    keep the pooled chi-square per DoF under 1: pooled, nothing would have been scaled. The classes'
+    redundancies are those of the dense hat matrix."""
+    from tagloc.eval.maprefine import _build, _class_covariance, _prior_sigma, _Solver
+
+    smap, walk = turning_walks["map"], turning_walks["walks"][0]
+    cfg = RefineConfig()
+    prob = _build([walk], smap, cfg, set())
+    prior = np.column_stack([smap.xy[prob.rows], smap.yaw[prob.rows]])
+    solver = _Solver(prob, prior, _prior_sigma(smap, prob.rows, cfg), cfg)
+    sol = solver.solve(solver.initial(prior))
+    shares = solver.link_shares(sol.jac)
+    # Against the dense hat matrix: each link's share, and each class's redundancy.
+    J = sol.jac.toarray()
+    Hi = np.linalg.inv(J.T @ J)
+    rows = solver.row_classes()
+    Jl = J[rows["links"]].reshape(solver.L, 3, -1)
+    np.testing.assert_allclose(shares, np.einsum("lij,jk,lmk->lim", Jl, Hi, Jl), atol=1e-8)
+    red = solver.redundancy(sol.jac, shares)
+    for name, r in rows.items():
+        assert red[name] == pytest.approx(r.stop - r.start - np.sum((J[r] @ Hi) * J[r]), abs=1e-6)
+    _, base = _class_covariance(solver, sol.fun, sol.jac, shares)
+    fun = sol.fun.copy()
+    fun[rows["links"]] *= 3.0
+    cov, factors = _class_covariance(solver, fun, sol.jac, shares)
+    assert factors["links"] == pytest.approx(9 * base["links"], rel=1e-9) and factors["links"] > 1
+    assert factors["corners"] == pytest.approx(base["corners"], rel=1e-9) and factors["corners"] < 1
+    pooled = float(np.sum(fun**2)) / (len(fun) - J.shape[1])
+    assert pooled < 1
+    scale = np.ones(len(fun))
+    scale[rows["links"]] = 1 / math.sqrt(factors["links"])
+    np.testing.assert_allclose(cov, solver.sticker_covariance(diags(scale) @ sol.jac), rtol=1e-9)

@@ -514,7 +514,8 @@ def audit_markdown(result: AuditResult, map_name: str) -> str:
             "## Refinement behind the misplaced class",
             "",
             f"{r.frames_used} frames with two or more decoded stickers, {r.sightings_used} sightings"
-            f" ({r.sightings_dropped} dropped), {len(r.changes)} stickers refined, RMS corner residual"
+            f" ({r.sightings_dropped} dropped; {r.links_dropped} odometry links dropped),"
+            f" {len(r.changes)} stickers refined, RMS corner residual"
             f" {r.rms_px:.2f} px; seen but never with another sticker (not checked for placement):"
             f" {' '.join(map(str, r.seen_alone)) or 'none'}. {r.note}",
             "",

@@ -22,12 +22,19 @@ poses matter, and both are measured by their stickers' corners in all six degree
 A sticker whose estimate disagrees with its own prior beyond the chi-square bound (it was moved,
 or surveyed badly) loses its prior, the worst first, and the problem is solved again: a 15 cm move
 would otherwise pull every other sticker by 15 cm / N. Sightings that the solution cannot explain
-(RMS reprojection above a bound: a wrong corner) are dropped the same way.
+(RMS reprojection above a bound: a wrong corner) are dropped the same way, and so are odometry
+links whose residual, judged against its own covariance at the solution (Baarda's test: a link
+that alone ties a group of frames to the rest has most of its error absorbed, and shows a small
+residual), exceeds the same chi-square bound: the odometry across a turn can be off by several
+sigma, and on a walk ending in a turn such links put three stickers 3-4 cm off. Not caught: two
+walks over the same turn carry the same odometry error, each link agrees with its twin, none fails,
+and those stickers stay 4 cm off with 1 cm sigmas (see the README's Map maintenance).
 
 The stated uncertainty of each refined sticker is its marginal covariance, from the Gauss-Newton
-information with the camera poses eliminated (Schur complement), scaled up by the residuals'
-chi-square per degree of freedom when that exceeds 1. Stickers not refined are left exactly as they
-were, sigma columns included.
+information with the camera poses eliminated (Schur complement), with each residual class (corners,
+links, priors) weighted down by its own variance factor, its chi-square over its redundancy, where
+that exceeds 1: pooled, the thousands of corners (whose 0.5 px is generous) would hide links
+noisier than stated. Stickers not refined are left exactly as they were, sigma columns included.
 """
 
 from __future__ import annotations
@@ -40,7 +47,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import coo_matrix
+from scipy.sparse import coo_matrix, diags
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import splu
 from scipy.spatial.transform import Rotation
@@ -53,6 +60,24 @@ from tagloc.core.sticker import ALL_CORNERS
 from tagloc.core.stickermap import StickerMap, save_map
 from tagloc.eval.mapobs import FrameRecord, Sighting, WalkLog, collect_walks
 from tagloc.vision.odometry import OdometryConfig, floor_patch
+
+# Solves at most: each but the last drops one sighting, link or prior. The walks measured needed
+# at most 9 (a 5 s walk ending in a turn: 8 links dropped; the refinement benchmark 7, the sparse
+# one 8). The bound keeps odometry that states too small a covariance throughout from being
+# dropped one link per solve for ever: stated 10 times too small on that walk, 19 links went in
+# 20 solves, and the stickers came out as with honest odometry (0.19 against 0.20 cm RMS).
+MAX_ROUNDS = 20
+# A residual class's variance factor (chi-square over redundancy) is estimated only from this much
+# redundancy: one 3-DoF measurement's worth. Below it (no links, every prior rejected) the class
+# keeps its stated sigma.
+MIN_REDUNDANCY = 3.0
+# A link's residual is tested only in directions where it keeps at least this share of its own
+# redundancy: where the solution absorbed more of it, the residual says nothing (and dividing by
+# almost nothing would blow up rounding).
+MIN_LINK_REDUNDANCY = 0.01
+# Links whose shares are computed together (3 rows each against the cameras' LU): 86 links are a
+# (258, 6V) block, 8 MB at the benchmark's 691 frames.
+LINK_CHUNK = 86
 
 
 @dataclass
@@ -69,7 +94,8 @@ class RefineConfig:
             against a line is within a few degrees.
         moved_chi2: a prior whose residual's squared Mahalanobis distance (3 DoF) exceeds this is
             dropped as a moved sticker: 16.27 is the 99.9 % point, so an honest map loses about one
-            prior in a thousand.
+            prior in a thousand. An odometry link is dropped at the same bound (its residual against
+            its own covariance at the solution), so honest odometry loses one link in a thousand.
         max_moved_fraction: at most this share of the refined stickers may lose their prior (with
             more, the map is not a prior worth anchoring to and the result says so).
         max_sighting_rms_px: sightings whose corners the solution misses by more than this RMS (px)
@@ -145,7 +171,10 @@ class RefineResult:
         frames_used, sightings_used, sightings_dropped: problem size; odometry_links: links used
             (frames_linked: of the frames used, those that saw a single sticker, there by a link).
         rms_px: RMS corner residual after the solve; chi2_dof: chi-square per degree of freedom
-            (corners and priors) with ``corner_sigma_px``.
+            (corners, links and priors pooled) with ``corner_sigma_px``.
+        links_dropped: odometry links dropped as inconsistent with the rest.
+        variance_factors: per residual class ("corners", "links", "priors"), its chi-square over
+            its redundancy: 1 when its stated noise is right (NaN: too little redundancy to say).
         solve_s: wall time of the solves, s; evaluations: residual evaluations in all.
         note: why nothing was refined, or a warning (too many moved stickers).
     """
@@ -163,6 +192,8 @@ class RefineResult:
     solve_s: float = 0.0
     evaluations: int = 0
     note: str = ""
+    links_dropped: int = 0
+    variance_factors: dict[str, float] = field(default_factory=dict)
 
 
 def _usable(s: Sighting, config: RefineConfig) -> bool:
@@ -196,6 +227,8 @@ class _Problem:
     patch_q: np.ndarray  # (V, M, 2) nominal floor patch points, body frame, m (defines the apparent pose)
     patch_rays: np.ndarray  # (V, M, 3) those points' rays in the camera through the nominal mount
     single_linked: int  # views that saw one sticker only (there by a link)
+    link_keys: list[tuple[int, int, int, int]]  # (walk, camera, earlier frame, later frame) of each link
+    view_keys: list[tuple[int, int, int]]  # (walk, camera, frame) of each view
 
 
 def _compose(a: np.ndarray, cov_a: np.ndarray, b: np.ndarray, cov_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -267,10 +300,18 @@ def patch_rays(rig_cam: RigCamera, points: int) -> tuple[np.ndarray, np.ndarray]
     return q, pc / pc[:, 2:3]
 
 
-def _build(walks: list[WalkLog], smap: StickerMap, config: RefineConfig, drop: set[tuple[int, int, int]]) -> _Problem:
+def _build(
+    walks: list[WalkLog],
+    smap: StickerMap,
+    config: RefineConfig,
+    drop: set[tuple[int, int, int]],
+    drop_links: set[tuple[int, int, int, int]] = frozenset(),
+) -> _Problem:
     """Views (frame, camera) with two or more usable sightings, or one and an odometry link to
-    another view, minus dropped sightings (walk, frame, slot)."""
+    another view, minus dropped sightings (walk, frame, slot) and dropped links (walk, camera,
+    earlier frame, later frame)."""
     cands: list[tuple[WalkLog, int, list[tuple[int, Sighting]]]] = []
+    cand_key: list[tuple[int, int, int]] = []  # (walk, camera, frame index) of each candidate view
     links: list[tuple[int, int, np.ndarray, np.ndarray]] = []
     for w, walk in enumerate(walks):
         per_cam: dict[int, list[FrameRecord]] = {}
@@ -285,10 +326,12 @@ def _build(walks: list[WalkLog], smap: StickerMap, config: RefineConfig, drop: s
             if sights:
                 is_view.setdefault(fr.camera, {})[len(frames)] = len(cands)
                 cands.append((walk, fr.camera, sights))
+                cand_key.append((w, fr.camera, fr.index))
             frames.append(fr)
         if config.odometry:
             for cam, frames in per_cam.items():
                 links += _links(frames, is_view.get(cam, {}), config.max_link_s)
+    links = [lk for lk in links if (*cand_key[lk[0]], cand_key[lk[1]][2]) not in drop_links]
     # Keep the views that tie two or more stickers together: alone, or through their links.
     n = len(cands)
     edges = np.array([(a, b) for a, b, _, _ in links], np.int64).reshape(-1, 2)
@@ -300,6 +343,7 @@ def _build(walks: list[WalkLog], smap: StickerMap, config: RefineConfig, drop: s
     keep = [v for v in range(n) if len(stickers_of[int(comp[v])]) >= 2]
     renum = {v: k for k, v in enumerate(keep)}
     views = [cands[v] for v in keep]
+    link_keys = [(*cand_key[a], cand_key[b][2]) for a, b, _, _ in links if a in renum and b in renum]
     links = [(renum[a], renum[b], d, c) for a, b, d, c in links if a in renum and b in renum]
     ids = sorted({int(s.sticker_id) for _, _, sights in views for _, s in sights})
     col = {sid: k for k, sid in enumerate(ids)}
@@ -352,6 +396,8 @@ def _build(walks: list[WalkLog], smap: StickerMap, config: RefineConfig, drop: s
         np.array(view_q).reshape(-1, M, 2),
         np.array(view_rays).reshape(-1, M, 3),
         sum(len({s.sticker_id for s in sights}) == 1 for sights in view_sighting),
+        link_keys,
+        [cand_key[v] for v in keep],
     )
 
 
@@ -494,17 +540,88 @@ class _Solver:
             max_nfev=200,
         )
 
-    def sticker_covariance(self, jac) -> np.ndarray:
-        """(S, 3, 3) marginal covariance of each sticker, cameras eliminated (Schur complement)."""
-        V, S = self.V, self.S
+    def row_classes(self) -> dict[str, slice]:
+        """The rows of each residual class in :meth:`residuals`."""
+        n_corner, n_prior = 2 * len(self.p.pt_view), 3 * self.S
+        return {
+            "corners": slice(0, n_corner),
+            "priors": slice(n_corner, n_corner + n_prior),
+            "links": slice(n_corner + n_prior, n_corner + n_prior + 3 * self.L),
+        }
+
+    def _blocks(self, jac):
+        """The Gauss-Newton information split at the cameras: the LU of the cameras' block A,
+        G = A^-1 B and the stickers' full (3S, 3S) marginal covariance (Schur complement)."""
+        V = self.V
         H = (jac.T @ jac).tocsr()
         # The cameras' block is block-diagonal but for the odometry links: a sparse LU solves it.
-        A = H[: 6 * V, : 6 * V].tocsc()
+        lu = splu(H[: 6 * V, : 6 * V].tocsc())
         B = H[: 6 * V, 6 * V :].toarray()
-        C = H[6 * V :, 6 * V :].toarray()
-        schur = C - B.T @ splu(A).solve(B)
-        cov = np.linalg.pinv((schur + schur.T) / 2)
-        return np.stack([cov[3 * k : 3 * k + 3, 3 * k : 3 * k + 3] for k in range(S)]) if S else np.zeros((0, 3, 3))
+        G = lu.solve(B)
+        schur = H[6 * V :, 6 * V :].toarray() - B.T @ G
+        return lu, G, np.linalg.pinv((schur + schur.T) / 2)
+
+    def sticker_covariance(self, jac) -> np.ndarray:
+        """(S, 3, 3) marginal covariance of each sticker, cameras eliminated (Schur complement)."""
+        if not self.S:
+            return np.zeros((0, 3, 3))
+        cov = self._blocks(jac)[2]
+        return np.stack([cov[3 * k : 3 * k + 3, 3 * k : 3 * k + 3] for k in range(self.S)])
+
+    def link_shares(self, jac, blocks=None) -> np.ndarray:
+        """(L, 3, 3) each link's share of the unknowns, J_l H^-1 J_l' (whitened): its residual's own
+        covariance at the solution is I minus it. A link that alone ties a group of frames to the rest
+        has a share near I: the solution absorbs most of its error (small residual, small redundancy).
+
+        With H^-1 split at the cameras (A, B; G = A^-1 B; Sigma the stickers' covariance) and a link's
+        rows touching cameras only: J A^-1 J' + (J G) Sigma (J G)'.
+        """
+        V = self.V
+        if self.L == 0:
+            return np.zeros((0, 3, 3))
+        lu, G, cov = blocks if blocks is not None else self._blocks(jac)
+        J = jac.tocsr()[self.row_classes()["links"], : 6 * V]
+        out = np.empty((self.L, 3, 3))
+        step = 3 * LINK_CHUNK
+        for k in range(0, J.shape[0], step):  # A^-1 against a chunk of links at a time: bounded memory
+            part = J[k : k + step]
+            full = (part @ lu.solve(part.T.toarray())).reshape(-1, 3, part.shape[0] // 3, 3)
+            n = part.shape[0] // 3
+            out[k // 3 : k // 3 + n] = full[np.arange(n), :, np.arange(n), :]
+        M = (J @ G).reshape(self.L, 3, -1)
+        return out + np.einsum("lij,jk,lmk->lim", M, cov, M)
+
+    def link_test(self, x: np.ndarray, shares: np.ndarray) -> np.ndarray:
+        """(L,) each link's residual against its own covariance at the solution, e' (I - share)^-1 e:
+        chi-square with 3 DoF for a link as noisy as stated (Baarda's test). Directions in which the
+        link has under ``MIN_LINK_REDUNDANCY`` of its own redundancy cannot be tested and are left out."""
+        e = self.link_residuals(x)
+        q, U = np.linalg.eigh(np.eye(3)[None] - shares)
+        proj = np.einsum("lji,lj->li", U, e)
+        tested = q > MIN_LINK_REDUNDANCY
+        return np.sum(np.where(tested, proj**2 / np.maximum(q, MIN_LINK_REDUNDANCY), 0.0), axis=1)
+
+    def redundancy(self, jac, link_shares: np.ndarray | None = None) -> dict[str, float]:
+        """Per residual class, its residuals less the share of the unknowns it determines:
+        r_c = n_c - sum over its rows j of j' H^-1 j (the classes' shares add up to the unknowns).
+        chi2_c / r_c is the class's variance factor (Foerstner's variance components): a class
+        whose stated noise is right gives 1 whatever the other classes do. A prior's rows touch
+        its sticker only (share w^2 Sigma_kk); the links' come from :meth:`link_shares`; the corners
+        get the rest.
+        """
+        blocks = self._blocks(jac)
+        cov = blocks[2]
+        if link_shares is None:
+            link_shares = self.link_shares(jac, blocks)
+        n_prior = 3 * int(self.active.sum())
+        w2 = (self.prior_w * self.active[:, None]).ravel() ** 2
+        out = {
+            "priors": n_prior - float(np.sum(w2 * np.diag(cov))),
+            "links": 3 * self.L - float(np.trace(link_shares, axis1=1, axis2=2).sum()),
+        }
+        n_all = 2 * len(self.p.pt_view) + n_prior + 3 * self.L
+        out["corners"] = n_all - (6 * self.V + 3 * self.S) - out["priors"] - out["links"]
+        return out
 
 
 def _prior_sigma(smap: StickerMap, rows: np.ndarray, config: RefineConfig) -> np.ndarray:
@@ -520,20 +637,34 @@ def refine_map(walks: list[WalkLog], smap: StickerMap, config: RefineConfig | No
     ``walks`` were collected with ``smap`` (:func:`tagloc.eval.mapobs.collect_walk`). Returns the
     refined map (unrefined stickers unchanged) and what moved.
     """
+    # One BLAS thread for the solves and for the sparse LU solves of the links' tests and the
+    # covariance: threaded BLAS spinning on a busy machine made one link test 20 times slower
+    # (measured 2.4 s against 0.12 s for 86 links on the sparse benchmark).
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _refine_map(walks, smap, config)
+
+
+def _refine_map(walks: list[WalkLog], smap: StickerMap, config: RefineConfig | None) -> RefineResult:
     config = config or RefineConfig()
     t0 = time.perf_counter()
     result = RefineResult(_copy_map(smap))
     seen = {int(s.sticker_id) for w in walks for fr in w.frames for s in fr.sightings if _usable(s, config)}
     drop: set[tuple[int, int, int]] = set()
+    drop_links: set[tuple[int, int, int, int]] = set()
     x_st: dict[int, np.ndarray] = {}
+    x_views: dict[tuple[int, int, int], np.ndarray] = {}
     moved: set[int] = set()
-    for _ in range(20):  # each round drops at least one sighting or prior; few are ever needed
-        prob = _build(walks, smap, config, drop)
+    for round_ in range(MAX_ROUNDS):
+        prob = _build(walks, smap, config, drop, drop_links)
         if len(prob.ids) == 0:
             result.note = "no frame saw two or more usable (decoded) stickers: nothing to refine"
             result.seen_alone = sorted(seen)
             return result
         prior = np.column_stack([smap.xy[prob.rows], smap.yaw[prob.rows]])
+        # Each round starts where the last one ended: dropping one measurement moves little.
+        for v, key in enumerate(prob.view_keys):
+            if key in x_views:
+                prob.x0_views[v] = x_views[key]
         solver = _Solver(prob, prior, _prior_sigma(smap, prob.rows, config), config)
         solver.active = np.array([int(i) not in moved for i in prob.ids])
         x0_st = np.array([x_st.get(int(i), prior[k]) for k, i in enumerate(prob.ids)])
@@ -541,34 +672,40 @@ def refine_map(walks: list[WalkLog], smap: StickerMap, config: RefineConfig | No
         result.evaluations += int(sol.nfev)
         st = sol.x[6 * solver.V :].reshape(-1, 3)
         x_st = {int(i): st[k] for k, i in enumerate(prob.ids)}
-        # Worst sighting first: a wrong corner set also distorts the stickers near it.
+        x_views = dict(zip(prob.view_keys, solver.views(sol.x)))
         res = solver.corner_residuals(sol.x)
-        per = np.bincount(prob.pt_sighting, np.sum(res**2, axis=1), prob.n_sightings)
-        npts = np.bincount(prob.pt_sighting, minlength=prob.n_sightings)
-        rms = np.sqrt(per / np.maximum(npts, 1))
-        if rms.max() > config.max_sighting_rms_px:
-            bad = int(np.argmax(rms))
-            drop.add(_sighting_key(walks, prob, bad))
-            continue
         d = st - prior
         d[:, 2] = wrap_angle(d[:, 2])
         d2 = np.sum((d * solver.prior_w) ** 2, axis=1)
-        cand = np.flatnonzero(solver.active & (d2 > config.moved_chi2))
-        if len(cand) and len(moved) < config.max_moved_fraction * len(prob.ids):
-            moved.add(int(prob.ids[cand[np.argmax(d2[cand])]]))
-            continue
-        if len(cand):
+        shares = solver.link_shares(sol.jac)
+        worst = _worst(solver, prob, res, d2, solver.link_test(sol.x, shares), moved, config)
+        if worst is None:
+            break
+        if round_ == MAX_ROUNDS - 1:
             result.note = (
-                f"more than {config.max_moved_fraction:.0%} of the stickers disagree with their survey:"
-                " the prior map is too far off to anchor to"
+                f"stopped after {MAX_ROUNDS} solves with measurements still inconsistent with the rest"
+                " (the stated sigmas allow for it)"
             )
-        break
+            break
+        kind, k = worst
+        if kind == "sighting":
+            drop.add(_sighting_key(walks, prob, k))
+        elif kind == "link":
+            drop_links.add(prob.link_keys[k])
+        else:
+            moved.add(int(prob.ids[k]))
+    if not result.note and np.any(solver.active & (d2 > config.moved_chi2)):
+        result.note = (
+            f"more than {config.max_moved_fraction:.0%} of the stickers disagree with their survey:"
+            " the prior map is too far off to anchor to"
+        )
     result.solve_s = time.perf_counter() - t0
     n_res = 2 * len(prob.pt_view) + 3 * int(solver.active.sum()) + 3 * solver.L
     dof = max(n_res - 6 * solver.V - 3 * solver.S, 1)
     result.chi2_dof = float(2 * sol.cost / dof)
     result.rms_px = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
-    cov = solver.sticker_covariance(sol.jac) * max(1.0, result.chi2_dof)
+    cov, result.variance_factors = _class_covariance(solver, sol.fun, sol.jac, shares)
+    result.links_dropped = len(drop_links)
     result.frames_used = solver.V
     result.sightings_used = prob.n_sightings
     result.sightings_dropped = len(drop)
@@ -606,6 +743,69 @@ def refine_map(walks: list[WalkLog], smap: StickerMap, config: RefineConfig | No
     return _reindex(result)
 
 
+def _class_covariance(solver: _Solver, fun: np.ndarray, jac, shares: np.ndarray) -> tuple[np.ndarray, dict[str, float]]:
+    """(S, 3, 3) the stickers' covariance with each residual class (corners, links, priors) weighted
+    down by its own variance factor where that exceeds 1, and the factors (NaN: too little
+    redundancy to estimate one).
+
+    Each class's noise is checked against its own residuals (variance components): the corners'
+    0.5 px is deliberately generous (factor about 0.08 on the simulated walks), and thousands of
+    them pooled with a few hundred links would hide links noisier than stated. None is weighted up:
+    a generous sigma stays generous.
+    """
+    redundancy = solver.redundancy(jac, shares)
+    scale = np.ones(len(fun))
+    factors = {}
+    for name, rows in solver.row_classes().items():
+        r = redundancy[name]
+        factor = float(np.sum(fun[rows] ** 2)) / r if r >= MIN_REDUNDANCY else math.nan
+        factors[name] = factor
+        if math.isfinite(factor) and factor > 1.0:
+            scale[rows] = 1.0 / math.sqrt(factor)
+    return solver.sticker_covariance(diags(scale) @ jac), factors
+
+
+def _worst(
+    solver: _Solver,
+    prob: _Problem,
+    res: np.ndarray,
+    d2: np.ndarray,
+    link_d2: np.ndarray,
+    moved: set[int],
+    config: RefineConfig,
+) -> tuple[str, int] | None:
+    """The measurement to drop next, or None when all are consistent with the solution.
+
+    First a sighting the solution misses by more than ``max_sighting_rms_px`` (a wrong corner set
+    distorts the stickers near it), the worst first. Then, of the odometry links and the survey
+    priors beyond ``moved_chi2`` (3-DoF chi-squares), the larger: a link's residual is judged
+    against its own covariance at the solution, so that a link that alone ties a group of frames
+    to the rest, whose error the solution mostly absorbed, shows it (on a walk ending in a turn,
+    such a link put three stickers 3-4 cm off); a prior's is the change against its survey.
+    Priors only while fewer than ``max_moved_fraction`` of the stickers have lost theirs.
+
+    Returns ("sighting", k), ("link", k) or ("prior", k).
+    """
+    per = np.bincount(prob.pt_sighting, np.sum(res**2, axis=1), prob.n_sightings)
+    npts = np.bincount(prob.pt_sighting, minlength=prob.n_sightings)
+    rms = np.sqrt(per / np.maximum(npts, 1))
+    if len(rms) and rms.max() > config.max_sighting_rms_px:
+        return "sighting", int(np.argmax(rms))
+    cands: list[tuple[float, str, int]] = []
+    if len(link_d2):
+        k = int(np.argmax(link_d2))
+        if link_d2[k] > config.moved_chi2:
+            cands.append((float(link_d2[k]), "link", k))
+    prior_bad = np.flatnonzero(solver.active & (d2 > config.moved_chi2))
+    if len(prior_bad) and len(moved) < config.max_moved_fraction * len(prob.ids):
+        k = int(prior_bad[np.argmax(d2[prior_bad])])
+        cands.append((float(d2[k]), "prior", k))
+    if not cands:
+        return None
+    _, kind, k = max(cands)
+    return kind, k
+
+
 def _sighting_key(walks: list[WalkLog], prob: _Problem, k: int) -> tuple[int, int, int]:
     """(walk, frame, slot) of the problem's ``k``-th sighting."""
     n = 0
@@ -635,6 +835,11 @@ def _reindex(result: RefineResult) -> RefineResult:
     return result
 
 
+def _factors(factors: dict[str, float]) -> str:
+    """The variance factors as "corners 0.08, links 1.21, priors 0.13" (n/a: too little redundancy)."""
+    return ", ".join(f"{k} {v:.2f}" if math.isfinite(v) else f"{k} n/a" for k, v in factors.items()) or "n/a"
+
+
 def refine_markdown(result: RefineResult, map_name: str, walks: list[str]) -> str:
     """What the refinement did, as Markdown: the problem, then every refined sticker, largest move first."""
     moved = [c for c in result.changes if c.moved]
@@ -643,9 +848,10 @@ def refine_markdown(result: RefineResult, map_name: str, walks: list[str]) -> st
         "",
         f"From {len(walks)} walks ({', '.join(walks)}): {result.frames_used} frames with two or more decoded"
         f" stickers or one and a floor-odometry link ({result.frames_linked} such, {result.odometry_links} links),"
-        f" {result.sightings_used} sightings ({result.sightings_dropped} dropped as unexplained),"
-        f" {len(result.changes)} stickers refined, RMS corner residual {result.rms_px:.2f} px"
-        f" (chi-square per DoF {result.chi2_dof:.2f}), {result.solve_s:.1f} s.",
+        f" {result.sightings_used} sightings ({result.sightings_dropped} dropped as unexplained,"
+        f" {result.links_dropped} links dropped as inconsistent), {len(result.changes)} stickers refined,"
+        f" RMS corner residual {result.rms_px:.2f} px (chi-square per DoF {result.chi2_dof:.2f}; per"
+        f" class, against its redundancy: {_factors(result.variance_factors)}), {result.solve_s:.1f} s.",
         f"Moved (survey prior rejected): {' '.join(str(c.sticker_id) for c in moved) or 'none'}."
         f" Seen but never with another sticker, left unchanged: {' '.join(map(str, result.seen_alone)) or 'none'}.",
     ]
