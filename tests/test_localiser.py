@@ -295,3 +295,22 @@ def test_one_array_filled_in_place_is_refused_not_measured(walk):
         out.append(loc.process(Frame(f.index, f.timestamp, buf)))
     assert out[0].skipped is None
     assert all("each frame needs its own" in r.skipped for r in out[1:])
+
+
+def test_a_frozen_camera_ends_as_a_lost_track_not_a_stale_confident_pose(walk):
+    """A driver that keeps re-delivering one buffer: each repeat is skipped as a lost frame, so the
+    pose published for it is carried to its time, its uncertainty grows and the track ends lost,
+    as with unreadable frames (a refusal would have published the last pose, confident, forever)."""
+    session = SessionReader(walk)
+    frames = list(session.frames())[:60]
+    loc = Localiser(session.map, session.rig, exact_map_config())
+    for f in frames:
+        loc.process(f)
+    last = frames[-1]
+    out = [
+        loc.process(Frame(last.index + k, last.timestamp + k / 30, last.image.copy())).output for k in range(1, 301)
+    ]
+    assert [o.t for o in out] == pytest.approx([last.timestamp + k / 30 for k in range(1, 301)])
+    sigma = np.array([np.sqrt(np.trace(o.cov[:2, :2])) for o in out])
+    assert np.all(np.diff(sigma) >= 0) and sigma[-1] > 10 * sigma[0]
+    assert out[-1].state is TrackState.LOST

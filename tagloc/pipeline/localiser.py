@@ -639,9 +639,10 @@ class Localiser:
     def process(self, frame: Frame) -> FrameResult:
         """Run one frame through the pipeline and return what was seen and the pose after it.
 
-        A frame that cannot be this camera's (wrong size), repeats its previous image, or is not
-        after the last frame in time is refused: ``FrameResult.skipped`` says why and the pose is
-        the filter's latest. ``frame.image`` is kept until the camera's next frames (see
+        A frame that cannot be this camera's (wrong size) or is not after the last frame in time is
+        refused: ``FrameResult.skipped`` says why and the pose is the filter's latest. One whose
+        image is unreadable or repeats its camera's previous image is skipped as lost: the filter
+        is carried to its time. ``frame.image`` is kept until the camera's next frames (see
         :class:`~tagloc.core.types.Frame`)."""
         timer = StageTimer()
         t = frame.timestamp
@@ -652,7 +653,7 @@ class Localiser:
             # at the filter's time, so it is fused before the filter moves on.
             with timer("odometry"):
                 self._run_pending_odometry()
-        refused = self._check_size(frame) or self._check_repeat(frame) or self._check_time(frame)
+        refused = self._check_size(frame) or self._check_time(frame)
         if refused:
             # The filter stays where it was: the output is its latest estimate, stamped with its own time.
             self.counts["skipped"] += 1
@@ -662,18 +663,23 @@ class Localiser:
         # Whether this camera's odometry measures this frame (it may skip one while walking
         # straight, see OdometryConfig.max_stride; it cannot read an unreadable one): its next step
         # then starts from its frame before, and the tracker keeps its clone there.
-        odo = self.floor_odometry(frame.camera) if self.config.odometry and frame.image is not None else None
+        # A repeated image is a frame lost as an unreadable one is: the filter is carried to its time
+        # (its uncertainty grows, and a frozen camera ends as a lost track), nothing is measured.
+        repeated = self._check_repeat(frame)
+        readable = frame.image is not None and repeated is None
+        odo = self.floor_odometry(frame.camera) if self.config.odometry and readable else None
         measure = odo is not None and odo.wants(t, self.config.odometry_stride or self.behind)
         if odo is not None and not measure:
             self.counts["odometry_strided"] += 1
         with timer("predict"):
             self.tracker.predict(t, frame.camera, odometry=measure)
         refine = self._flow_needed(frame.camera) if measure else True
-        if frame.image is None:
+        if not readable:
             self.counts["skipped"] += 1
             with timer("output"):
                 out = self.tracker.output(t)
-            return FrameResult(frame.index, t, [], out, timer.finish(), frame.error or "unreadable", frame)
+            why = repeated or frame.error or "unreadable"
+            return FrameResult(frame.index, t, [], out, timer.finish(), why, frame)
         gray = as_gray(frame.image)
         rig_cam = self.rig[frame.camera]
         if self.config.deflicker is not None:
@@ -861,8 +867,9 @@ class Localiser:
         A sensor's noise never gives two equal frames; a driver that re-delivers a buffer (or a
         caller that fills one array in place) does. Measured as a step, such a frame says the
         camera did not move, confidently (one in five frames repeated on a 4 s walk took it from
-        2.3 to 8.3 cm RMSE), so it is refused as a dropped frame is. A few rows are compared first:
-        real frames differ there, and the whole image is compared only when they agree."""
+        2.3 to 8.3 cm RMSE), so it is not measured. A few rows are compared first:
+        real frames differ there, and the whole image is compared only when they agree. Such a
+        frame is then skipped as a lost one (see :meth:`process`)."""
         if frame.image is None:
             return None
         last = self._last_image.get(frame.camera)
