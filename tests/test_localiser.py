@@ -307,9 +307,7 @@ def test_a_frozen_camera_ends_as_a_lost_track_not_a_stale_confident_pose(walk):
     for f in frames:
         loc.process(f)
     last = frames[-1]
-    out = [
-        loc.process(Frame(last.index + k, last.timestamp + k / 30, last.image.copy())).output for k in range(1, 301)
-    ]
+    out = [loc.process(Frame(last.index + k, last.timestamp + k / 30, last.image.copy())).output for k in range(1, 301)]
     assert [o.t for o in out] == pytest.approx([last.timestamp + k / 30 for k in range(1, 301)])
     sigma = np.array([np.sqrt(np.trace(o.cov[:2, :2])) for o in out])
     assert np.all(np.diff(sigma) >= 0) and sigma[-1] > 10 * sigma[0]
