@@ -462,6 +462,22 @@ def test_module_patterns_are_the_ones_verify_id_correlates():
             assert np.array_equal(data_patterns([int(sid)], r)[0], want), (sid, r)
 
 
+def test_rival_scores_are_verify_ids_best_rotation():
+    """``lookalike.best_scores`` (all rivals in one pass) gives each ID's best ``verify_id`` over the
+    four rotations on its distinct modules, as the check scored them one by one."""
+    from tagloc.vision.decode.grid import module_samples
+    from tagloc.vision.decode.lookalike import best_scores
+
+    cam = default_camera()
+    gray, det, _ = synth_case(3, 12867, blur_px=4.0)
+    rect = rectify(gray, det, cam, 200)
+    samples = module_samples(rect, 4)[0]
+    ids = [43247, 38917, 10637, 49787, 12345, 99999, 0, 12866]
+    want = [max(verify_id(rect, i, r, samples=samples, distinct=True) for r in range(4)) for i in ids]
+    assert best_scores(samples, ids) == pytest.approx(want, abs=1e-9)
+    assert best_scores(samples, []).shape == (0,)
+
+
 def test_the_expected_check_never_names_a_look_alike():
     """12867 and 43247 (both on maps/demo.csv, 1.87 m apart) share modules by chance: on a sharp
     raster each scores 0.59-0.65 against the other's, above the check's 0.5. Seen blurred past the

@@ -54,6 +54,7 @@ from tagloc.vision.decode.backends import read_grid, read_libdmtx, read_zxing_wh
 from tagloc.vision.decode.blur import blur_estimate, blur_extent
 from tagloc.vision.decode.config import DecodeConfig, DecodeResult
 from tagloc.vision.decode.grid import LONE_LIBDMTX, RASTER_PX, Symbol, module_samples
+from tagloc.vision.decode.lookalike import best_scores
 from tagloc.vision.decode.lsq import module_estimates, read_lsq
 from tagloc.vision.decode.verify import combine_reads, verify_id
 from tagloc.vision.image import require_gray
@@ -189,10 +190,12 @@ def _check_expected(
         return False
     # A look-alike seen where the expected sticker should be scores about their modules'
     # correlation (up to ~0.65) against the expected one; seen itself, it scores higher still.
-    for rival in dict.fromkeys(int(i) for i in sticker_ids[1:] if int(i) != sticker_id):
-        other = max(verify_id(rect, rival, r, samples=samples, distinct=True) for r in range(4))
-        if scores[best] - other < config.expected_min_margin:
-            result.rival = rival
+    rivals = list(dict.fromkeys(int(i) for i in sticker_ids[1:] if int(i) != sticker_id))
+    if rivals:
+        others = best_scores(samples, rivals)
+        worst = int(np.argmax(others))
+        if scores[best] - others[worst] < config.expected_min_margin:
+            result.rival = rivals[worst]
             return False
     result.sticker_id, result.rotation, result.stage = int(sticker_id), best, "expected"
     result.verify_score, result.rejected = float(min(scores[best], whole)), None

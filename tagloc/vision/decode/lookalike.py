@@ -105,3 +105,23 @@ class LookAlikes:
         out = [int(self.ids[k]) for k in found[np.argsort(-best[found])]]
         self._rivals[sid] = out
         return out
+
+
+def best_scores(samples: np.ndarray, sticker_ids: Iterable[int]) -> np.ndarray:
+    """(k,) each ID's best :func:`~tagloc.vision.decode.verify.verify_id` over the four rotations on
+    the modules that tell it from its decade (``distinct``), from the raster's module ``samples``
+    (4, 10, 10): the same numbers, for many IDs at once (their patterns gathered from the stickers'
+    grids, not rendered and sampled one rotation at a time)."""
+    ids = [int(i) for i in sticker_ids]
+    if not ids:
+        return np.zeros(0)
+    v = np.asarray(samples, np.float64)[:, 1:-1, 1:-1].ravel()
+    best = np.full(len(ids), -np.inf)
+    for r in range(4):
+        keep = ~_decade_shared(r).ravel()
+        vk = v[keep] - v[keep].mean()
+        e = data_patterns(ids, r)[:, keep].astype(np.float64)
+        e -= e.mean(axis=1, keepdims=True)
+        scores = (e @ vk) / (np.linalg.norm(vk) * np.linalg.norm(e, axis=1) + 1e-9)
+        best = np.maximum(best, scores)
+    return best
