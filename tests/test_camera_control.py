@@ -356,3 +356,27 @@ def test_live_gives_each_camera_its_rig_cameras_read_out_and_offset(tmp_path, v4
     src = open_source("0")
     run_live(LiveConfig(source="0", max_frames=2), localiser=loc, source=src)
     assert (src.readout_s, src.stamp_offset_s) == (0.025, -0.031)
+
+
+def test_picamera2_without_sensor_timestamps_falls_back_to_grab_time(monkeypatch):
+    """A request without ``SensorTimestamp`` is stamped when grabbed (as a grab stamp), not at one
+    time plus microsecond steps; the source says so in its clock."""
+    import time as _time
+
+    def get_metadata(self):
+        return {"ExposureTime": 4000}
+
+    monkeypatch.setitem(sys.modules, "picamera2", types.SimpleNamespace(Picamera2=FakePicamera2))
+    monkeypatch.setattr(FakeRequest, "get_metadata", get_metadata)
+    src = open_source("picam")
+    src.set_timing(0.020)
+    frames = []
+    for _ in range(3):
+        before = _time.time()
+        frames.append((before, src.read()))
+        _time.sleep(0.02)
+    assert src.clock.startswith("grab") and src.stamp_at == capture.STAMP_GRAB
+    for before, f in frames:  # grab time - 10 ms (half the read-out) - 2 ms (half the exposure)
+        assert f.timestamp - before == pytest.approx(-0.012, abs=5e-3)
+    assert np.diff([f.timestamp for _, f in frames]).min() > 0.015
+    src.close()

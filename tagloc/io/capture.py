@@ -413,17 +413,24 @@ class PiCamera2Source(FrameSource):
         self._metadata = md
         h = self._size[1]
         image = np.ascontiguousarray(yuv[:h]) if yuv is not None and yuv.size else None
-        sensor_s = float(md.get("SensorTimestamp", 0)) * 1e-9
-        if self._offset is None:
-            now = time.monotonic()
-            if 0.0 <= now - sensor_s < _MAX_DRIVER_LAG_S:
-                self._offset = time.time() - now
-                self.stamp_at = STAMP_FRAME_START
-            else:  # not the monotonic clock: aligned to this frame's arrival, and read as a grab stamp
-                self._offset = time.time() - sensor_s
-                self.stamp_at = STAMP_GRAB
+        sensor_s = float(md.get("SensorTimestamp") or 0) * 1e-9
+        if sensor_s <= 0.0 or self.clock.startswith("grab"):
+            # No sensor stamp: grab time from then on (never mixed back in), as for a camera whose
+            # driver stamps nothing.
+            self.clock, self.stamp_at = "grab (no SensorTimestamp)", STAMP_GRAB
+            raw = time.time()
+        else:
+            if self._offset is None:
+                now = time.monotonic()
+                if 0.0 <= now - sensor_s < _MAX_DRIVER_LAG_S:
+                    self._offset = time.time() - now
+                    self.stamp_at = STAMP_FRAME_START
+                else:  # not the monotonic clock: aligned to this frame's arrival, and read as a grab stamp
+                    self._offset = time.time() - sensor_s
+                    self.stamp_at = STAMP_GRAB
+            raw = sensor_s + self._offset
         exposure = float(md.get("ExposureTime", 0) or 0) * 1e-6
-        stamp = self._frame_time(sensor_s + self._offset, exposure)
+        stamp = self._frame_time(raw, exposure)
         stamp = max(stamp, self._last_stamp + 1e-6)
         self._last_stamp = stamp
         error = None if image is not None else f"frame {self._index}: empty frame"
