@@ -450,15 +450,17 @@ def test_the_expected_id_names_an_unread_sticker_and_no_other_id_is_named():
     assert decode(gray, det, cam, expected=expect(52817)).stage in ("zxing", "grid") and not asked
 
 
-def test_module_patterns_are_the_ones_verify_id_correlates():
-    """``lookalike.data_patterns`` (sampled straight from the sticker's exact grid, for a whole map at
-    once) equals ``verify_id``'s own expected modules in every rotation."""
-    from tagloc.vision.decode.lookalike import data_patterns
-    from tagloc.vision.decode.verify import _expected_dark
+def test_module_patterns_are_the_ones_a_sharp_rasters_samples_read():
+    """``verify.data_patterns`` (gathered from the exact render at the module centres, many IDs at
+    once; ``verify_id``'s expected modules are these) equals the render turned by the rotation and
+    sampled as a raster is (``module_samples``), in every rotation."""
+    from tagloc.vision.decode.grid import module_samples
+    from tagloc.vision.decode.verify import data_patterns
 
     for sid in np.random.default_rng(5).integers(0, 100000, 12):
         for r in range(4):
-            want = np.where(_expected_dark(int(sid), r).ravel(), -1, 1)
+            ref = np.ascontiguousarray(np.rot90(render_sticker(int(sid), 200), -r))
+            want = np.where(module_samples(ref)[0][:, 1:-1, 1:-1].ravel() < 128, -1, 1)
             assert np.array_equal(data_patterns([int(sid)], r)[0], want), (sid, r)
 
 

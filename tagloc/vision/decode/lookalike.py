@@ -10,41 +10,19 @@ then named as the look-alike. So the check also scores the expected ID's look-al
 (:class:`LookAlikes`) and names the sticker only when it leads every one of them.
 
 Patterns are ±1 vectors of the 256 interior data modules in the raster's orientation (dark -1),
-exactly the modules :func:`tagloc.vision.decode.verify.verify_id` correlates.
+exactly the modules :func:`tagloc.vision.decode.verify.verify_id` correlates
+(:func:`~tagloc.vision.decode.verify.data_patterns`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable
-from functools import lru_cache
 
 import numpy as np
 
-from tagloc.core.sticker import _sticker_grid
-from tagloc.vision.decode.grid import MODULE_PX, QUAD_ORIGIN, RASTER_PX
-from tagloc.vision.decode.verify import _decade_shared
+from tagloc.vision.decode.verify import _decade_shared, data_patterns
 
-__all__ = ["LookAlikes", "data_patterns"]
-
-
-@lru_cache(maxsize=4)
-def _sample_index(rotation: int) -> np.ndarray:
-    """(256,) flat indices into the sticker's exact 200 x 200 grid of the interior data modules'
-    centres as the raster turned by ``rotation`` shows them (quadrant-major, as ``verify_id``)."""
-    idx = np.rot90(np.arange(RASTER_PX * RASTER_PX).reshape(RASTER_PX, RASTER_PX), -rotation)
-    centres = MODULE_PX + MODULE_PX // 2 + MODULE_PX * np.arange(1, 9)  # interior rows/cols 1..8
-    out = [idx[r0 + centres[:, None], c0 + centres[None, :]].ravel() for r0, c0 in QUAD_ORIGIN]
-    return np.concatenate(out)
-
-
-def data_patterns(sticker_ids: Iterable[int], rotation: int = 0) -> np.ndarray:
-    """(N, 256) int8 data-module patterns (-1 dark, +1 light) of the IDs at ``rotation``."""
-    index = _sample_index(rotation)
-    ids = list(sticker_ids)
-    out = np.empty((len(ids), index.size), np.int8)
-    for k, sid in enumerate(ids):
-        out[k] = np.where(_sticker_grid(int(sid)).ravel()[index] < 128, -1, 1)
-    return out
+__all__ = ["LookAlikes", "best_scores"]
 
 
 class LookAlikes:
@@ -110,8 +88,7 @@ class LookAlikes:
 def best_scores(samples: np.ndarray, sticker_ids: Iterable[int]) -> np.ndarray:
     """(k,) each ID's best :func:`~tagloc.vision.decode.verify.verify_id` over the four rotations on
     the modules that tell it from its decade (``distinct``), from the raster's module ``samples``
-    (4, 10, 10): the same numbers, for many IDs at once (their patterns gathered from the stickers'
-    grids, not rendered and sampled one rotation at a time)."""
+    (4, 10, 10): the same numbers, for many IDs at once."""
     ids = [int(i) for i in sticker_ids]
     if not ids:
         return np.zeros(0)

@@ -9,7 +9,7 @@ import numpy as np
 
 from tagloc.core.sticker import parse_payload, render_sticker
 from tagloc.vision.decode.config import DecodeConfig
-from tagloc.vision.decode.grid import LONE_LIBDMTX, RASTER_PX, Symbol, module_samples
+from tagloc.vision.decode.grid import LONE_LIBDMTX, MODULE_PX, QUAD_ORIGIN, RASTER_PX, Symbol, module_samples
 
 
 def combine_reads(
@@ -42,11 +42,32 @@ def combine_reads(
     return sid, rot, None
 
 
+@lru_cache(maxsize=4)
+def _sample_index(rotation: int) -> np.ndarray:
+    """(256,) flat indices into a sticker's exact render at ``RASTER_PX`` of its interior data
+    modules' centres as the raster turned by ``rotation`` shows them (the canonical top-left at
+    raster corner ``rotation``), quadrant-major as :func:`module_samples` orders them: the render is
+    exact there, so these pixels are the modules a sharp raster's samples read."""
+    idx = np.rot90(np.arange(RASTER_PX * RASTER_PX).reshape(RASTER_PX, RASTER_PX), -rotation)
+    centres = MODULE_PX + MODULE_PX // 2 + MODULE_PX * np.arange(1, 9)  # interior rows/cols 1..8
+    return np.concatenate([idx[r0 + centres[:, None], c0 + centres[None, :]].ravel() for r0, c0 in QUAD_ORIGIN])
+
+
+def data_patterns(sticker_ids: Iterable[int], rotation: int = 0) -> np.ndarray:
+    """(N, 256) int8 data-module patterns (-1 dark, +1 light) of the IDs at ``rotation``, in the
+    order :func:`verify_id` correlates them."""
+    index = _sample_index(rotation)
+    ids = list(sticker_ids)
+    out = np.empty((len(ids), index.size), np.int8)
+    for k, sid in enumerate(ids):
+        out[k] = np.where(render_sticker(int(sid), RASTER_PX).ravel()[index] < 128, -1, 1)
+    return out
+
+
 @lru_cache(maxsize=256)
 def _expected_dark(sticker_id: int, rotation: int) -> np.ndarray:
     """(4, 8, 8) bool: interior modules of the raster quadrants for this ID and rotation."""
-    ref = np.rot90(render_sticker(sticker_id, RASTER_PX), -rotation)  # canonical TL goes to raster corner r
-    return module_samples(np.ascontiguousarray(ref))[0][:, 1:-1, 1:-1] < 128
+    return (data_patterns([sticker_id], rotation)[0] < 0).reshape(4, 8, 8)
 
 
 # IDs whose decades show which modules a decade shares (any IDs do: the placement is fixed).
