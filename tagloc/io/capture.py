@@ -165,6 +165,17 @@ def frame_time(
     return stamp
 
 
+def _driver_clock(driver_s: float, now: float, epoch_offset: float) -> tuple[float, str]:
+    """(seconds putting a driver's stamps on the epoch, where they sit in the frame: see
+    :func:`frame_time`) from its first stamp ``driver_s`` (s), read at monotonic time ``now``, with
+    ``epoch_offset`` the epoch less the monotonic clock. A stamp on the monotonic clock (younger than
+    ``_MAX_DRIVER_LAG_S``) marks the frame's start and moves to the epoch as the clock does; one on
+    another clock is aligned to now, as a grab stamp."""
+    if 0.0 <= now - driver_s < _MAX_DRIVER_LAG_S:
+        return epoch_offset, STAMP_FRAME_START
+    return now + epoch_offset - driver_s, STAMP_GRAB
+
+
 class FrameSource:
     """A source of greyscale frames. ``read()`` returns a frame (image None if corrupt) or None at the end."""
 
@@ -175,6 +186,7 @@ class FrameSource:
     stamp_at = STAMP_FRAME  # where the raw stamps sit in the frame (see frame_time)
     readout_s = 0.0  # the rig camera's read-out and stamp offset (set_timing)
     stamp_offset_s: float | None = None
+    _last_stamp = -math.inf  # the last frame time a live source gave
 
     def set_timing(self, readout_s: float, stamp_offset_s: float | None = None) -> None:
         """Convert this camera's stamps to frame times with its rig camera's read-out (s) and, when
@@ -187,6 +199,13 @@ class FrameSource:
         if not self.live:
             return stamp
         return frame_time(stamp, self.stamp_at, self.readout_s, exposure_s, self.stamp_offset_s)
+
+    def _live_stamp(self, raw: float, exposure_s: float = 0.0) -> float:
+        """A live source's ``raw`` stamp (where ``stamp_at`` says) as a frame time, never before the
+        last one it gave (1 us after it at least: a switch of clocks must not step back)."""
+        stamp = max(self._frame_time(raw, exposure_s), self._last_stamp + 1e-6)
+        self._last_stamp = stamp
+        return stamp
 
     def read(self) -> Frame | None:
         raise NotImplementedError
@@ -240,7 +259,6 @@ class VideoSource(FrameSource):
         self._requested: CameraSettings | None = None
         self._driver_offset = 0.0  # epoch - driver clock, fixed at the first frame
         self._last_driver = -math.inf
-        self._last_stamp = -math.inf
 
     def apply_settings(self, settings: CameraSettings) -> None:
         """Set resolution, frame rate, manual exposure and gain through OpenCV's capture properties."""
@@ -293,33 +311,22 @@ class VideoSource(FrameSource):
         if not self.live:
             return self._index / self.fps
         now = time.monotonic()
-        grab = now + self._epoch_offset
-        stamp, stamp_at = grab, STAMP_GRAB
+        raw = now + self._epoch_offset  # the grab time
         if self.clock == "driver":
             driver_s = float(self._cap.get(cv2.CAP_PROP_POS_MSEC) or 0.0) * 1e-3
             if driver_s > self._last_driver:
                 self._last_driver = driver_s
-                stamp, stamp_at = driver_s + self._driver_offset, self.stamp_at
+                raw = driver_s + self._driver_offset
             else:
-                self.clock = "grab (driver clock stopped rising)"
-                self.stamp_at = STAMP_GRAB
+                self.clock, self.stamp_at = "grab (driver clock stopped rising)", STAMP_GRAB
         elif self.clock == "grab" and self._index == 0:
             driver_s = float(self._cap.get(cv2.CAP_PROP_POS_MSEC) or 0.0) * 1e-3
             if driver_s > 0:  # the driver stamps its buffers: use that clock from now on
-                self._last_driver = driver_s
-                self.clock = "driver"
-                if 0.0 <= now - driver_s < _MAX_DRIVER_LAG_S:
-                    # V4L2 stamps buffers on the monotonic clock at the frame's start.
-                    self._driver_offset = self._epoch_offset
-                    self.stamp_at = STAMP_FRAME_START
-                else:  # another clock: aligned to this grab, and read as one
-                    self._driver_offset = grab - driver_s
-                stamp, stamp_at = driver_s + self._driver_offset, self.stamp_at
+                self._last_driver, self.clock = driver_s, "driver"
+                self._driver_offset, self.stamp_at = _driver_clock(driver_s, now, self._epoch_offset)
+                raw = driver_s + self._driver_offset
         exposure = self._requested.exposure_ms * 1e-3 if self._requested and self._requested.exposure_ms else 0.0
-        stamp = frame_time(stamp, stamp_at, self.readout_s, exposure, self.stamp_offset_s)
-        stamp = max(stamp, self._last_stamp + 1e-6)
-        self._last_stamp = stamp
-        return stamp
+        return self._live_stamp(raw, exposure)
 
     def read(self) -> Frame | None:
         while True:
@@ -397,7 +404,6 @@ class PiCamera2Source(FrameSource):
         self.fps = float(settings.fps or 30.0)
         self._index = 0
         self._offset: float | None = None
-        self._last_stamp = -math.inf
         self._metadata: dict = {}
 
     def apply_settings(self, settings: CameraSettings) -> None:
@@ -422,17 +428,9 @@ class PiCamera2Source(FrameSource):
         else:
             if self._offset is None:
                 now = time.monotonic()
-                if 0.0 <= now - sensor_s < _MAX_DRIVER_LAG_S:
-                    self._offset = time.time() - now
-                    self.stamp_at = STAMP_FRAME_START
-                else:  # not the monotonic clock: aligned to this frame's arrival, and read as a grab stamp
-                    self._offset = time.time() - sensor_s
-                    self.stamp_at = STAMP_GRAB
+                self._offset, self.stamp_at = _driver_clock(sensor_s, now, time.time() - now)
             raw = sensor_s + self._offset
-        exposure = float(md.get("ExposureTime", 0) or 0) * 1e-6
-        stamp = self._frame_time(raw, exposure)
-        stamp = max(stamp, self._last_stamp + 1e-6)
-        self._last_stamp = stamp
+        stamp = self._live_stamp(raw, float(md.get("ExposureTime", 0) or 0) * 1e-6)
         error = None if image is not None else f"frame {self._index}: empty frame"
         frame = Frame(self._index, stamp, image, error=error)
         self._index += 1
