@@ -21,7 +21,7 @@ class Frame:
         timestamp: seconds (the session's clock, not wall time).
         image: (H, W) uint8 greyscale, or None when the frame could not be read. Each frame its own
             array, left unchanged once handed over: the localiser keeps the last ones (the floor
-            odometry's previous frame) and refuses an array it was given before.
+            odometry's previous frame) and skips an array it was given before.
         camera: index of the rig camera that took it.
         error: why ``image`` is None.
     """

@@ -862,7 +862,7 @@ class Localiser:
         return None if now is None else now - tr.predicted_px
 
     def _check_repeat(self, frame: Frame) -> str | None:
-        """Why the frame is refused as its camera's previous image over again, or None.
+        """Why the frame is skipped as its camera's previous image over again, or None.
 
         A sensor's noise never gives two equal frames; a driver that re-delivers a buffer (or a
         caller that fills one array in place) does. Measured as a step, such a frame says the
