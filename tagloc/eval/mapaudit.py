@@ -132,11 +132,16 @@ class AuditResult:
     trajectories: list[np.ndarray]  # per walk (N, 2) tracked positions used
     walk_frames: list[int] = field(default_factory=list)
     walk_tracked: list[int] = field(default_factory=list)
-    unchecked: list[str] = field(default_factory=list)
     min_tracked_fraction: float = AuditConfig.min_tracked_fraction
 
     def of(self, kind: str) -> list[Finding]:
         return [f for f in self.findings if f.kind == kind]
+
+    @property
+    def unchecked(self) -> list[str]:
+        """The walks tracked in under ``min_tracked_fraction`` of their frames."""
+        per = zip(self.walks, self.walk_frames, self.walk_tracked)
+        return [name for name, n, k in per if k < self.min_tracked_fraction * n]
 
     @property
     def unplaced(self) -> list[Finding]:
@@ -435,7 +440,6 @@ def audit_walks(walks: list[WalkLog], smap: StickerMap, config: AuditConfig | No
         trajectories,
         n_frames,
         n_tracked,
-        [w.name for w, n, k in zip(walks, n_frames, n_tracked) if k < config.min_tracked_fraction * n],
         config.min_tracked_fraction,
     )
 
