@@ -601,7 +601,7 @@ class _Solver:
         tested = q > MIN_LINK_REDUNDANCY
         return np.sum(np.where(tested, proj**2 / np.maximum(q, MIN_LINK_REDUNDANCY), 0.0), axis=1)
 
-    def redundancy(self, jac, link_shares: np.ndarray | None = None) -> dict[str, float]:
+    def redundancy(self, jac, link_shares: np.ndarray | None = None, blocks=None) -> dict[str, float]:
         """Per residual class, its residuals less the share of the unknowns it determines:
         r_c = n_c - sum over its rows j of j' H^-1 j (the classes' shares add up to the unknowns).
         chi2_c / r_c is the class's variance factor (Foerstner's variance components): a class
@@ -609,7 +609,7 @@ class _Solver:
         its sticker only (share w^2 Sigma_kk); the links' come from :meth:`link_shares`; the corners
         get the rest.
         """
-        blocks = self._blocks(jac)
+        blocks = blocks if blocks is not None else self._blocks(jac)
         cov = blocks[2]
         if link_shares is None:
             link_shares = self.link_shares(jac, blocks)
@@ -677,7 +677,10 @@ def _refine_map(walks: list[WalkLog], smap: StickerMap, config: RefineConfig | N
         d = st - prior
         d[:, 2] = wrap_angle(d[:, 2])
         d2 = np.sum((d * solver.prior_w) ** 2, axis=1)
-        shares = solver.link_shares(sol.jac)
+        # The split information serves the link test here and, after the last solve, the classes'
+        # redundancy (_class_covariance): one LU and Schur complement per solve.
+        blocks = solver._blocks(sol.jac)
+        shares = solver.link_shares(sol.jac, blocks)
         worst = _worst(solver, prob, res, d2, solver.link_test(sol.x, shares), moved, config)
         if worst is None:
             break
@@ -704,7 +707,7 @@ def _refine_map(walks: list[WalkLog], smap: StickerMap, config: RefineConfig | N
     dof = max(n_res - 6 * solver.V - 3 * solver.S, 1)
     result.chi2_dof = float(2 * sol.cost / dof)
     result.rms_px = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
-    cov, result.variance_factors = _class_covariance(solver, sol.fun, sol.jac, shares)
+    cov, result.variance_factors = _class_covariance(solver, sol.fun, sol.jac, shares, blocks)
     result.links_dropped = len(drop_links)
     result.frames_used = solver.V
     result.sightings_used = prob.n_sightings
@@ -743,7 +746,9 @@ def _refine_map(walks: list[WalkLog], smap: StickerMap, config: RefineConfig | N
     return _reindex(result)
 
 
-def _class_covariance(solver: _Solver, fun: np.ndarray, jac, shares: np.ndarray) -> tuple[np.ndarray, dict[str, float]]:
+def _class_covariance(
+    solver: _Solver, fun: np.ndarray, jac, shares: np.ndarray, blocks=None
+) -> tuple[np.ndarray, dict[str, float]]:
     """(S, 3, 3) the stickers' covariance with each residual class (corners, links, priors) weighted
     down by its own variance factor where that exceeds 1, and the factors (NaN: too little
     redundancy to estimate one).
@@ -753,7 +758,7 @@ def _class_covariance(solver: _Solver, fun: np.ndarray, jac, shares: np.ndarray)
     them pooled with a few hundred links would hide links noisier than stated. None is weighted up:
     a generous sigma stays generous.
     """
-    redundancy = solver.redundancy(jac, shares)
+    redundancy = solver.redundancy(jac, shares, blocks)
     scale = np.ones(len(fun))
     factors = {}
     for name, rows in solver.row_classes().items():
