@@ -426,6 +426,59 @@ def test_the_flow_is_skipped_only_where_read_fixes_place_the_frames(stop_walk):
     assert m[True]["nees_mean"] < 6.0
 
 
+@pytest.fixture(scope="module")
+def dense_walk(tmp_path_factory) -> Path:
+    """A 4 s walk over stickers 0.7-0.9 m apart (two to four in view), 200 lux, pitch 55 degrees."""
+    path = tmp_path_factory.mktemp("odo") / "dense"
+    smap = grid_map(
+        GridMapConfig(width_m=10, depth_m=8, aisle_spacing_m=0.9, spacing_min_m=0.7, spacing_max_m=0.9, seed=3)
+    )
+    simulate_session(smap, path, SimConfig(seconds=4, lux=200, speed_mps=1.2, seed=5, pitch_deg=55.0), progress=False)
+    return path
+
+
+def _read_fixed(res) -> int:
+    """Stickers the frame read (decoded, checked or carried) whose fixes were accepted."""
+    return len(
+        {
+            o.identity.sticker_id
+            for o in res.observations
+            if o.identity is not None
+            and o.identity.source in (IdSource.DECODED, IdSource.CHECKED)
+            and o.fix is not None
+            and o.fix.accepted is True
+        }
+    )
+
+
+def test_the_flow_is_skipped_only_after_frames_placed_by_two_read_fixes(dense_walk):
+    """skip_flow_min_fixes 2: the flow is left out only after a frame that two read fixes placed, and
+    the track stays as good as with the flow on every frame."""
+    session = SessionReader(dense_walk)
+    gt = session.groundtruth()
+    m, skipped_after = {}, {}
+    for need in (0, 2):
+        loc = Localiser(session.map, session.rig, LocaliserConfig(skip_flow_min_fixes=need), map_path=session.map_path)
+        outputs, after, placed_before = [], [], None
+        for frame in session.frames():
+            flows = loc.counts["flow_skipped"]
+            res = loc.process(frame)
+            if loc.counts["flow_skipped"] > flows:
+                after.append(placed_before)
+            placed_before = _read_fixed(res)
+            if res.output.state is not TrackState.INITIALISING:
+                outputs.append((res.timestamp, res.output.pose, res.output.cov))
+        skipped_after[need] = after
+        stamps, poses, covs = (np.array(a, float) for a in zip(*outputs))
+        m[need] = trajectory_metrics(stamps, poses, covs, *gt)
+        frames = loc.counts["frames"]
+    assert skipped_after[0] == []
+    assert len(skipped_after[2]) > 0.3 * frames
+    assert min(skipped_after[2]) >= 2
+    assert m[2]["rmse_m"] < 1.15 * m[0]["rmse_m"] + 0.002
+    assert m[2]["nees_mean"] < 6.0
+
+
 # -- tracker fusion (synthetic) ---------------------------------------------------------------------
 
 
