@@ -64,6 +64,8 @@ def test_preset_all_runs_both_and_prints_both_summaries(tmp_path, monkeypatch, c
         assert Scenario(**ev._scenario_fields(r)).sensor == r["sensor"]
     s = field["summary"]["full"]
     assert 0.0 <= s["within_10cm_all"] <= 1.0 and s["worst_rmse_m"] >= s["rmse_m"] - 1e-12
+    assert all(isinstance(r["frames_before_sticker"], int) for r in field["rows"])
+    assert 0.0 <= s["within_10cm_reachable"] <= 1.0
     assert (tmp_path / "standard" / "results.json").exists()
     # The CLI takes --preset and prints the same (sessions cached, so this is quick).
     assert main(["eval", "--preset", "field", "--modes", "full", "--quiet", "-o", str(tmp_path / "field")]) == 0
@@ -94,3 +96,28 @@ def test_scale_renders_the_same_walks_with_a_coarser_camera(tmp_path):
         before = (path / "scenario.json").stat().st_mtime_ns
         assert ev.make_session(sc, tmp_path, progress=False) == path
         assert (path / "scenario.json").stat().st_mtime_ns == before  # cached, not made again
+
+
+def test_the_reachable_share_leaves_out_the_frames_before_a_sticker_is_wholly_in_view(tmp_path):
+    """frames_before_sticker counts the frames before the first with a mapped sticker wholly in the
+    image (a sticker cut by the border, or one the map lacks, does not end them); the summary's
+    reachable share is the rest of all the frames, pooled by frame."""
+    import json
+    import math
+
+    def frame(*visible):
+        return json.dumps({"visible": [{"id": 1, "in_map": m, "inside": i} for m, i in visible]})
+
+    walk = tmp_path / "w"
+    walk.mkdir()
+    lines = [frame(), frame((True, False)), frame((False, True)), frame((True, True)), frame()]
+    (walk / ev.GROUNDTRUTH_FRAMES).write_text("\n".join(lines) + "\n")
+    assert ev.frames_before_sticker(walk) == 3
+    assert ev.frames_before_sticker(tmp_path) is None  # no per-frame truth: unknown
+    never = tmp_path / "never"
+    never.mkdir()
+    (never / ev.GROUNDTRUTH_FRAMES).write_text(frame() + "\n" + frame((True, False)) + "\n")
+    assert ev.frames_before_sticker(never) == 2
+    rows = [{"frames_all": 600, "frames_before_sticker": 22}, {"frames_all": 2400, "frames_before_sticker": 0}]
+    assert ev._reachable(rows) == pytest.approx(1 - 22 / 3000)
+    assert math.isnan(ev._reachable(rows + [{"frames_all": 10, "frames_before_sticker": None}]))
