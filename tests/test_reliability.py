@@ -507,6 +507,10 @@ def test_12_an_output_that_cannot_be_created_is_refused_before_the_work(session,
         (["--png", "{session}/frames/000003.png"], "--png names one of the inputs it would overwrite"),
         (["--out", "{tmp}/x", "--log", "{tmp}/x"], "--out and --log name the same file"),
         (["--out", "{tmp}/x", "--rerun", "{tmp}/sub/../x"], "--out and --rerun name the same file"),
+        # A --publish file is an output too: it had emptied the map and put the estimate in its place.
+        (["--publish", "{session}/map.csv"], "--publish names one of the inputs it would overwrite"),
+        (["--publish", "{session}/frames.csv"], "--publish names one of the inputs it would overwrite"),
+        (["--out", "{tmp}/x", "--publish", "{tmp}/x"], "--out and --publish name the same file"),
     ],
 )
 def test_12_an_output_over_an_input_or_another_output_is_refused(session, tmp_path, capsys, argv, fragment):

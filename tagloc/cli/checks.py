@@ -93,6 +93,18 @@ def output_file(path: Path | None, option: str, suffixes: tuple[str, ...] = ()) 
         raise InputError(f"{path}: {option}: no permission to write")
 
 
+def publish_files(targets: list[str] | None) -> list[tuple[str, Path]]:
+    """The files ``--publish`` would write (a JSON-lines or TUM path; stdout and the network write
+    none), each checked as :func:`output_file` checks one, as (option, path) for :func:`outputs_apart`:
+    a sink opens its file for writing, so one naming an input would overwrite it."""
+    from tagloc.io.sinks import sink_file
+
+    files = [("--publish", p) for p in (sink_file(t) for t in targets or []) if p is not None]
+    for option, path in files:
+        output_file(path, option)
+    return files
+
+
 def output_dir(path: Path | None, option: str) -> None:
     """Refuse a directory path tagloc cannot create or write into."""
     if path is None:

@@ -81,8 +81,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _outputs_apart_from_inputs(args: argparse.Namespace, checks) -> None:
-    """Refuse an output that would overwrite what the run reads: ``--log`` or ``--rerun-save`` naming
-    an input file, or ``--record`` / ``--record-bag`` naming a directory that holds inputs (a
+    """Refuse an output that would overwrite what the run reads: ``--log``, ``--rerun-save`` or a
+    ``--publish`` file naming an input file, or ``--record`` / ``--record-bag`` naming a directory that holds inputs (a
     recording writes its own map.csv, rig.json and calibrations there)."""
     import os
 
@@ -93,7 +93,9 @@ def _outputs_apart_from_inputs(args: argparse.Namespace, checks) -> None:
     files = [args.map, args.rig, args.calibration, *(c for c in sources if c.is_file())]
     files += [d / name for d in dirs for name in SESSION_INPUTS]
     checks.outputs_apart(
-        [("--log", args.log), ("--rerun-save", args.rerun_save)], files, [d / FRAMES_DIR for d in dirs]
+        [("--log", args.log), ("--rerun-save", args.rerun_save), *checks.publish_files(args.publish)],
+        files,
+        [d / FRAMES_DIR for d in dirs],
     )
     setup = [f for f in (args.map, args.rig, args.calibration) if f is not None]
     holding = {os.path.realpath(d) for d in dirs} | {os.path.realpath(Path(f).parent) for f in setup}

@@ -72,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
         checks.output_file(path, option)
     checks.output_file(args.png, "--png", suffixes=(".png",))
     outputs.append(("--png", args.png))
+    outputs += checks.publish_files(args.publish)
     checks.outputs_apart(
         [*outputs, ("--bag", args.bag)],
         [*(args.session / name for name in SESSION_INPUTS), args.map, args.rig, args.calibration],

@@ -576,6 +576,14 @@ def _json_default(value: object) -> object:
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
+def sink_file(target: str) -> Path | None:
+    """The file a ``--publish`` target writes (a ``.tum`` or JSON-lines path), or None for stdout and
+    the network: :func:`open_sink`'s own rule, so that the commands can check it as an output."""
+    if target in ("stdout", "-") or "://" in target:
+        return None
+    return Path(target)
+
+
 def open_sink(target: str, vest: str = "vest", max_age_s: float = 0.5) -> Sink:
     """Open a sink from its description.
 
