@@ -442,6 +442,37 @@ def test_monitor_from_a_bag_counts_messages_python_cannot_decode(tmp_path, demo_
     assert "last invalid message: v99: " in summary.format()
 
 
+def test_monitor_from_a_bag_counts_pose_messages_it_cannot_read(tmp_path, demo_map_path):
+    """A PoseWithCovarianceStamped whose quaternion is zero (no rotation) or whose bytes are cut
+    stopped --from-bag with an internal error; each is one invalid message, the rest still shown."""
+    from tagloc.apps.monitor import MonitorConfig, run_monitor
+    from tagloc.io.rosbag import POSE_TYPE, BagWriter
+    from tagloc.io.session import SessionReader
+
+    rig = SessionReader(Path(__file__).resolve().parent.parent / "logs" / "walk2s").rig
+    bag = tmp_path / "v1"
+    w = BagWriter(bag, "v1", rig)
+    for i in range(10):
+        w.publish(PoseMessage("v1", i, parse_to_output(EPOCH + i / 30, x=1.0)))
+    # Another vest's bare pose topic (no pose_json beside it): the monitor rebuilds its messages.
+    conn = w._writer.add_connection("/tagloc/v2/pose", POSE_TYPE, typestore=w._store)
+    T = w._types
+    for k, (q, cut) in enumerate([((0, 0, 0, 0), False), ((0, 0, 0, 1), True), ((0, 0, 0, 1), False)]):
+        t = EPOCH + (k + 0.5) / 30
+        pose = T["geometry_msgs/msg/Pose"](
+            T["geometry_msgs/msg/Point"](2.0, 1.0, 0.0), T["geometry_msgs/msg/Quaternion"](*q)
+        )
+        msg = T[POSE_TYPE](
+            w._header(t, "map"), T["geometry_msgs/msg/PoseWithCovariance"](pose, np.eye(6).ravel() * 1e-3)
+        )
+        raw = w._store.serialize_cdr(msg, POSE_TYPE)
+        w._writer.write(conn, round(t * 1e9), raw[:20] if cut else raw)
+    w.close()
+    summary = run_monitor(MonitorConfig(map=demo_map_path, from_bag=[bag]))
+    assert summary.counts["received"] == 13 and summary.counts["invalid"] == 2
+    assert summary.counts["vests"] == 2
+
+
 def _cov_msg(cov, vest="v1", t=EPOCH, index=0) -> dict:
     return {**json.loads(msg(vest, t=t, index=index)), "cov": np.asarray(cov, float).tolist()}
 

@@ -145,7 +145,11 @@ def _from_bag(cfg: MonitorConfig, view) -> tuple[FleetState, float]:
     now = 0.0
     for msg in heapq.merge(*(read_pose_messages(b) for b in cfg.from_bag), key=lambda m: m.t_bag):
         now = msg.t_bag
-        state.handle(msg.doc, now)
+        if msg.error is not None:
+            state.received += 1
+            state.refuse(msg.error)
+        else:
+            state.handle(msg.doc, now)
         if next_draw is None:
             next_draw = now
         if view is not None and now >= next_draw:

@@ -576,11 +576,13 @@ def _convert(w: SessionWriter, i: int, t: float, msg: object, msgtype: str) -> b
 @dataclass
 class BagPose:
     """A pose message read back from a bag: receive time (bag clock, s), topic and the JSON document
-    (or the message's text when it is not JSON: the monitor counts it invalid)."""
+    (or the message's text when it is not JSON: the monitor counts it invalid). ``error``: why a
+    message the bag holds could not be read at all (its bytes are not the type's), counted invalid too."""
 
     t_bag: float
     topic: str
     doc: dict | str
+    error: str | None = None
 
 
 def read_pose_messages(path: str | Path) -> Iterator[BagPose]:
@@ -599,7 +601,12 @@ def read_pose_messages(path: str | Path) -> Iterator[BagPose]:
             if c.topic.startswith("/tagloc/") and c.msgtype == POSE_TYPE and c.topic.rsplit("/", 1)[0] not in have_json
         ]
         for conn, ns, raw in _messages(reader, Path(path), json_conns + pose_conns):
-            msg = reader.deserialize(raw, conn.msgtype)
+            try:
+                msg = reader.deserialize(raw, conn.msgtype)
+            except Exception:  # noqa: BLE001 - rosbags raises many error types for bytes that are not the type
+                # One bad message, as on the network: counted invalid, and the messages after it read.
+                yield BagPose(ns / 1e9, conn.topic, "", f"{conn.topic}: not a readable {conn.msgtype} message")
+                continue
             if conn.msgtype == STRING_TYPE:
                 try:
                     doc = json.loads(msg.data)
@@ -617,8 +624,12 @@ def read_pose_messages(path: str | Path) -> Iterator[BagPose]:
 def _doc_from_pose(topic: str, msg: object) -> dict:
     from scipy.spatial.transform import Rotation
 
-    q = msg.pose.pose.orientation
-    yaw = float(Rotation.from_quat([q.x, q.y, q.z, q.w]).as_euler("xyz")[2])
+    o = msg.pose.pose.orientation
+    q = np.array([o.x, o.y, o.z, o.w], float)
+    # A quaternion that is no rotation (zero, NaN) gives no yaw: NaN, which the monitor refuses as
+    # it refuses any non-finite number (scipy raised, and stopped the monitor).
+    norm = float(np.linalg.norm(q))
+    yaw = float(Rotation.from_quat(q).as_euler("xyz")[2]) if math.isfinite(norm) and norm > 1e-9 else math.nan
     p = msg.pose.pose.position
     return {
         "schema": SCHEMA,
