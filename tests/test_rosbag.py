@@ -182,6 +182,44 @@ def test_bad_bags_give_one_line_errors(tmp_path, written):
         BagWriter(written["bag"], "v", SessionReader(WALK).rig)
 
 
+@pytest.mark.parametrize(
+    ("field", "value", "fragment"),
+    [
+        ("d", [np.nan, 0, 0, 0, 0], "NaN or inf"),
+        ("d", [0.1, 0.0, 0.0], "3 distortion coefficients"),  # stopped a replay inside OpenCV
+        ("k", [1e-9, 0, 648, 0, 1e-9, 486, 0, 0, 1], "focal length"),
+        ("k", [1285.7, 0, -5000, 0, 1285.7, 486, 0, 0, 1], "principal point"),
+        ("width", 0, "image size"),
+    ],
+)
+def test_a_bag_camera_info_is_checked_as_a_calibration_file_is(tmp_path, field, value, fragment):
+    """Before any frame: a CameraInfo no calibration file could hold is refused naming the bag and the
+    topic (it had run a whole replay without a pose); --calibration, which overrides it, is the way round."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from tagloc.io.rosbag import COMPRESSED_TYPE, INFO_TYPE, _typestore, camera_info
+
+    store = _typestore()
+    T = store.types
+    session = SessionReader(WALK)
+    path = tmp_path / "cam"
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        img_c = w.add_connection("/cam/image/compressed", COMPRESSED_TYPE, typestore=store)
+        info_c = w.add_connection("/cam/camera_info", INFO_TYPE, typestore=store)
+        for i in range(3):
+            ns = round((session.timestamps[i] + 100.0) * 1e9)
+            header = T["std_msgs/msg/Header"](T["builtin_interfaces/msg/Time"](*divmod(ns, 10**9)), "cam")
+            data = np.frombuffer(session.frame_path(i).read_bytes(), np.uint8)
+            w.write(img_c, ns, store.serialize_cdr(T[COMPRESSED_TYPE](header, "jpeg", data), COMPRESSED_TYPE))
+            info = camera_info(T, header, session.camera)
+            setattr(info, field, np.asarray(value, float) if isinstance(value, list) else value)
+            w.write(info_c, ns, store.serialize_cdr(info, INFO_TYPE))
+    with pytest.raises(SessionError, match=rf"^{re.escape(str(path))}: /cam/camera_info: .*{re.escape(fragment)}"):
+        BagSession(path, "/cam/image/compressed", WALK / "map.csv")
+    bag = BagSession(path, "/cam/image/compressed", WALK / "map.csv", calibration=WALK / "camera.yaml")
+    assert np.array_equal(bag.camera.K, session.camera.K)
+
+
 def _damage_mid_bag(bag: Path, out: Path) -> Path:
     """A copy of ``bag`` whose middle chunk's first record claims a length past the file's end (what a
     disk error or a torn copy leaves): the reader gives the messages before it, then fails."""

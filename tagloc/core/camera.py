@@ -191,7 +191,9 @@ def save_calibration(camera: Camera, path: str | Path, extra: dict | None = None
     fs.release()
 
 
-def _check(camera: Camera, path: Path) -> Camera:
+def check_calibration(camera: Camera, path: Path | str) -> Camera:
+    """``camera`` if tagloc can run with it, else :class:`CalibrationError` naming ``path`` (the file,
+    or where a calibration came from, such as a bag's CameraInfo topic) and what is wrong."""
     K = camera.K
     if not np.all(np.isfinite(K)) or not np.all(np.isfinite(camera.dist)):
         raise CalibrationError(f"{path}: calibration contains NaN or inf")
@@ -333,7 +335,7 @@ def load_calibration(path: str | Path) -> Camera:
     except ValueError:  # e.g. a NUL byte in the name
         raise CalibrationError(f"{path!r}: not a usable file name") from None
     if text.lstrip().startswith("%YAML") or "!!opencv-matrix" in text:
-        return _check(_load_opencv(path), path)
+        return check_calibration(_load_opencv(path), path)
     try:
         # A dumped message may end with "---" (the next document's separator): empty documents are fine.
         docs = [d for d in yaml.safe_load_all(text) if d is not None]
@@ -348,4 +350,4 @@ def load_calibration(path: str | Path) -> Camera:
     doc = docs[0] if docs else None
     if not isinstance(doc, dict):
         raise CalibrationError(f"{path}: not a calibration mapping")
-    return _check(_load_ros(path, doc), path)
+    return check_calibration(_load_ros(path, doc), path)

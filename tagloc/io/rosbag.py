@@ -36,7 +36,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from tagloc.core.camera import Camera, distortion_model_problem, load_calibration
+from tagloc.core.camera import Camera, check_calibration, distortion_model_problem, load_calibration
 from tagloc.core.errors import BackendUnavailable, InputError, SessionError
 from tagloc.core.geometry import planar_T
 from tagloc.core.rig import Rig, default_rig, load_rig
@@ -305,14 +305,18 @@ def camera_info(types: dict, header: object, cam: Camera) -> object:
 
 
 def camera_from_info(msg: object) -> Camera:
-    """The calibration in a CameraInfo message (ROS 2 ``k``/``d`` or ROS 1 ``K``/``D``)."""
+    """The calibration in a CameraInfo message (ROS 2 ``k``/``d`` or ROS 1 ``K``/``D``), checked as a
+    calibration file is (:func:`tagloc.core.camera.check_calibration`): NaN coefficients, a focal
+    length of 1e-9 px or three distortion coefficients had run a whole replay without a pose, or
+    stopped it inside OpenCV."""
     K = np.asarray(getattr(msg, "k", None) if hasattr(msg, "k") else msg.K, float)
     D = np.asarray(getattr(msg, "d", None) if hasattr(msg, "d") else msg.D, float)
     if K.size != 9 or not np.all(np.isfinite(K)) or K[0] <= 0:
         raise InputError("CameraInfo holds no calibration (K is empty or zero)")
     if why := distortion_model_problem(getattr(msg, "distortion_model", None)):
         raise InputError(f"CameraInfo {why}, and give it with --calibration")
-    return Camera(K.reshape(3, 3), D if D.size else np.zeros(5), int(msg.width), int(msg.height))
+    cam = Camera(K.reshape(3, 3), D if D.size else np.zeros(5), int(msg.width), int(msg.height))
+    return check_calibration(cam, "CameraInfo")
 
 
 def _quaternion(R: np.ndarray) -> tuple[float, float, float, float]:
@@ -452,7 +456,12 @@ class BagSession:
                 raise SessionError(f"{self.path}: {topic} is {conns[0].msgtype}, not an Image or CompressedImage")
             self.msgtype = conns[0].msgtype
             self.count = sum(c.msgcount for c in conns)
-            bag_camera = self._bag_calibration(reader, info_topic or _info_topic_for(topic), info_topic is not None)
+            # --calibration overrides the bag's CameraInfo, so a bad one (the very case for it) is not read.
+            bag_camera = (
+                None
+                if calibration
+                else self._bag_calibration(reader, info_topic or _info_topic_for(topic), info_topic is not None)
+            )
         finally:
             reader.close()
         camera = load_calibration(calibration) if calibration else bag_camera
