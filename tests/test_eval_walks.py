@@ -125,6 +125,33 @@ def test_walks_without_ground_truth_or_with_the_report_inside_are_refused_before
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize(
+    ("edit", "line", "fragment"),
+    [
+        (lambda lines: lines[:-1] + [lines[-1][:-200]], -1, "not a JSON object"),  # a write cut short
+        (lambda lines: lines[:2] + [lines[2].replace('"index": 2,', '"index": "2",')] + lines[3:], 3, "'index'"),
+        (
+            lambda lines: lines[:4] + [lines[4].replace('"corners": [[', '"corners": [[NaN, 1], [', 1)] + lines[5:],
+            5,
+            "'corners'",
+        ),
+    ],
+)
+def test_a_malformed_per_frame_truth_is_refused_before_work(tmp_path, capsys, edit, line, fragment):
+    """groundtruth_frames.jsonl (another simulator's, say) was read only after the walk's localisation,
+    and a bad line stopped eval with an internal error naming neither file nor line."""
+    walk = tmp_path / "w"
+    shutil.copytree(WALK, walk, ignore=shutil.ignore_patterns("*.npz"))
+    lines = (walk / GROUNDTRUTH_FRAMES).read_text().splitlines()
+    assert '"index": 2,' in lines[2] and '"corners": [[' in lines[4]
+    (walk / GROUNDTRUTH_FRAMES).write_text("\n".join(edit(lines)) + "\n")
+    n = line if line > 0 else len(lines)
+    assert main(["eval", "--walks", str(walk), "--modes", "full", "-o", str(tmp_path / "o"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert f"{walk / GROUNDTRUTH_FRAMES}:{n}: " in err and fragment in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "o").exists()
+
+
 def test_ground_truth_that_covers_no_frame_is_refused_and_a_plot_survives_it(tmp_path, capsys):
     """A ground truth from another clock (1000 s later) cannot score the walk: refused in one line
     before any work. Scored anyway (a preset's own path), the row has no error and the plot no error

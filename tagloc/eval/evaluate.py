@@ -269,18 +269,74 @@ def _sensor_conditions(sc: Scenario) -> dict:
     return out
 
 
+@dataclass
+class VisibleSticker:
+    """One sticker of a frame's per-frame truth: its ID, image centre (px, the corners' mean), and
+    whether it is mapped and wholly inside the image."""
+
+    id: int
+    centre: np.ndarray
+    in_map: bool
+    inside: bool
+
+
+def read_frame_truth(session: Path) -> list[tuple[int, list[VisibleSticker]]] | None:
+    """The per-frame truth of ``groundtruth_frames.jsonl`` as (frame index, its visible stickers) in
+    file order, or None for a session without it. What is scored is checked, before any work
+    (``tagloc eval --walks`` takes such files from other simulators): a line that is not a JSON
+    object with an integer ``index`` and ``visible`` stickers each with an integer ``id`` and four
+    finite ``corners`` is refused naming the file and line."""
+    path = session / GROUNDTRUTH_FRAMES
+    if not path.exists():
+        return None
+    out = []
+    try:
+        with path.open(encoding="utf-8") as f:
+            for n, line in enumerate(f, 1):
+                if line.strip():
+                    out.append(_frame_truth_line(line, f"{path}:{n}"))
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror})") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not UTF-8 text") from None
+    return out
+
+
+def _frame_truth_line(line: str, where: str) -> tuple[int, list[VisibleSticker]]:
+    try:
+        rec = json.loads(line)
+    except (ValueError, RecursionError):
+        raise InputError(f"{where}: not a JSON object (a line cut short?)") from None
+    index = rec.get("index") if isinstance(rec, dict) else None
+    if isinstance(index, bool) or not isinstance(index, int):
+        raise InputError(f"{where}: want a JSON object with an integer 'index'")
+    visible = rec.get("visible", [])
+    if not isinstance(visible, list):
+        raise InputError(f"{where}: 'visible' is not a list")
+    stickers = []
+    for v in visible:
+        sid = v.get("id") if isinstance(v, dict) else None
+        try:
+            corners = np.asarray(v.get("corners") if isinstance(v, dict) else None, float)
+        except (TypeError, ValueError, OverflowError):
+            corners = np.zeros(0)
+        if (
+            isinstance(sid, bool)
+            or not isinstance(sid, int)
+            or corners.shape != (4, 2)
+            or not np.isfinite(corners).all()
+        ):
+            raise InputError(f"{where}: a visible sticker wants an integer 'id' and four finite [u, v] 'corners'")
+        stickers.append(VisibleSticker(sid, corners.mean(axis=0), bool(v.get("in_map")), bool(v.get("inside"))))
+    return index, stickers
+
+
 def wrong_id_fixes(session: Path, log: RunLog, radius_px: float = 40.0) -> tuple[int, int]:
     """(wrong, checked): accepted fixes whose ID is not the sticker the simulator put there."""
-    gt_file = session / GROUNDTRUTH_FRAMES
-    if not gt_file.exists():
+    frames = read_frame_truth(session)
+    if frames is None:
         return 0, 0
-    truth: dict[int, list[tuple[int, np.ndarray]]] = {}
-    with gt_file.open(encoding="utf-8") as f:
-        for line in f:
-            rec = json.loads(line)
-            truth[int(rec["index"])] = [
-                (int(v["id"]), np.mean(np.asarray(v["corners"], float), axis=0)) for v in rec.get("visible", [])
-            ]
+    truth = {index: [(v.id, v.centre) for v in visible] for index, visible in frames}
     wrong = 0
     for fix in log.fixes:
         near = [sid for sid, c in truth.get(fix["frame"], []) if np.hypot(*(c - fix["centre"])) < radius_px]
@@ -302,15 +358,14 @@ def frames_before_sticker(session: Path) -> int | None:
     """Frames before the first in which a mapped sticker lies wholly in the image, by the
     simulator's per-frame truth (None for a session without it). No localiser has a pose for them
     without one given from outside: the map is its only reference."""
-    gt_file = session / GROUNDTRUTH_FRAMES
-    if not gt_file.exists():
+    frames = read_frame_truth(session)
+    if frames is None:
         return None
     n = 0
-    with gt_file.open(encoding="utf-8") as f:
-        for line in f:
-            if any(v.get("in_map") and v.get("inside") for v in json.loads(line).get("visible", [])):
-                break
-            n += 1
+    for _, visible in frames:
+        if any(v.in_map and v.inside for v in visible):
+            break
+        n += 1
     return n
 
 

@@ -67,7 +67,8 @@ def walk_names(sessions: list[Path]) -> list[str]:
 
 def check_walks(sessions: list[Path], out: Path) -> list[SessionReader]:
     """Open every session before any work: each must read and hold a ``groundtruth.tum`` that covers
-    some of its frames' time, and ``out`` must not lie inside one (its report and plots would be
+    some of its frames' time (and a readable ``groundtruth_frames.jsonl`` if it has one), and ``out``
+    must not lie inside one (its report and plots would be
     written among the session's files)."""
     readers = []
     real_out = Path(os.path.realpath(out))
@@ -86,6 +87,10 @@ def check_walks(sessions: list[Path], out: Path) -> list[SessionReader]:
                 f"{path}: {GROUNDTRUTH_FILE} ({span}) does not cover any frame "
                 f"({frames[0]:.3f}-{frames[-1]:.3f} s in frames.csv): it cannot score the walk"
             )
+        # Scored after the walk's localisation: a malformed line must be refused before it.
+        from tagloc.eval.evaluate import read_frame_truth
+
+        read_frame_truth(path)
         readers.append(reader)
     return readers
 
