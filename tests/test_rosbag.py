@@ -352,6 +352,31 @@ def test_corrupt_image_messages_are_skipped_and_counted(tmp_path):
     assert (n, skipped) == (2, 1)
 
 
+def test_a_session_from_a_bag_whose_stamps_repeat_or_go_back_replays(tmp_path):
+    """A camera driver that stamps two images alike (or one before its predecessor): the session
+    written from the bag skips that frame, as a replay of the bag does, instead of being refused
+    whole at its frames.csv."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    T = store.types
+    frames = list(SessionReader(WALK).frames())[:5]
+    stamps = [100.0, 100.1, 100.1, 100.05, 100.2]  # frame 2 repeats frame 1's stamp, frame 3 goes back
+    path = tmp_path / "cam"
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conn = w.add_connection("/cam/image/compressed", "sensor_msgs/msg/CompressedImage", typestore=store)
+        for k, (f, t) in enumerate(zip(frames, stamps)):
+            header = T["std_msgs/msg/Header"](T["builtin_interfaces/msg/Time"](*divmod(round(t * 1e9), 10**9)), "cam")
+            msg = T["sensor_msgs/msg/CompressedImage"](header, "jpeg", cv2.imencode(".jpg", f.image)[1].ravel())
+            w.write(conn, 10**9 * 100 + k, store.serialize_cdr(msg, "sensor_msgs/msg/CompressedImage"))
+    n, skipped = bag_to_session(path, "/cam/image/compressed", tmp_path / "s", WALK / "map.csv", WALK / "rig.json")
+    assert (n, skipped) == (3, 2)
+    s = SessionReader(tmp_path / "s")
+    assert list(s.index) == [0, 1, 4] and np.allclose(s.timestamps, [100.0, 100.1, 100.2])
+    assert all(f.image is not None for f in s.frames())
+
+
 def test_an_unreadable_source_directory_is_named_as_given(tmp_path, monkeypatch):
     """A session directory the user may not read: the error names it, not metadata.yaml inside it
     (probed to tell a bag from a session). Stat is refused as for a mode-000 directory and a non-root user."""

@@ -44,5 +44,7 @@ def run(args: argparse.Namespace) -> int:
         info_topic=args.info_topic,
         progress=not args.quiet,
     )
-    print(f"{args.out}: {written} frames written, {skipped} skipped (corrupt or unsupported encoding)")
+    print(
+        f"{args.out}: {written} frames written, {skipped} skipped (corrupt, unsupported encoding or not after the previous frame's time)"
+    )
     return 0

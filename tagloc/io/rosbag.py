@@ -550,17 +550,23 @@ def bag_to_session(
 ) -> tuple[int, int]:
     """Convert a bag's camera topic to a session directory; returns (frames written, frames skipped).
 
-    JPEG images are copied byte for byte; other images are written as PNG (lossless).
+    JPEG images are copied byte for byte; other images are written as PNG (lossless). A frame whose
+    stamp is not after the last written one's, as ``frames.csv`` holds it (to the microsecond), is
+    skipped like an undecodable one: a session must advance frame by frame, and one such line made
+    the whole session refused (a replay of the bag skips that frame too).
     """
     from tqdm import tqdm
 
     src = BagSession(bag, topic, map_path, rig_path, calibration, info_topic)
     written = skipped = 0
+    last = -math.inf  # the last written frame's time, as frames.csv holds it
     with SessionWriter(out, src.map, src.rig, SessionInfo(source=src.info.source, fps=0.0), image_ext=".png") as w:
         try:
-            for item in tqdm(src.encoded_frames(), total=len(src), disable=not progress, unit="frame"):
-                if _convert(w, *item):
+            for i, t, msg, msgtype in tqdm(src.encoded_frames(), total=len(src), disable=not progress, unit="frame"):
+                stamp = float(f"{t:.6f}")
+                if stamp > last and _convert(w, i, t, msg, msgtype):
                     written += 1
+                    last = stamp
                 else:
                     skipped += 1
         except SessionError as exc:
