@@ -313,3 +313,16 @@ def test_live_refuses_an_output_over_its_inputs(extra, option, tmp_path, capsys)
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and option in err and "internal error" not in err, err
     assert {p: p.read_bytes() for p in s.rglob("*") if p.is_file()} == before
+
+
+def test_live_fails_when_its_source_gives_no_frame_at_all(tmp_path, capsys):
+    """A file OpenCV opens but reads no frame from (here text named .jpg) is an error naming it, not a
+    run that ends with 0 frames and exit code 0."""
+    src = tmp_path / "notimage.jpg"
+    src.write_text("not an image\n")
+    rc = main(["live", "--camera", str(src), "--map", DEMO_MAP, "--no-pace"])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("tagloc live: error: ") and str(src) in last and "no frame" in last, err
+    assert "Traceback" not in err and "internal error" not in err, err

@@ -152,4 +152,8 @@ def run(args: argparse.Namespace) -> int:
         )
     )
     print(summary.format(), file=sys.stderr)
+    c = summary.capture
+    if c.grabbed == 0 and "stopped" not in c.ended:
+        # The source ended by itself before giving one frame (a file OpenCV opens but cannot read).
+        raise InputError(f"{args.camera[0]}: no frame could be read ({c.ended})")
     return 0
