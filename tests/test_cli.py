@@ -326,3 +326,16 @@ def test_live_fails_when_its_source_gives_no_frame_at_all(tmp_path, capsys):
     last = err.strip().splitlines()[-1]
     assert last.startswith("tagloc live: error: ") and str(src) in last and "no frame" in last, err
     assert "Traceback" not in err and "internal error" not in err, err
+
+
+def test_every_action_of_a_command_has_help_with_an_example(capsys):
+    """The README: every subcommand has --help with an example; so does each action (map grid, rig fit, ...)."""
+    for name in [m.NAME for m in _command_modules()]:
+        parser = build_parser(name)
+        command = next(a for a in parser._subparsers._group_actions).choices[name]
+        actions = [a for a in command._actions if isinstance(a, type(parser._subparsers._group_actions[0]))]
+        for action in (c for a in actions for c in a.choices):
+            with pytest.raises(SystemExit):
+                main([name, action, "--help"])
+            out = capsys.readouterr().out
+            assert re.search(rf"^examples?:\n  tagloc {name} {action}\b", out, re.M), (name, action, out)

@@ -44,12 +44,23 @@ def _board_args(p: argparse.ArgumentParser) -> None:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="action", metavar="ACTION", required=True)
-    b = sub.add_parser("board", help="write the printable board")
+    b = sub.add_parser(
+        "board",
+        help="write the printable board",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="write the printable board\n\nexample:\n  tagloc calibrate board -o board.pdf",
+    )
     b.add_argument("-o", "--out", type=Path, required=True, help="output file: .pdf, .png or .svg")
     b.add_argument("--paper", default="a4", choices=("a4", "a3", "letter"), help="paper size (default a4)")
     b.add_argument("--dpi", type=int, default=600, help="PNG resolution (default 600)")
     _board_args(b)
-    c = sub.add_parser("camera", help="calibrate a camera")
+    c = sub.add_parser(
+        "camera",
+        help="calibrate a camera",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="calibrate a camera\n\nexamples:\n  tagloc calibrate camera calib_images/ -o camera.yaml\n"
+        "  tagloc calibrate camera calib.mp4 -o camera.yaml --step 10",
+    )
     c.add_argument("source", help="folder of images, video file, or camera index (0, 1, ...)")
     c.add_argument("-o", "--out", type=Path, required=True, help="calibration YAML to write")
     c.add_argument("--coverage", type=Path, default=None, help="coverage PNG (default: OUT with _coverage.png)")

@@ -34,7 +34,14 @@ examples:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="action", metavar="ACTION", required=True)
-    g = sub.add_parser("grid", help="generate a warehouse-like map")
+    g = sub.add_parser(
+        "grid",
+        help="generate a warehouse-like map",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="generate a warehouse-like map\n\nexample:\n"
+        "  tagloc map grid -o maps/demo.csv --width 40 --depth 25 --aisle-spacing 3.0 \\\n"
+        "      --spacing-min 1.2 --spacing-max 2.0 --jitter 0.05 --seed 7",
+    )
     g.add_argument("-o", "--out", type=Path, required=True, help="output map CSV")
     g.add_argument("--width", type=float, default=40.0, help="floor extent along x, m (default 40)")
     g.add_argument("--depth", type=float, default=25.0, help="floor extent along y, m (default 25)")
@@ -52,7 +59,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="number stickers FIRST, FIRST+1, ... instead of random distinct IDs",
     )
     g.add_argument("--seed", type=int, default=7, help="random seed (default 7)")
-    i = sub.add_parser("info", help="summarise a map file")
+    i = sub.add_parser(
+        "info",
+        help="summarise a map file",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="summarise a map file: count, bounds and spacing\n\nexample:\n  tagloc map info maps/demo.csv",
+    )
     i.add_argument("map", type=Path, help="map CSV (id,x_m,y_m,yaw_deg)")
     a = sub.add_parser(
         "audit",

@@ -25,7 +25,12 @@ examples:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="action", metavar="ACTION", required=True)
-    f = sub.add_parser("fit", help="fit the mount from a session")
+    f = sub.add_parser(
+        "fit",
+        help="fit the mount from a session",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="fit the mount from a session\n\nexample:\n  tagloc rig fit logs/calib_walk -o rig.json",
+    )
     f.add_argument("session", type=Path, help="session directory (frames, frames.csv, map.csv, camera.yaml)")
     f.add_argument("-o", "--out", type=Path, required=True, help="rig.json to write")
     f.add_argument("--rig", type=Path, default=None, help="prior rig (default: the session's rig.json or default rig)")
@@ -33,7 +38,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     f.add_argument("--step", type=int, default=1, help="use every STEP-th frame (default 1)")
     f.add_argument("--decoder", default="zxing", choices=("zxing", "libdmtx", "both"), help="Data Matrix backend")
     f.add_argument("--no-progress", action="store_true", help="no progress bar")
-    s = sub.add_parser("show", help="print a rig file's mounts")
+    s = sub.add_parser(
+        "show",
+        help="print a rig file's mounts",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="print a rig file's mounts\n\nexample:\n  tagloc rig show rig.json",
+    )
     s.add_argument("rig", type=Path, help="rig.json")
 
 

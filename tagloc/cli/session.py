@@ -20,7 +20,13 @@ examples:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="action", metavar="ACTION", required=True)
-    b = sub.add_parser("from-bag", help="convert a bag's camera topic to a session")
+    b = sub.add_parser(
+        "from-bag",
+        help="convert a bag's camera topic to a session",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="convert a bag's camera topic to a session\n\nexample:\n"
+        "  tagloc session from-bag rec.bag --topic /cam/image_raw/compressed --map map.csv -o sessions/rec",
+    )
     b.add_argument("bag", type=Path, help="rosbag2 directory or ROS 1 .bag file")
     b.add_argument("--topic", required=True, help="image topic, e.g. /cam/image_raw/compressed")
     b.add_argument("--map", type=Path, required=True, help="sticker map CSV")
