@@ -339,3 +339,11 @@ def test_every_action_of_a_command_has_help_with_an_example(capsys):
                 main([name, action, "--help"])
             out = capsys.readouterr().out
             assert re.search(rf"^examples?:\n  tagloc {name} {action}\b", out, re.M), (name, action, out)
+
+
+def test_simulate_help_examples_keep_their_line_continuations(capsys):
+    """A backslash at a line's end in the help's examples is printed (it had joined the lines)."""
+    with pytest.raises(SystemExit):
+        main(["simulate", "--help"])
+    out = capsys.readouterr().out
+    assert "--jitter-ms 2 \\\n      --drop-fraction" in out, out

@@ -24,10 +24,10 @@ the operator's own shadow under a grid of overhead lamps, the wearer's legs and 
 
 example:
   tagloc simulate --map maps/demo.csv --seconds 20 --lux 100 --speed 1.3 --seed 1 -o logs/sim1
-  tagloc simulate --map maps/demo.csv --seconds 20 --seed 1 --rolling-shutter --jitter-ms 2 \
-      --drop-fraction 0.04 --drop-bursts-per-min 3 --survey-sigma-cm 1 --survey-sigma-deg 1.5 \
+  tagloc simulate --map maps/demo.csv --seconds 20 --seed 1 --rolling-shutter --jitter-ms 2 \\
+      --drop-fraction 0.04 --drop-bursts-per-min 3 --survey-sigma-cm 1 --survey-sigma-deg 1.5 \\
       --sensor ov5647 -o logs/field1
-  tagloc simulate --map maps/demo.csv --seconds 20 --seed 1 --lux 300 --rolling-shutter \
+  tagloc simulate --map maps/demo.csv --seconds 20 --seed 1 --lux 300 --rolling-shutter \\
       --flicker 30 -o logs/flicker1        # fluorescent tubes on magnetic ballasts, 50 Hz mains
   tagloc simulate --map maps/demo.csv --seconds 20 --seed 1 --lux 300 --shadow -o logs/shadow1
   tagloc simulate --map maps/demo.csv --seconds 20 --seed 1 --pitch 65 --legs -o logs/legs1"""
