@@ -248,3 +248,25 @@ def test_mqtt_sink_starts_without_a_broker_and_connects_later(tmp_path):
     finally:
         sink.close()
         broker.stop()
+
+
+def test_a_vest_id_must_name_the_vest_in_topics_and_messages(tmp_path):
+    """An empty ID (messages the monitor refuses: a vest it never sees) or one with a character MQTT
+    or ROS names treat specially is refused before anything is published, by the sinks, the
+    outputs and the bag writer alike; the IDs the README uses pass."""
+    from tagloc.io.rosbag import BagWriter
+    from tagloc.io.sinks import check_vest_id, open_sink
+
+    for good in ("vest-1", "v07", "replay", "A.b_9"):
+        assert check_vest_id(good) == good
+    rig = default_rig()
+    for bad in ("", "a/b", "v+", "v#", "vest 1", "x" * 65, None):
+        with pytest.raises(InputError, match="vest ID"):
+            check_vest_id(bad)
+        with pytest.raises(InputError, match="vest ID"):
+            open_sink(str(tmp_path / "p.jsonl"), vest=bad)
+        with pytest.raises(InputError, match="vest ID"):
+            OutputConfig(vest=bad)
+        with pytest.raises(InputError, match="vest ID"):
+            BagWriter(tmp_path / "bag", bad, rig)
+    assert not (tmp_path / "p.jsonl").exists() and not (tmp_path / "bag").exists()

@@ -7,7 +7,7 @@ from pathlib import Path
 
 NAME = "sticker"
 HELP = "write true-scale printable sticker sheets (PDF, PNG or SVG)"
-DESCRIPTION = """Write A4 sheets of 100 mm floor stickers with cut marks, the ID under each sticker and a
+DESCRIPTION = """Write sheets (A4, A3 or letter: --paper) of 100 mm floor stickers with cut marks, the ID under each sticker and a
 50 mm scale bar. The format follows the extension: a PDF holds all pages; PNG and SVG write one
 file per page, suffixed -1, -2, ... when there is more than one. Print at 100 % (actual size).
 

@@ -146,7 +146,9 @@ class BagWriter(Sink):
             raise InputError(f"{self.path}: already exists; rosbag2 writes a new directory")
         if storage not in ("mcap", "sqlite3"):
             raise InputError(f"bag storage must be mcap or sqlite3, not {storage!r}")
-        self.vest = ros_name(vest)
+        from tagloc.io.sinks import check_vest_id
+
+        self.vest = ros_name(check_vest_id(vest))
         self.rig = rig
         self.images = bool(images)
         self._store = _typestore()

@@ -29,6 +29,7 @@ import collections
 import contextlib
 import json
 import math
+import re
 import socket
 import sys
 import threading
@@ -584,6 +585,20 @@ def sink_file(target: str) -> Path | None:
     return Path(target)
 
 
+#: A vest ID names the operator to the robot manager: in every message, in the default MQTT topic
+#: and in a bag's topics. Letters, digits, ".", "_" and "-" (nothing MQTT or ROS names treat
+#: specially: "/", "+" and "#" would change the topic), 1-64 characters.
+VEST_ID_PATTERN = re.compile(r"[A-Za-z0-9._-]{1,64}")
+
+
+def check_vest_id(vest: object) -> str:
+    """``vest`` if it is a valid vest ID (:data:`VEST_ID_PATTERN`), else InputError. An empty ID
+    reached the monitor as messages it refuses: a vest the robot manager never sees."""
+    if not isinstance(vest, str) or not VEST_ID_PATTERN.fullmatch(vest):
+        raise InputError(f"vest ID {str(vest)[:70]!r}: want 1-64 letters, digits, '.', '_' or '-'")
+    return vest
+
+
 def open_sink(target: str, vest: str = "vest", max_age_s: float = 0.5) -> Sink:
     """Open a sink from its description.
 
@@ -591,6 +606,7 @@ def open_sink(target: str, vest: str = "vest", max_age_s: float = 0.5) -> Sink:
     MQTT (default port 1883, default topic ``tagloc/VEST/pose``). A path ending in ``.tum``: TUM
     trajectory. Any other path: JSON lines file. ``max_age_s``: network sinks never send an older pose.
     """
+    check_vest_id(vest)
     if target in ("stdout", "-"):
         return JsonLinesSink(sys.stdout)
     if "://" in target:

@@ -35,7 +35,7 @@ from tagloc.core.errors import InputError
 from tagloc.core.rig import Rig
 from tagloc.core.stickermap import StickerMap
 from tagloc.core.types import Frame, FrameResult, Observation, TrackerOutput
-from tagloc.io.sinks import FrameLog, PoseMessage, Sink, TumSink, open_sink
+from tagloc.io.sinks import FrameLog, PoseMessage, Sink, TumSink, check_vest_id, open_sink
 
 
 def warn_stderr(message: str) -> None:
@@ -78,6 +78,9 @@ class OutputConfig:
     drop_stale: bool = True
     warn_every_s: float = 10.0
     connect_grace_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        check_vest_id(self.vest)  # refused before any frame, not first met by the monitor
 
 
 @dataclass
