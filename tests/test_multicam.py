@@ -126,3 +126,19 @@ def test_a_rear_camera_matches_its_nearest_floor():
     x_front, x_rear = front.T_body_camera[0, 3], rear.T_body_camera[0, 3]
     assert pr.side == pytest.approx(pf.side, abs=1e-3)
     assert x_rear - pr.x_far == pytest.approx(pf.x_near - x_front, abs=0.02)
+
+
+def test_sticker_tracks_survive_the_other_cameras_frames(tmp_path):
+    # Each camera's decoded stickers are carried into its own next frame, with the other camera's
+    # frame in between (a review found every two-camera track wiped by the other camera's frame:
+    # no sticker carried, every one decoded again, the floor flow never skipped). 15 fps per camera:
+    # a camera's frames within TrackingConfig.max_gap_s of each other.
+    path = tmp_path / "walk"
+    simulate_session(
+        MAP, path, SimConfig(seconds=2.0, fps=15.0, seed=1, scale=0.5, rig=front_rear_rig()), progress=False
+    )
+    session = SessionReader(path)
+    both = run_session(session).counts
+    front = run_session(camera_subset(session, [0])).counts
+    assert front["tracked"] > 0
+    assert both["tracked"] >= front["tracked"]

@@ -763,7 +763,8 @@ class Localiser:
             )
         read_flags = [r.identity is not None for r in reads]
         self._track(observations, carried, read_flags, frame.camera, t)
-        self._failed = failed
+        # Per camera, as the tracks are: another camera's frame in between must not wipe them.
+        self._failed = [f for f in self._failed if f.camera != frame.camera] + failed
         self._read_fixed[frame.camera] = len(
             {
                 o.sticker_id
@@ -832,16 +833,18 @@ class Localiser:
     ) -> None:
         """Keep this frame's stickers named by reading them (decoded, matched by the expected-ID
         check, or carried; ``read``: per observation) whose fixes the tracker accepted: only they
-        may carry their identity into the next frame. Identification among candidates does not."""
-        ages = {tr.identity.sticker_id: tr.age for tr in self._tracked}
-        self._tracked = []
+        may carry their identity into the next frame of this camera. Identification among candidates
+        does not. The other cameras' tracks are kept: with two cameras their frames alternate, and
+        each camera's tracks must reach its own next frame (match_tracks pairs within a camera)."""
+        ages = {tr.identity.sticker_id: tr.age for tr in self._tracked if tr.camera == camera}
+        self._tracked = [tr for tr in self._tracked if tr.camera != camera]
         for obs, c, r in zip(observations, carried, read):
             ident = obs.identity
             if ident is None or not r or obs.fix is None or obs.fix.accepted is not True:
                 continue
             age = ages.get(ident.sticker_id, 0) + 1 if c is not None else 0
             self._tracked.append(Tracked(obs.detection.outer.copy(), ident, camera, t, age))
-        self._predict_tracked()
+        self._predict_tracked(camera)
 
     def _untracked(
         self, previous: tuple[float, list[np.ndarray], int, bool] | None, camera: int, t: float
@@ -855,16 +858,17 @@ class Localiser:
         held = [tr.outer for tr in self._tracked if tr.camera == camera and tr.t == previous[0]]
         return [o for o in previous[1] if not any(np.array_equal(o, h) for h in held)]
 
-    def _predict_tracked(self) -> None:
-        """Note where the tracker now puts each tracked sticker (:attr:`Tracked.predicted_px`)."""
-        if not self._tracked:
+    def _predict_tracked(self, camera: int) -> None:
+        """Note where the tracker now puts each of ``camera``'s tracked stickers
+        (:attr:`Tracked.predicted_px`). Only that camera's, just fused: another camera's tracks
+        keep the place predicted at their own frame's time, from which their image motion runs."""
+        ids = [tr.identity.sticker_id for tr in self._tracked if tr.camera == camera]
+        if not ids:
             return
-        by_cam: dict[int, list[int]] = {}
-        for tr in self._tracked:
-            by_cam.setdefault(tr.camera, []).append(tr.identity.sticker_id)
-        pix = {c: self.tracker.sticker_pixels(self.map, self.rig[c], ids) for c, ids in by_cam.items()}
+        pix = self.tracker.sticker_pixels(self.map, self.rig[camera], ids)
         self._tracked = [
-            dataclasses.replace(tr, predicted_px=pix[tr.camera].get(tr.identity.sticker_id)) for tr in self._tracked
+            dataclasses.replace(tr, predicted_px=pix.get(tr.identity.sticker_id)) if tr.camera == camera else tr
+            for tr in self._tracked
         ]
 
     def _image_motion(self, tr: Tracked, rig_cam: RigCamera) -> np.ndarray | None:
@@ -1148,7 +1152,7 @@ class Localiser:
             # Decoded and accepted: carried into the next frame (see _track).
             if identity.source == IdSource.DECODED and fix.accepted is True:
                 self._tracked.append(Tracked(det.outer.copy(), identity, camera, t, 0))
-                self._predict_tracked()
+                self._predict_tracked(camera)
         self.counts["lsq_deferred"] += ran
         return ran
 
