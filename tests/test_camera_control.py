@@ -258,6 +258,23 @@ def test_multi_capture_merges_cameras_in_time_order():
     cap.stop()
 
 
+def test_multi_capture_keeps_frames_stamped_as_the_other_cameras():
+    # Two video files each stamp frame k at k/fps: every rear frame had the front frame's stamp and
+    # was dropped as late (a review: `tagloc live --camera front.avi --camera rear.avi` ran on the
+    # front camera alone, 90 of 90 rear frames late). A camera's own repeated stamp is still late.
+    front = Stamped([0.0, 0.1, 0.2])
+    rear = Stamped([0.0, 0.1, 0.1, 0.2], level0=100)
+    cap = capture.MultiCapture([front, rear], buffer=8, pace=False).start()
+    got = []
+    while (item := cap.get(timeout=5.0)) is not None:
+        got.append(item.frame)
+    assert [f.camera for f in got] == [0, 1, 0, 1, 0, 1]
+    t = [f.timestamp for f in got]
+    assert np.all(np.diff(t) > 0) and t == pytest.approx([0.0, 1e-6, 0.1, 0.1 + 1e-6, 0.2, 0.2 + 1e-6], abs=1e-9)
+    assert cap.late == [0, 1]
+    cap.stop()
+
+
 def test_multi_capture_names_each_cameras_skipped_frames():
     class Blank(Stamped):
         def read(self):
@@ -283,7 +300,8 @@ def test_live_with_two_cameras_records_both(tmp_path):
     cfg = LiveConfig(source=str(a), more_cameras=[str(b)], record=tmp_path / "rec", pace=False, buffer=16)
     summary = run_live(cfg, localiser=loc)
     assert len(summary.per_camera) == 2 and summary.per_camera[1]["grabbed"] == 6
-    assert summary.frames == 11  # 12 frames, the second camera's first is as old as the first's: late
+    # 12 frames: the second camera's first, stamped as the first camera's, goes on 1 us after it.
+    assert summary.frames == 12 and summary.per_camera[1]["late"] == 0
     assert "camera 1: grabbed 6" in summary.format()
     rec = SessionReader(tmp_path / "rec")
     assert set(rec.cameras) == {0, 1} and np.all(np.diff(rec.timestamps) > 0)

@@ -55,6 +55,9 @@ V4L2_MANUAL_EXPOSURE = 1
 #: A driver stamp this much older than the monotonic clock when its frame arrives, or more, is not
 #: on that clock (a frame arrives within a few frame intervals of its start).
 _MAX_DRIVER_LAG_S = 1.0
+#: Several cameras: a frame stamped as another camera's frame just handed over goes this much after
+#: it (s), as a live source's stamps step past a switch of clocks (FrameSource._live_stamp).
+SAME_STAMP_STEP_S = 1e-6
 
 
 @dataclass
@@ -617,7 +620,10 @@ class MultiCapture:
     in delivery order (indices unique over all cameras, as a session needs). ``get`` waits
     until every running camera has a frame buffered, or ``merge_wait_s`` has passed, then hands
     over the oldest; a frame older than one already handed over (a camera that lagged past the
-    wait) would make the tracker go back in time, so it is dropped and counted as late.
+    wait) would make the tracker go back in time, so it is dropped and counted as late. A frame
+    stamped exactly as another camera's frame just handed over (two video files, each on its own
+    clock from 0; cameras triggered together) is not older: it goes on ``SAME_STAMP_STEP_S`` after
+    it, since every stage after the merge needs its frames' times to advance.
     Presents the interface of :class:`CaptureThread` that the live loop uses.
     """
 
@@ -638,6 +644,9 @@ class MultiCapture:
         self.late = [0] * len(sources)
         self._pending: list[CapturedFrame | None] = [None] * len(sources)
         self._last_t = -math.inf
+        # The source stamp of the frames handed over at the last source time, and their cameras.
+        self._last_stamp = -math.inf
+        self._cameras_at_stamp: set[int] = set()
         self._next_index = 0
 
     def start(self) -> MultiCapture:
@@ -664,9 +673,16 @@ class MultiCapture:
             if ready and (not waiting or waited >= self.merge_wait_s):
                 c = min(ready, key=lambda k: self._pending[k].frame.timestamp)
                 item, self._pending[c] = self._pending[c], None
-                if item.frame.timestamp <= self._last_t:
+                stamp = item.frame.timestamp
+                if stamp == self._last_stamp and c not in self._cameras_at_stamp:
+                    # Another camera's frame of the same instant: just after the one handed over.
+                    self._cameras_at_stamp.add(c)
+                    item.frame.timestamp = self._last_t + SAME_STAMP_STEP_S
+                elif stamp <= self._last_t:
                     self.late[c] += 1
                     continue
+                else:
+                    self._last_stamp, self._cameras_at_stamp = stamp, {c}
                 self._last_t = item.frame.timestamp
                 # One index over all cameras, in delivery order: a recording needs unique indices.
                 item.frame.index = self._next_index
