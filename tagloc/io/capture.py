@@ -55,9 +55,9 @@ V4L2_MANUAL_EXPOSURE = 1
 #: A driver stamp this much older than the monotonic clock when its frame arrives, or more, is not
 #: on that clock (a frame arrives within a few frame intervals of its start).
 _MAX_DRIVER_LAG_S = 1.0
-#: Several cameras: a frame stamped as another camera's frame just handed over goes this much after
-#: it (s), as a live source's stamps step past a switch of clocks (FrameSource._live_stamp).
-SAME_STAMP_STEP_S = 1e-6
+#: Several cameras: frame times are recorded (frames.csv) and published (a pose message's ``t``) to
+#: this resolution (s); each frame handed over must be at least one such step after the last.
+STAMP_RESOLUTION_S = 1e-6
 
 
 @dataclass
@@ -620,10 +620,12 @@ class MultiCapture:
     in delivery order (indices unique over all cameras, as a session needs). ``get`` waits
     until every running camera has a frame buffered, or ``merge_wait_s`` has passed, then hands
     over the oldest; a frame older than one already handed over (a camera that lagged past the
-    wait) would make the tracker go back in time, so it is dropped and counted as late. A frame
-    stamped exactly as another camera's frame just handed over (two video files, each on its own
-    clock from 0; cameras triggered together) is not older: it goes on ``SAME_STAMP_STEP_S`` after
-    it, since every stage after the merge needs its frames' times to advance.
+    wait) would make the tracker go back in time, so it is dropped and counted as late. A frame of
+    another camera stamped as the one just handed over, or within its microsecond (two video files,
+    each stamping frame k at k/fps; free-running cameras a few hundred nanoseconds apart now and
+    then), is not older: it goes on at the next microsecond (``STAMP_RESOLUTION_S``), since every
+    stage after the merge needs its frames' times to advance, and a recording and the pose messages
+    hold them to the microsecond.
     Presents the interface of :class:`CaptureThread` that the live loop uses.
     """
 
@@ -643,10 +645,9 @@ class MultiCapture:
         self.merge_wait_s = merge_wait_s if merge_wait_s is not None else default_wait
         self.late = [0] * len(sources)
         self._pending: list[CapturedFrame | None] = [None] * len(sources)
-        self._last_t = -math.inf
-        # The source stamp of the frames handed over at the last source time, and their cameras.
-        self._last_stamp = -math.inf
-        self._cameras_at_stamp: set[int] = set()
+        self._last_t = -math.inf  # the time of the last frame handed over (moved on, see get)
+        self._last_stamp = -math.inf  # and its source stamp
+        self._camera_stamp = [-math.inf] * len(sources)  # each camera's last stamp handed over
         self._next_index = 0
 
     def start(self) -> MultiCapture:
@@ -674,16 +675,12 @@ class MultiCapture:
                 c = min(ready, key=lambda k: self._pending[k].frame.timestamp)
                 item, self._pending[c] = self._pending[c], None
                 stamp = item.frame.timestamp
-                if stamp == self._last_stamp and c not in self._cameras_at_stamp:
-                    # Another camera's frame of the same instant: just after the one handed over.
-                    self._cameras_at_stamp.add(c)
-                    item.frame.timestamp = self._last_t + SAME_STAMP_STEP_S
-                elif stamp <= self._last_t:
+                if stamp < self._last_stamp or stamp <= self._camera_stamp[c]:
                     self.late[c] += 1
                     continue
-                else:
-                    self._last_stamp, self._cameras_at_stamp = stamp, {c}
-                self._last_t = item.frame.timestamp
+                if math.isfinite(stamp):  # (one that is not goes on: the localiser refuses it, named)
+                    self._last_stamp = self._camera_stamp[c] = stamp
+                    item.frame.timestamp = self._last_t = self._after_last(stamp)
                 # One index over all cameras, in delivery order: a recording needs unique indices.
                 item.frame.index = self._next_index
                 self._next_index += 1
@@ -696,6 +693,14 @@ class MultiCapture:
             if timeout is not None and waited >= timeout:
                 return None
             time.sleep(0.001)
+
+    def _after_last(self, stamp: float) -> float:
+        """``stamp`` (s), or the microsecond after the last frame handed over when it is within that
+        frame's microsecond (see the class)."""
+        if not math.isfinite(self._last_t):
+            return stamp
+        last = round(self._last_t / STAMP_RESOLUTION_S)
+        return stamp if round(stamp / STAMP_RESOLUTION_S) > last else (last + 1) * STAMP_RESOLUTION_S
 
     def take_skipped(self) -> list[str]:
         """Every camera's skipped frames since the last call (see :meth:`CaptureThread.take_skipped`)."""
