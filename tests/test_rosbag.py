@@ -268,6 +268,22 @@ def test_covariance_and_names():
     assert (ros_name("vest-1"), ros_name("07"), ros_name("a.b/c")) == ("vest_1", "v07", "a_b_c")
 
 
+def test_cameras_named_alike_are_refused_before_the_bag_is_made(tmp_path):
+    # Each camera's topics are /tagloc/VEST/CAM/...: two cameras named "front" and "front" (or
+    # "front-left" and "front_left") made rosbag2 stop with an internal error, leaving a bag
+    # directory that the next run refused as existing.
+    from tagloc.eval.multicam import front_rear_rig
+
+    for names in (("front", "front"), ("front-left", "front_left")):
+        rig = front_rear_rig()
+        for cam, name in zip(rig.cameras, names):
+            cam.name = name
+        with pytest.raises(InputError, match="distinct names"):
+            BagWriter(tmp_path / "b", "v", rig)
+        assert not (tmp_path / "b").exists()
+    BagWriter(tmp_path / "b", "v", front_rear_rig()).close()
+
+
 def test_initialising_writes_no_pose(tmp_path):
     rig = SessionReader(WALK).rig
     w = BagWriter(tmp_path / "b", "v", rig)

@@ -149,6 +149,15 @@ class BagWriter(Sink):
         from tagloc.io.sinks import check_vest_id
 
         self.vest = ros_name(check_vest_id(vest))
+        # Each camera's topics and TF frame are named after it: two cameras of one name (as ROS names)
+        # would share them, which rosbag2 refuses mid-setup, leaving a bag directory behind.
+        cams = [ros_name(c.name) for c in rig.cameras]
+        if len(set(cams)) < len(cams):
+            raise InputError(
+                f"{self.path}: the rig's cameras need distinct names for a bag's topics, not "
+                + ", ".join(repr(c.name) for c in rig.cameras)
+                + f" (as ROS names: {', '.join(cams)}); rename them in rig.json"
+            )
         self.rig = rig
         self.images = bool(images)
         self._store = _typestore()
