@@ -142,3 +142,26 @@ def test_sticker_tracks_survive_the_other_cameras_frames(tmp_path):
     front = run_session(camera_subset(session, [0])).counts
     assert front["tracked"] > 0
     assert both["tracked"] >= front["tracked"]
+
+
+def test_one_calibration_is_not_given_to_cameras_that_have_their_own(tmp_path):
+    # --calibration replaced every rig camera's calibration: a half-resolution rear camera then had
+    # every frame refused as the wrong size (a review), one of the same size would be solved
+    # through the front camera's lens.
+    from tagloc.core.camera import default_camera, save_calibration
+    from tagloc.core.errors import InputError
+    from tagloc.core.rig import save_rig
+    from tagloc.pipeline.localiser import load_setup
+
+    rig = front_rear_rig()
+    rig.cameras[1].camera = default_camera().scaled(0.5)
+    save_rig(rig, tmp_path / "rig.json")
+    save_calibration(default_camera(), tmp_path / "front.yaml")
+    with pytest.raises(InputError, match="camera0.yaml, camera1.yaml"):
+        load_setup(MAP, tmp_path / "front.yaml", tmp_path / "rig.json")
+    _, loaded = load_setup(MAP, None, tmp_path / "rig.json")
+    assert loaded[1].camera.size == (648, 486)
+    # A one-camera rig (or cameras sharing one file) still takes it.
+    (tmp_path / "one").mkdir()
+    save_rig(default_rig(), tmp_path / "one" / "rig.json")
+    assert len(load_setup(MAP, tmp_path / "front.yaml", tmp_path / "one" / "rig.json")[1]) == 1

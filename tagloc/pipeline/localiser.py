@@ -560,6 +560,15 @@ def load_setup(
     rig_path = rig_path or (cdir / RIG_FILE if cdir and (cdir / RIG_FILE).exists() else None)
     if rig_path is not None:
         rig = load_rig(rig_path, camera)
+        names = list(dict.fromkeys(c.calibration_file for c in rig.cameras))
+        if camera is not None and len(names) > 1:
+            # One calibration for cameras that have their own: a rear camera of another resolution
+            # would have every frame refused as the wrong size, one of the same size be solved
+            # through the wrong lens.
+            raise InputError(
+                f"{calibration}: --calibration would replace the calibration of every camera of {rig_path}, "
+                f"whose {len(rig)} cameras have their own ({', '.join(names)}); leave --calibration out"
+            )
     else:
         if camera is None and cdir is not None and (cdir / CAMERA_FILE).exists():
             camera = load_calibration(cdir / CAMERA_FILE)
