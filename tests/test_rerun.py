@@ -144,3 +144,30 @@ def test_missing_viewer_is_a_clear_error(monkeypatch, tmp_path):
     monkeypatch.setenv("PATH", str(tmp_path))  # no `rerun` executable to spawn
     with pytest.raises(BackendUnavailable, match="Rerun viewer"):
         RerunView(StickerMap(np.array([1]), np.zeros((1, 2)), np.zeros(1)), default_rig(), spawn=True)
+
+
+def test_a_frame_time_rerun_cannot_hold_or_going_back_stays_off_the_time_timeline(tmp_path):
+    """Live refuses a non-finite or backward stamp and accepts a huge jump (skipped, counted, or the
+    track lost): the view must neither stop the run on them nor draw the walk back in time."""
+    from rerun.chunk import RrdReader
+
+    smap = StickerMap(np.array([7]), np.zeros((1, 2)), np.zeros(1))
+    for clock, base in (("duration", 0.0), ("timestamp", 1.7e9)):
+        path = tmp_path / f"{clock}.rrd"
+        view = RerunView(smap, default_rig(), save=path, clock=clock)
+        out = TrackerOutput(base + 1.0, np.array([1.0, 2.0, 0.3]), np.eye(3) * 1e-3, TrackState.TRACKING, 0.1, 7)
+        stamps = [base + 1.0, base + 1.1, float("nan"), base + 0.5, float("inf"), 1e300, base + 1.2]
+        for k, t in enumerate(stamps):
+            view.log(
+                Frame(k, t, None), FrameResult(k, t, [], out, {"total": 1.0}, "refused" if k in (2, 3, 4) else None)
+            )
+        view.close()
+        assert read_rrd(path)["status"].frames == list(range(len(stamps)))
+        timed = []
+        for chunk in RrdReader(str(path)).stream():
+            b = chunk.to_record_batch()
+            if chunk.entity_path == "/status" and "time" in b.schema.names:
+                timed += [
+                    f for f, t in zip(b.column("frame").to_pylist(), b.column("time").to_pylist()) if t is not None
+                ]
+        assert sorted(timed) == [0, 1, 6], clock

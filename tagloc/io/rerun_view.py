@@ -18,7 +18,9 @@ Entity tree (``CAM`` is the rig camera's name, e.g. ``front``)::
     status                          text: tracker state, last sticker
 
 Timelines: ``frame`` (sequence: frame index) and ``time`` (the frame clock: a duration for a
-session's clock, a timestamp for a live camera's epoch-based clock).
+session's clock, a timestamp for a live camera's epoch-based clock). A frame whose time is not
+finite, out of Rerun's range or before the last frame's (a stamp the localiser refused) is on
+``frame`` alone.
 
 The trajectory is logged in pieces (each piece re-logged as it grows) so that every frame adds
 a bounded amount of data and scrubbing back in time still shows the path as it was then.
@@ -45,6 +47,7 @@ from tagloc.core.types import Frame, FrameResult, IdSource, TrackState
 
 PATH_PIECE = 256  # frames per trajectory piece
 NETWORK_FLUSH_S = 5.0  # longest wait for a viewer when closing
+MAX_TIME_S = 9.2e9  # |time| Rerun holds: int64 nanoseconds (and below its 1e11 s "milliseconds?" check)
 
 log = logging.getLogger(__name__)
 
@@ -282,6 +285,7 @@ class RerunView:
             self.rec, bp, save, spawn, connect, "put `rerun` on PATH or save a recording instead"
         )
         self._path: list[list[float]] = []
+        self._last_t = -math.inf  # the last time put on the ``time`` timeline
         self._log_static(smap)
 
     def _log_static(self, smap: StickerMap) -> None:
@@ -311,18 +315,30 @@ class RerunView:
                 static=True,
             )
 
-    def _set_time(self, result: FrameResult) -> None:
+    def _set_time(self, result: FrameResult, t: float) -> bool:
+        """Put the next rows at the frame's index and at ``t`` on ``time``; False when ``t`` stays off
+        ``time`` (on ``frame`` alone): not finite, beyond Rerun's nanosecond range or before the last
+        frame's time. A frame the localiser refused for its stamp is still shown, but it must neither
+        stop the run nor draw the walk back in time."""
         self.rec.set_time("frame", sequence=int(result.index))
+        if not (math.isfinite(t) and abs(t) < MAX_TIME_S and t >= self._last_t):
+            self.rec.disable_timeline("time")
+            return False
+        self._last_t = t
         if self.clock == "duration":
-            self.rec.set_time("time", duration=float(result.timestamp))
+            self.rec.set_time("time", duration=float(t))
         else:
-            self.rec.set_time("time", timestamp=float(result.timestamp))
+            self.rec.set_time("time", timestamp=float(t))
+        return True
 
-    def log(self, frame: Frame, result: FrameResult) -> None:
-        """Log one frame: image, detections, pose, uncertainty, errors and timings."""
+    def log(self, frame: Frame, result: FrameResult, t: float | None = None) -> None:
+        """Log one frame: image, detections, pose, uncertainty, errors and timings.
+
+        ``t``: the frame's place on the ``time`` timeline (default its timestamp; :class:`Outputs`
+        gives its published stamp, which carries on after the source's clock is reset)."""
         rr = import_rerun()
         rec = self.rec
-        self._set_time(result)
+        self._set_time(result, result.timestamp if t is None else t)
         out = result.output
         if frame.image is not None:
             self._log_image(frame, result)
