@@ -171,3 +171,38 @@ def test_a_frame_time_rerun_cannot_hold_or_going_back_stays_off_the_time_timelin
                     f for f, t in zip(b.column("frame").to_pylist(), b.column("time").to_pylist()) if t is not None
                 ]
         assert sorted(timed) == [0, 1, 6], clock
+
+
+def times_on_clock(path, entity: str) -> dict[int, float]:
+    """frame -> seconds on the ``time`` timeline (a duration) of one entity's rows that have one."""
+    from rerun.chunk import RrdReader
+
+    out = {}
+    for chunk in RrdReader(str(path)).stream():
+        b = chunk.to_record_batch()
+        if chunk.entity_path.lstrip("/") == entity and "time" in b.schema.names:
+            for f, t in zip(b.column("frame").to_pylist(), b.column("time").cast("int64").to_pylist()):
+                if t is not None:
+                    out[f] = t / 1e9
+    return out
+
+
+def test_after_the_source_clock_is_reset_the_recording_carries_on_in_time(tmp_path):
+    """Live restarts the track on a reset clock and publishes its stamps carried on from the last:
+    the recording follows them rather than drawing the new track over the old one's times."""
+    from tagloc.pipeline.output import OutputConfig, Outputs
+
+    smap = StickerMap(np.array([7]), np.zeros((1, 2)), np.zeros(1))
+    outputs = Outputs(smap, default_rig(), OutputConfig(rerun_save=tmp_path / "r.rrd"), warn=lambda m: None)
+
+    def res(i: int, t: float, skipped: str | None = None) -> FrameResult:
+        o = TrackerOutput(t, np.array([i, 0.0, 0.0]), np.eye(3) * 1e-4, TrackState.TRACKING, 0.1, 7)
+        return FrameResult(i, t, [], o, {"total": 1.0}, skipped)
+
+    # Frames 0-2 on the old clock, 3 refused (its stamp goes back), 4-5 on the new clock after the reset.
+    for r in (res(0, 10.0), res(1, 10.1), res(2, 10.2), res(3, 0.0, "not after"), res(4, 0.05), res(5, 0.15)):
+        outputs.emit(r)
+    outputs.close()
+    times = times_on_clock(tmp_path / "r.rrd", "world/body")
+    assert sorted(times) == [0, 1, 2, 4, 5]  # the refused frame is on the frame timeline alone
+    assert times[4] > times[2] and times[5] - times[4] == pytest.approx(0.1)

@@ -199,7 +199,13 @@ class Outputs:
         if self.log is not None:
             self.log.write(result)
         if self.view is not None:
-            self.view.log(frame if frame is not None else Frame(result.index, result.timestamp, None), result)
+            # On the published clock: after the source's clock is reset the recording carries on
+            # rather than drawing the new track over the old one's times.
+            self.view.log(
+                frame if frame is not None else Frame(result.index, result.timestamp, None),
+                result,
+                result.timestamp + self._offset,
+            )
         if latency is None and grabbed is not None:
             latency = (time.monotonic() - grabbed) * 1e3
         return latency
