@@ -206,3 +206,25 @@ def test_after_the_source_clock_is_reset_the_recording_carries_on_in_time(tmp_pa
     times = times_on_clock(tmp_path / "r.rrd", "world/body")
     assert sorted(times) == [0, 1, 2, 4, 5]  # the refused frame is on the frame timeline alone
     assert times[4] > times[2] and times[5] - times[4] == pytest.approx(0.1)
+
+
+def test_a_viewer_url_where_nothing_listens_or_malformed_is_one_clear_error(tmp_path):
+    """Rerun itself buffers the whole run for an unreachable viewer and only warns at the end."""
+    import socket
+
+    from tagloc.core.errors import BackendUnavailable, InputError
+
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))  # a port nothing listens on (bound, never listening)
+    port = s.getsockname()[1]
+    smap = StickerMap(np.array([1]), np.zeros((1, 2)), np.zeros(1))
+    try:
+        with pytest.raises(BackendUnavailable, match=f"no Rerun viewer at rerun\\+http://127.0.0.1:{port}/proxy"):
+            RerunView(smap, default_rig(), connect=f"rerun+http://127.0.0.1:{port}/proxy")
+    finally:
+        s.close()
+    for bad in ("foo", "http://127.0.0.1:9876", "rerun+http://127.0.0.1:99999/proxy", "rerun+http:///proxy"):
+        with pytest.raises(InputError, match="Rerun viewer URL"):
+            RerunView(smap, default_rig(), connect=bad)
+    assert rv.viewer_address("rerun+http://10.0.0.2/proxy") == ("10.0.0.2", 9876)
+    assert rv.viewer_address("rerun://viewer.example/proxy") == ("viewer.example", 443)

@@ -112,6 +112,10 @@ def run(args: argparse.Namespace) -> int:
         checks.output_file(path, option)
     checks.output_dir(args.record, "--record")
     _outputs_apart_from_inputs(args, checks)
+    if args.rerun_connect:
+        from tagloc.io.rerun_view import viewer_address
+
+        viewer_address(args.rerun_connect)  # a malformed URL is refused before the reference bank is built
     if args.gain is not None:
         # No upper bound: the units are the driver's. CameraSettings takes any gain >= 0, infinity too.
         checks.number(args.gain, "--gain", 0)

@@ -32,6 +32,8 @@ from __future__ import annotations
 
 import logging
 import math
+import socket
+import urllib.parse
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -47,6 +49,7 @@ from tagloc.core.types import Frame, FrameResult, IdSource, TrackState
 
 PATH_PIECE = 256  # frames per trajectory piece
 NETWORK_FLUSH_S = 5.0  # longest wait for a viewer when closing
+VIEWER_PROBE_S = 2.0  # longest wait to reach a viewer's port at start
 MAX_TIME_S = 9.2e9  # |time| Rerun holds: int64 nanoseconds (and below its 1e11 s "milliseconds?" check)
 
 log = logging.getLogger(__name__)
@@ -79,6 +82,30 @@ def new_recording(app_id: str, save, spawn: bool, connect: str | None, recording
     return rr.RecordingStream(app_id, recording_id=recording_id)
 
 
+def viewer_address(url: str) -> tuple[str, int]:
+    """(host, port) of a Rerun viewer URL (``rerun+http://HOST:PORT/proxy``, ``rerun+https://``,
+    ``rerun://``; Rerun's default ports); InputError for anything else."""
+    parts = urllib.parse.urlsplit(url)
+    try:
+        port = parts.port
+    except ValueError:  # a port that is not a number in 0-65535
+        port = -1
+    if parts.scheme not in ("rerun", "rerun+http", "rerun+https") or not parts.hostname or port == -1:
+        raise InputError(
+            f"Rerun viewer URL {url!r}: expected rerun+http://HOST:PORT/proxy (or rerun+https://, rerun://)"
+        )
+    return parts.hostname, port or (9876 if parts.scheme == "rerun+http" else 443)
+
+
+def viewer_listens(host: str, port: int, timeout: float = VIEWER_PROBE_S) -> str | None:
+    """None when something accepts a TCP connection at host:port, else why not."""
+    try:
+        socket.create_connection((host, port), timeout=timeout).close()
+    except OSError as exc:
+        return exc.strerror or str(exc) or type(exc).__name__
+    return None
+
+
 def attach_sinks(rec, blueprint, save, spawn: bool, connect: str | None, spawn_hint: str) -> bool:
     """Send ``rec`` to a file (``save``), a viewer started here (``spawn``) and/or a viewer URL
     (``connect``), with ``blueprint`` as the default layout. Returns whether a network viewer is
@@ -98,6 +125,13 @@ def attach_sinks(rec, blueprint, save, spawn: bool, connect: str | None, spawn_h
             ) from exc
         sinks.append(rr.GrpcSink())
     if connect:
+        # Rerun only warns, at the end, that it never reached the viewer (after the whole run had been
+        # buffered for it, then up to 10 s of waiting): refuse a URL where nothing listens at once.
+        problem = viewer_listens(*viewer_address(connect))
+        if problem is not None:
+            raise BackendUnavailable(
+                f"no Rerun viewer at {connect} ({problem}); start one there (`rerun`) or save a recording instead"
+            )
         sinks.append(rr.GrpcSink(connect))
     rec.set_sinks(*sinks, default_blueprint=blueprint)
     return bool(spawn or connect)
