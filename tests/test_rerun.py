@@ -138,10 +138,21 @@ def test_trajectory_pieces_join(recording):
     assert np.allclose(p0[:, 0], [0.2, 0.3, 0.4, 0.5])
 
 
+def free_port() -> int:
+    """A local TCP port nothing listens on (bound, then released)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 def test_missing_viewer_is_a_clear_error(monkeypatch, tmp_path):
     from tagloc.core.errors import BackendUnavailable
 
     monkeypatch.setenv("PATH", str(tmp_path))  # no `rerun` executable to spawn
+    monkeypatch.setenv("DISPLAY", ":0")
+    monkeypatch.setattr(rv, "VIEWER_PORT", free_port())
     with pytest.raises(BackendUnavailable, match="Rerun viewer"):
         RerunView(StickerMap(np.array([1]), np.zeros((1, 2)), np.zeros(1)), default_rig(), spawn=True)
 
@@ -228,3 +239,22 @@ def test_a_viewer_url_where_nothing_listens_or_malformed_is_one_clear_error(tmp_
             RerunView(smap, default_rig(), connect=bad)
     assert rv.viewer_address("rerun+http://10.0.0.2/proxy") == ("10.0.0.2", 9876)
     assert rv.viewer_address("rerun://viewer.example/proxy") == ("viewer.example", 443)
+
+
+def test_a_viewer_that_cannot_open_a_window_is_one_clear_error(monkeypatch, tmp_path):
+    """Without a display the spawned viewer exits at once; Rerun only says so at the end."""
+    from tagloc.core.errors import BackendUnavailable
+
+    fake = tmp_path / "rerun"  # a viewer that exits at once, as Rerun's does without a display
+    fake.write_text("#!/bin/sh\nexit 1\n")
+    fake.chmod(0o755)
+    monkeypatch.setenv("PATH", str(tmp_path))
+    monkeypatch.setattr(rv, "VIEWER_PORT", free_port())
+    smap = StickerMap(np.array([1]), np.zeros((1, 2)), np.zeros(1))
+    for var in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET"):
+        monkeypatch.delenv(var, raising=False)
+    with pytest.raises(BackendUnavailable, match="no display"):
+        RerunView(smap, default_rig(), spawn=True)
+    monkeypatch.setenv("DISPLAY", ":0")  # a display is named, yet the viewer does not start
+    with pytest.raises(BackendUnavailable, match="the Rerun viewer did not start"):
+        RerunView(smap, default_rig(), spawn=True)

@@ -32,7 +32,9 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import socket
+import sys
 import urllib.parse
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -50,6 +52,7 @@ from tagloc.core.types import Frame, FrameResult, IdSource, TrackState
 PATH_PIECE = 256  # frames per trajectory piece
 NETWORK_FLUSH_S = 5.0  # longest wait for a viewer when closing
 VIEWER_PROBE_S = 2.0  # longest wait to reach a viewer's port at start
+VIEWER_PORT = 9876  # where a spawned viewer listens (Rerun's default)
 MAX_TIME_S = 9.2e9  # |time| Rerun holds: int64 nanoseconds (and below its 1e11 s "milliseconds?" check)
 
 log = logging.getLogger(__name__)
@@ -106,6 +109,13 @@ def viewer_listens(host: str, port: int, timeout: float = VIEWER_PROBE_S) -> str
     return None
 
 
+def no_display() -> bool:
+    """Whether a window cannot open here: on Linux and the BSDs, neither X11 nor Wayland is named."""
+    if sys.platform in ("darwin", "win32"):
+        return False
+    return not any(os.environ.get(k) for k in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET"))
+
+
 def attach_sinks(rec, blueprint, save, spawn: bool, connect: str | None, spawn_hint: str) -> bool:
     """Send ``rec`` to a file (``save``), a viewer started here (``spawn``) and/or a viewer URL
     (``connect``), with ``blueprint`` as the default layout. Returns whether a network viewer is
@@ -116,14 +126,27 @@ def attach_sinks(rec, blueprint, save, spawn: bool, connect: str | None, spawn_h
         Path(save).parent.mkdir(parents=True, exist_ok=True)
         sinks.append(rr.FileSink(str(save)))
     if spawn:
+        # A viewer already listening is used as it is (Rerun starts none then). One started without a
+        # display exits at once, and Rerun would only say so at the end, after buffering the whole run.
+        running = viewer_listens("127.0.0.1", VIEWER_PORT) is None
+        if not running and no_display():
+            raise BackendUnavailable(
+                "cannot start the Rerun viewer: no display (DISPLAY and WAYLAND_DISPLAY are not set); "
+                "save a recording instead and open it (`rerun FILE.rrd`) where there is one"
+            )
         # Start the viewer only; the stream is attached below with the other sinks.
         try:
-            rec.spawn(connect=False)
+            rec.spawn(port=VIEWER_PORT, connect=False)
         except RuntimeError as exc:  # the viewer executable is missing
             raise BackendUnavailable(
                 f"cannot start the Rerun viewer ({str(exc).splitlines()[0].strip()}); {spawn_hint}"
             ) from exc
-        sinks.append(rr.GrpcSink())
+        if not running and (problem := viewer_listens("127.0.0.1", VIEWER_PORT)) is not None:
+            raise BackendUnavailable(
+                f"the Rerun viewer did not start (port {VIEWER_PORT}: {problem}; its own lines above say why); "
+                f"{spawn_hint}"
+            )
+        sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{VIEWER_PORT}/proxy"))
     if connect:
         # Rerun only warns, at the end, that it never reached the viewer (after the whole run had been
         # buffered for it, then up to 10 s of waiting): refuse a URL where nothing listens at once.
