@@ -624,3 +624,28 @@ def test_status_and_summary_show_the_last_invalid_message_and_timeline_resets():
     assert text.splitlines()[-1].startswith("  last invalid message: not JSON")
     summary = MonitorSummary(fs.counts(), fs.warnings(EPOCH + 1.3), 1.0, last_error=fs.last_error)
     assert "1 out of order, 0 expired; 1 timeline resets)" in summary.format()
+
+
+def test_the_view_draws_a_long_trail_thinned(tmp_path):
+    """Every redraw logs each trail whole: 30 s of a 30 Hz vest is drawn with at most 100 points,
+    from its oldest to its newest, not 900 points ten times a second."""
+    from rerun.chunk import RrdReader
+
+    from tagloc.core.stickermap import StickerMap
+    from tagloc.io.fleet_view import FleetView
+
+    state = FleetState(clock_is_epoch=False)
+    for k in range(900):
+        state.handle(msg("v1", t=k / 30, x=k * 0.01, index=k), k / 30)
+    view = FleetView(StickerMap(np.array([1]), np.zeros((1, 2)), np.zeros(1)), save=tmp_path / "f.rrd")
+    view.update(state, 30.0, timestamp=False)
+    view.close()
+    trails = [
+        s
+        for c in RrdReader(str(tmp_path / "f.rrd")).stream()
+        if c.entity_path == "/fleet/vests/trails"
+        for s in c.to_record_batch().column("LineStrips3D:strips").to_pylist()[-1]
+    ]
+    (trail,) = trails
+    assert 50 <= len(trail) <= 100
+    assert trail[0][0] == pytest.approx(0.0) and trail[-1][0] == pytest.approx(8.99)
