@@ -258,3 +258,26 @@ def test_a_viewer_that_cannot_open_a_window_is_one_clear_error(monkeypatch, tmp_
     monkeypatch.setenv("DISPLAY", ":0")  # a display is named, yet the viewer does not start
     with pytest.raises(BackendUnavailable, match="the Rerun viewer did not start"):
         RerunView(smap, default_rig(), spawn=True)
+
+
+@pytest.mark.parametrize("start, kind", [(0.0, "duration"), (1.7e9, "timestamp")])
+def test_a_replay_keeps_an_epoch_clock_as_timestamps(tmp_path, start, kind):
+    """A replayed live recording or ROS bag has epoch stamps: shown as a duration they read
+    "19675 days"; a session's own clock stays a duration."""
+    import pyarrow as pa
+    from rerun.chunk import RrdReader
+
+    from tagloc.pipeline.output import OutputConfig, Outputs
+
+    smap = StickerMap(np.array([7]), np.zeros((1, 2)), np.zeros(1))
+    outputs = Outputs(smap, default_rig(), OutputConfig(rerun_save=tmp_path / "r.rrd"), warn=lambda m: None)
+    for i in range(3):
+        o = TrackerOutput(start + i / 30, np.array([i, 0.0, 0.0]), np.eye(3) * 1e-4, TrackState.TRACKING, 0.1, 7)
+        outputs.emit(FrameResult(i, start + i / 30, [], o, {"total": 1.0}))
+    outputs.close()
+    types = {
+        c.to_record_batch().schema.field("time").type
+        for c in RrdReader(str(tmp_path / "r.rrd")).stream()
+        if "time" in c.timeline_names
+    }
+    assert types == {pa.timestamp("ns") if kind == "timestamp" else pa.duration("ns")}

@@ -18,9 +18,9 @@ Entity tree (``CAM`` is the rig camera's name, e.g. ``front``)::
     status                          text: tracker state, last sticker
 
 Timelines: ``frame`` (sequence: frame index) and ``time`` (the frame clock: a duration for a
-session's clock, a timestamp for a live camera's epoch-based clock). A frame whose time is not
-finite, out of Rerun's range or before the last frame's (a stamp the localiser refused) is on
-``frame`` alone.
+session's clock, a timestamp for a live camera's epoch-based clock, and for a replay of one: a live
+recording or a ROS bag). A frame whose time is not finite, out of Rerun's range or before the last
+frame's (a stamp the localiser refused) is on ``frame`` alone.
 
 The trajectory is logged in pieces (each piece re-logged as it grows) so that every frame adds
 a bounded amount of data and scrubbing back in time still shows the path as it was then.
@@ -304,7 +304,9 @@ class RerunView:
         groundtruth: (stamps (M,), T_world_body (M, 4, 4)) when known.
         image_scale: factor applied to the logged camera image (keeps .rrd files small).
         jpeg_quality: JPEG quality of the logged image.
-        clock: "duration" (a session's clock, seconds from its start) or "timestamp" (epoch seconds).
+        clock: "duration" (a session's clock, seconds from its start), "timestamp" (epoch seconds) or
+            "auto" (a timestamp when the first frame's time is on the epoch, as a live recording's or a
+            ROS bag's are, else a duration).
     """
 
     def __init__(
@@ -323,8 +325,8 @@ class RerunView:
         recording_id: str | None = None,
     ):
         self.rec = new_recording(app_id, save, spawn, connect, recording_id)
-        if clock not in ("duration", "timestamp"):
-            raise InputError(f"Rerun clock must be 'duration' or 'timestamp', not {clock!r}")
+        if clock not in ("duration", "timestamp", "auto"):
+            raise InputError(f"Rerun clock must be 'duration', 'timestamp' or 'auto', not {clock!r}")
         if not 0.0 < image_scale <= 1.0:
             raise InputError(f"Rerun image scale must be in (0, 1], not {image_scale}")
         self.rig = rig
@@ -382,6 +384,12 @@ class RerunView:
             self.rec.disable_timeline("time")
             return False
         self._last_t = t
+        if self.clock == "auto":
+            from tagloc.io.fleet import EPOCH_MIN_S
+
+            # Decided once: Rerun keeps one type per timeline. An epoch clock as a duration would read
+            # "19675 days" in the viewer.
+            self.clock = "timestamp" if t >= EPOCH_MIN_S else "duration"
         if self.clock == "duration":
             self.rec.set_time("time", duration=float(t))
         else:

@@ -52,7 +52,8 @@ class OutputConfig:
         tum: TUM trajectory file of the body; log: per-frame JSON lines log (``log_times``: with
             stage timings, which vary run to run).
         rerun_save, rerun_spawn, rerun_connect: .rrd file, new viewer, viewer URL;
-            ``rerun_clock`` "duration" (session clock) or "timestamp" (epoch clock of a live camera).
+            ``rerun_clock`` "duration" (session clock), "timestamp" (epoch clock of a live camera) or
+            "auto" (a timestamp when the first frame's time is on the epoch: a replayed live recording).
         groundtruth: (stamps, T_world_body) for Rerun, when known.
         max_age_s: network sinks never send a pose older than this (s, from the frame's grab). 0.5 s:
             at walking speed (1.5 m/s) a pose that old is 0.75 m behind the person, more than
@@ -72,7 +73,7 @@ class OutputConfig:
     rerun_save: Path | None = None
     rerun_spawn: bool = False
     rerun_connect: str | None = None
-    rerun_clock: str = "duration"
+    rerun_clock: str = "auto"
     groundtruth: tuple | None = None
     max_age_s: float = 0.5
     drop_stale: bool = True
