@@ -281,3 +281,20 @@ def test_a_replay_keeps_an_epoch_clock_as_timestamps(tmp_path, start, kind):
         if "time" in c.timeline_names
     }
     assert types == {pa.timestamp("ns") if kind == "timestamp" else pa.duration("ns")}
+
+
+def test_a_sticker_named_after_its_frame_is_relabelled_on_that_frame(tmp_path):
+    """Live's deferred decode names a sticker after its frame was logged: the frame's outline must
+    not stay drawn as unidentified while its fix is in the filter."""
+    smap = StickerMap(np.array([7]), np.zeros((1, 2)), np.zeros(1))
+    path = tmp_path / "late.rrd"
+    view = RerunView(smap, default_rig(), save=path)
+    outer = np.array([[100.0, 100.0], [300.0, 110.0], [290.0, 300.0], [95.0, 290.0]])
+    det, other = Detection(outer), Detection(outer + 400)
+    out = TrackerOutput(0.1, np.zeros(3), np.eye(3) * 1e-3, TrackState.TRACKING, 0.1, 7)
+    img = np.zeros((972, 1296), np.uint8)
+    view.log(Frame(3, 0.1, img), FrameResult(3, 0.1, [Observation(det, 0), Observation(other, 0)], out))
+    view.log_late(3, [Observation(det, 0, Identity(7, 0, IdSource.DECODED), Fix([], accepted=True))])
+    view.close()
+    assert column(path, "world/body/front/image/detections", "LineStrips2D:labels")[-1] == ["7 decoded", "? none"]
+    assert times_on_clock(path, "world/body/front/image/detections") == {3: pytest.approx(0.1)}  # the same place

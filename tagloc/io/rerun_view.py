@@ -47,7 +47,7 @@ from tagloc.core.geometry import interpolate_groundtruth
 from tagloc.core.rig import Rig
 from tagloc.core.sticker import OUTER_CORNERS
 from tagloc.core.stickermap import StickerMap
-from tagloc.core.types import Frame, FrameResult, IdSource, TrackState
+from tagloc.core.types import Frame, FrameResult, IdSource, Observation, TrackState
 
 PATH_PIECE = 256  # frames per trajectory piece
 NETWORK_FLUSH_S = 5.0  # longest wait for a viewer when closing
@@ -345,6 +345,9 @@ class RerunView:
         )
         self._path: list[list[float]] = []
         self._last_t = -math.inf  # the last time put on the ``time`` timeline
+        self._on_clock: float | None = None  # the current frame's time there (None: off it)
+        # camera -> (frame index, its time on ``time``, observations drawn) of its last image
+        self._shown: dict[int, tuple[int, float | None, list[Observation]]] = {}
         self._log_static(smap)
 
     def _log_static(self, smap: StickerMap) -> None:
@@ -382,8 +385,9 @@ class RerunView:
         self.rec.set_time("frame", sequence=int(result.index))
         if not (math.isfinite(t) and abs(t) < MAX_TIME_S and t >= self._last_t):
             self.rec.disable_timeline("time")
+            self._on_clock = None
             return False
-        self._last_t = t
+        self._last_t = self._on_clock = t
         if self.clock == "auto":
             from tagloc.io.fleet import EPOCH_MIN_S
 
@@ -491,6 +495,32 @@ class RerunView:
         entity = image_entity(self.rig, frame.camera)
         self.rec.log(entity, rr.EncodedImage(contents=buf.tobytes(), media_type="image/jpeg"))
         obs = [o for o in result.observations if o.camera == frame.camera]
+        self._shown[frame.camera] = (result.index, self._on_clock, obs)
+        self._log_detections(entity, obs)
+
+    def log_late(self, index: int, observations: list[Observation]) -> None:
+        """Relabel frame ``index``'s outlines with the stickers its deferred decodes named after the
+        frame was logged (live; :attr:`FrameResult.late`), at that frame's place on the timelines.
+        Without this a sticker whose fix was fused stays drawn as unidentified."""
+        for camera, (shown, t, obs) in self._shown.items():
+            late = [o for o in observations if o.camera == camera]
+            if shown != index or not late:
+                continue
+            named = [next((n for n in late if n.detection is o.detection), o) for o in obs]
+            self.rec.set_time("frame", sequence=int(index))
+            if t is None:
+                self.rec.disable_timeline("time")
+            elif self.clock == "duration":
+                self.rec.set_time("time", duration=t)
+            else:
+                self.rec.set_time("time", timestamp=t)
+            self._shown[camera] = (shown, t, named)
+            self._log_detections(image_entity(self.rig, camera), named)
+
+    def _log_detections(self, entity: str, obs: list[Observation]) -> None:
+        """The sticker outlines on the image at ``entity``, coloured by identification, with IDs."""
+        rr = import_rerun()
+        s = self.image_scale
         # Pixel centres sit at integers in OpenCV, so scaling maps p -> (p + 0.5) * s - 0.5.
         strips = [np.vstack([o.detection.outer, o.detection.outer[:1]]) * s + 0.5 * s - 0.5 for o in obs]
         labels = []

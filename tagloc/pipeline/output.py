@@ -239,10 +239,12 @@ class Outputs:
     def emit_late(self, index: int, t: float, observations: list[Observation]) -> None:
         """Log the observations that frame ``index``'s deferred work finished after the frame was
         published (``tagloc live``; :attr:`Localiser.late`), with the frame's time ``t`` (s), as a
-        ``"late"`` line of the per-frame log. Their fixes are in the filter already; the sinks see
-        them in the next frame's pose."""
+        ``"late"`` line of the per-frame log, and relabel them on that frame's image in Rerun. Their
+        fixes are in the filter already; the sinks see them in the next frame's pose."""
         if self.log is not None and observations:
             self.log.write_late(index, t, observations)
+        if self.view is not None and observations:
+            self.view.log_late(index, observations)
 
     def check(self, now: float | None = None) -> None:
         """Warn about sinks that cannot publish (rate-limited), and once when one recovers."""
