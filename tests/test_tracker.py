@@ -1087,3 +1087,24 @@ def test_chosen_indexes_the_fixes_offered_even_when_an_unusable_one_is_left_out(
     blown = make_fix([3.0, 1.0, 2.0], FIX_COV * 1e18)  # a solver blow-up: refused as unusable
     r = tr.update([blown, make_fix([0, 0, 0])], 1, IdSource.DECODED, 1 / 30)
     assert r.accepted and r.chosen == 1
+
+
+def test_a_fix_vaguer_than_lost_sigma_does_not_make_the_track_tracking():
+    """A decoded fix of a far sticker (0.8 m sigma) starts the track, or is fused into a lost one, but
+    leaves the pose as uncertain as LOST means: no prior for candidates, and an ORB pick of a
+    neighbour one spacing (1.5 m) away is not taken through the identified gate."""
+    vague = np.diag([0.8**2, 0.8**2, math.radians(5) ** 2])
+    tr = Tracker()
+    tr.predict(0.0)
+    assert tr.update([make_fix([0, 0, 0], vague)], 1, IdSource.DECODED, 0.0).accepted
+    assert tr.state is TrackState.LOST and tr.output().state is TrackState.LOST and tr.prior() is None
+    assert not tr.update([make_fix([1.5, 0, 0])], 2, IdSource.ORB, 0.0).accepted
+    assert tr.output().pose[0] == pytest.approx(0.0)
+    # Lost after hours: a vague fix that passes the gate is fused, and the track stays LOST.
+    tr = _track(np.random.default_rng(3))
+    tr.predict(tr.time + 3600.0)
+    assert tr.update([make_fix(straight(0.0), vague)], 1, IdSource.DECODED, tr.time).accepted
+    assert tr.state is TrackState.LOST
+    # A sharp decoded fix makes it TRACKING again.
+    assert tr.update([make_fix(straight(0.0))], 1, IdSource.DECODED, tr.time).accepted
+    assert tr.state is TrackState.TRACKING

@@ -22,6 +22,8 @@ Rules, in one place:
   with this prior is not all its evidence). LOST (position sigma > ``lost_sigma_m`` or no fix for
   ``lost_after_s``; after ``lost_after_s`` speed and yaw rate are also forgotten): only decoded
   fixes are taken; one that passes the gate is fused, one that does not re-initialises the track.
+  An accepted fix makes the track TRACKING only if it leaves the position sigma within
+  ``lost_sigma_m``: a vaguer one (a far sticker's) starts or keeps it LOST.
 - ``reinit_fixes`` gated-out DECODED fixes that agree with each other re-initialise the track.
 - Floor odometry (:meth:`Tracker.update_odometry`): each step is the vest's relative pose between
   two consecutive frames of one camera. When :meth:`Tracker.predict` advances from a frame of
@@ -658,7 +660,13 @@ class Tracker:
         self._track_ids.add(int(sticker_id))
         self._last_fix_t = max(self._last_fix_t, t)
         self._last_id, self._last_source = int(sticker_id), source
-        self._state = TrackState.TRACKING
+        # A fix vaguer than lost_sigma_m (a far sticker's, or one fused into a track hours lost)
+        # leaves the pose as uncertain as LOST means: TRACKING would hand its prior to candidate
+        # selection and take ORB/appearance picks (a neighbour one spacing away) through their gate.
+        lost = self._is_lost(self._ekf.P, self._t if self._t is not None else t)
+        if lost and self._state is not TrackState.LOST:
+            self._stats["lost"] += 1
+        self._state = TrackState.LOST if lost else TrackState.TRACKING
         self._forgot = False
 
     def _start(
