@@ -1108,3 +1108,25 @@ def test_a_fix_vaguer_than_lost_sigma_does_not_make_the_track_tracking():
     # A sharp decoded fix makes it TRACKING again.
     assert tr.update([make_fix(straight(0.0))], 1, IdSource.DECODED, tr.time).accepted
     assert tr.state is TrackState.TRACKING
+
+
+def test_a_heading_at_its_cap_does_not_set_the_yaw_rate():
+    """Lost for 40 s without odometry, the heading is at its cap (uniform). A fix heading 2 rad from
+    the old mean, fused into that filter (as a competing hypothesis or an extrapolation uses it), gives
+    the heading, not a spin (the capped heading's scaled covariance with the yaw rate made it 3 rad/s,
+    and the heading 1 s later was 170 degrees off, NEES 45)."""
+    cfg = TrackerConfig()
+    v, yaw = 1.4, 2.0
+    ekf = Tracker(cfg).filter
+    ekf.reset(np.array([5.0, 5.0, 0.0]), FIX_COV)
+    ekf.advance(10.0)
+    ekf.forget_motion()
+    ekf.advance(30.0)
+    assert ekf.P[motion.YAW, motion.YAW] == pytest.approx(cfg.yaw_var_cap)
+    ekf.fuse(np.array([0.0, 0.0, yaw]), FIX_COV)
+    assert abs(ekf.x[motion.W, 0]) < 0.3
+    ekf.advance(0.5)
+    pose, cov = ekf.x[:3, 0], ekf.P[:3, :3]
+    assert abs(wrap(pose[2] - yaw)) < 3 * math.sqrt(cov[2, 2])
+    e = pose[:2] - v * 0.5 * np.array([math.cos(yaw), math.sin(yaw)])
+    assert e @ np.linalg.solve(cov[:2, :2], e) < chi2.ppf(0.99, 2)

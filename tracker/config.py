@@ -229,7 +229,8 @@ class TrackerConfig:
     tracker gates 0-1 steps a walk, and the presets' figures are unchanged.
 
     Covariance guards: eigenvalues are kept >= ``min_eig``; variances are capped (position
-    ``pos_var_cap`` m^2, i.e. 1 km sigma; yaw pi^2/3, the variance of a uniform heading; speed
+    ``pos_var_cap`` m^2, i.e. 1 km sigma; yaw pi^2/3, the variance of a uniform heading, whose
+    covariances with the rest are then dropped (nothing follows from a uniform heading); speed
     ``v_var_cap``; yaw rate ``w_var_cap``) so hours without a fix give a huge but finite covariance.
     ``max_step_s`` splits long predictions into steps (at most ``max_steps``).
     """

@@ -481,4 +481,14 @@ class WalkingEKF(ExtendedKalmanFilter):
             # Scaling rows and columns by the same positive factors keeps P SPD (a congruence).
             d = np.sqrt(np.minimum(1.0, self._caps / diag))
             P = P * np.outer(d, d)
+            if d[motion.YAW] < 1.0:
+                # A heading at its cap is uniform: nothing follows from it. Scaled, its covariances
+                # with the yaw rate and the position would keep their correlation at a variance
+                # shrunk by d^2, so a fix's heading would set the yaw rate 1/d times what the walk
+                # implies (2 rad off a track lost 40 s: a spin at 3 rad/s). Left out instead (a
+                # principal submatrix and a positive diagonal: still SPD).
+                y = motion.YAW
+                P[y, :] = 0.0
+                P[:, y] = 0.0
+                P[y, y] = self._caps[y]
         self.P = P
