@@ -12,6 +12,7 @@ from scipy.stats import chi2
 from tagloc.core.types import IdSource, PoseFix, TrackState
 from tracker import motion
 from tracker.config import TrackerConfig
+from tracker.ekf import largest_eig_2x2
 from tracker.tracker import Tracker
 
 FIX_COV = np.diag([0.01**2, 0.01**2, math.radians(0.5) ** 2])  # what the pose solver claims
@@ -1130,3 +1131,28 @@ def test_a_heading_at_its_cap_does_not_set_the_yaw_rate():
     assert abs(wrap(pose[2] - yaw)) < 3 * math.sqrt(cov[2, 2])
     e = pose[:2] - v * 0.5 * np.array([math.cos(yaw), math.sin(yaw)])
     assert e @ np.linalg.solve(cov[:2, :2], e) < chi2.ppf(0.99, 2)
+
+
+def test_a_late_fix_into_a_track_of_unknown_heading_walks_the_lag_at_the_fixs_heading():
+    """Lost 40 s without odometry (heading at its cap), the first fix is another camera's, 0.2 s late,
+    heading 2 rad from the old mean. Fused, its retrodiction was linearised at that mean: the walk
+    over the lag went the wrong way, and the next frame's stated sigma shrank without a measurement
+    (20 -> 18 cm, 40 cm off). Started from the fix, the stated uncertainty grows and covers the walk."""
+    v, yaw = 1.4, 2.0
+
+    def truth(t: float) -> np.ndarray:
+        return np.array([v * t * math.cos(yaw), v * t * math.sin(yaw), yaw])
+
+    tr = Tracker()
+    tr.predict(-40.0)
+    tr.update([make_fix([5.0, 5.0, 0.0])], 9, IdSource.DECODED, -40.0)
+    tr.predict(0.0)
+    assert tr.update([make_fix(truth(-0.2))], 1, IdSource.DECODED, -0.2).accepted
+    sigma = math.sqrt(largest_eig_2x2(tr.output().cov))
+    for t in (0.1, 0.3):
+        tr.predict(t)
+        out = tr.output()
+        assert math.sqrt(largest_eig_2x2(out.cov)) > sigma
+        sigma = math.sqrt(largest_eig_2x2(out.cov))
+        e = out.pose[:2] - truth(t)[:2]
+        assert e @ np.linalg.solve(out.cov[:2, :2], e) < chi2.ppf(0.99, 2)

@@ -21,7 +21,8 @@ Rules, in one place:
   as a decode's final check does, is gated as decoded: a wrong pick fails that check, so agreeing
   with this prior is not all its evidence). LOST (position sigma > ``lost_sigma_m`` or no fix for
   ``lost_after_s``; after ``lost_after_s`` speed and yaw rate are also forgotten): only decoded
-  fixes are taken; one that passes the gate is fused, one that does not re-initialises the track.
+  fixes are taken; one that passes the gate is fused, one that does not re-initialises the track,
+  and so does any while the heading is at its cap (unknown: nothing to linearise a late fix at).
   An accepted fix makes the track TRACKING only if it leaves the position sigma within
   ``lost_sigma_m``: a vaguer one (a far sticker's) starts or keeps it LOST.
 - ``reinit_fixes`` gated-out DECODED fixes that agree with each other re-initialise the track.
@@ -587,7 +588,8 @@ class Tracker:
 
     def _without_track(self, alts, sticker_id: int, source: IdSource, t: float, lag: float) -> UpdateResult | None:
         """What becomes of a fix while there is no track to gate it against (initialising: a decoded
-        one starts it; lost: only decoded ones are taken), or None when there is a track."""
+        one starts it; lost: only decoded ones are taken, and one starts it afresh while the heading is
+        unknown), or None when there is a track."""
         if self._state is TrackState.INITIALISING:
             if source is not IdSource.DECODED:
                 self._stats["ignored_initialising"] += 1
@@ -598,6 +600,15 @@ class Tracker:
         if self._state is TrackState.LOST and source is not IdSource.DECODED:
             self._stats["ignored_lost"] += 1
             return UpdateResult(False, "lost: only decoded stickers are taken")
+        if self._state is TrackState.LOST and self._ekf.P[motion.YAW, motion.YAW] >= self.config.yaw_var_cap:
+            # The heading is at its cap (uniform): a late fix's retrodiction, linearised at that
+            # meaningless mean, would put the walk since the fix along the wrong direction (a fix
+            # 0.2 s late, 2 rad off the old mean: the next frame's stated sigma shrank, 20 -> 18 cm,
+            # against 40 cm of error). Started from the fix, the lag is walked at its own heading.
+            self._start(alts[0], sticker_id, source, t, lag)
+            self._stats["reinitialisations"] += 1
+            self._stats["reinit_lost"] += 1
+            return UpdateResult(True, "reinitialised (lost, heading unknown)", chosen=0)
         return None
 
     def _overrule_step(self, alts, lag: float, source: IdSource, k: int, nis: float) -> tuple[int, float, str]:
