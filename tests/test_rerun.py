@@ -238,7 +238,11 @@ def test_a_viewer_url_where_nothing_listens_or_malformed_is_one_clear_error(tmp_
         with pytest.raises(InputError, match="Rerun viewer URL"):
             RerunView(smap, default_rig(), connect=bad)
     assert rv.viewer_address("rerun+http://10.0.0.2/proxy") == ("10.0.0.2", 9876)
-    assert rv.viewer_address("rerun://viewer.example/proxy") == ("viewer.example", 443)
+    # Without a port Rerun connects to 9876 whatever the scheme (a review: rerun:// and rerun+https://
+    # were probed at 443, so a viewer listening at 9876 was refused).
+    assert rv.viewer_address("rerun://viewer.example/proxy") == ("viewer.example", 9876)
+    assert rv.viewer_address("rerun+https://viewer.example/proxy") == ("viewer.example", 9876)
+    assert rv.viewer_address("rerun+https://viewer.example:443/proxy") == ("viewer.example", 443)
 
 
 def test_a_viewer_that_cannot_open_a_window_is_one_clear_error(monkeypatch, tmp_path):

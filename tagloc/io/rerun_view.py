@@ -87,7 +87,8 @@ def new_recording(app_id: str, save, spawn: bool, connect: str | None, recording
 
 def viewer_address(url: str) -> tuple[str, int]:
     """(host, port) of a Rerun viewer URL (``rerun+http://HOST:PORT/proxy``, ``rerun+https://``,
-    ``rerun://``; Rerun's default ports); InputError for anything else."""
+    ``rerun://``; without a port, 9876 whatever the scheme, as Rerun itself connects: not the
+    HTTPS port); InputError for anything else."""
     parts = urllib.parse.urlsplit(url)
     try:
         port = parts.port
@@ -97,7 +98,9 @@ def viewer_address(url: str) -> tuple[str, int]:
         raise InputError(
             f"Rerun viewer URL {url!r}: expected rerun+http://HOST:PORT/proxy (or rerun+https://, rerun://)"
         )
-    return parts.hostname, port or (9876 if parts.scheme == "rerun+http" else 443)
+    # Rerun puts 9876 in a URL without a port, rerun:// and rerun+https:// too (probing 443 refused a
+    # viewer listening where Rerun would have reached it, and took one that was not).
+    return parts.hostname, port or 9876
 
 
 def viewer_listens(host: str, port: int, timeout: float = VIEWER_PROBE_S) -> str | None:
