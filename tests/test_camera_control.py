@@ -295,6 +295,24 @@ def test_a_two_camera_recording_with_stamps_within_a_microsecond_replays(tmp_pat
     assert len(t) == 4 and all(b > a for a, b in zip(t, t[1:]))
 
 
+def test_multi_capture_moves_a_frame_on_at_epoch_times_as_frames_csv_rounds_them():
+    # At epoch times a float is 2.4e-7 s fine: counted as round(t / 1e-6), a frame 0.3 us after the
+    # last (1700000000.7048373 after .704837) was taken as the next microsecond and went on unmoved,
+    # into the same microsecond of frames.csv and of a pose message's "t" (a review).
+    front = Stamped([1700000000.704837, 1700000000.8])
+    rear = Stamped([1700000000.7048373, 1700000000.9], level0=100)
+    cap = capture.MultiCapture([front, rear], buffer=8, pace=False).start()
+    got = []
+    while (item := cap.get(timeout=5.0)) is not None:
+        got.append(item.frame)
+    assert [f.camera for f in got] == [0, 1, 0, 1]
+    held = [f"{f.timestamp:.6f}" for f in got]
+    assert held[:2] == ["1700000000.704837", "1700000000.704838"]
+    assert all(float(b) > float(a) for a, b in zip(held, held[1:]))
+    assert all(round(b.timestamp, 6) > round(a.timestamp, 6) for a, b in zip(got, got[1:]))
+    cap.stop()
+
+
 def test_multi_capture_names_each_cameras_skipped_frames():
     class Blank(Stamped):
         def read(self):

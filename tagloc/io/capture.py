@@ -699,8 +699,11 @@ class MultiCapture:
         frame's microsecond (see the class)."""
         if not math.isfinite(self._last_t):
             return stamp
-        last = round(self._last_t / STAMP_RESOLUTION_S)
-        return stamp if round(stamp / STAMP_RESOLUTION_S) > last else (last + 1) * STAMP_RESOLUTION_S
+        # Rounded as frames.csv (``%.6f``) and a pose message (``round(t, 6)``) round them: counted in
+        # microseconds, t / 1e-6 is rounded twice, and at epoch times (7e-7 s apart) a frame 0.3 us
+        # after the last went on unmoved into the same microsecond of frames.csv.
+        last = round(self._last_t, 6)
+        return stamp if round(stamp, 6) > last else round(last + STAMP_RESOLUTION_S, 6)
 
     def take_skipped(self) -> list[str]:
         """Every camera's skipped frames since the last call (see :meth:`CaptureThread.take_skipped`)."""
