@@ -562,20 +562,29 @@ def bag_to_session(
     """Convert a bag's camera topic to a session directory; returns (frames written, frames skipped).
 
     JPEG images are copied byte for byte; other images are written as PNG (lossless). A frame whose
-    stamp is not after the last written one's, as ``frames.csv`` holds it (to the microsecond), is
-    skipped like an undecodable one: a session must advance frame by frame, and one such line made
-    the whole session refused (a replay of the bag skips that frame too).
+    stamp is not after the one before it is skipped like an undecodable one, as a replay of the bag
+    refuses it: a session must advance frame by frame, and one such line made the whole session
+    refused. One after it but within the last written frame's microsecond (the resolution of
+    ``frames.csv``) goes on at the next microsecond, as ``tagloc live`` moves a camera's frame on,
+    since a replay of the bag takes it (skipped, the session lacked a frame the bag's replay has).
     """
     from tqdm import tqdm
 
     src = BagSession(bag, topic, map_path, rig_path, calibration, info_topic)
     written = skipped = 0
     last = -math.inf  # the last written frame's time, as frames.csv holds it
+    last_t = -math.inf  # the last stamp a replay of the bag takes (the localiser refuses one not after it)
     with SessionWriter(out, src.map, src.rig, SessionInfo(source=src.info.source, fps=0.0), image_ext=".png") as w:
         try:
             for i, t, msg, msgtype in tqdm(src.encoded_frames(), total=len(src), disable=not progress, unit="frame"):
-                stamp = float(f"{t:.6f}")
-                if stamp > last and _convert(w, i, t, msg, msgtype):
+                if not t > last_t:
+                    skipped += 1
+                    continue
+                last_t = t
+                stamp = round(t, 6)
+                if stamp <= last:
+                    stamp = round(last + 1e-6, 6)
+                if _convert(w, i, stamp, msg, msgtype):
                     written += 1
                     last = stamp
                 else:
