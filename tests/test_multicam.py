@@ -165,3 +165,30 @@ def test_one_calibration_is_not_given_to_cameras_that_have_their_own(tmp_path):
     (tmp_path / "one").mkdir()
     save_rig(default_rig(), tmp_path / "one" / "rig.json")
     assert len(load_setup(MAP, tmp_path / "front.yaml", tmp_path / "one" / "rig.json")[1]) == 1
+
+
+def test_one_calibration_is_given_again_to_a_recording_of_cameras_that_shared_it(tmp_path):
+    # Two cameras of one model sharing one calibration: live takes --calibration, and its recording
+    # names the calibrations camera0.yaml and camera1.yaml apart (one file each, the same contents).
+    # Replaying that recording with the same --calibration was refused as cameras with their own
+    # (a review); cameras whose files differ still are.
+    from tagloc.core.camera import default_camera, save_calibration
+    from tagloc.core.errors import InputError
+    from tagloc.core.rig import save_rig
+    from tagloc.io.session import SessionInfo, SessionWriter
+    from tagloc.pipeline.localiser import load_setup
+
+    rig = front_rear_rig()
+    for c in rig.cameras:
+        c.calibration_file = "camera.yaml"
+    save_rig(rig, tmp_path / "rig.json", write_calibrations=False)
+    save_calibration(default_camera(), tmp_path / "cam.yaml")
+    smap, live_rig = load_setup(MAP, tmp_path / "cam.yaml", tmp_path / "rig.json")
+    with SessionWriter(tmp_path / "rec", smap, live_rig, SessionInfo(source="0", fps=30.0)):
+        pass
+    assert "camera1.yaml" in (tmp_path / "rec" / "rig.json").read_text()
+    _, again = load_setup(MAP, tmp_path / "cam.yaml", tmp_path / "rec" / "rig.json")
+    assert len(again) == 2 and all(c.camera.size == default_camera().size for c in again)
+    save_calibration(default_camera().scaled(0.5), tmp_path / "rec" / "camera1.yaml")
+    with pytest.raises(InputError, match="camera0.yaml, camera1.yaml"):
+        load_setup(MAP, tmp_path / "cam.yaml", tmp_path / "rec" / "rig.json")

@@ -561,7 +561,7 @@ def load_setup(
     if rig_path is not None:
         rig = load_rig(rig_path, camera)
         names = list(dict.fromkeys(c.calibration_file for c in rig.cameras))
-        if camera is not None and len(names) > 1:
+        if camera is not None and len(names) > 1 and not _same_calibrations(Path(rig_path).parent, names):
             # One calibration for cameras that have their own: a rear camera of another resolution
             # would have every frame refused as the wrong size, one of the same size be solved
             # through the wrong lens.
@@ -574,6 +574,19 @@ def load_setup(
             camera = load_calibration(cdir / CAMERA_FILE)
         rig = default_rig(camera=camera)
     return smap, rig
+
+
+def _same_calibrations(directory: Path, names: list[str]) -> bool:
+    """Whether the calibration files ``names`` (relative to ``directory``) all hold one calibration: a
+    recording names its cameras' calibrations ``camera<k>.yaml`` apart even when one served them all."""
+    try:
+        cams = [load_calibration(directory / name) for name in names]
+    except (CalibrationError, InputError, OSError):
+        return False
+    return all(
+        c.size == cams[0].size and np.array_equal(c.K, cams[0].K) and np.array_equal(c.dist, cams[0].dist)
+        for c in cams[1:]
+    )
 
 
 class Localiser:
