@@ -105,18 +105,21 @@ def test_the_reachable_share_leaves_out_the_frames_before_a_sticker_is_wholly_in
     import json
     import math
 
-    def frame(*visible):
-        return json.dumps({"visible": [{"id": 1, "in_map": m, "inside": i} for m, i in visible]})
+    corners = [[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]]
+
+    def frame(index, *visible):
+        stickers = [{"id": 1, "in_map": m, "inside": i, "corners": corners} for m, i in visible]
+        return json.dumps({"index": index, "visible": stickers})
 
     walk = tmp_path / "w"
     walk.mkdir()
-    lines = [frame(), frame((True, False)), frame((False, True)), frame((True, True)), frame()]
+    lines = [frame(0), frame(1, (True, False)), frame(2, (False, True)), frame(3, (True, True)), frame(4)]
     (walk / ev.GROUNDTRUTH_FRAMES).write_text("\n".join(lines) + "\n")
     assert ev.frames_before_sticker(walk) == 3
     assert ev.frames_before_sticker(tmp_path) is None  # no per-frame truth: unknown
     never = tmp_path / "never"
     never.mkdir()
-    (never / ev.GROUNDTRUTH_FRAMES).write_text(frame() + "\n" + frame((True, False)) + "\n")
+    (never / ev.GROUNDTRUTH_FRAMES).write_text(frame(0) + "\n" + frame(1, (True, False)) + "\n")
     assert ev.frames_before_sticker(never) == 2
     rows = [{"frames_all": 600, "frames_before_sticker": 22}, {"frames_all": 2400, "frames_before_sticker": 0}]
     assert ev._reachable(rows) == pytest.approx(1 - 22 / 3000)
