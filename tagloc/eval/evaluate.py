@@ -31,7 +31,7 @@ from tagloc.core.errors import InputError
 from tagloc.core.stickermap import StickerMap
 from tagloc.eval.baselines import MODES, make_localiser
 from tagloc.eval.consistency import NEES_BLOCK_S, bounds_text, nees_blocks, nees_test
-from tagloc.eval.metrics import TrajectoryErrors, error_metrics, frames_in_span, trajectory_errors
+from tagloc.eval.metrics import TrajectoryErrors, error_metrics, frames_in_span, gt_covers, trajectory_errors
 from tagloc.io.session import FRAMES_CSV, SessionReader
 from tagloc.pipeline.run import RunLog, run_session
 
@@ -394,7 +394,7 @@ def wrong_id_fixes_by_pose(log: RunLog, gt: tuple[np.ndarray, np.ndarray], dista
     wrong = 0
     for fix in log.fixes:
         t = fix["t"]
-        if not stamps[0] <= t <= stamps[-1] or not fix.get("bodies"):
+        if not gt_covers(np.array([t]), stamps)[0] or not fix.get("bodies"):
             continue
         truth = np.array([np.interp(t, stamps, gx), np.interp(t, stamps, gy)])
         near = min(float(np.hypot(*(np.asarray(b[:2]) - truth))) for b in fix["bodies"])

@@ -1,7 +1,9 @@
 """Accuracy and consistency of an estimated trajectory against ground truth.
 
 Ground truth is interpolated at the estimates' timestamps (positions linearly, rotations by scipy's
-Slerp); estimates outside the ground truth's time span are not scored. Errors are horizontal
+Slerp); estimates outside the ground truth's time span, or inside a gap of it longer than
+:data:`GT_MAX_GAP_S` (a motion-capture dropout: a straight line across it is no truth), are not
+scored. Errors are horizontal
 (x, y) and heading (yaw of the body's +x axis about world +z).
 """
 
@@ -14,10 +16,33 @@ import numpy as np
 
 from tagloc.core.geometry import interpolate_groundtruth, wrap_angle
 
+#: A gap between consecutive ground-truth poses is a dropout, not scored across, when longer than
+#: both this and :data:`GT_GAP_INTERVALS` of the ground truth's median interval (a simulated walk's
+#: longest is a burst of dropped frames: 8 frames, 0.3 s at 30 fps).
+GT_MAX_GAP_S = 0.5
+GT_GAP_INTERVALS = 10.0
+
+
+def gt_covers(stamps: np.ndarray, gt_stamps: np.ndarray, max_gap_s: float = GT_MAX_GAP_S) -> np.ndarray:
+    """(N,) bool: which ``stamps`` the ground truth can score, those within its span and not strictly
+    inside a gap between consecutive ground-truth stamps longer than ``max_gap_s`` and
+    :data:`GT_GAP_INTERVALS` median intervals."""
+    stamps = np.asarray(stamps, float).ravel()
+    g = np.unique(np.asarray(gt_stamps, float).ravel())
+    if len(g) == 0:
+        return np.zeros(len(stamps), bool)
+    out = (stamps >= g[0]) & (stamps <= g[-1])
+    if len(g) > 1:
+        gap = max(max_gap_s, GT_GAP_INTERVALS * float(np.median(np.diff(g))))
+        i = np.clip(np.searchsorted(g, stamps, side="right"), 1, len(g) - 1)
+        lo, hi = g[i - 1], g[i]
+        out &= ~((hi - lo > gap) & (stamps > lo) & (stamps < hi))
+    return out
+
 
 @dataclass
 class TrajectoryErrors:
-    """Per-estimate errors against interpolated ground truth (only estimates inside the GT span).
+    """Per-estimate errors against interpolated ground truth (only estimates it covers, :func:`gt_covers`).
 
     Attributes:
         stamps: (K,) timestamps scored, s.
@@ -47,6 +72,8 @@ def trajectory_errors(
     if not len(est_stamps) == len(est_poses) == len(est_covs):
         raise ValueError("est_stamps, est_poses and est_covs must have the same length")
     gt, inside = interpolate_groundtruth(gt_stamps, gt_T, est_stamps)
+    covered = gt_covers(est_stamps, gt_stamps)
+    gt, inside = gt[covered[inside]], inside & covered
     est, cov = est_poses[inside], est_covs[inside]
     d = est[:, :2] - gt[:, :2]
     # Solve rather than invert: position blocks can be badly conditioned right after a fix.
@@ -115,9 +142,7 @@ def error_metrics(e: TrajectoryErrors) -> dict:
 
 
 def frames_in_span(stamps: np.ndarray, gt_stamps: np.ndarray) -> int:
-    """How many of a run's frame ``stamps`` (N,) s lie within the ground truth's span (the frames it
-    can score; a frame just past the span's end, by a jittered stamp, is neither hit nor miss)."""
-    stamps, gt_stamps = np.asarray(stamps, float).ravel(), np.asarray(gt_stamps, float).ravel()
-    if len(gt_stamps) == 0:
-        return 0
-    return int(np.sum((stamps >= gt_stamps.min()) & (stamps <= gt_stamps.max())))
+    """How many of a run's frame ``stamps`` (N,) s lie within the ground truth's span and outside its
+    gaps (:func:`gt_covers`: the frames it can score; a frame just past the span's end, by a
+    jittered stamp, is neither hit nor miss)."""
+    return int(np.sum(gt_covers(stamps, gt_stamps)))
