@@ -436,3 +436,28 @@ def test_picamera2_without_sensor_timestamps_falls_back_to_grab_time(monkeypatch
         assert f.timestamp - before == pytest.approx(-0.012, abs=5e-3)
     assert np.diff([f.timestamp for _, f in frames]).min() > 0.015
     src.close()
+
+
+@pytest.mark.parametrize("fail_at", [1, 3])
+def test_a_failed_read_keeps_the_driver_clock(monkeypatch, v4l2, fail_at):
+    """A read that fails (a timed-out or corrupt buffer) leaves the driver's stamp at the last buffer's:
+    it is skipped, and the driver's stamps go on (a review: one failed read, the first or a later one,
+    put the camera on grab time, jitter and transfer delay included, for the whole run)."""
+    import time as _time
+
+    def read(self):
+        self.n += 1
+        if self.n == fail_at:
+            return False, None
+        self.props[cv2.CAP_PROP_POS_MSEC] = (_time.monotonic() - 0.040) * 1e3
+        return True, np.full((480, 640, 3), self.n % 256, np.uint8)
+
+    monkeypatch.setattr(FakeV4L2, "read", read)
+    src = open_source("0")
+    src.set_timing(0.030)
+    frames = [src.read() for _ in range(6)]
+    assert [f.image is None for f in frames] == [k + 1 == fail_at for k in range(6)]
+    assert src.clock == "driver" and src.stamp_at == capture.STAMP_FRAME_START
+    good = [f.timestamp for f in frames if f.image is not None]
+    assert np.all(np.diff(good) > 0)
+    src.close()

@@ -262,6 +262,7 @@ class VideoSource(FrameSource):
         self._requested: CameraSettings | None = None
         self._driver_offset = 0.0  # epoch - driver clock, fixed at the first frame
         self._last_driver = -math.inf
+        self._clock_chosen = False  # whether the first good frame has chosen the driver's or grab clock
 
     def apply_settings(self, settings: CameraSettings) -> None:
         """Set resolution, frame rate, manual exposure and gain through OpenCV's capture properties."""
@@ -309,7 +310,8 @@ class VideoSource(FrameSource):
         the grab time, each converted to the frame's time (:func:`frame_time`).
 
         A driver clock that stops rising is abandoned for good (never mixed back in), and stamps
-        never go backwards across the switch.
+        never go backwards across the switch. Called for good frames only: a failed read leaves the
+        driver's stamp at the last buffer's, which is neither a clock that stopped nor a first frame.
         """
         if not self.live:
             return self._index / self.fps
@@ -322,24 +324,35 @@ class VideoSource(FrameSource):
                 raw = driver_s + self._driver_offset
             else:
                 self.clock, self.stamp_at = "grab (driver clock stopped rising)", STAMP_GRAB
-        elif self.clock == "grab" and self._index == 0:
+        elif self.clock == "grab" and not self._clock_chosen:
             driver_s = float(self._cap.get(cv2.CAP_PROP_POS_MSEC) or 0.0) * 1e-3
             if driver_s > 0:  # the driver stamps its buffers: use that clock from now on
                 self._last_driver, self.clock = driver_s, "driver"
                 self._driver_offset, self.stamp_at = _driver_clock(driver_s, now, self._epoch_offset)
                 raw = driver_s + self._driver_offset
+        self._clock_chosen = True
         exposure = self._requested.exposure_ms * 1e-3 if self._requested and self._requested.exposure_ms else 0.0
         return self._live_stamp(raw, exposure)
+
+    def _failed_stamp(self) -> float:
+        """A failed read's stamp: a file's frame time; live, the last frame time given (or the grab
+        time before any), without consulting or moving the clock."""
+        if not self.live:
+            return self._index / self.fps
+        return self._last_stamp if math.isfinite(self._last_stamp) else time.monotonic() + self._epoch_offset
 
     def read(self) -> Frame | None:
         while True:
             ok, image = self._cap.read()
-            stamp = self._stamp()
             index = self._index
             if ok and image is not None and image.size:
+                stamp = self._stamp()
                 self._failures = 0
                 self._index += 1
                 return Frame(index, stamp, _grey(image))
+            # A failed read is skipped, never processed: it takes the last stamp given and leaves the
+            # clock alone (one timed-out buffer had abandoned the driver's stamps for the whole run).
+            stamp = self._failed_stamp()
             self._failures += 1
             at_end = not self.live and (self._n_frames <= 0 or self._index >= self._n_frames - 1)
             if at_end or self._failures >= self.max_failures:
