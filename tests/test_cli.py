@@ -347,3 +347,38 @@ def test_simulate_help_examples_keep_their_line_continuations(capsys):
         main(["simulate", "--help"])
     out = capsys.readouterr().out
     assert "--jitter-ms 2 \\\n      --drop-fraction" in out, out
+
+
+def test_live_fails_when_its_camera_is_lost_mid_run(tmp_path, capsys, monkeypatch):
+    """A camera unplugged mid-run (every read failing) ends the run with a line saying so and exit
+    code 1, not 0 as if it had been stopped (a review: a supervisor restarting on failure never did)."""
+    import numpy as np
+
+    from tagloc.io import capture
+
+    class Unplugged:
+        """cv2.VideoCapture of a camera that gives 3 frames, then is gone."""
+
+        def __init__(self, spec):
+            self.n = 0
+
+        def isOpened(self):  # noqa: N802 - OpenCV's name
+            return True
+
+        def get(self, prop):
+            return {capture.cv2.CAP_PROP_FRAME_WIDTH: 1296, capture.cv2.CAP_PROP_FRAME_HEIGHT: 972}.get(prop, 0.0)
+
+        def read(self):
+            self.n += 1
+            return (True, np.zeros((972, 1296), np.uint8)) if self.n <= 3 else (False, None)
+
+        def release(self):
+            pass
+
+    monkeypatch.setattr(capture.cv2, "VideoCapture", Unplugged)
+    rc = main(["live", "--camera", "0", "--map", DEMO_MAP, "--mode", "decoded-only", "--publish", str(tmp_path / "p.jsonl")])
+    err = capsys.readouterr().err
+    assert rc == 1, err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("tagloc live: error: ") and "reads failed in a row" in last, err
+    assert (tmp_path / "p.jsonl").read_text().count("\n") >= 1  # the frames before were published

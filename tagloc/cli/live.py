@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from tagloc.core.errors import InputError
+from tagloc.core.errors import InputError, SourceFailed
 
 NAME = "live"
 HELP = "localise live from a camera (or a video/stream/session played as one) and publish poses"
@@ -160,4 +160,8 @@ def run(args: argparse.Namespace) -> int:
     if c.grabbed == 0 and "stopped" not in c.ended:
         # The source ended by itself before giving one frame (a file OpenCV opens but cannot read).
         raise InputError(f"{args.camera[0]}: no frame could be read ({c.ended})")
+    if c.failed:
+        # A camera lost mid-run (unplugged: every read failing) is a failure, not the end of a file:
+        # it had ended the run with exit code 0, which a supervisor takes for a clean stop.
+        raise SourceFailed(f"{', '.join(args.camera)}: capture failed during the run ({c.ended})")
     return 0

@@ -33,3 +33,10 @@ class BackendUnavailable(TaglocError):
     """An optional backend (libdmtx, paho-mqtt, ...) cannot be used on this machine."""
 
     exit_code = 3
+
+
+class SourceFailed(TaglocError):
+    """A camera or stream failed during a run (unplugged, its reads failing): exit code 1, so that
+    a supervisor restarting on failure restarts it, unlike a bad argument's 2."""
+
+    exit_code = 1

@@ -78,6 +78,8 @@ class CaptureStats:
         dropped: good frames discarded because the consumer fell behind.
         skipped: corrupt or empty frames skipped.
         ended: why reading stopped ("" while running).
+        failed: reading stopped because the source failed (a camera gone, an error), not at its end
+            or when told to stop.
     """
 
     grabbed: int = 0
@@ -85,6 +87,7 @@ class CaptureStats:
     dropped: int = 0
     skipped: int = 0
     ended: str = ""
+    failed: bool = False
 
 
 @dataclass(frozen=True)
@@ -185,6 +188,7 @@ class FrameSource:
     live = False  # True: the source runs on its own clock (camera), so pacing is meaningless
     fps = 0.0
     end_reason = "end of source"  # set by read() before it returns None
+    end_failed = False  # set by read() before it returns None when the source failed, not ended
     clock = "file"  # where timestamps come from: "file", "grab" (monotonic at read) or "driver"
     stamp_at = STAMP_FRAME  # where the raw stamps sit in the frame (see frame_time)
     readout_s = 0.0  # the rig camera's read-out and stamp offset (set_timing)
@@ -357,6 +361,7 @@ class VideoSource(FrameSource):
             at_end = not self.live and (self._n_frames <= 0 or self._index >= self._n_frames - 1)
             if at_end or self._failures >= self.max_failures:
                 self.end_reason = "end of file" if at_end else f"{self.max_failures} reads failed in a row"
+                self.end_failed = not at_end
                 return None
             self._index += 1
             return Frame(index, stamp, None, error=f"frame {index}: empty or corrupt frame from {self.spec}")
@@ -540,6 +545,7 @@ class CaptureThread:
                 frame = self.source.read()
                 if frame is None:
                     self.stats.ended = self.source.end_reason
+                    self.stats.failed = self.source.end_failed
                     break
                 self.stats.grabbed += 1
                 if frame.image is None:
@@ -570,6 +576,7 @@ class CaptureThread:
         except BaseException as exc:  # noqa: BLE001 - handed to the consumer, which re-raises
             self.error = exc
             self.stats.ended = f"error: {exc}"
+            self.stats.failed = True
         finally:
             self.stats.ended = self.stats.ended or "stopped"
             with self._cond:
@@ -740,6 +747,7 @@ class MultiCapture:
             s.delivered += t.stats.delivered - late
             s.dropped += t.stats.dropped + late
             s.skipped += t.stats.skipped
+            s.failed = s.failed or t.stats.failed
         s.ended = "; ".join(f"camera {c}: {t.stats.ended or 'running'}" for c, t in enumerate(self.threads))
         return s
 
