@@ -461,3 +461,55 @@ def test_a_failed_read_keeps_the_driver_clock(monkeypatch, v4l2, fail_at):
     good = [f.timestamp for f in frames if f.image is not None]
     assert np.all(np.diff(good) > 0)
     src.close()
+
+
+class Failing(capture.FrameSource):
+    """A live camera at 100 fps that, after ``good`` frames, raises (``raises``) or fails its reads."""
+
+    live = True
+
+    def __init__(self, good: int, raises: bool = False):
+        self.n, self.good, self.raises, self.fps = 0, good, raises, 100.0
+
+    def read(self):
+        import time as _time
+
+        _time.sleep(0.01)
+        self.n += 1
+        if self.n > self.good:
+            if self.raises:
+                raise RuntimeError("VIDIOC_DQBUF: No such device")
+            self.end_reason, self.end_failed = "30 reads failed in a row", True
+            return None
+        return Frame(self.n, _time.time(), np.full((H, W), self.n % 256, np.uint8))
+
+
+def test_multi_capture_raises_a_cameras_error_at_once():
+    """A camera whose driver raises ends the merge with its error, as one camera's does (a review: the
+    other camera went on alone, nothing said, until the run ended with exit code 0)."""
+    cap = capture.MultiCapture([Failing(10**6), Failing(5, raises=True)]).start()
+    with pytest.raises(RuntimeError, match="No such device"):
+        for _ in range(500):
+            cap.get(timeout=0.25)
+    cap.stop()
+
+
+def test_live_names_a_rig_camera_lost_mid_run_when_it_happens(tmp_path, monkeypatch, capsys):
+    from tagloc.apps import live
+    from tagloc.eval.multicam import front_rear_rig
+
+    loc = Echo(make_session(tmp_path / "a", 2, 10.0))
+    loc.rig = front_rear_rig()
+    monkeypatch.setattr(live, "_open_sources", lambda cfg, n: [Failing(10**6), Failing(5)])
+    lost_at = []
+    process = loc.process
+
+    def watch(frame):
+        if not lost_at and "camera 1: capture failed" in capsys.readouterr().err:
+            lost_at.append(frame.index)
+        return process(frame)
+
+    loc.process = watch
+    summary = run_live(LiveConfig(source="0", more_cameras=["1"], max_frames=60), localiser=loc)
+    assert lost_at and summary.frames == 60  # said during the run, which goes on with camera 0
+    assert summary.capture.failed and summary.per_camera[1]["grabbed"] == 5

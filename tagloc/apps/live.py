@@ -361,6 +361,8 @@ class _LiveRun:
             item = self.cap.get(timeout=wait)
             for why in self.cap.take_skipped():
                 outputs.warn_skipped(why)  # named as replay names its unreadable frames
+            for why in getattr(self.cap, "take_failed", list)():
+                outputs.warn(why)  # a rig camera lost: said when it happens, not in the summary only
             if item is None:
                 if self.cap.finished:
                     break

@@ -646,6 +646,9 @@ class MultiCapture:
     then), is not older: it goes on at the next microsecond (``STAMP_RESOLUTION_S``), since every
     stage after the merge needs its frames' times to advance, and a recording and the pose messages
     hold them to the microsecond.
+    A camera whose reader raises ends the merge with that error at once, as one camera's does; one
+    that fails otherwise (unplugged: its reads failing) leaves the others running, and is named once
+    by :meth:`take_failed` as soon as it has.
     Presents the interface of :class:`CaptureThread` that the live loop uses.
     """
 
@@ -669,6 +672,7 @@ class MultiCapture:
         self._last_stamp = -math.inf  # and its source stamp
         self._camera_stamp = [-math.inf] * len(sources)  # each camera's last stamp handed over
         self._next_index = 0
+        self._failed_named: set[int] = set()  # cameras take_failed has named
 
     def start(self) -> MultiCapture:
         for t in self.threads:
@@ -676,6 +680,11 @@ class MultiCapture:
         return self
 
     def _fill(self) -> None:
+        for t in self.threads:
+            if t.error is not None and t.finished:
+                # As with one camera: a reader that raised (a driver error) is not left to the end of
+                # the others, which had gone on with nothing said and exited 0.
+                raise t.error
         for c, t in enumerate(self.threads):
             if self._pending[c] is None and not t.finished:
                 item = t.get(timeout=0.0)
@@ -728,6 +737,15 @@ class MultiCapture:
     def take_skipped(self) -> list[str]:
         """Every camera's skipped frames since the last call (see :meth:`CaptureThread.take_skipped`)."""
         return [f"camera {c}: {why}" for c, t in enumerate(self.threads) for why in t.take_skipped()]
+
+    def take_failed(self) -> list[str]:
+        """Cameras whose capture has failed since the last call (``"camera C: why"``), each named once."""
+        out = []
+        for c, t in enumerate(self.threads):
+            if t.stats.failed and c not in self._failed_named:
+                self._failed_named.add(c)
+                out.append(f"camera {c}: capture failed ({t.stats.ended}); going on with the others")
+        return out
 
     def has_frame(self) -> bool:
         """Whether any camera has a frame waiting."""

@@ -236,6 +236,10 @@ class Outputs:
         for all skipped frames together, whether the localiser or the capture skipped them."""
         self._rate_limited("#skipped frames", f"skipped {why}")
 
+    def warn(self, text: str) -> None:
+        """Warn once, now (not rate-limited: an event that happens once, such as a camera lost)."""
+        self._emit_warning(text)
+
     def emit_late(self, index: int, t: float, observations: list[Observation]) -> None:
         """Log the observations that frame ``index``'s deferred work finished after the frame was
         published (``tagloc live``; :attr:`Localiser.late`), with the frame's time ``t`` (s), as a
