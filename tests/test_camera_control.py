@@ -513,3 +513,23 @@ def test_live_names_a_rig_camera_lost_mid_run_when_it_happens(tmp_path, monkeypa
     summary = run_live(LiveConfig(source="0", more_cameras=["1"], max_frames=60), localiser=loc)
     assert lost_at and summary.frames == 60  # said during the run, which goes on with camera 0
     assert summary.capture.failed and summary.per_camera[1]["grabbed"] == 5
+
+
+def test_picamera2_grab_stamps_do_not_step_with_the_wall_clock(monkeypatch):
+    """Without ``SensorTimestamp`` frames are stamped on the monotonic clock shifted once to the epoch,
+    as a camera index's are (a review: on time.time(), an NTP step back of 5 s stamped every frame
+    1 us after the last for those 5 s)."""
+    import time as _time
+
+    monkeypatch.setitem(sys.modules, "picamera2", types.SimpleNamespace(Picamera2=FakePicamera2))
+    monkeypatch.setattr(FakeRequest, "get_metadata", lambda self: {"ExposureTime": 4000})
+    src = open_source("picam")
+    real, step = _time.time, [0.0]
+    monkeypatch.setattr(capture.time, "time", lambda: real() + step[0])
+    t = []
+    for k in range(5):
+        step[0] = -5.0 if k >= 2 else 0.0  # NTP steps the wall clock back
+        t.append(src.read().timestamp)
+        _time.sleep(0.02)
+    assert np.diff(t).min() > 0.015
+    src.close()

@@ -426,6 +426,8 @@ class PiCamera2Source(FrameSource):
         self._index = 0
         self._offset: float | None = None
         self._metadata: dict = {}
+        # Epoch time of monotonic zero, fixed once: grab stamps must not step with NTP (see VideoSource).
+        self._epoch_offset = time.time() - time.monotonic()
 
     def apply_settings(self, settings: CameraSettings) -> None:
         """Settings are given at construction (picamera2 configures before starting)."""
@@ -445,7 +447,9 @@ class PiCamera2Source(FrameSource):
             # No sensor stamp: grab time from then on (never mixed back in), as for a camera whose
             # driver stamps nothing.
             self.clock, self.stamp_at = "grab (no SensorTimestamp)", STAMP_GRAB
-            raw = time.time()
+            # Monotonic, not time.time(): an NTP step back had stamped every frame 1 us after the
+            # last for as long as the step, a step ahead had jumped the track.
+            raw = time.monotonic() + self._epoch_offset
         else:
             if self._offset is None:
                 now = time.monotonic()
