@@ -533,3 +533,21 @@ def test_picamera2_grab_stamps_do_not_step_with_the_wall_clock(monkeypatch):
         _time.sleep(0.02)
     assert np.diff(t).min() > 0.015
     src.close()
+
+
+def test_a_recording_names_the_clock_its_frames_were_stamped_on(tmp_path, monkeypatch, v4l2):
+    """session.json's camera clock is the one the frames used: a driver's stamps are taken up at the
+    first frame, after the report printed at start (a review: recorded "grab" for driver stamps)."""
+    import time as _time
+
+    def read(self):
+        self.n += 1
+        self.props[cv2.CAP_PROP_POS_MSEC] = (_time.monotonic() - 0.040) * 1e3
+        return True, np.full((480, 640, 3), self.n % 256, np.uint8)
+
+    monkeypatch.setattr(FakeV4L2, "read", read)
+    sess = make_session(tmp_path / "s", 3, 10.0)
+    run_live(LiveConfig(source="0", record=tmp_path / "rec", max_frames=3), localiser=Echo(sess))
+    cam = json.loads((tmp_path / "rec" / "session.json").read_text())["camera"]
+    assert (cam["clock"], cam["stamp"]) == ("driver", capture.STAMP_FRAME_START)
+    assert cam["resolution"] == [640, 480]  # read back at start, while the camera was open

@@ -10,6 +10,7 @@ Latency is measured from the frame's grab (monotonic clock) to the end of public
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import signal
 import sys
@@ -203,17 +204,13 @@ def run_live(
             run.bag = BagWriter(cfg.record_bag, cfg.vest, localiser.rig, images=cfg.bag_images)
             outputs.add_sink(run.bag)
         if cfg.record is not None:
-            writer = SessionWriter(
-                cfg.record,
-                localiser.map,
-                localiser.rig,
-                SessionInfo(
-                    source=f"tagloc live {cfg.source}",
-                    fps=source.fps,
-                    notes=f"vest {cfg.vest}",
-                    extra={"camera": camera_report},
-                ),
+            info = SessionInfo(
+                source=f"tagloc live {cfg.source}",
+                fps=source.fps,
+                notes=f"vest {cfg.vest}",
+                extra={"camera": camera_report},
             )
+            writer = SessionWriter(cfg.record, localiser.map, localiser.rig, info)
         run.loop(outputs, writer)
     except KeyboardInterrupt:
         pass  # a second Ctrl-C during shutdown is the user's to give
@@ -223,6 +220,12 @@ def run_live(
         restore()
         out_summary = outputs.close() if outputs is not None else OutputSummary()
         if writer is not None:
+            # The clock the frames were stamped on is known only once frames came (a driver's stamps
+            # are taken up at the first, abandoned if they stop rising): the report from before the
+            # first frame had recorded "grab" for a camera stamped on its driver's clock.
+            # Only those attributes: the driver is released by now, its properties would read 0.
+            final = [{**rep, "clock": s.clock, "stamp": s.stamp_at} if rep else rep for s, rep in zip(sources, reports)]
+            writer.update_info(dataclasses.replace(info, extra={"camera": final[0] if len(final) == 1 else final}))
             writer.close()
     return LiveSummary(
         run.frames,

@@ -425,6 +425,15 @@ class SessionWriter:
         self._csv.flush()
         self.count += 1
 
+    def update_info(self, info: SessionInfo) -> None:
+        """Rewrite ``session.json`` with ``info`` (atomic rename: a kill leaves the old or the new)."""
+        tmp = self.path / (SESSION_JSON + ".tmp")
+        try:
+            tmp.write_text(json.dumps(info.to_json(), indent=2) + "\n", encoding="utf-8")
+            os.replace(tmp, self.path / SESSION_JSON)
+        except OSError as exc:
+            raise SessionError(f"{exc.filename or self.path}: cannot write ({exc.strerror})") from None
+
     def close(self) -> None:
         if not self._csv.closed:
             self._csv.flush()
