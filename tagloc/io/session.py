@@ -180,11 +180,16 @@ def read_image(path: Path) -> tuple[np.ndarray | None, str | None]:
 
 def decode_grey(data: bytes) -> np.ndarray | None:
     """An encoded image (JPEG, PNG, ...) as (H, W) uint8 grey, or None when it cannot be decoded: OpenCV
-    raises, rather than returning None, for some files (one declaring more pixels than it allows)."""
+    raises, rather than returning None, for some files (one declaring more pixels than it allows).
+
+    The pixels are kept as stored, as the sensor read them: an EXIF orientation tag is ignored. The
+    calibration, the rig's mount and the rolling shutter's row times are all of the sensor's own
+    layout; OpenCV's default turns a frame tagged 3 by 180 deg (a session of them gave no pose) and
+    one tagged 6 or 8 by 90 deg (every frame refused as the wrong size)."""
     if not data:
         return None
     try:
-        return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
+        return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
     except cv2.error:
         return None
 
