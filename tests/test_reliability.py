@@ -331,6 +331,28 @@ def test_4_a_frame_of_the_wrong_size_is_skipped_counted_and_named(session):
     assert results[3].skipped is None  # the run goes on
 
 
+@pytest.mark.parametrize(
+    ("image", "why"),
+    [
+        (np.zeros(1296 * 972, np.uint8), "image shape (1259712,) is not (H, W), (H, W, 3) or (H, W, 4)"),
+        (np.zeros((972, 1296, 2), np.uint8), "image shape (972, 1296, 2) is not (H, W), (H, W, 3) or (H, W, 4)"),
+        (np.zeros((972, 1296), np.complex64), "image dtype complex64 is not an image type"),
+        ([[0] * 1296] * 972, "image must be a numpy array, got list"),
+    ],
+)
+def test_4_a_frame_no_stage_can_take_is_skipped_counted_and_named(session, image, why):
+    # Raised mid-frame (ValueError, AttributeError, InputError), it ended a live run, after the
+    # filter had already been moved to the frame's time.
+    reader = SessionReader(session)
+    frames = list(reader.frames())
+    loc = Localiser(reader.map, reader.rig)
+    results = [loc.process(Frame(f.index, f.timestamp, image if f.index == 2 else f.image)) for f in frames[:4]]
+    assert results[2].skipped == f"frame 2: {why}"
+    assert loc.counts["unusable_frames"] == 1 and loc.counts["skipped"] == 1
+    assert results[2].output.t == results[1].output.t  # the filter did not move
+    assert results[3].skipped is None  # the run goes on
+
+
 def test_5_a_truncated_jpeg_is_skipped_and_counted(session, tmp_path):
     s = copy_session(session, tmp_path / "s")
     p = s / "frames" / "000003.jpg"

@@ -38,7 +38,7 @@ from tagloc.io.session import CAMERA_FILE, MAP_FILE, RIG_FILE
 from tagloc.vision.decode import DecodeConfig, decode, verify_detection
 from tagloc.vision.deflicker import Deflicker, DeflickerConfig
 from tagloc.vision.detect import detect, merge_boxes
-from tagloc.vision.image import as_gray
+from tagloc.vision.image import as_gray, unusable
 from tagloc.vision.odometry import FloorOdometry, OdometryConfig, OdometryStep
 from tagloc.vision.pose import PoseConfig, solve_pose
 from tracker.candidates import project_map
@@ -646,7 +646,9 @@ class Localiser:
         # fixes the tracker accepted in the frame (see skip_flow_after_fix, skip_flow_min_fixes).
         self._read_fixed: dict[int, int] = {}
         self.counts["region_searches"] = 0  # frames searched only around expected stickers
-        self.counts.update(refused_timestamps=0, clock_resets=0, wrong_size_frames=0, repeated_frames=0)
+        self.counts.update(
+            refused_timestamps=0, clock_resets=0, wrong_size_frames=0, unusable_frames=0, repeated_frames=0
+        )
         # Each camera's last image (index, array): a driver that hands the same buffer over again is
         # caught (see _check_repeat).
         self._last_image: dict[int, tuple[int, np.ndarray]] = {}
@@ -973,6 +975,12 @@ class Localiser:
             return None
         if not 0 <= frame.camera < len(self.rig.cameras):
             return f"frame {frame.index}: camera {frame.camera} is not in the rig ({len(self.rig.cameras)} cameras)"
+        why = unusable(frame.image)
+        if why is not None:
+            # Not an image any stage takes (a 1-D buffer, two channels, complex numbers): refused as
+            # a frame of the wrong size is, before the filter moves, rather than raised mid-frame.
+            self.counts["unusable_frames"] += 1
+            return f"frame {frame.index}: {why}"
         cam = self.rig[frame.camera].camera
         h, w = frame.image.shape[:2]
         if (w, h) != (cam.width, cam.height):

@@ -17,13 +17,12 @@ def as_gray(image: np.ndarray) -> np.ndarray:
     Accepts (H, W), (H, W, 1), BGR (H, W, 3) or BGRA (H, W, 4); uint8, uint16 (scaled down), bool,
     or float (0-1 if its maximum is at most 1, else 0-255). Raises InputError for anything else.
     """
-    if not isinstance(image, np.ndarray):
-        raise InputError(f"image must be a numpy array, got {type(image).__name__}")
+    why = unusable(image)
+    if why is not None:
+        raise InputError(why)
     img = image
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[:, :, 0]
-    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (3, 4)):
-        raise InputError(f"image shape {image.shape} is not (H, W), (H, W, 3) or (H, W, 4)")
     if img.dtype == np.bool_:
         img = img.astype(np.uint8) * 255
     elif img.dtype == np.uint16:
@@ -33,12 +32,24 @@ def as_gray(image: np.ndarray) -> np.ndarray:
         scale = 255.0 if f.size and float(f.max()) <= 1.0 else 1.0
         img = np.clip(f * scale + 0.5, 0, 255).astype(np.uint8)
     elif img.dtype != np.uint8:
-        if not np.issubdtype(img.dtype, np.integer):
-            raise InputError(f"image dtype {image.dtype} is not an image type")
         img = np.clip(img, 0, 255).astype(np.uint8)
     if img.ndim == 3:
         img = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
     return np.ascontiguousarray(img)
+
+
+def unusable(image: object) -> str | None:
+    """Why :func:`as_gray` cannot take ``image``, or None: a check of its type, shape and dtype alone
+    (nothing is converted), so that a frame can be refused before any stage runs on it."""
+    if not isinstance(image, np.ndarray):
+        return f"image must be a numpy array, got {type(image).__name__}"
+    if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] not in (1, 3, 4)):
+        return f"image shape {image.shape} is not (H, W), (H, W, 3) or (H, W, 4)"
+    if not (
+        image.dtype == np.bool_ or np.issubdtype(image.dtype, np.integer) or np.issubdtype(image.dtype, np.floating)
+    ):
+        return f"image dtype {image.dtype} is not an image type"
+    return None
 
 
 def require_gray(image: np.ndarray, stage: str) -> np.ndarray:
