@@ -550,3 +550,24 @@ def test_masked_median_is_numpys_median_of_the_kept_values(rng):
     # NaN in the values is what a caller masks out (the sides' edges and ink levels).
     b = np.where(mask, a, np.nan)
     assert np.allclose(masked_median_last(b, np.isfinite(b))[0], med, equal_nan=True)
+
+
+def test_a_floor_of_sticker_like_squares_is_bounded_by_max_candidates():
+    """Hundreds of framed squares with module patterns inside: the frame examines (and the
+    localiser decodes) at most max_candidates of them, over both candidate passes together (each
+    pass kept 40, so 80 reached refinement and decoding)."""
+    from tagloc.vision.detect import _candidates
+
+    rng = np.random.default_rng(0)
+    img = np.full((CAM.height, CAM.width), 200, np.uint8)
+    side, gap, inset = 60, 30, 10
+    for y0 in range(4, CAM.height - side, side + gap):
+        for x0 in range(4, CAM.width - side, side + gap):
+            cv2.rectangle(img, (x0, y0), (x0 + side - 1, y0 + side - 1), 30, 5)
+            modules = np.where(rng.random((8, 8)) < 0.5, 30, 200).astype(np.uint8)
+            img[y0 + inset : y0 + side - inset, x0 + inset : x0 + side - inset] = cv2.resize(
+                modules, (side - 2 * inset,) * 2, interpolation=cv2.INTER_NEAREST
+            )
+    cfg = DetectConfig()
+    assert len(_candidates(img, cfg, None)) == cfg.max_candidates
+    assert len(detect_stickers(img, CAM)) <= cfg.max_candidates

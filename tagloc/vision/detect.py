@@ -390,7 +390,9 @@ def _candidates(
             group += g
         first.sort(key=lambda q: -q[0])
         group.sort(key=lambda q: -q[0])
-    return [q for _, q in first + group]
+    # Each pass (and each region's) keeps up to max_candidates; the frame's bound is on their sum,
+    # or a floor of sticker-like clutter gets twice the examination (and decoding) it is allowed.
+    return [q for _, q in (first + group)[: cfg.max_candidates]]
 
 
 def _threshold_reach(cfg: DetectConfig, ds: int) -> int:
