@@ -272,3 +272,11 @@ def floor_point_at_pixel(camera: Camera, T_world_camera: np.ndarray, pixel: tupl
 def project_world(camera: Camera, T_world_camera: np.ndarray, points_w: np.ndarray) -> np.ndarray:
     """Distorted pixels (N, 2) of world points (N, 3)."""
     return camera.project(transform_points(invert(T_world_camera), points_w))
+
+
+def with_exif_orientation(jpeg: bytes, orientation: int) -> bytes:
+    """``jpeg`` with an APP1 Exif block holding only an orientation tag (1-8), as a phone or a camera
+    driver may write: a big-endian TIFF header and one IFD with the tag as a SHORT."""
+    ifd = (1).to_bytes(2, "big") + bytes.fromhex("0112 0003 00000001") + orientation.to_bytes(2, "big") + bytes(6)
+    payload = b"Exif\0\0" + b"MM\0\x2a" + (8).to_bytes(4, "big") + ifd
+    return jpeg[:2] + b"\xff\xe1" + (len(payload) + 2).to_bytes(2, "big") + payload + jpeg[2:]

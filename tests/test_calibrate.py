@@ -169,3 +169,19 @@ def test_video_source_is_read_with_a_step(tmp_path):
     assert [i for i, _, _ in got] == [0, 2, 4]
     assert all(img is not None and img.shape[:2] == (480, 640) for _, img, _ in got)
     assert BoardDetector().detect(got[0][1]) is not None
+
+
+def test_board_photos_are_read_as_stored_whatever_their_exif_orientation(tmp_path):
+    """A folder of photos is read in the sensor's layout, as the frames the calibration serves: a
+    photo tagged to be shown turned (EXIF orientation 6) stays 640 x 480 with its board where it is."""
+    from synth import with_exif_orientation
+
+    from tagloc.apps.calibrate import SourceConfig, _frames
+
+    view = render_board_view(CAM, board_poses(CAM, 1, seed=3)[0], rng=np.random.default_rng(3))
+    ok, jpeg = cv2.imencode(".jpg", view, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    assert ok
+    (tmp_path / "a.jpg").write_bytes(with_exif_orientation(jpeg.tobytes(), 6))
+    ((_, img, name),) = list(_frames(str(tmp_path), SourceConfig()))
+    assert name == "a.jpg" and img.shape == (480, 640)
+    assert BoardDetector().detect(img) is not None

@@ -376,7 +376,9 @@ def test_live_fails_when_its_camera_is_lost_mid_run(tmp_path, capsys, monkeypatc
             pass
 
     monkeypatch.setattr(capture.cv2, "VideoCapture", Unplugged)
-    rc = main(["live", "--camera", "0", "--map", DEMO_MAP, "--mode", "decoded-only", "--publish", str(tmp_path / "p.jsonl")])
+    rc = main(
+        ["live", "--camera", "0", "--map", DEMO_MAP, "--mode", "decoded-only", "--publish", str(tmp_path / "p.jsonl")]
+    )
     err = capsys.readouterr().err
     assert rc == 1, err
     last = err.strip().splitlines()[-1]

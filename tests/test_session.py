@@ -294,16 +294,14 @@ def test_a_frame_declaring_more_pixels_than_opencv_allows_is_skipped_not_an_erro
 
 @pytest.mark.parametrize("orientation", [3, 6])
 def test_jpeg_exif_orientation_not_applied(tmp_path, rng, orientation):
+    from synth import with_exif_orientation
+
     # A camera's JPEG may carry an EXIF orientation tag; the calibration is of the sensor's layout,
     # so the frame is read as stored (turned, it gave no pose, or was refused as the wrong size).
     images = _images(rng, 1)
     _write_session(tmp_path / "s", images, ext=".jpg")
     path = tmp_path / "s" / "frames" / "000000.jpg"
     plain = read_image(path)[0]
-    # An APP1 Exif block: a big-endian TIFF header and one IFD holding the orientation (a SHORT).
-    ifd = (1).to_bytes(2, "big") + bytes.fromhex("0112 0003 00000001") + orientation.to_bytes(2, "big") + bytes(6)
-    payload = b"Exif\0\0" + b"MM\0\x2a" + (8).to_bytes(4, "big") + ifd
-    data = path.read_bytes()
-    path.write_bytes(data[:2] + b"\xff\xe1" + (len(payload) + 2).to_bytes(2, "big") + payload + data[2:])
+    path.write_bytes(with_exif_orientation(path.read_bytes(), orientation))
     img, err = read_image(path)
     assert err is None and np.array_equal(img, plain)

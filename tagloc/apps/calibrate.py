@@ -55,7 +55,8 @@ def _frames(source: str, cfg: SourceConfig) -> Iterator[tuple[int, np.ndarray | 
         if not files:
             raise InputError(f"{path}: no images ({', '.join(IMAGE_SUFFIXES)})")
         for i, f in enumerate(files[: cfg.max_frames]):
-            yield i, cv2.imread(str(f), cv2.IMREAD_GRAYSCALE), f.name
+            # As stored, as the frames it calibrates are read (an EXIF orientation would turn some).
+            yield i, cv2.imread(str(f), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION), f.name
         return
     if source.isascii() and source.isdigit():
         cap = cv2.VideoCapture(int(source))
