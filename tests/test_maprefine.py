@@ -119,3 +119,37 @@ def test_site_survey_is_one_survey_for_every_session():
     np.testing.assert_allclose(old.xy - site.xy, rng.standard_normal((len(site), 2)) * 0.01)
     with pytest.raises(InputError, match="not in the map"):
         surveyed_map(StickerMap(np.array([1]), np.zeros((1, 2)), np.zeros(1)), SITE_SURVEY, seed=0)
+
+
+def test_a_view_starts_from_the_stickers_that_agree_with_the_map_not_a_turned_one():
+    """A view that sees a sticker laid 180 deg round since the survey, best fitted of its three, starts
+    from the pose the other two give: started from the turned one (the best fit), the camera was 180
+    deg off and the solve of the review's walk diverged (200 evaluations, then a singular factor)."""
+    from pathlib import Path
+
+    from tagloc.core.sticker import OUTER_CORNERS
+    from tagloc.eval.mapobs import Sighting, WalkLog
+    from tagloc.eval.maprefine import RefineConfig, _build
+
+    rig = default_rig()
+    T_wc = rig[0].T_body_camera  # body at the origin
+
+    def floor(x_n: float) -> np.ndarray:
+        ray = T_wc[:3, :3] @ np.array([x_n, 0.15, 1.0])
+        c = T_wc[:3, 3]
+        return (c - c[2] / ray[2] * ray)[:2]
+
+    truth = StickerMap(np.array([1, 2, 3]), np.array([floor(-0.2), floor(0.0), floor(0.2)]), np.radians([180.0, 0, 0]))
+    smap = StickerMap(truth.ids, truth.xy, np.zeros(3))  # the survey: sticker 1 at yaw 0
+    sightings = []
+    for sid, rms in ((1, 0.1), (2, 0.3), (3, 0.3)):
+        T_cs = invert(T_wc) @ truth.T_world_sticker(sid)
+        pts = T_cs[:3] @ np.vstack([OUTER_CORNERS.T, np.ones((1, 4))])
+        s = Sighting(0, np.zeros(2), sid, "decoded", in_map=True, accepted=True)
+        s.corners, s.T_camera_sticker, s.reprojection_px = rig[0].camera.project(pts.T), T_cs, rms
+        sightings.append(s)
+    fr = FrameRecord(0, 0.0, np.zeros(3), np.eye(3) * 1e-4, "tracking", sightings)
+    prob = _build([WalkLog(Path("synthetic"), rig, [fr])], smap, RefineConfig(), set())
+    T_cw = invert(T_wc)
+    assert np.allclose(prob.x0_views[0, 3:], T_cw[:3, 3], atol=1e-6)
+    assert np.allclose(prob.x0_views[0, :3], Rotation.from_matrix(T_cw[:3, :3]).as_rotvec(), atol=1e-6)

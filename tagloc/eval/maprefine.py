@@ -300,6 +300,32 @@ def patch_rays(rig_cam: RigCamera, points: int) -> tuple[np.ndarray, np.ndarray]
     return q, pc / pc[:, 2:3]
 
 
+# A sighting agrees with a view's starting pose when the sticker it puts in the world is within this
+# of the map's (m, rad): the survey's few centimetres and degrees, not a sticker moved or turned.
+AGREE_M, AGREE_RAD = 0.05, math.radians(10.0)
+
+
+def _initial_view(sights: list[Sighting], smap: StickerMap) -> np.ndarray:
+    """A view's starting T_camera_world: the pose one sighting gives through the prior map, from the
+    sighting whose pose puts the most of the view's other stickers where the map has them (then the
+    best-fitting). The best-fitting sticker alone may be one turned or moved since the survey: a
+    sticker laid 90 or 180 degrees round started its views that far off, and the solve diverged."""
+    cands = []
+    for s in sights:
+        T_cw = s.T_camera_sticker @ np.linalg.inv(smap.T_world_sticker(s.sticker_id))
+        T_wc = np.linalg.inv(T_cw)
+        agree = 0
+        for o in sights:
+            if o is s:
+                continue
+            T_ws = T_wc @ o.T_camera_sticker
+            k = smap.row(int(o.sticker_id))
+            dyaw = wrap_angle(math.atan2(T_ws[1, 0], T_ws[0, 0]) - smap.yaw[k])
+            agree += bool(np.hypot(*(T_ws[:2, 3] - smap.xy[k])) <= AGREE_M and abs(dyaw) <= AGREE_RAD)
+        cands.append((-agree, s.reprojection_px, len(cands), T_cw))
+    return min(cands, key=lambda c: c[:3])[3]
+
+
 def _build(
     walks: list[WalkLog],
     smap: StickerMap,
@@ -353,9 +379,7 @@ def _build(
     n_sight = 0
     for v, (walk, cam, sights) in enumerate(views):
         camera = walk.rig[cam].camera
-        best = min(sights, key=lambda p: p[1].reprojection_px)[1]
-        # Start from the camera pose that the best-fitting sticker gives through the prior map.
-        T_cw = best.T_camera_sticker @ np.linalg.inv(smap.T_world_sticker(best.sticker_id))
+        T_cw = _initial_view([s for _, s in sights], smap)
         x0_views.append(np.concatenate([Rotation.from_matrix(T_cw[:3, :3]).as_rotvec(), T_cw[:3, 3]]))
         view_sighting.append([s for _, s in sights])
         key = (id(walk), cam)
