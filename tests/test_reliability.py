@@ -5,6 +5,7 @@ sockets, output paths. The MQTT hang test SIGSTOPs a real mosquitto for two seco
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import shutil
@@ -104,7 +105,7 @@ def test_1_a_forward_gap_is_reported_and_the_pacing_does_not_wait_it_out(session
     cap.stop()
 
 
-def test_1_localiser_refuses_stamps_that_do_not_advance_and_restarts_on_a_reset_clock(session):
+def test_1_localiser_refuses_stamps_that_do_not_advance_and_restarts_on_a_reset_clock(session, tmp_path):
     reader = SessionReader(session)
     frames = list(reader.frames())
     loc = Localiser(reader.map, reader.rig)
@@ -122,6 +123,14 @@ def test_1_localiser_refuses_stamps_that_do_not_advance_and_restarts_on_a_reset_
     assert loc.tracker.time == pytest.approx(stamps[11])  # the new clock after the reset
     nan = loc.process(Frame(99, float("nan"), frames[0].image))
     assert nan.skipped and "not a finite number" in nan.skipped
+    out = Outputs(reader.map, reader.rig, OutputConfig(log=tmp_path / "f.jsonl"), warn=lambda m: None)
+    for odd in (None, "12.5", True):  # a library caller's: refused as the NaN is, not a TypeError
+        r = loc.process(Frame(100, odd, frames[0].image))
+        assert r.skipped and "not a finite number" in r.skipped and math.isnan(r.timestamp)
+        out.emit(r)  # and logged as such
+    out.close()
+    assert loc.counts["refused_timestamps"] == 8
+    assert len((tmp_path / "f.jsonl").read_text().splitlines()) == 3
 
 
 def test_1_outputs_never_publish_a_refused_frames_stale_pose(tmp_path):

@@ -167,10 +167,11 @@ def test_a_frame_time_rerun_cannot_hold_or_going_back_stays_off_the_time_timelin
         path = tmp_path / f"{clock}.rrd"
         view = RerunView(smap, default_rig(), save=path, clock=clock)
         out = TrackerOutput(base + 1.0, np.array([1.0, 2.0, 0.3]), np.eye(3) * 1e-3, TrackState.TRACKING, 0.1, 7)
-        stamps = [base + 1.0, base + 1.1, float("nan"), base + 0.5, float("inf"), 1e300, base + 1.2]
+        # (None: a library caller's frame without a time, refused by the localiser as a NaN is.)
+        stamps = [base + 1.0, base + 1.1, float("nan"), base + 0.5, float("inf"), 1e300, None, base + 1.2]
         for k, t in enumerate(stamps):
             view.log(
-                Frame(k, t, None), FrameResult(k, t, [], out, {"total": 1.0}, "refused" if k in (2, 3, 4) else None)
+                Frame(k, t, None), FrameResult(k, t, [], out, {"total": 1.0}, "refused" if k in (2, 3, 4, 6) else None)
             )
         view.close()
         assert read_rrd(path)["status"].frames == list(range(len(stamps)))
@@ -181,7 +182,7 @@ def test_a_frame_time_rerun_cannot_hold_or_going_back_stays_off_the_time_timelin
                 timed += [
                     f for f, t in zip(b.column("frame").to_pylist(), b.column("time").to_pylist()) if t is not None
                 ]
-        assert sorted(timed) == [0, 1, 6], clock
+        assert sorted(timed) == [0, 1, 7], clock
 
 
 def times_on_clock(path, entity: str) -> dict[int, float]:

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import logging
 import math
+import numbers
 import os
 import socket
 import sys
@@ -296,6 +297,11 @@ def circle(center: tuple[float, float], a: float, b: float, angle: float, n: int
     return np.c_[center[0] + c * ex - s * ey, center[1] + s * ex + c * ey, np.zeros(n + 1)]
 
 
+def _seconds(t: object) -> str:
+    """``t`` (s) for the status text: three decimals, or as it is when no number (a refused frame's)."""
+    return f"{t:.3f}" if isinstance(t, numbers.Real) and not isinstance(t, bool) else str(t)
+
+
 class RerunView:
     """Log a localisation run to Rerun: a file (``save``), a spawned viewer (``spawn``) or a viewer's gRPC URL.
 
@@ -386,7 +392,8 @@ class RerunView:
         frame's time. A frame the localiser refused for its stamp is still shown, but it must neither
         stop the run nor draw the walk back in time."""
         self.rec.set_time("frame", sequence=int(result.index))
-        if not (math.isfinite(t) and abs(t) < MAX_TIME_S and t >= self._last_t):
+        real = isinstance(t, numbers.Real) and not isinstance(t, bool)  # a library caller's None too
+        if not (real and math.isfinite(t) and abs(t) < MAX_TIME_S and t >= self._last_t):
             self.rec.disable_timeline("time")
             self._on_clock = None
             return False
@@ -469,7 +476,7 @@ class RerunView:
         rec.log(
             "status",
             rr.TextDocument(
-                f"**{out.state.value}**  \nframe {result.index}, t = {result.timestamp:.3f} s  \n"
+                f"**{out.state.value}**  \nframe {result.index}, t = {_seconds(result.timestamp)} s  \n"
                 f"last fix: {last}, {since} ago  \nseen: {seen}"
                 + (f"  \nskipped: {result.skipped}" if result.skipped else ""),
                 media_type=rr.MediaType.MARKDOWN,

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -680,6 +681,8 @@ class Localiser:
         :class:`~tagloc.core.types.Frame`)."""
         timer = StageTimer()
         t = frame.timestamp
+        if isinstance(t, bool) or not isinstance(t, numbers.Real):
+            t = math.nan  # refused below; the result carries a NaN, which every output takes
         self.counts["frames"] += 1
         self._index, self.late = frame.index, []
         if self._pending_odo is not None:
@@ -934,9 +937,10 @@ class Localiser:
     def _check_time(self, frame: Frame) -> str | None:
         """Why the frame's timestamp is refused, or None (then it becomes the last accepted time)."""
         t = frame.timestamp
-        if not math.isfinite(t):
+        # A library caller's None or text is refused as a NaN is, not a TypeError out of process.
+        if isinstance(t, bool) or not isinstance(t, numbers.Real) or not math.isfinite(t):
             self.counts["refused_timestamps"] += 1
-            return f"frame {frame.index}: timestamp {t} is not a finite number"
+            return f"frame {frame.index}: timestamp {str(t)[:40]!r} is not a finite number"
         last = self._last_t
         if last is not None and t <= last:
             self._refused_run += 1
