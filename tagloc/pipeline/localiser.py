@@ -386,6 +386,12 @@ class TrackMatch:
     due: bool
 
 
+def _as_time(t: object) -> float:
+    """A frame's timestamp as a float: NaN for one that is no number (a library caller's None or
+    text), which :meth:`Localiser._check_time` refuses and every output takes."""
+    return math.nan if isinstance(t, bool) or not isinstance(t, numbers.Real) else t
+
+
 def match_tracks(
     detections: list[Detection],
     tracked: list[Tracked],
@@ -680,9 +686,7 @@ class Localiser:
         is carried to its time. ``frame.image`` is kept until the camera's next frames (see
         :class:`~tagloc.core.types.Frame`)."""
         timer = StageTimer()
-        t = frame.timestamp
-        if isinstance(t, bool) or not isinstance(t, numbers.Real):
-            t = math.nan  # refused below; the result carries a NaN, which every output takes
+        t = _as_time(frame.timestamp)
         self.counts["frames"] += 1
         self._index, self.late = frame.index, []
         if self._pending_odo is not None:
