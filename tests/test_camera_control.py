@@ -551,3 +551,23 @@ def test_a_recording_names_the_clock_its_frames_were_stamped_on(tmp_path, monkey
     cam = json.loads((tmp_path / "rec" / "session.json").read_text())["camera"]
     assert (cam["clock"], cam["stamp"]) == ("driver", capture.STAMP_FRAME_START)
     assert cam["resolution"] == [640, 480]  # read back at start, while the camera was open
+
+
+def test_a_video_file_shorter_than_its_header_says_ends_without_failing(tmp_path):
+    """A video file cut short (its header counting frames no longer there) ends at its last frame as
+    a file does: its failed reads past the end are not a camera lost mid-run (exit 1)."""
+    path = tmp_path / "cut.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30, (160, 120))
+    rng = np.random.default_rng(0)
+    for _ in range(100):
+        writer.write(rng.integers(0, 255, (120, 160, 3), dtype=np.uint8))
+    writer.release()
+    with path.open("r+b") as f:
+        f.truncate(path.stat().st_size // 2)
+    src = open_source(str(path))
+    t = capture.CaptureThread(src, buffer=1000, pace=False).start()
+    t.join(30.0)
+    t.stop()
+    good = t.stats.grabbed - t.stats.skipped
+    assert 0 < good and src._n_frames - good > src.max_failures, t.stats  # the header overstates the frames
+    assert not t.stats.failed, t.stats

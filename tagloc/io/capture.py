@@ -361,7 +361,9 @@ class VideoSource(FrameSource):
             at_end = not self.live and (self._n_frames <= 0 or self._index >= self._n_frames - 1)
             if at_end or self._failures >= self.max_failures:
                 self.end_reason = "end of file" if at_end else f"{self.max_failures} reads failed in a row"
-                self.end_failed = not at_end
+                # Only a live source fails: a file's failed reads end it, as the class says (one
+                # cut short, its header counting frames no longer there, had exited 1).
+                self.end_failed = self.live and not at_end
                 return None
             self._index += 1
             return Frame(index, stamp, None, error=f"frame {index}: empty or corrupt frame from {self.spec}")
