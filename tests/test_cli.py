@@ -384,3 +384,36 @@ def test_live_fails_when_its_camera_is_lost_mid_run(tmp_path, capsys, monkeypatc
     last = err.strip().splitlines()[-1]
     assert last.startswith("tagloc live: error: ") and "reads failed in a row" in last, err
     assert (tmp_path / "p.jsonl").read_text().count("\n") >= 1  # the frames before were published
+
+
+def test_live_refuses_a_video_file_it_opens_but_cannot_read_a_frame_of(tmp_path, capsys, monkeypatch):
+    """A file OpenCV opens, its header counting frames, none of which decodes: 'no frame could be
+    read' (exit 2), not a clean run (exit 0) nor a camera lost mid-run (exit 1). Failed reads are
+    counted as grabbed (and skipped): the check is on the frames read."""
+    from tagloc.io import capture
+
+    class Unreadable:
+        """cv2.VideoCapture of a file whose 100 frames all fail to decode."""
+
+        def __init__(self, spec):
+            pass
+
+        def isOpened(self):  # noqa: N802 - OpenCV's name
+            return True
+
+        def get(self, prop):
+            return {capture.cv2.CAP_PROP_FRAME_COUNT: 100.0, capture.cv2.CAP_PROP_FPS: 30.0}.get(prop, 0.0)
+
+        def read(self):
+            return False, None
+
+        def release(self):
+            pass
+
+    video = tmp_path / "v.mp4"
+    video.write_bytes(b"\0" * 64)
+    monkeypatch.setattr(capture.cv2, "VideoCapture", Unreadable)
+    rc = main(["live", "--camera", str(video), "--map", DEMO_MAP, "--mode", "decoded-only", "--no-pace"])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert "no frame could be read" in err.strip().splitlines()[-1], err
