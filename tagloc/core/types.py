@@ -6,10 +6,18 @@ body frame in the world unless stated.
 
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass, field
 from enum import Enum
 
 import numpy as np
+
+
+def frame_seconds(t: object) -> float:
+    """A frame's timestamp as a float: NaN for one that is no number (a library caller's None or
+    text), which the localiser refuses as it refuses a NaN, and which every output takes."""
+    return math.nan if isinstance(t, bool) or not isinstance(t, numbers.Real) else float(t)
 
 
 @dataclass

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import logging
 import math
-import numbers
 import os
 import socket
 import sys
@@ -48,7 +47,7 @@ from tagloc.core.geometry import interpolate_groundtruth
 from tagloc.core.rig import Rig
 from tagloc.core.sticker import OUTER_CORNERS
 from tagloc.core.stickermap import StickerMap
-from tagloc.core.types import Frame, FrameResult, IdSource, Observation, TrackState
+from tagloc.core.types import Frame, FrameResult, IdSource, Observation, TrackState, frame_seconds
 
 PATH_PIECE = 256  # frames per trajectory piece
 NETWORK_FLUSH_S = 5.0  # longest wait for a viewer when closing
@@ -297,11 +296,6 @@ def circle(center: tuple[float, float], a: float, b: float, angle: float, n: int
     return np.c_[center[0] + c * ex - s * ey, center[1] + s * ex + c * ey, np.zeros(n + 1)]
 
 
-def _seconds(t: object) -> str:
-    """``t`` (s) for the status text: three decimals, or as it is when no number (a refused frame's)."""
-    return f"{t:.3f}" if isinstance(t, numbers.Real) and not isinstance(t, bool) else str(t)
-
-
 class RerunView:
     """Log a localisation run to Rerun: a file (``save``), a spawned viewer (``spawn``) or a viewer's gRPC URL.
 
@@ -392,8 +386,8 @@ class RerunView:
         frame's time. A frame the localiser refused for its stamp is still shown, but it must neither
         stop the run nor draw the walk back in time."""
         self.rec.set_time("frame", sequence=int(result.index))
-        real = isinstance(t, numbers.Real) and not isinstance(t, bool)  # a library caller's None too
-        if not (real and math.isfinite(t) and abs(t) < MAX_TIME_S and t >= self._last_t):
+        t = frame_seconds(t)  # a library caller's None too
+        if not (math.isfinite(t) and abs(t) < MAX_TIME_S and t >= self._last_t):
             self.rec.disable_timeline("time")
             self._on_clock = None
             return False
@@ -476,7 +470,7 @@ class RerunView:
         rec.log(
             "status",
             rr.TextDocument(
-                f"**{out.state.value}**  \nframe {result.index}, t = {_seconds(result.timestamp)} s  \n"
+                f"**{out.state.value}**  \nframe {result.index}, t = {frame_seconds(result.timestamp):.3f} s  \n"
                 f"last fix: {last}, {since} ago  \nseen: {seen}"
                 + (f"  \nskipped: {result.skipped}" if result.skipped else ""),
                 media_type=rr.MediaType.MARKDOWN,

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import numbers
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -34,6 +33,7 @@ from tagloc.core.types import (
     Observation,
     PoseFix,
     SurveyPrior,
+    frame_seconds,
 )
 from tagloc.io.session import CAMERA_FILE, MAP_FILE, RIG_FILE
 from tagloc.vision.decode import DecodeConfig, decode, verify_detection
@@ -386,12 +386,6 @@ class TrackMatch:
     due: bool
 
 
-def _as_time(t: object) -> float:
-    """A frame's timestamp as a float: NaN for one that is no number (a library caller's None or
-    text), which :meth:`Localiser._check_time` refuses and every output takes."""
-    return math.nan if isinstance(t, bool) or not isinstance(t, numbers.Real) else t
-
-
 def match_tracks(
     detections: list[Detection],
     tracked: list[Tracked],
@@ -686,7 +680,7 @@ class Localiser:
         is carried to its time. ``frame.image`` is kept until the camera's next frames (see
         :class:`~tagloc.core.types.Frame`)."""
         timer = StageTimer()
-        t = _as_time(frame.timestamp)
+        t = frame_seconds(frame.timestamp)
         self.counts["frames"] += 1
         self._index, self.late = frame.index, []
         if self._pending_odo is not None:
@@ -940,11 +934,10 @@ class Localiser:
 
     def _check_time(self, frame: Frame) -> str | None:
         """Why the frame's timestamp is refused, or None (then it becomes the last accepted time)."""
-        t = frame.timestamp
-        # A library caller's None or text is refused as a NaN is, not a TypeError out of process.
-        if isinstance(t, bool) or not isinstance(t, numbers.Real) or not math.isfinite(t):
+        t = frame_seconds(frame.timestamp)  # a library caller's None or text is refused as a NaN is
+        if not math.isfinite(t):
             self.counts["refused_timestamps"] += 1
-            return f"frame {frame.index}: timestamp {str(t)[:40]!r} is not a finite number"
+            return f"frame {frame.index}: timestamp {str(frame.timestamp)[:40]!r} is not a finite number"
         last = self._last_t
         if last is not None and t <= last:
             self._refused_run += 1
