@@ -115,12 +115,12 @@ def test_the_reachable_share_leaves_out_the_frames_before_a_sticker_is_wholly_in
     walk.mkdir()
     lines = [frame(0), frame(1, (True, False)), frame(2, (False, True)), frame(3, (True, True)), frame(4)]
     (walk / ev.GROUNDTRUTH_FRAMES).write_text("\n".join(lines) + "\n")
-    assert ev.frames_before_sticker(walk) == 3
-    assert ev.frames_before_sticker(tmp_path) is None  # no per-frame truth: unknown
+    assert ev.frames_before_sticker(ev.read_frame_truth(walk)) == 3
+    assert ev.frames_before_sticker(ev.read_frame_truth(tmp_path)) is None  # no per-frame truth: unknown
     never = tmp_path / "never"
     never.mkdir()
     (never / ev.GROUNDTRUTH_FRAMES).write_text(frame(0) + "\n" + frame(1, (True, False)) + "\n")
-    assert ev.frames_before_sticker(never) == 2
+    assert ev.frames_before_sticker(ev.read_frame_truth(never)) == 2
     rows = [{"frames_all": 600, "frames_before_sticker": 22}, {"frames_all": 2400, "frames_before_sticker": 0}]
     assert ev._reachable(rows) == pytest.approx(1 - 22 / 3000)
     assert math.isnan(ev._reachable(rows + [{"frames_all": 10, "frames_before_sticker": None}]))

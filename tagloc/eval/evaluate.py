@@ -334,8 +334,13 @@ def _frame_truth_line(line: str, where: str) -> tuple[int, list[VisibleSticker]]
 def wrong_id_fixes(session: Path, log: RunLog, radius_px: float = 40.0) -> tuple[int, int]:
     """(wrong, checked): accepted fixes whose ID is not the sticker the simulator put there."""
     frames = read_frame_truth(session)
-    if frames is None:
-        return 0, 0
+    return (0, 0) if frames is None else wrong_ids_in(frames, log, radius_px)
+
+
+def wrong_ids_in(
+    frames: list[tuple[int, list[VisibleSticker]]], log: RunLog, radius_px: float = 40.0
+) -> tuple[int, int]:
+    """:func:`wrong_id_fixes` against per-frame truth already read (:func:`read_frame_truth`)."""
     truth = {index: [(v.id, v.centre) for v in visible] for index, visible in frames}
     wrong = 0
     for fix in log.fixes:
@@ -354,11 +359,10 @@ WRONG_ID_SPACING_SHARE = 0.5
 WRONG_ID_MIN_M = 0.25
 
 
-def frames_before_sticker(session: Path) -> int | None:
+def frames_before_sticker(frames: list[tuple[int, list[VisibleSticker]]] | None) -> int | None:
     """Frames before the first in which a mapped sticker lies wholly in the image, by the
-    simulator's per-frame truth (None for a session without it). No localiser has a pose for them
-    without one given from outside: the map is its only reference."""
-    frames = read_frame_truth(session)
+    simulator's per-frame truth (:func:`read_frame_truth`; None for a session without it). No
+    localiser has a pose for them without one given from outside: the map is its only reference."""
     if frames is None:
         return None
     n = 0
@@ -441,8 +445,9 @@ def score_session(
     e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *gt)
     m = error_metrics(e)
     in_gt = frames_in_span(log.stamps, gt[0])
-    if (Path(path) / GROUNDTRUTH_FRAMES).exists():
-        wrong, check = wrong_id_fixes(Path(path), log)[0], "frames"
+    truth = read_frame_truth(Path(path))  # read once: wrong IDs and the frames before a sticker
+    if truth is not None:
+        wrong, check = wrong_ids_in(truth, log)[0], "frames"
     else:
         wrong, check = wrong_id_fixes_by_pose(log, gt, wrong_id_distance(session.map)), "pose"
     by_source: dict[str, int] = {}
@@ -461,7 +466,7 @@ def score_session(
         # A frame without a pose is a miss: the share of the frames the ground truth covers with a
         # pose within 10 cm of it.
         "frames_all": in_gt,
-        "frames_before_sticker": frames_before_sticker(Path(path)),
+        "frames_before_sticker": frames_before_sticker(truth),
         "within_10cm_all": m["within_10cm"] * m["frames"] / max(in_gt, 1),
         "frame_ms_median": float(np.median(log.frame_ms)) if len(log.frame_ms) else math.nan,
         "tracker_ms_median": float(np.median(log.tracker_ms)) if len(log.tracker_ms) else math.nan,
