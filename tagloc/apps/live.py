@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tagloc.core.errors import InputError
+from tagloc.core.errors import InputError, SourceFailed, TaglocError
 from tagloc.io.capture import CameraSettings, CaptureStats, CaptureThread, FrameSource, MultiCapture, open_source
 from tagloc.io.session import MAP_FILE, SessionInfo, SessionWriter
 from tagloc.pipeline.output import OutputConfig, Outputs, OutputSummary
@@ -119,6 +119,20 @@ class LiveSummary:
     recorded: int = 0
     outputs: OutputSummary = field(default_factory=OutputSummary)
     per_camera: list[dict] = field(default_factory=list)
+
+    def failure(self, source: str) -> TaglocError | None:
+        """The error the run ends with once this summary is shown (``source`` names the camera or
+        file), or None for a clean end: :class:`SourceFailed` when a camera was lost mid-run
+        (unplugged: every read failing), which had ended the run with exit code 0, taken by a
+        supervisor for a clean stop; :class:`InputError` when the source ended by itself before
+        giving one frame (a file OpenCV opens but cannot read: its failed reads count as grabbed,
+        and skipped)."""
+        c = self.capture
+        if c.failed:
+            return SourceFailed(f"{source}: capture failed during the run ({c.ended})")
+        if c.grabbed - c.skipped == 0 and "stopped" not in c.ended:
+            return InputError(f"{source}: no frame could be read ({c.ended})")
+        return None
 
     def latency(self, q: float) -> float:
         """Latency percentile ``q`` (0-100), ms; NaN without frames."""

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from tagloc.core.errors import InputError, SourceFailed
+from tagloc.core.errors import InputError
 
 NAME = "live"
 HELP = "localise live from a camera (or a video/stream/session played as one) and publish poses"
@@ -156,13 +156,7 @@ def run(args: argparse.Namespace) -> int:
         )
     )
     print(summary.format(), file=sys.stderr)
-    c = summary.capture
-    if c.failed:
-        # A camera lost mid-run (unplugged: every read failing) is a failure, not the end of a file:
-        # it had ended the run with exit code 0, which a supervisor takes for a clean stop.
-        raise SourceFailed(f"{', '.join(args.camera)}: capture failed during the run ({c.ended})")
-    if c.grabbed - c.skipped == 0 and "stopped" not in c.ended:
-        # The source ended by itself before giving one frame (a file OpenCV opens but cannot read):
-        # its failed reads are counted as grabbed, and skipped.
-        raise InputError(f"{args.camera[0]}: no frame could be read ({c.ended})")
+    failure = summary.failure(", ".join(args.camera))
+    if failure is not None:
+        raise failure
     return 0
