@@ -55,8 +55,9 @@ V4L2_MANUAL_EXPOSURE = 1
 #: A driver stamp this much older than the monotonic clock when its frame arrives, or more, is not
 #: on that clock (a frame arrives within a few frame intervals of its start).
 _MAX_DRIVER_LAG_S = 1.0
-#: Several cameras: frame times are recorded (frames.csv) and published (a pose message's ``t``) to
-#: this resolution (s); each frame handed over must be at least one such step after the last.
+#: Frame times are recorded (frames.csv) and published (a pose message's ``t``) to this resolution
+#: (s); each frame a live source or the several-camera merge hands over is at least one such step
+#: after the last.
 STAMP_RESOLUTION_S = 1e-6
 
 
@@ -209,8 +210,9 @@ class FrameSource:
 
     def _live_stamp(self, raw: float, exposure_s: float = 0.0) -> float:
         """A live source's ``raw`` stamp (where ``stamp_at`` says) as a frame time, never before the
-        last one it gave (1 us after it at least: a switch of clocks must not step back)."""
-        stamp = max(self._frame_time(raw, exposure_s), self._last_stamp + 1e-6)
+        last one it gave (``STAMP_RESOLUTION_S`` after it at least: a switch of clocks must not step
+        back)."""
+        stamp = max(self._frame_time(raw, exposure_s), self._last_stamp + STAMP_RESOLUTION_S)
         self._last_stamp = stamp
         return stamp
 
