@@ -48,17 +48,13 @@ import numpy as np
 
 from tagloc.core.errors import BackendUnavailable, InputError
 from tagloc.core.types import Frame
-from tagloc.io.session import CLOCK_JUMP_S, SessionReader
+from tagloc.io.session import CLOCK_JUMP_S, STAMP_RESOLUTION_S, SessionReader, after_last
 
 #: OpenCV's V4L2 backend passes CAP_PROP_AUTO_EXPOSURE through to V4L2's exposure_auto menu: 1 = manual.
 V4L2_MANUAL_EXPOSURE = 1
 #: A driver stamp this much older than the monotonic clock when its frame arrives, or more, is not
 #: on that clock (a frame arrives within a few frame intervals of its start).
 _MAX_DRIVER_LAG_S = 1.0
-#: Frame times are recorded (frames.csv) and published (a pose message's ``t``) to this resolution
-#: (s); each frame a live source or the several-camera merge hands over is at least one such step
-#: after the last.
-STAMP_RESOLUTION_S = 1e-6
 
 
 @dataclass
@@ -717,7 +713,7 @@ class MultiCapture:
                     continue
                 if math.isfinite(stamp):  # (one that is not goes on: the localiser refuses it, named)
                     self._last_stamp = self._camera_stamp[c] = stamp
-                    item.frame.timestamp = self._last_t = self._after_last(stamp)
+                    item.frame.timestamp = self._last_t = after_last(stamp, self._last_t)
                 # One index over all cameras, in delivery order: a recording needs unique indices.
                 item.frame.index = self._next_index
                 self._next_index += 1
@@ -730,17 +726,6 @@ class MultiCapture:
             if timeout is not None and waited >= timeout:
                 return None
             time.sleep(0.001)
-
-    def _after_last(self, stamp: float) -> float:
-        """``stamp`` (s), or the microsecond after the last frame handed over when it is within that
-        frame's microsecond (see the class)."""
-        if not math.isfinite(self._last_t):
-            return stamp
-        # Rounded as frames.csv (``%.6f``) and a pose message (``round(t, 6)``) round them: counted in
-        # microseconds, t / 1e-6 is rounded twice, and at epoch times (7e-7 s apart) a frame 0.3 us
-        # after the last went on unmoved into the same microsecond of frames.csv.
-        last = round(self._last_t, 6)
-        return stamp if round(stamp, 6) > last else round(last + STAMP_RESOLUTION_S, 6)
 
     def take_skipped(self) -> list[str]:
         """Every camera's skipped frames since the last call (see :meth:`CaptureThread.take_skipped`)."""

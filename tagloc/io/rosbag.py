@@ -42,7 +42,7 @@ from tagloc.core.geometry import planar_T
 from tagloc.core.rig import Rig, default_rig, load_rig
 from tagloc.core.stickermap import StickerMap, load_map
 from tagloc.core.types import Frame, FrameResult, TrackState
-from tagloc.io.session import SessionInfo, SessionWriter, decode_grey
+from tagloc.io.session import SessionInfo, SessionWriter, after_last, decode_grey
 from tagloc.io.sinks import SCHEMA, PoseMessage, Sink
 
 # ROS asks for a huge variance on axes that are not measured (z, roll, pitch of a planar pose), so that
@@ -572,7 +572,7 @@ def bag_to_session(
 
     src = BagSession(bag, topic, map_path, rig_path, calibration, info_topic)
     written = skipped = 0
-    last = -math.inf  # the last written frame's time, as frames.csv holds it
+    last = -math.inf  # the last written frame's time
     last_t = -math.inf  # the last stamp a replay of the bag takes (the localiser refuses one not after it)
     with SessionWriter(out, src.map, src.rig, SessionInfo(source=src.info.source, fps=0.0), image_ext=".png") as w:
         try:
@@ -581,9 +581,7 @@ def bag_to_session(
                     skipped += 1
                     continue
                 last_t = t
-                stamp = round(t, 6)
-                if stamp <= last:
-                    stamp = round(last + 1e-6, 6)
+                stamp = after_last(t, last)
                 if _convert(w, i, stamp, msg, msgtype):
                     written += 1
                     last = stamp

@@ -88,6 +88,22 @@ class SessionInfo:
         }
 
 
+#: ``frames.csv`` holds frame times to this resolution (s, its ``%.6f``), and a pose message's ``t``
+#: too (``round(t, 6)``): each frame written after another must be at least one such step later.
+STAMP_RESOLUTION_S = 1e-6
+
+
+def after_last(stamp: float, last: float) -> float:
+    """``stamp`` (s), or the microsecond after ``last`` (s; -inf: none yet) when ``frames.csv`` would
+    not hold it after ``last``: within its microsecond, or before. Rounded as frames.csv and a pose
+    message round them: counted in microseconds, t / 1e-6 is rounded twice, and at epoch times
+    (7e-7 s apart) a frame 0.3 us after the last went on unmoved into the same microsecond."""
+    if not math.isfinite(last):
+        return stamp
+    last = round(last, 6)
+    return stamp if round(stamp, 6) > last else round(last + STAMP_RESOLUTION_S, 6)
+
+
 def tum_line(t: float, T: np.ndarray) -> str:
     """One TUM line ``timestamp x y z qx qy qz qw`` (newline included) for the 4x4 pose ``T`` at ``t`` (s).
 

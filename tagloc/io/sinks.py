@@ -607,24 +607,23 @@ def open_sink(target: str, vest: str = "vest", max_age_s: float = 0.5) -> Sink:
     trajectory. Any other path: JSON lines file. ``max_age_s``: network sinks never send an older pose.
     """
     check_vest_id(vest)
+    if sink_file(target) is not None:
+        return TumSink(target) if target.lower().endswith(".tum") else JsonLinesSink(target)
     if target in ("stdout", "-"):
         return JsonLinesSink(sys.stdout)
-    if "://" in target:
-        url = urlsplit(target)
-        try:
-            port = url.port
-        except ValueError:
-            raise InputError(f"{target}: bad port") from None
-        if not url.hostname:
-            raise InputError(f"{target}: no host (want {url.scheme}://HOST:PORT)")
-        if url.scheme == "udp":
-            if port is None:
-                raise InputError(f"{target}: UDP needs a port (udp://HOST:PORT)")
-            return UdpSink(url.hostname, port, max_age_s=max_age_s)
-        if url.scheme == "mqtt":
-            topic = url.path.lstrip("/") or f"tagloc/{vest}/pose"
-            return MqttSink(url.hostname, port or 1883, topic, client_id=f"tagloc-{vest}", max_age_s=max_age_s)
-        raise InputError(f"{target}: unknown sink scheme {url.scheme!r} (want udp://, mqtt://, stdout or a file)")
-    if target.lower().endswith(".tum"):
-        return TumSink(target)
-    return JsonLinesSink(target)
+    # The network (sink_file: neither a file nor stdout has "://").
+    url = urlsplit(target)
+    try:
+        port = url.port
+    except ValueError:
+        raise InputError(f"{target}: bad port") from None
+    if not url.hostname:
+        raise InputError(f"{target}: no host (want {url.scheme}://HOST:PORT)")
+    if url.scheme == "udp":
+        if port is None:
+            raise InputError(f"{target}: UDP needs a port (udp://HOST:PORT)")
+        return UdpSink(url.hostname, port, max_age_s=max_age_s)
+    if url.scheme == "mqtt":
+        topic = url.path.lstrip("/") or f"tagloc/{vest}/pose"
+        return MqttSink(url.hostname, port or 1883, topic, client_id=f"tagloc-{vest}", max_age_s=max_age_s)
+    raise InputError(f"{target}: unknown sink scheme {url.scheme!r} (want udp://, mqtt://, stdout or a file)")
