@@ -54,7 +54,7 @@ from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
 
 from tagloc.core.errors import InputError
-from tagloc.core.geometry import wrap_angle
+from tagloc.core.geometry import planar_from_T, wrap_angle
 from tagloc.core.rig import RigCamera
 from tagloc.core.sticker import ALL_CORNERS
 from tagloc.core.stickermap import StickerMap, save_map
@@ -318,10 +318,10 @@ def _initial_view(sights: list[Sighting], smap: StickerMap) -> np.ndarray:
         for o in sights:
             if o is s:
                 continue
-            T_ws = T_wc @ o.T_camera_sticker
+            x, y, yaw = planar_from_T(T_wc @ o.T_camera_sticker)
             k = smap.row(int(o.sticker_id))
-            dyaw = wrap_angle(math.atan2(T_ws[1, 0], T_ws[0, 0]) - smap.yaw[k])
-            agree += bool(np.hypot(*(T_ws[:2, 3] - smap.xy[k])) <= AGREE_M and abs(dyaw) <= AGREE_RAD)
+            dyaw = wrap_angle(yaw - smap.yaw[k])
+            agree += bool(np.hypot(x - smap.xy[k, 0], y - smap.xy[k, 1]) <= AGREE_M and abs(dyaw) <= AGREE_RAD)
         cands.append((-agree, s.reprojection_px, len(cands), T_cw))
     return min(cands, key=lambda c: c[:3])[3]
 
