@@ -388,8 +388,8 @@ class RerunView:
         self.rec.set_time("frame", sequence=int(result.index))
         t = frame_seconds(t)  # a library caller's None too
         if not (math.isfinite(t) and abs(t) < MAX_TIME_S and t >= self._last_t):
-            self.rec.disable_timeline("time")
             self._on_clock = None
+            self._put_on_time(None)
             return False
         self._last_t = self._on_clock = t
         if self.clock == "auto":
@@ -398,11 +398,17 @@ class RerunView:
             # Decided once: Rerun keeps one type per timeline. An epoch clock as a duration would read
             # "19675 days" in the viewer.
             self.clock = "timestamp" if t >= EPOCH_MIN_S else "duration"
-        if self.clock == "duration":
+        self._put_on_time(t)
+        return True
+
+    def _put_on_time(self, t: float | None) -> None:
+        """Put the next rows at ``t`` (s) on ``time``, as the clock's type, or off it (None)."""
+        if t is None:
+            self.rec.disable_timeline("time")
+        elif self.clock == "duration":
             self.rec.set_time("time", duration=float(t))
         else:
             self.rec.set_time("time", timestamp=float(t))
-        return True
 
     def log(self, frame: Frame, result: FrameResult, t: float | None = None) -> None:
         """Log one frame: image, detections, pose, uncertainty, errors and timings.
@@ -512,12 +518,7 @@ class RerunView:
                 continue
             named = [next((n for n in late if n.detection is o.detection), o) for o in obs]
             self.rec.set_time("frame", sequence=int(index))
-            if t is None:
-                self.rec.disable_timeline("time")
-            elif self.clock == "duration":
-                self.rec.set_time("time", duration=t)
-            else:
-                self.rec.set_time("time", timestamp=t)
+            self._put_on_time(t)
             self._shown[camera] = (shown, t, named)
             self._log_detections(image_entity(self.rig, camera), named)
 
