@@ -632,3 +632,30 @@ def test_walker_leans_into_turns_and_with_acceleration(long_walk):
     vest = np.array([0.0, 0.0, 1.3])
     shift = walk.groundtruth(t[k], vest)[:2] - still.groundtruth(t[k], vest)[:2]
     assert np.hypot(*shift) == pytest.approx((1.3 - 0.95) * math.sin(abs(roll[k])), rel=0.3)
+
+
+def test_session_notes_name_every_condition_that_is_not_the_default():
+    """``tagloc eval --walks`` prints a session's notes as its conditions: a field walk's row must say
+    it was rendered with a rolling shutter, drops and a surveyed map, and a plain walk's must not."""
+    from tagloc.sim.survey import SurveyConfig
+
+    plain = SimConfig(seconds=4, lux=150, seed=3).describe()
+    assert plain == "4 s at 150 lux, 1.3 m/s, seed 3"
+    field = SimConfig(
+        seconds=4,
+        seed=3,
+        rolling_shutter=True,
+        timing=TimingConfig(jitter_s=0.002, drop_fraction=0.04, bursts_per_min=2.0),
+        survey=SurveyConfig(0.015, 1.5, True),
+        sensor_preset="ov5647",
+        pitch_deg=45.0,
+    ).describe()
+    for part in (
+        "camera 1.3 m up, 45 deg down",
+        "rolling shutter 30 ms",
+        "jitter +-2 ms",
+        "drops 4% + 2 bursts/min",
+        "survey 1.5 cm 1.5 deg stated",
+        "sensor ov5647",
+    ):
+        assert part in field, (part, field)

@@ -159,6 +159,43 @@ class SimConfig:
         if not 1 <= self.jpeg_quality <= 100:
             raise InputError(f"JPEG quality {self.jpeg_quality} is not in 1-100")
 
+    def describe(self) -> str:
+        """The session's conditions in one line (its ``session.json`` notes, the condition column
+        ``tagloc eval --walks`` prints): length, light, speed and seed, then every condition that is
+        not the plain default, so that a walk's row names what it was rendered with."""
+        parts = [f"{self.seconds:g} s at {self.lux:g} lux, {self.speed_mps:g} m/s, seed {self.seed}"]
+        if self.rig is not None:
+            parts.append(f"rig {Path(self.rig).name if isinstance(self.rig, (str, Path)) else 'given'}")
+        elif (self.pitch_deg, self.height_m) != (55.0, 1.3):
+            parts.append(f"camera {self.height_m:g} m up, {self.pitch_deg:g} deg down")
+        if self.fps != 30.0:
+            parts.append(f"{self.fps:g} fps")
+        if self.scale != 1.0:
+            parts.append(f"resolution x{self.scale:g}")
+        if self.rolling_shutter:
+            parts.append(f"rolling shutter {1e3 * self.exposure.readout_s:g} ms")
+        t = self.timing
+        if t.jitter_s:
+            parts.append(f"jitter +-{1e3 * t.jitter_s:g} ms")
+        if t.drop_fraction or t.bursts_per_min:
+            parts.append(f"drops {100 * t.drop_fraction:g}% + {t.bursts_per_min:g} bursts/min")
+        sv = self.survey
+        if sv.sigma_m or sv.sigma_deg:
+            parts.append(f"survey {100 * sv.sigma_m:g} cm {sv.sigma_deg:g} deg{' stated' if sv.stated else ''}")
+        if self.missing_fraction or self.unmapped:
+            parts.append(f"{100 * self.missing_fraction:g}% missing, {self.unmapped} unmapped")
+        if self.sensor_preset and self.sensor_preset != "standard":
+            parts.append(f"sensor {self.sensor_preset}")
+        if self.flicker:
+            parts.append(f"flicker {100 * self.flicker:g}% at {self.mains_hz:g} Hz mains")
+        if self.shadow:
+            parts.append("shadow")
+        if self.legs:
+            parts.append("legs")
+        if self.jpeg_quality != 85:
+            parts.append(f"JPEG {self.jpeg_quality}")
+        return ", ".join(parts)
+
     def walk_config(self) -> WalkConfig:
         """The walk model with this config's seconds, speed and seed."""
         return replace(self.walk, seconds=self.seconds, speed_mps=self.speed_mps, seed=self.seed)
@@ -382,8 +419,7 @@ def simulate_session(
     info = SessionInfo(
         source="simulated",
         fps=config.fps,
-        notes=f"tagloc simulate: {config.seconds:g} s at {config.lux:g} lux, {config.speed_mps:g} m/s, "
-        f"seed {config.seed}",
+        notes=f"tagloc simulate: {config.describe()}",
         extra=sim_info,
     )
     readout = exp_cfg.readout_s if exp_cfg.rolling_shutter else 0.0
