@@ -339,6 +339,28 @@ def test_bad_T_body_camera_refused(tmp_path, T, fragment):
     assert f"{p}: cameras[0]" in str(info.value) and fragment in str(info.value)
 
 
+def test_rig_written_to_three_decimals_loads_as_a_rotation(tmp_path):
+    """The README's rig.json (55 degrees written as 0.819 and 0.574: R R^T is 2.4e-4 off the
+    identity) was refused as "not a rigid transform". It loads, as the nearest rotation."""
+    save_calibration(default_camera(), tmp_path / "camera.yaml")
+    p = tmp_path / "rig.json"
+    T = [[0, -0.819, 0.574, 0], [-1, 0, 0, 0], [0, -0.574, -0.819, 1.3], [0, 0, 0, 1]]
+    p.write_text(_rig_doc(T))
+    got = load_rig(p)[0].T_body_camera
+    R = got[:3, :3]
+    assert R @ R.T == pytest.approx(np.eye(3), abs=1e-12) and np.linalg.det(R) == pytest.approx(1.0)
+    assert got == pytest.approx(np.array(T, float), abs=1e-3)
+    assert got == pytest.approx(looking_forward(1.3, 55.0), abs=1e-3)
+    # Exactly written rotations are kept as written.
+    exact = looking_forward(1.22, 58.0, 3.0)
+    p.write_text(_rig_doc(exact.tolist()))
+    assert np.array_equal(load_rig(p)[0].T_body_camera, exact)
+    # A scale of 1 %, not rounding, is still refused.
+    p.write_text(_rig_doc((np.diag([1.01, 1.01, 1.01, 1.0]) @ exact).tolist()))
+    with pytest.raises(CalibrationError, match="not a rigid transform"):
+        load_rig(p)
+
+
 def test_bad_rig_files_refused(tmp_path):
     p = tmp_path / "rig.json"
     p.write_text('{"cameras": [}')

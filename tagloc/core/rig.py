@@ -176,6 +176,11 @@ def default_rig(height_m: float = 1.3, pitch_deg: float = 55.0, camera: Camera |
 # a torso's reach (a camera on the chest, back or shoulder is well inside 1 m of the body axis).
 MAX_CAMERA_HEIGHT_M = 3.0
 MAX_CAMERA_REACH_M = 1.0
+# How far from orthonormal (|R R^T - I|, elementwise) a written rotation may be: a hand-written
+# rig.json rounds its entries to 3 decimals (up to 5e-4 each, up to 1.8e-3 on R R^T; the
+# README's 0.819, 0.574 for 55 degrees give 2.4e-4); a wrong matrix (a scale, a shear, a typo) is
+# far beyond. Such a rotation is replaced by the nearest rotation matrix, a fraction of a degree away.
+RIGID_TOL = 5e-3
 
 
 def _check_T(value: object, where: str) -> np.ndarray:
@@ -186,8 +191,18 @@ def _check_T(value: object, where: str) -> np.ndarray:
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise CalibrationError(f"{where}: T_body_camera must be a finite 4x4 matrix")
     R = T[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0 or not np.allclose(T[3], [0, 0, 0, 1]):
+    if (
+        not np.allclose(R @ R.T, np.eye(3), atol=RIGID_TOL)
+        or np.linalg.det(R) < 0
+        or not np.allclose(T[3], [0, 0, 0, 1])
+    ):
         raise CalibrationError(f"{where}: T_body_camera is not a rigid transform")
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-9, rtol=0.0):
+        # A rotation written to a few decimals: the nearest rotation (polar decomposition), so that
+        # everything downstream, which inverts it as its transpose, sees a rigid transform.
+        u, _, vt = np.linalg.svd(R)
+        T = T.copy()
+        T[:3, :3] = u @ vt
     # The body frame stands on the floor under the wearer: a worn camera is above the floor and
     # within reach of the torso (metres off, every pose would be as far off, without a word).
     if not 0.0 < T[2, 3] < MAX_CAMERA_HEIGHT_M or np.hypot(T[0, 3], T[1, 3]) > MAX_CAMERA_REACH_M:
