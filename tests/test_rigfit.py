@@ -188,3 +188,20 @@ def test_rolling_shutter_fixes_are_corrected(tmp_path):
     raw, corrected = pitch_bias(replace(rc, readout_s=0.0)), pitch_bias(rc)
     # Walking forward under a top-to-bottom read-out tilts the solved camera by degrees; corrected, far less.
     assert abs(raw) > 1.0 and abs(corrected) < 0.4 * abs(raw)
+
+
+def test_output_naming_an_input_is_refused_before_reading(tmp_path, capsys):
+    """``-o`` naming the session's own rig.json (the rig its frames were recorded with) or the
+    prior ``--rig`` wrote the fit over it. Refused in one line before any frame is read; the file is
+    as it was."""
+    session = tmp_path / "walk"
+    session.mkdir()
+    prior = tmp_path / "prior.json"
+    for p in (session / "rig.json", prior):
+        save_rig(default_rig(), p)
+    before = {p: p.read_bytes() for p in (session / "rig.json", prior)}
+    for out, extra in ((session / "rig.json", []), (prior, ["--rig", str(prior)]), (session / "frames" / "r.json", [])):
+        assert main(["rig", "fit", str(session), "-o", str(out), *extra, "--no-progress"]) == 2
+        err = capsys.readouterr().err
+        assert err == f"tagloc rig: error: {out}: -o names one of the inputs it would overwrite\n"
+    assert {p: p.read_bytes() for p in before} == before

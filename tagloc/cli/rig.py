@@ -47,6 +47,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     s.add_argument("rig", type=Path, help="rig.json")
 
 
+def _output_apart_from_inputs(args: argparse.Namespace, checks) -> None:
+    """Refuse an ``-o`` naming what the fit reads: the session's own files (its rig.json is the
+    rig its frames were recorded with), its frames, or the prior rig (``--rig``)."""
+    from tagloc.io.session import FRAMES_DIR, SESSION_INPUTS
+
+    inputs = [*(args.session / name for name in SESSION_INPUTS), args.rig]
+    checks.outputs_apart([("-o", args.out)], inputs, [args.session / FRAMES_DIR])
+
+
 def run(args: argparse.Namespace) -> int:
     from tagloc.cli import checks
     from tagloc.eval.rigfit import RigFitConfig, check_rig_file, fit_rig, format_fit
@@ -56,6 +65,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     checks.number(args.step, "--step", 1, 10_000)
     checks.output_file(args.out, "-o")
+    _output_apart_from_inputs(args, checks)
     fit = fit_rig(
         args.session,
         args.out,
