@@ -185,3 +185,26 @@ def test_board_photos_are_read_as_stored_whatever_their_exif_orientation(tmp_pat
     ((_, img, name),) = list(_frames(str(tmp_path), SourceConfig()))
     assert name == "a.jpg" and img.shape == (480, 640)
     assert BoardDetector().detect(img) is not None
+
+
+def test_outputs_are_never_images_of_the_folder_read(image_dir, tmp_path, capsys):
+    """``-o`` in the folder of calibration images put the coverage PNG there, and the next run read
+    it as a view and stopped ("image size 800x660 differs"); ``--coverage`` naming a view wrote over
+    it. Both refused before any image is read, nothing written; a YAML in the folder is not a view."""
+    views = tmp_path / "views"
+    views.mkdir()
+    for name in ("000.png", "001.png"):
+        (views / name).write_bytes((image_dir / name).read_bytes())
+    before = {p.name: p.read_bytes() for p in views.iterdir()}
+    err = "tagloc calibrate: error: {}: {} is an image in the folder of calibration images {}"
+    out = views / "camera.yaml"
+    assert main(["calibrate", "camera", str(views), "-o", str(out), "--no-progress"]) == 2
+    assert capsys.readouterr().err.startswith(
+        err.format(views / "camera_coverage.png", "the coverage PNG (beside -o; --coverage puts it elsewhere)", views)
+    )
+    cov = views / "000.png"
+    assert main(["calibrate", "camera", str(views), "-o", str(tmp_path / "c.yaml"), "--coverage", str(cov)]) == 2
+    assert capsys.readouterr().err.startswith(err.format(cov, "--coverage", views))
+    assert {p.name: p.read_bytes() for p in views.iterdir()} == before
+    with pytest.raises(InputError, match="-o and --coverage name the same file"):
+        calibrate_camera(str(views), tmp_path / "c.png", coverage_png=tmp_path / "c.png", progress=False)

@@ -8,6 +8,7 @@ reads, plus the fit's RMS error and standard deviations as extra keys) and the c
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -134,6 +135,26 @@ def save_result(result: CalibrationResult, path: str | Path, spec: BoardSpec) ->
     save_calibration(result.camera, path, extra)
 
 
+def _outputs_apart_from_source(source: str, outputs: list[tuple[str, Path]]) -> None:
+    """Refuse outputs that are one file, the source video, or an image in the source folder (the
+    coverage PNG beside an ``-o`` in that folder would be read as a view by the next run, and
+    refused there for its size; ``--coverage`` naming a view would overwrite it)."""
+    src = Path(os.path.realpath(source))
+    seen: dict[Path, str] = {}
+    for option, path in outputs:
+        real = Path(os.path.realpath(path))
+        if real in seen:
+            raise InputError(f"{path}: {seen[real]} and {option} name the same file")
+        seen[real] = option
+        if real == src:
+            raise InputError(f"{path}: {option} names the source it would overwrite")
+        if src.is_dir() and real.parent == src and real.suffix.lower() in IMAGE_SUFFIXES:
+            raise InputError(
+                f"{path}: {option} is an image in the folder of calibration images {source}, where it would be"
+                " read as a view of the board; write it elsewhere"
+            )
+
+
 def calibrate_camera(
     source: str,
     out: str | Path,
@@ -150,6 +171,10 @@ def calibrate_camera(
     source_config = source_config or SourceConfig()
     if not out.parent.exists():
         raise InputError(f"{out}: directory {out.parent} does not exist")
+    given = coverage_png is not None
+    coverage_png = Path(coverage_png) if given else out.with_name(out.stem + "_coverage.png")
+    coverage_option = "--coverage" if given else "the coverage PNG (beside -o; --coverage puts it elsewhere)"
+    _outputs_apart_from_source(str(source), [("-o", out), (coverage_option, coverage_png)])
     detector = BoardDetector(spec)
     views, size, images, unreadable = [], None, 0, 0
     for index, image, name in tqdm(_frames(str(source), source_config), desc="board", unit="img", disable=not progress):
@@ -175,7 +200,7 @@ def calibrate_camera(
         raise CalibrationError(f"{source}: {exc}") from None
     result.unreadable = unreadable
     save_result(result, out, spec)
-    write_coverage_png(result, coverage_png or out.with_name(out.stem + "_coverage.png"))
+    write_coverage_png(result, coverage_png)
     return result
 
 
