@@ -6,7 +6,7 @@ import pytest
 
 from tagloc.cli import main
 from tagloc.core.errors import InputError
-from tagloc.eval.advise import AdviseConfig, advise, best_row, format_advice
+from tagloc.eval.advise import AdviseConfig, AdviseRow, advise, best_row, format_advice
 
 
 def test_trade_off_follows_the_physics():
@@ -31,3 +31,21 @@ def test_bad_settings():
     with pytest.raises(InputError):
         AdviseConfig(lux=0)
     assert main(["advise", "--lux", "-5"]) == 2
+
+
+def test_no_recommendation_when_no_exposure_gives_a_fix(capsys):
+    """At 5 lux no exposure up to 1 ms gives a fix: the tie at 0 % went to the shortest, and the
+    command recommended "--exposure-ms 0.5: 0% of stickers in view give a fix" and exited 0. Now it
+    prints the table, says there is no recommendation and what would help, and exits 1."""
+    args = ["advise", "--lux", "5", "--frames", "2", "--scale", "0.5", "--exposures", "0.5", "1", "--no-progress"]
+    assert main(args) == 1
+    out = capsys.readouterr().out
+    assert "recommended" not in out and "0.50ms" in out and "1.00ms" in out
+    assert out.rstrip().endswith(
+        "no recommendation: no exposure tried (up to 1 ms) gives a fix; more light, a slower walk or longer --exposures"
+    )
+    cfg = AdviseConfig(exposures_ms=(0.5, 1.0))
+    rows = [AdviseRow(e, 32.0, 1.0, 1.0, 0.1, 10, 0.0, 0.0, 0.0, 0.0) for e in cfg.exposures_ms]
+    assert best_row(rows) is None
+    rows[1].identified = 0.1
+    assert best_row(rows) is rows[1] and "recommended: --exposure-ms 1 " in format_advice(rows, cfg)

@@ -32,7 +32,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from tagloc.cli import checks
-    from tagloc.eval.advise import AdviseConfig, advise, format_advice
+    from tagloc.eval.advise import AdviseConfig, advise, best_row, format_advice
 
     for option, value in (
         ("--lux", args.lux),
@@ -59,5 +59,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         scale=args.scale,
     )
-    print(format_advice(advise(cfg, progress=not args.no_progress), cfg))
-    return 0
+    rows = advise(cfg, progress=not args.no_progress)
+    print(format_advice(rows, cfg))
+    # No exposure gives a fix: the table stands, but there is no setting to pass on (exit 1, not 0).
+    return 0 if best_row(rows) is not None else 1

@@ -186,9 +186,11 @@ def _inside(corners: np.ndarray, camera: Camera, margin: float = 4.0) -> bool:
     )
 
 
-def best_row(rows: list[AdviseRow]) -> AdviseRow:
-    """The exposure giving the most fixes (decoded or identified); the shorter one on a tie."""
-    return max(rows, key=lambda r: (round(r.identified, 3), -r.exposure_ms))
+def best_row(rows: list[AdviseRow]) -> AdviseRow | None:
+    """The exposure giving the most fixes (decoded or identified); the shorter one on a tie; None
+    when none gives a fix (the shortest would win the tie at 0 %, where more light is the answer)."""
+    best = max(rows, key=lambda r: (round(r.identified, 3), -r.exposure_ms))
+    return best if best.identified > 0 else None
 
 
 def format_advice(rows: list[AdviseRow], cfg: AdviseConfig) -> str:
@@ -209,7 +211,15 @@ def format_advice(rows: list[AdviseRow], cfg: AdviseConfig) -> str:
         "read: decoded; fixes: decoded or identified among the true sticker and its nearest map neighbours; "
         "bright: mean signal / AE target (below 1: gain capped)"
     )
-    lines.append(
-        f"recommended: --exposure-ms {b.exposure_ms:g} (gain about {b.gain:.1f}): {b.identified:.0%} of stickers in view give a fix"
-    )
+    if b is None:
+        longest = max(r.exposure_ms for r in rows)
+        lines.append(
+            f"no recommendation: no exposure tried (up to {longest:g} ms) gives a fix; more light, a slower"
+            " walk or longer --exposures"
+        )
+    else:
+        lines.append(
+            f"recommended: --exposure-ms {b.exposure_ms:g} (gain about {b.gain:.1f}): {b.identified:.0%} of stickers"
+            " in view give a fix"
+        )
     return "\n".join(lines)
