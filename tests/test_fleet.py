@@ -649,3 +649,16 @@ def test_the_view_draws_a_long_trail_thinned(tmp_path):
     (trail,) = trails
     assert 50 <= len(trail) <= 100
     assert trail[0][0] == pytest.approx(0.0) and trail[-1][0] == pytest.approx(8.99)
+
+
+def test_a_sinks_delivery_probes_are_ignored_not_counted_invalid():
+    """A monitor subscribed to tagloc/# also gets the MQTT sinks' probes (TOPIC/probe); the README asks
+    subscribers to ignore that schema, and tagloc's own monitor counted each as an invalid message (10 a
+    second per vest, the last-invalid line always quoting a probe)."""
+    fs = FleetState()
+    assert fs.handle(b'{"schema":"tagloc.probe/1","written":12}', EPOCH) is None  # as on the wire
+    assert fs.handle(msg(), EPOCH) is not None
+    assert fs.counts()["invalid"] == 0 and fs.counts()["received"] == 1 and fs.last_error is None
+    from tagloc.io.sinks import probe_payload
+
+    assert probe_payload(12) == b'{"schema":"tagloc.probe/1","written":12}'

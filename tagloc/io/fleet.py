@@ -30,7 +30,7 @@ import numpy as np
 
 from tagloc.core.errors import InputError
 from tagloc.io.fleet_config import FleetConfig
-from tagloc.io.sinks import SCHEMA, unix_socketpair
+from tagloc.io.sinks import PROBE_SCHEMA, SCHEMA, unix_socketpair
 
 STATES = ("initialising", "tracking", "lost", "unknown")
 EPOCH_MIN_S = 1e9  # t above this (Sept 2001) is an epoch timestamp, below it a session's own clock
@@ -61,6 +61,11 @@ class PoseDoc:
 
 class MessageError(ValueError):
     """A message that is not a valid tagloc pose message (counted by the monitor, never fatal)."""
+
+
+class ProbeMessage(MessageError):
+    """A sink's delivery probe (``tagloc.probe/1``), seen by a subscriber to ``tagloc/#``: not a pose,
+    and not an invalid one either (ignored, not counted)."""
 
 
 def _short(v: object) -> str:
@@ -134,6 +139,8 @@ def parse_message(payload: bytes | str | dict, cov_tol: float = FleetConfig.cov_
             raise MessageError(f"not JSON ({str(exc)[:120]})") from None
     if not isinstance(doc, dict):
         raise MessageError("not a JSON object")
+    if doc.get("schema") == PROBE_SCHEMA:
+        raise ProbeMessage("a tagloc MQTT sink's delivery probe, not a pose")
     if doc.get("schema") != SCHEMA:
         raise MessageError(f"schema {_short(doc.get('schema'))} is not {SCHEMA!r}")
     vest = doc.get("vest")
@@ -239,18 +246,21 @@ class FleetState:
         self.last_error = error
 
     def handle(self, payload: bytes | str | dict, received: float, seen: float | None = None) -> VestTrack | None:
-        """Take one message received at ``received``; returns the vest's track, or None if it was invalid.
+        """Take one message received at ``received``; returns the vest's track, or None if it was invalid (or a probe).
 
         ``seen``: the arrival on the staleness clock (see the module's docstring; default ``received``).
         """
         cfg = self.config
         seen = received if seen is None else seen
-        self.received += 1
         try:
             doc = parse_message(payload, cfg.cov_tol)
+        except ProbeMessage:
+            return None  # the README asks subscribers to tagloc/# to ignore probes; they are no vest's message
         except MessageError as exc:
+            self.received += 1
             self.refuse(str(exc))
             return None
+        self.received += 1
         track = self.vests.get(doc.vest)
         lead = self.lead_s(doc, received)
         if lead is not None and lead[1] > cfg.max_skew_s:

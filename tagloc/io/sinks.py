@@ -51,6 +51,13 @@ if TYPE_CHECKING:
     import paho.mqtt.client as mqtt
 
 SCHEMA = "tagloc.pose/1"
+#: The MQTT sink's delivery probe (``TOPIC/probe``): not a pose; subscribers to ``tagloc/#`` ignore it.
+PROBE_SCHEMA = "tagloc.probe/1"
+
+
+def probe_payload(written: int) -> bytes:
+    """The MQTT sink's probe message, sent after ``written`` poses."""
+    return json.dumps({"schema": PROBE_SCHEMA, "written": written}, separators=(",", ":")).encode()
 
 
 @dataclass
@@ -396,8 +403,7 @@ class MqttSink(Sink):
                 return
             written = self.sent
             self._last_probe = now
-        payload = json.dumps({"schema": "tagloc.probe/1", "written": written}, separators=(",", ":")).encode()
-        info = self._client.publish(self.topic + "/probe", payload, qos=1)
+        info = self._client.publish(self.topic + "/probe", probe_payload(written), qos=1)
         if info.rc == self._success:
             with self._lock:
                 if info.mid in self._recent_mids:
