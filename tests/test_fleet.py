@@ -662,3 +662,55 @@ def test_a_sinks_delivery_probes_are_ignored_not_counted_invalid():
     from tagloc.io.sinks import probe_payload
 
     assert probe_payload(12) == b'{"schema":"tagloc.probe/1","written":12}'
+
+
+@pytest.mark.skipif(MOSQUITTO is None, reason="mosquitto not installed")
+def test_two_monitors_and_two_sinks_of_one_vest_share_a_broker(tmp_path, demo_map_path):
+    """Every monitor connected as client 'tagloc-monitor' and every sink of a vest as 'tagloc-VEST': the
+    broker closes a client's connection when another takes its ID, so two monitors (the README's
+    several subscribers) or two --publish topics of one vest on one broker cut each other off, each
+    missing what came while it reconnected. Now every client has its own ID and both get everything."""
+    import threading
+
+    from tagloc.apps.monitor import MonitorConfig, run_monitor
+    from tagloc.io.sinks import open_sink
+
+    broker = Broker(tmp_path).start()
+    stop = threading.Event()
+    subscribed = [threading.Event(), threading.Event()]
+    results: list = [None, None]
+    cfg = MonitorConfig(map=demo_map_path, url=f"mqtt://127.0.0.1:{broker.port}/tagloc/#")
+
+    def monitor(k):
+        results[k] = run_monitor(cfg, stop, subscribed[k])
+
+    threads = [threading.Thread(target=monitor, args=(k,)) for k in range(2)]
+    sinks = []
+    try:
+        for th, sub in zip(threads, subscribed):
+            th.start()
+            assert sub.wait(20)  # one after the other: the second's connection took the first's ID
+        url = f"mqtt://127.0.0.1:{broker.port}"
+        sinks = [open_sink(f"{url}/tagloc/v5/pose", "v5"), open_sink(f"{url}/tagloc/v5/pose2", "v5")]
+        deadline = time.monotonic() + 10
+        while not all(s.connected for s in sinks) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        witness = Subscriber(broker.port, "tagloc/v5/+")
+        assert witness.subscribed.wait(10)
+        for i in range(20):
+            for s in sinks:
+                s.publish(PoseMessage("v5", i, parse_to_output(time.time(), x=3.0)))
+            time.sleep(0.02)
+        witness.wait_for(lambda idx: len(idx) == 40)
+        witness.close()
+        time.sleep(0.3)
+    finally:
+        stop.set()
+        for th in threads:
+            th.join(20)
+        for s in sinks:
+            s.close()
+        broker.stop()
+    assert [s.counts()["sent"] for s in sinks] == [20, 20]
+    # Each monitor (subscribed to tagloc/#) has every pose of both topics.
+    assert [r.counts["received"] for r in results] == [40, 40]

@@ -21,6 +21,7 @@ from pathlib import Path
 from tagloc.core.errors import InputError
 from tagloc.core.stickermap import load_map
 from tagloc.io.fleet import EPOCH_MIN_S, FleetConfig, FleetState, FleetSubscriber, parse_mqtt_url
+from tagloc.io.sinks import unique_client_id
 
 
 @dataclass
@@ -167,7 +168,7 @@ def _live(
     broker was not reached or was lost, whether it was ever reached)."""
     host, port, topic = parse_mqtt_url(cfg.url)
     state = FleetState(cfg.fleet)
-    sub = FleetSubscriber(host, port, topic, state, client_id="tagloc-monitor", subscribed=subscribed)
+    sub = FleetSubscriber(host, port, topic, state, client_id=unique_client_id("tagloc-monitor"), subscribed=subscribed)
     restore = _stop_on_signals(stop)
     # The subscriber stamps staleness with time.monotonic(): ``now`` below is on the same clock.
     t0 = time.monotonic()

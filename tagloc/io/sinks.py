@@ -30,6 +30,7 @@ import contextlib
 import json
 import math
 import re
+import secrets
 import socket
 import sys
 import threading
@@ -235,6 +236,17 @@ class UdpSink(Sink):
 
     def close(self) -> None:
         self._sock.close()
+
+
+def unique_client_id(name: str) -> str:
+    """An MQTT client ID: ``name`` (what the broker's log shows) and a random suffix.
+
+    A broker closes a client's connection when another connects with the same ID, and paho reconnects
+    a second later, closing the other's: two monitors, two vests left at one ``--vest``, or two
+    ``--publish`` topics on one broker would each be cut off about half the time. Sessions are clean,
+    so nothing is lost by never reusing an ID.
+    """
+    return f"{name}-{secrets.token_hex(4)}"
 
 
 @contextlib.contextmanager
@@ -631,5 +643,7 @@ def open_sink(target: str, vest: str = "vest", max_age_s: float = 0.5) -> Sink:
         return UdpSink(url.hostname, port, max_age_s=max_age_s)
     if url.scheme == "mqtt":
         topic = url.path.lstrip("/") or f"tagloc/{vest}/pose"
-        return MqttSink(url.hostname, port or 1883, topic, client_id=f"tagloc-{vest}", max_age_s=max_age_s)
+        return MqttSink(
+            url.hostname, port or 1883, topic, client_id=unique_client_id(f"tagloc-{vest}"), max_age_s=max_age_s
+        )
     raise InputError(f"{target}: unknown sink scheme {url.scheme!r} (want udp://, mqtt://, stdout or a file)")
