@@ -143,6 +143,16 @@ def test_open_sink_rejects_bad_targets(bad):
         open_sink(bad)
 
 
+@pytest.mark.parametrize(
+    "target", ["mqtt://127.0.0.1:1/tagloc/+/pose", "mqtt://127.0.0.1:1/tagloc/#", "mqtt://127.0.0.1:1/tagloc/v1/pose?x"]
+)
+def test_an_mqtt_topic_filter_is_refused_as_a_publish_target(target):
+    """The monitor's topic filter given to --publish: paho raised at the first pose (an internal error
+    in the middle of a run) for '+', and cut a '#' or '?' part off to publish on another topic."""
+    with pytest.raises(InputError, match="cannot hold"):
+        open_sink(target, "v1").close()
+
+
 def test_open_sink_picks_the_sink(tmp_path):
     assert isinstance(open_sink("stdout"), JsonLinesSink)
     s = open_sink(str(tmp_path / "x.tum"))

@@ -642,6 +642,12 @@ def open_sink(target: str, vest: str = "vest", max_age_s: float = 0.5) -> Sink:
             raise InputError(f"{target}: UDP needs a port (udp://HOST:PORT)")
         return UdpSink(url.hostname, port, max_age_s=max_age_s)
     if url.scheme == "mqtt":
+        # A topic filter copied from the monitor's command line is no topic to publish on: paho raised
+        # at the first pose (an internal error mid-run), and a '#' or '?' part was silently cut off.
+        if any(c in target.split("://", 1)[1] for c in "+#?"):
+            raise InputError(
+                f"{target}: a topic to publish on cannot hold '+', '#' (wildcards, for subscribing) or '?'"
+            )
         topic = url.path.lstrip("/") or f"tagloc/{vest}/pose"
         return MqttSink(
             url.hostname, port or 1883, topic, client_id=unique_client_id(f"tagloc-{vest}"), max_age_s=max_age_s
