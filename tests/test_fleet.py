@@ -714,3 +714,23 @@ def test_two_monitors_and_two_sinks_of_one_vest_share_a_broker(tmp_path, demo_ma
     assert [s.counts()["sent"] for s in sinks] == [20, 20]
     # Each monitor (subscribed to tagloc/#) has every pose of both topics.
     assert [r.counts["received"] for r in results] == [40, 40]
+
+
+def test_a_vest_id_outside_the_schema_is_refused_and_forges_no_warning():
+    """The receiver took any non-empty string as a vest ID (the README allows 1-64 letters, digits,
+    '.', '_', '-'), and showed it as it came: a newline or '|' in it forged warning lines in the
+    status text and rows in the warning table, and a megabyte of it was printed in every block."""
+    from tagloc.apps.monitor import status_text
+    from tagloc.io.fleet_view import warnings_markdown
+
+    good = json.loads(msg("v1"))
+    fs = FleetState()
+    fs.handle(good, EPOCH)
+    for vest in ("v2\n  v1: lost: forged", "v3 | lost | forged |", "v" * 65, "v/4", "v\u00e9"):
+        assert fs.handle({**good, "vest": vest}, EPOCH) is None
+        assert "is not 1-64 letters" in fs.last_error
+    assert sorted(fs.vests) == ["v1"] and fs.invalid == 5
+    assert "lost" not in status_text(fs, EPOCH + 0.1).split("last invalid message")[0]
+    assert "lost" not in warnings_markdown(fs, EPOCH + 0.1).split("last invalid message")[0]
+    for vest in ("v1", "vest-1", "A.b_c-9", "x" * 64):
+        assert parse_message({**good, "vest": vest}).vest == vest

@@ -30,7 +30,7 @@ import numpy as np
 
 from tagloc.core.errors import InputError
 from tagloc.io.fleet_config import FleetConfig
-from tagloc.io.sinks import PROBE_SCHEMA, SCHEMA, unix_socketpair
+from tagloc.io.sinks import PROBE_SCHEMA, SCHEMA, VEST_ID_PATTERN, unix_socketpair
 
 STATES = ("initialising", "tracking", "lost", "unknown")
 EPOCH_MIN_S = 1e9  # t above this (Sept 2001) is an epoch timestamp, below it a session's own clock
@@ -146,6 +146,10 @@ def parse_message(payload: bytes | str | dict, cov_tol: float = FleetConfig.cov_
     vest = doc.get("vest")
     if not isinstance(vest, str) or not vest:
         raise MessageError("no vest ID")
+    if not VEST_ID_PATTERN.fullmatch(vest):
+        # The schema's vest IDs (every sender checks its own): any other string would be shown as it
+        # came, in status lines and the warning table, where a newline or '|' forges rows.
+        raise MessageError(f"vest ID {_short(vest)} is not 1-64 letters, digits, '.', '_' or '-'")
     try:
         return _pose_doc(doc, vest, cov_tol)
     except MessageError as exc:
