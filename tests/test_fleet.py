@@ -95,7 +95,7 @@ def test_uncertain_and_lost_vests_are_flagged():
     fs.handle(msg("gone", state="lost", sigma=0.1), EPOCH)
     fs.handle(msg("new", state="initialising", sigma=10.0), EPOCH)  # no pose yet: not judged on its covariance
     kinds = [(w.vest, w.kind) for w in fs.warnings(EPOCH + 0.1)]
-    assert kinds == [("gone", "lost"), ("wide", "uncertain")]
+    assert kinds == [("gone", "lost"), ("new", "initialising"), ("wide", "uncertain")]
     assert ellipse_2sigma(np.diag([0.09, 0.04, 1.0]))[:2] == pytest.approx((0.6, 0.4))
     a, b, ang = ellipse_2sigma(np.array([[0.04, 0.0], [0.0, 0.09]]))
     assert (a, b) == pytest.approx((0.6, 0.4)) and abs(math.sin(ang)) == pytest.approx(1.0)
@@ -734,3 +734,18 @@ def test_a_vest_id_outside_the_schema_is_refused_and_forges_no_warning():
     assert "lost" not in warnings_markdown(fs, EPOCH + 0.1).split("last invalid message")[0]
     for vest in ("v1", "vest-1", "A.b_c-9", "x" * 64):
         assert parse_message({**good, "vest": vest}).vest == vest
+
+
+def test_a_vest_without_a_pose_is_flagged_not_left_off_the_map_unsaid():
+    """An initialising vest is not drawn (its x, y are zeros), and had no warning either: the panel said
+    "all vests current and certain" while a vest on the floor was nowhere on the map (at start, or
+    when its track restarts)."""
+    from tagloc.io.fleet_view import warnings_markdown
+
+    fs = FleetState()
+    fs.handle(msg("v1"), EPOCH)
+    fs.handle(msg("v2", state="initialising", sigma=1000.0), EPOCH)
+    assert [(w.vest, w.kind) for w in fs.warnings(EPOCH + 0.1)] == [("v2", "initialising")]
+    assert "all vests current and certain" not in warnings_markdown(fs, EPOCH + 0.1)
+    fs.handle(msg("v2", t=EPOCH + 0.2, index=1), EPOCH + 0.2)  # its first pose
+    assert fs.warnings(EPOCH + 0.3) == []

@@ -226,7 +226,7 @@ class VestTrack:
 
 @dataclass
 class VestWarning:
-    """Why a vest needs attention: ``kind`` is stale, expired, uncertain or lost."""
+    """Why a vest needs attention: ``kind`` is stale, expired, lost, initialising (no pose) or uncertain."""
 
     vest: str
     kind: str
@@ -365,11 +365,14 @@ class FleetState:
                 )
             if tr.last.state == "lost":
                 out.append(VestWarning(vest, "lost", "tracker lost: pose from odometry only"))
-            if tr.posed:
+            if not tr.posed:
+                # Not drawn (its x, y are zeros): without a warning, "all vests current and certain".
+                out.append(VestWarning(vest, "initialising", "no pose yet: not on the map"))
+            else:
                 major = ellipse_2sigma(tr.last.cov)[0]
                 if major > cfg.max_2sigma_m:
                     out.append(VestWarning(vest, "uncertain", f"2-sigma {major:.2f} m exceeds {cfg.max_2sigma_m:g} m"))
-        order = {"stale": 0, "expired": 1, "lost": 2, "uncertain": 3}
+        order = {"stale": 0, "expired": 1, "lost": 2, "initialising": 3, "uncertain": 4}
         return sorted(out, key=lambda w: (order[w.kind], w.vest))
 
     def counts(self) -> dict[str, int]:
