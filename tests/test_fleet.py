@@ -749,3 +749,17 @@ def test_a_vest_without_a_pose_is_flagged_not_left_off_the_map_unsaid():
     assert "all vests current and certain" not in warnings_markdown(fs, EPOCH + 0.1)
     fs.handle(msg("v2", t=EPOCH + 0.2, index=1), EPOCH + 0.2)  # its first pose
     assert fs.warnings(EPOCH + 0.3) == []
+
+
+def test_an_oversized_message_is_refused_unread():
+    """Any length was decoded: a valid pose padded to 30 MB with an extra key was taken, holding the
+    network thread and the view's lock for a second and taking 230 MB (a broker passes 256 MB)."""
+    good = json.loads(msg())
+    fs = FleetState()
+    assert fs.handle(json.dumps({**good, "pad": "x" * 300}).encode(), EPOCH) is not None  # extra keys are fine
+    big = json.dumps({**good, "t": EPOCH + 1, "pad": "x" * 100_000})
+    for payload in (big.encode(), big):
+        assert fs.handle(payload, EPOCH + 1) is None
+        assert fs.last_error.startswith(f"{len(payload)} bytes long")
+    assert fs.invalid == 2 and fs.vests["v1"].last.t == EPOCH
+    assert FleetConfig().max_message_bytes >= 64 * len(msg("x" * 64))

@@ -123,13 +123,20 @@ def _covariance(v: object, tol: float) -> np.ndarray:
     return cov
 
 
-def parse_message(payload: bytes | str | dict, cov_tol: float = FleetConfig.cov_tol) -> PoseDoc:
-    """Validate a pose message (raw JSON or an already decoded document); raises MessageError.
+def parse_message(
+    payload: bytes | str | dict,
+    cov_tol: float = FleetConfig.cov_tol,
+    max_bytes: int = FleetConfig.max_message_bytes,
+) -> PoseDoc:
+    """Validate a pose message (raw JSON, at most ``max_bytes`` long, or an already decoded document);
+    raises MessageError.
 
     Nothing a sender can put in a payload raises anything else.
     """
     if isinstance(payload, dict):
         doc = payload
+    elif len(payload) > max_bytes:
+        raise MessageError(f"{len(payload)} bytes long (a pose message is under 1 kB; bound {max_bytes})")
     else:
         try:
             doc = json.loads(payload)
@@ -257,7 +264,7 @@ class FleetState:
         cfg = self.config
         seen = received if seen is None else seen
         try:
-            doc = parse_message(payload, cfg.cov_tol)
+            doc = parse_message(payload, cfg.cov_tol, cfg.max_message_bytes)
         except ProbeMessage:
             return None  # the README asks subscribers to tagloc/# to ignore probes; they are no vest's message
         except MessageError as exc:

@@ -39,6 +39,10 @@ class FleetConfig:
             (``TrackerOutput.to_json``): mirrored entries then differ by at most one step (1e-9), and
             the eigenvalues move by at most the rounding's norm, 3 entries x 0.5e-9 = 1.5e-9 (a
             39 micrometre sigma: nothing a real covariance needs and nothing a broken one hides in).
+        max_message_bytes: a longer message is refused unread. A pose message is about 400 bytes
+            (under 1 kB with the longest vest ID and every number at full length); 64 KiB leaves room
+            for fields a later schema adds, while a broker passes up to 256 MB by default, which
+            decoded held the monitor's network thread and its view for seconds and took gigabytes.
     """
 
     stale_s: float = 1.0
@@ -50,3 +54,4 @@ class FleetConfig:
     max_skew_s: float = 2.0
     timeline_reset_n: int = 30
     cov_tol: float = 1.5e-9
+    max_message_bytes: int = 65536
