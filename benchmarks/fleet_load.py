@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import multiprocessing as mp
 import os
 import random
@@ -195,15 +196,40 @@ def run_count(n: int, rate: float, seconds: float, stream: list[dict], workdir: 
     }
 
 
+def _vest_counts(text: str) -> list[int]:
+    """``--vests``: comma-separated positive whole numbers."""
+    try:
+        counts = [int(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"want comma-separated whole numbers, not {text!r}") from None
+    if min(counts) < 1:
+        raise argparse.ArgumentTypeError(f"vest counts must be at least 1, not {text!r}")
+    return counts
+
+
+def _positive(text: str) -> float:
+    """A finite number above 0 (a rate or a duration: 0 or NaN left the publishers dividing by it or
+    never starting, and the run waiting minutes for them)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"want a number, not {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"want a finite number above 0, not {text!r}")
+    return value
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--vests", default="1,10,50,100", help="vest counts, comma-separated (default 1,10,50,100)")
-    p.add_argument("--rate", type=float, default=30.0, help="messages per second per vest (default 30)")
-    p.add_argument("--seconds", type=float, default=60.0, help="seconds of publishing per count (default 60)")
+    p.add_argument(
+        "--vests", type=_vest_counts, default="1,10,50,100", help="vest counts, comma-separated (default 1,10,50,100)"
+    )
+    p.add_argument("--rate", type=_positive, default=30.0, help="messages per second per vest (default 30)")
+    p.add_argument("--seconds", type=_positive, default=60.0, help="seconds of publishing per count (default 60)")
     p.add_argument("--stream", type=Path, default=REPO / "out" / "fleet_load" / "stream.jsonl", help="pose stream")
     p.add_argument("--json", type=Path, help="also write the figures as JSON")
     args = p.parse_args(argv)
-    counts = [int(v) for v in args.vests.split(",")]
+    counts = args.vests
     stream = record_stream(args.stream)
     rows = []
     print(

@@ -763,3 +763,29 @@ def test_an_oversized_message_is_refused_unread():
         assert fs.last_error.startswith(f"{len(payload)} bytes long")
     assert fs.invalid == 2 and fs.vests["v1"].last.t == EPOCH
     assert FleetConfig().max_message_bytes >= 64 * len(msg("x" * 64))
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["--vests", "abc"],
+        ["--vests", "0"],
+        ["--vests", "4,-1"],
+        ["--rate", "0"],
+        ["--rate", "nan"],
+        ["--seconds", "-1"],
+    ],
+)
+def test_the_fleet_benchmark_refuses_bad_arguments_in_one_line(args, tmp_path, capsys):
+    """fleet_load.py took any number: letters were an internal error, no vests a formatting crash
+    after the run, and a rate of 0 or NaN left the publishers dead and the run waiting minutes."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parent.parent / "benchmarks" / "fleet_load.py"
+    spec = importlib.util.spec_from_file_location("fleet_load", path)
+    fleet_load = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(fleet_load)
+    # --stream a directory: were the arguments taken, the run would stop reading it, not start a broker.
+    with pytest.raises(SystemExit) as exit_:
+        fleet_load.main([*args, "--stream", str(tmp_path)])
+    assert exit_.value.code == 2 and args[0] in capsys.readouterr().err
