@@ -789,3 +789,14 @@ def test_the_fleet_benchmark_refuses_bad_arguments_in_one_line(args, tmp_path, c
     with pytest.raises(SystemExit) as exit_:
         fleet_load.main([*args, "--stream", str(tmp_path)])
     assert exit_.value.code == 2 and args[0] in capsys.readouterr().err
+
+
+def test_a_negative_latency_cannot_make_an_old_pose_current():
+    """latency_ms runs from grab to publication; a negative one was taken, and the age on arrival
+    (now - wall_t + latency) of a pose published 1.4 s before it arrived came out 0.4 s: current."""
+    good = json.loads(msg())
+    fs = FleetState()
+    sent = {**good, "t": EPOCH - 1.4, "wall_t": EPOCH - 1.4, "latency_ms": -1000.0}
+    assert fs.handle(sent, EPOCH) is None and "'latency_ms' is negative" in fs.last_error
+    assert fs.handle({**good, "since_fix": -0.5}, EPOCH) is None and "'since_fix' is negative" in fs.last_error
+    assert fs.handle({**sent, "latency_ms": 0.0}, EPOCH).last_age_s == pytest.approx(1.4)

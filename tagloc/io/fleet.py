@@ -97,6 +97,17 @@ def _number(doc: dict, key: str, required: bool = True) -> float | None:
     return f
 
 
+def _duration(doc: dict, key: str) -> float | None:
+    """``doc[key]``, a time since an earlier event (None if absent); raises MessageError if negative.
+
+    A negative ``latency_ms`` would make a pose younger than it is: an old pose taken as current.
+    """
+    v = _number(doc, key, required=False)
+    if v is not None and v < 0:
+        raise MessageError(f"{key!r} is negative ({v:.6g})")
+    return v
+
+
 def _covariance(v: object, tol: float) -> np.ndarray:
     """A message's ``cov`` as a (3, 3) float array, if it is a covariance; raises MessageError.
 
@@ -181,9 +192,9 @@ def _pose_doc(doc: dict, vest: str, cov_tol: float) -> PoseDoc:
         cov=cov,
         state=state,
         index=int(index) if isinstance(index, int) and not isinstance(index, bool) else -1,
-        since_fix=_number(doc, "since_fix", required=False),
+        since_fix=_duration(doc, "since_fix"),
         last_id=last_id if isinstance(last_id, int) and not isinstance(last_id, bool) else None,
-        latency_ms=_number(doc, "latency_ms", required=False),
+        latency_ms=_duration(doc, "latency_ms"),
         wall_t=_number(doc, "wall_t", required=False),
     )
 
