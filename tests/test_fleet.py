@@ -146,6 +146,17 @@ def test_parse_mqtt_url():
     for bad in ("udp://h:1", "mqtt://:1883/x", "mqtt://h:port/x"):
         with pytest.raises(InputError):
             parse_mqtt_url(bad)
+    assert parse_mqtt_url("mqtt://h:1884/#") == ("h", 1884, "#")
+    assert parse_mqtt_url("mqtt://h/+/+/pose") == ("h", 1883, "+/+/pose")
+
+
+@pytest.mark.parametrize("topic", ["tagloc/#/pose", "tag+/pose", "tagloc/v#", "tagloc/+/pose?x"])
+def test_a_topic_filter_mqtt_cannot_take_is_refused(topic):
+    """'tagloc/#/pose' was cut at the '#' (a URL fragment) to the topic 'tagloc/', which no vest uses: the
+    monitor heard nothing and reported no vests; 'tag+/pose' raised in paho's thread (a traceback on the
+    terminal, then the same silence). Both exited 0."""
+    with pytest.raises(InputError, match="is not an MQTT topic filter"):
+        parse_mqtt_url(f"mqtt://127.0.0.1:1/{topic}")
 
 
 @pytest.mark.skipif(MOSQUITTO is None, reason="mosquitto not installed")

@@ -417,8 +417,18 @@ def parse_mqtt_url(url: str, default_topic: str = "tagloc/+/pose") -> tuple[str,
         raise InputError(f"{url}: bad port") from None
     if not u.hostname:
         raise InputError(f"{url}: no host (want mqtt://HOST[:PORT][/TOPIC])")
-    # '+' and '#' are MQTT wildcards and legal in the path; a '#' would be parsed as a URL fragment.
-    topic = (u.path.lstrip("/") + ("#" if url.endswith("#") else "")) or default_topic
+    # '+' and '#' are MQTT wildcards and legal in the filter, but a URL parser takes a '#' for the start
+    # of a fragment: the filter is all that follows HOST[:PORT].
+    topic = url.split("://", 1)[1][len(u.netloc) :].lstrip("/") or default_topic
+    levels = topic.split("/")
+    for i, level in enumerate(levels):
+        misplaced = ("+" in level and level != "+") or ("#" in level and (level != "#" or i < len(levels) - 1))
+        if misplaced or "?" in level or "\0" in level:
+            # paho raised it in its network thread (a traceback, then a monitor hearing nothing), or
+            # the filter was cut at a '#' or '?' to one that matched no vest's topic.
+            raise InputError(
+                f"{url}: {topic!r} is not an MQTT topic filter ('+' stands for a whole level, '#' for the last; no '?')"
+            )
     return u.hostname, port, topic
 
 
