@@ -811,3 +811,47 @@ def test_a_negative_latency_cannot_make_an_old_pose_current():
     assert fs.handle(sent, EPOCH) is None and "'latency_ms' is negative" in fs.last_error
     assert fs.handle({**good, "since_fix": -0.5}, EPOCH) is None and "'since_fix' is negative" in fs.last_error
     assert fs.handle({**sent, "latency_ms": 0.0}, EPOCH).last_age_s == pytest.approx(1.4)
+
+
+def _run_msg(run: str, t: float, x: float, index: int) -> dict:
+    return {**json.loads(msg(t=t, x=x, index=index)), "run": run}
+
+
+def test_two_senders_sharing_a_vest_id_are_flagged_and_a_restart_is_not():
+    """Two vests left at one --vest interleave their runs: the pose shown jumps between two people, so
+    the vest is flagged ``duplicate`` (and stays flagged for ``duplicate_hold_s`` after). A vest that
+    restarts its process starts a new run and never returns to the old one: no warning."""
+    cfg = FleetConfig()
+    fs = FleetState(cfg)
+    now = EPOCH
+    for k in range(10):  # one vest's run, then it restarts (a new run; its clock goes on)
+        run = "aaaa0001" if k < 5 else "bbbb0002"
+        fs.handle(_run_msg(run, EPOCH + k / 30, 1.0, k), now + k / 30)
+    now += 10 / 30
+    assert [w.kind for w in fs.warnings(now)] == []
+    assert fs.vests["v1"].duplicate_switches == 0
+
+    fs2 = FleetState(cfg)
+    for k in range(12):  # two vests, both "v1", at x = 1 and x = 20, alternating
+        run, x = ("aaaa0001", 1.0) if k % 2 == 0 else ("cccc0003", 20.0)
+        fs2.handle(_run_msg(run, EPOCH + k / 30, x, k), EPOCH + k / 30)
+    last = EPOCH + 11 / 30
+    kinds = [w.kind for w in fs2.warnings(last)]
+    assert kinds[0] == "duplicate", kinds
+    assert fs2.vests["v1"].duplicate_switches == 5  # every return to the first run after the second began
+    # Held after the last return to an earlier run (message 10), then let go.
+    back = EPOCH + 10 / 30
+    assert "duplicate" in [w.kind for w in fs2.warnings(back + cfg.duplicate_hold_s - 0.01)]
+    assert "duplicate" not in [w.kind for w in fs2.warnings(back + cfg.duplicate_hold_s + 0.01)]
+
+
+def test_a_published_pose_carries_its_run_and_a_bad_run_is_refused():
+    from tagloc.io.sinks import RUN_ID
+
+    doc = parse_message(msg())
+    assert doc.run == RUN_ID and len(RUN_ID) == 8
+    good = json.loads(msg())
+    for bad in ("", "a" * 33, "x y", 7, ["a"]):
+        with pytest.raises(MessageError, match="run"):
+            parse_message({**good, "run": bad})
+    assert parse_message({k: v for k, v in good.items() if k != "run"}).run is None  # older senders

@@ -9,8 +9,8 @@ NAME = "monitor"
 HELP = "show every vest on the map in Rerun, live from MQTT (or from a recorded bag)"
 DESCRIPTION = """Subscribe to the vests' pose topics on an MQTT broker (connects out, never listens) and show the
 fleet in Rerun: the map from above with sticker IDs, each vest labelled with its state colour, its
-2-sigma ellipse, a safety circle and its trail, and a warning panel for vests that are stale (no
-new pose for --stale s), expired (pose older than --max-age s on arrival, epoch clocks), lost,
+2-sigma ellipse, a safety circle and its trail, and a warning panel for vests whose ID two senders
+share (duplicate), or that are stale (no new pose for --stale s), expired (pose older than --max-age s on arrival, epoch clocks), lost,
 without a pose yet (initialising), or too uncertain (2-sigma above --max-2sigma m). Invalid messages
 are counted, never shown; among them, a time more than --max-skew s ahead of the monitor's clock. --print-every S also prints the warnings
 to the terminal (with no viewer, the way to watch); a summary is printed at the end.

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import threading
 import time
 from collections import deque
@@ -32,6 +33,9 @@ from tagloc.core.errors import InputError
 from tagloc.io.fleet_config import FleetConfig
 from tagloc.io.sinks import PROBE_SCHEMA, SCHEMA, VEST_ID_PATTERN, unix_socketpair
 
+#: A sender run token (``run``; tagloc's are 8 hex digits).
+RUN_PATTERN = re.compile(r"[0-9A-Za-z]{1,32}")
+
 STATES = ("initialising", "tracking", "lost", "unknown")
 EPOCH_MIN_S = 1e9  # t above this (Sept 2001) is an epoch timestamp, below it a session's own clock
 
@@ -43,6 +47,7 @@ class PoseDoc:
     Attributes:
         vest: vest ID; t: frame timestamp (s); x, y (m), yaw (rad); cov: (3, 3) over (x, y, yaw).
         state: one of STATES; index: camera frame index (-1 if absent); since_fix: s or None.
+        run: the sending process's run token (None from senders that state none).
     """
 
     vest: str
@@ -57,6 +62,7 @@ class PoseDoc:
     last_id: int | None = None
     latency_ms: float | None = None
     wall_t: float | None = None
+    run: str | None = None
 
 
 class MessageError(ValueError):
@@ -183,6 +189,9 @@ def _pose_doc(doc: dict, vest: str, cov_tol: float) -> PoseDoc:
     cov = _covariance(doc.get("cov"), cov_tol)
     index = doc.get("index", -1)
     last_id = doc.get("last_id")
+    run = doc.get("run")
+    if run is not None and not (isinstance(run, str) and RUN_PATTERN.fullmatch(run)):
+        raise MessageError(f"run {_short(run)} is not 1-32 letters or digits")
     return PoseDoc(
         vest=vest,
         t=_number(doc, "t"),
@@ -196,6 +205,7 @@ def _pose_doc(doc: dict, vest: str, cov_tol: float) -> PoseDoc:
         last_id=last_id if isinstance(last_id, int) and not isinstance(last_id, bool) else None,
         latency_ms=_duration(doc, "latency_ms"),
         wall_t=_number(doc, "wall_t", required=False),
+        run=run,
     )
 
 
@@ -220,6 +230,10 @@ class VestTrack:
         dropped_since: messages from the vest since ``last`` that were not taken, and why the
             latest was not (``drop_reason``): the stale warning says so rather than "no message".
         trail: (t, x, y) of recent posed messages.
+        runs: each sender run seen from this vest ID, with when it was first seen (staleness
+            clock); last_run: the run of its latest message (taken or not).
+        duplicate_seen: when a message last came from an earlier run than the message before it
+            (two senders interleaving: see :meth:`FleetState.handle`); duplicate_switches: how often.
     """
 
     vest: str
@@ -235,6 +249,10 @@ class VestTrack:
     drop_reason: str = ""
     last_age_s: float | None = None
     trail: deque = field(default_factory=deque)
+    runs: dict = field(default_factory=dict)
+    last_run: str | None = None
+    duplicate_seen: float | None = None
+    duplicate_switches: int = 0
 
     @property
     def posed(self) -> bool:
@@ -244,7 +262,8 @@ class VestTrack:
 
 @dataclass
 class VestWarning:
-    """Why a vest needs attention: ``kind`` is stale, expired, lost, initialising (no pose) or uncertain."""
+    """Why a vest needs attention: ``kind`` is duplicate (two senders share its ID), stale, expired,
+    lost, initialising (no pose) or uncertain."""
 
     vest: str
     kind: str
@@ -295,9 +314,12 @@ class FleetState:
                 track.dropped_since += 1
                 track.drop_reason = "ahead of the monitor's clock"
             return None
+        first = track is None
         if track is None:
             track = self.vests[doc.vest] = VestTrack(doc.vest, doc, received, seen)
-        elif doc.t < track.last.t or (doc.t == track.last.t and doc.index <= track.last.index):
+        # Before the order check: two senders on session clocks look "older" to each other.
+        self._note_run(track, doc.run, seen)
+        if not first and (doc.t < track.last.t or (doc.t == track.last.t and doc.index <= track.last.index)):
             # QoS 0 over one TCP connection keeps order, so an older message is a duplicate or a vest
             # that restarted its session clock. An older message must never replace a newer pose, so
             # it is counted and dropped, until a run of them shows a new timeline (or that the newest
@@ -322,6 +344,25 @@ class FleetState:
             while track.trail and (len(track.trail) > cfg.trail_max or doc.t - track.trail[0][0] > cfg.trail_s):
                 track.trail.popleft()
         return track
+
+    def _note_run(self, track: VestTrack, run: str | None, seen: float) -> None:
+        """Note the sender run of a message from ``track``'s vest, and whether it reveals two senders.
+
+        One sender's messages carry one run; a restarted vest starts a new run and never goes back to
+        the old one. So a message from a run first seen *before* the run of the message just before it
+        means two senders are interleaving under one vest ID (two vests left at one ``--vest``): the
+        poses shown jump between two people, which the robot manager must be told."""
+        if run is None:
+            return
+        prev = track.last_run
+        if prev is not None and run != prev and run in track.runs and track.runs[run] < track.runs[prev]:
+            track.duplicate_seen = seen
+            track.duplicate_switches += 1
+        if run not in track.runs:
+            track.runs[run] = seen
+            while len(track.runs) > self.config.max_runs:
+                del track.runs[min(track.runs, key=track.runs.get)]
+        track.last_run = run
 
     def lead_s(self, doc: PoseDoc, received: float) -> tuple[str, float] | None:
         """(which time, seconds) of the message's time furthest ahead of its arrival, or None when the
@@ -364,6 +405,15 @@ class FleetState:
         out: list[VestWarning] = []
         for vest in sorted(self.vests):
             tr = self.vests[vest]
+            if tr.duplicate_seen is not None and now - tr.duplicate_seen <= cfg.duplicate_hold_s:
+                out.append(
+                    VestWarning(
+                        vest,
+                        "duplicate",
+                        f"two senders use this vest ID (their messages interleaved {tr.duplicate_switches} times): "
+                        "the pose shown jumps between them",
+                    )
+                )
             silent = now - tr.seen
             if silent > cfg.stale_s:
                 bound = f"(bound {cfg.stale_s:g} s)"
@@ -390,7 +440,7 @@ class FleetState:
                 major = ellipse_2sigma(tr.last.cov)[0]
                 if major > cfg.max_2sigma_m:
                     out.append(VestWarning(vest, "uncertain", f"2-sigma {major:.2f} m exceeds {cfg.max_2sigma_m:g} m"))
-        order = {"stale": 0, "expired": 1, "lost": 2, "initialising": 3, "uncertain": 4}
+        order = {"duplicate": 0, "stale": 1, "expired": 2, "lost": 3, "initialising": 4, "uncertain": 5}
         return sorted(out, key=lambda w: (order[w.kind], w.vest))
 
     def counts(self) -> dict[str, int]:

@@ -43,6 +43,13 @@ class FleetConfig:
             (under 1 kB with the longest vest ID and every number at full length); 64 KiB leaves room
             for fields a later schema adds, while a broker passes up to 256 MB by default, which
             decoded held the monitor's network thread and its view for seconds and took gigabytes.
+        duplicate_hold_s: a vest whose ID two senders were seen sharing (their runs interleaving) is
+            flagged ``duplicate`` until this long after the last interleaving message. While both
+            send, they interleave at every frame and the warning stays; 10 s keeps it up long enough
+            for someone to see it after one of them stops (a glance at the panel), without holding it
+            for the rest of a shift.
+        max_runs: sender runs remembered per vest ID (the earliest forgotten first): a vest restarts
+            its process a few times a shift, and two senders need two entries.
     """
 
     stale_s: float = 1.0
@@ -55,3 +62,5 @@ class FleetConfig:
     timeline_reset_n: int = 30
     cov_tol: float = 1.5e-9
     max_message_bytes: int = 65536
+    duplicate_hold_s: float = 10.0
+    max_runs: int = 8

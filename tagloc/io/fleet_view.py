@@ -9,7 +9,7 @@ Entity tree::
     fleet/vests/ellipses        2-sigma position ellipses
     fleet/vests/safety          safety circles (FleetConfig.safety_radius_m)
     fleet/vests/trails          recent trails (at most TRAIL_POINTS points each, spread over the trail)
-    warnings                    markdown: stale, expired, lost, initialising (no pose) and too-uncertain vests
+    warnings                    markdown: duplicate-ID, stale, expired, lost, initialising (no pose) and too-uncertain vests
     counts/{vests,received,invalid,expired,timeline_resets,warnings}   time series
 
 Timeline ``time``: the monitor's clock (the wall clock for live MQTT, the bag's clock for recorded fleets).

@@ -52,6 +52,11 @@ if TYPE_CHECKING:
     import paho.mqtt.client as mqtt
 
 SCHEMA = "tagloc.pose/1"
+#: This process's run: a random token every pose it publishes carries (``run``). Two senders that use
+#: one vest ID (two vests left at one ``--vest``) interleave two runs, which a receiver sees at once
+#: (:class:`tagloc.io.fleet.FleetState` warns ``duplicate``); a restarted vest starts a new run and
+#: never returns to its old one.
+RUN_ID = secrets.token_hex(4)
 #: The MQTT sink's delivery probe (``TOPIC/probe``): not a pose; subscribers to ``tagloc/#`` ignore it.
 PROBE_SCHEMA = "tagloc.probe/1"
 
@@ -111,6 +116,7 @@ class PoseMessage:
             # Sender's wall clock at publication (live only): with clocks in sync (NTP), a receiver
             # knows a pose's age as now - wall_t + latency_ms / 1000 and drops it past its bound.
             "wall_t": None if self.latency_ms is None else round(time.time(), 3),
+            "run": RUN_ID,
         }
 
     def encode(self) -> bytes:
