@@ -137,7 +137,9 @@ def test_a_frame_log_on_a_full_disk_is_named_in_the_error():
     assert str(info.value) == "/dev/full: No space left on device"
 
 
-@pytest.mark.parametrize("bad", ["udp://127.0.0.1", "tcp://host:1", "udp://:9000", "udp://h:notaport"])
+@pytest.mark.parametrize(
+    "bad", ["udp://127.0.0.1", "tcp://host:1", "udp://:9000", "udp://h:notaport", "udp://h:9000/tagloc/v1/pose"]
+)
 def test_open_sink_rejects_bad_targets(bad):
     with pytest.raises(InputError):
         open_sink(bad)

@@ -646,6 +646,9 @@ def open_sink(target: str, vest: str = "vest", max_age_s: float = 0.5) -> Sink:
     if url.scheme == "udp":
         if port is None:
             raise InputError(f"{target}: UDP needs a port (udp://HOST:PORT)")
+        if url.path not in ("", "/") or url.query or url.fragment:
+            # A datagram has no topic: a path (as an MQTT target has) would be dropped without a word.
+            raise InputError(f"{target}: a UDP target is udp://HOST:PORT, with no path (a topic is for mqtt://)")
         return UdpSink(url.hostname, port, max_age_s=max_age_s)
     if url.scheme == "mqtt":
         # A topic filter copied from the monitor's command line is no topic to publish on: paho raised
