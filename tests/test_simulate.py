@@ -659,3 +659,17 @@ def test_session_notes_name_every_condition_that_is_not_the_default():
         "sensor ov5647",
     ):
         assert part in field, (part, field)
+
+
+def test_cli_simulate_refuses_a_session_without_a_frame(tmp_path, capsys):
+    """0.02 s at 30 fps exposes no frame (frame k at k / fps, k < seconds x fps): a one-line error
+    before anything is written, not an internal error over an empty ground truth."""
+    save_map(aisle_map(rows=1), tmp_path / "m.csv")
+    args = ["simulate", "--map", str(tmp_path / "m.csv"), "--scale", "0.25", "--quiet", "-o", str(tmp_path / "s")]
+    rc = main(args + ["--seconds", "0.02"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "no frame" in err and err.count("\n") == 1
+    assert not (tmp_path / "s").exists()
+    with pytest.raises(InputError, match="no frame"):
+        SimConfig(seconds=0.5, fps=1.0)
+    assert SimConfig(seconds=1.0, fps=1.0).frame_count == 1 and SimConfig(seconds=0.2, fps=10.0).frame_count == 2

@@ -148,6 +148,9 @@ class SimConfig:
     def __post_init__(self) -> None:
         if not self.seconds > 0 or not self.fps > 0 or not self.lux > 0 or not self.speed_mps > 0:
             raise InputError("seconds, fps, lux and speed must be positive")
+        if self.frame_count < 1:
+            # Frame k is exposed at k / fps, k < seconds * fps: a shorter session has none to write.
+            raise InputError(f"{self.seconds:g} s at {self.fps:g} fps holds no frame (want seconds x fps >= 1)")
         if not 0 < self.scale <= 4:
             raise InputError(f"scale {self.scale} must be in (0, 4]")
         if not self.exposure.readout_s >= 0:
@@ -195,6 +198,11 @@ class SimConfig:
         if self.jpeg_quality != 85:
             parts.append(f"JPEG {self.jpeg_quality}")
         return ", ".join(parts)
+
+    @property
+    def frame_count(self) -> int:
+        """Frames the sensor exposes in the session (at ``k / fps`` for ``k`` below it), before any drop."""
+        return int(math.floor(self.seconds * self.fps + 1e-9))
 
     def walk_config(self) -> WalkConfig:
         """The walk model with this config's seconds, speed and seed."""
@@ -382,7 +390,7 @@ def simulate_session(
         )
         for c, rc in enumerate(rig.cameras)
     ]
-    n_all = int(math.floor(config.seconds * config.fps + 1e-9))
+    n_all = config.frame_count
     # Free-running cameras have their own drivers and queues: each its own jitter, drops and bursts.
     schedules = [frame_schedule(n_all, config.fps, config.timing, config.seed, camera=c) for c in range(n_cams)]
     # Free-running cameras are never simultaneous: camera c is exposed c / (n_cams * fps) after camera 0.
