@@ -370,6 +370,17 @@ def test_floor_missing_and_unmapped():
     assert np.min(d + 10 * np.eye(len(d))) > 0.2
 
 
+def test_floor_refuses_more_unmapped_stickers_than_fit():
+    """Around one sticker (0.5 m margin) only some tens of stickers fit 0.3 m apart: asking for 300
+    unmapped ones is refused, not answered with a floor holding fewer than asked for."""
+    one = StickerMap(np.array([7]), np.zeros((1, 2)), np.zeros(1))
+    with pytest.raises(InputError, match=r"room for only \d+ of 300 unmapped"):
+        Floor(one, FloorConfig(unmapped=300, margin_m=0.5, texture=False), seed=1)
+    floor = Floor(one, FloorConfig(unmapped=3, margin_m=0.5, texture=False), seed=1)
+    d = np.hypot(*(floor.stickers.xy[:, None] - floor.stickers.xy[None]).transpose(2, 0, 1))
+    assert (~floor.in_map).sum() == 3 and np.min(d + 10 * np.eye(len(d))) > 0.3
+
+
 # -- views and sessions -----------------------------------------------------------------------------
 
 

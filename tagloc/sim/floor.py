@@ -167,9 +167,26 @@ class Floor:
     def _free_spots(
         self, rng: np.random.Generator, count: int, taken: np.ndarray, lo: np.ndarray, hi: np.ndarray
     ) -> np.ndarray:
-        """``count`` points in the box, mostly near the map's lines, at least 0.3 m from other stickers."""
+        """``count`` points in the box, mostly near the map's lines, at least 0.3 m from other stickers.
+
+        Refused (InputError) when no room for all of them is found: a floor with fewer unmapped
+        stickers than asked for is not the session asked for.
+        """
+        gap = 0.3
+        cell = 1.01 * gap  # every sticker within ``gap`` of a point is in its cell or the 8 around it
+        grid: dict[tuple[int, int], list[np.ndarray]] = {}
+
+        def key(p: np.ndarray) -> tuple[int, int]:
+            return int(math.floor(p[0] / cell)), int(math.floor(p[1] / cell))
+
+        def free(p: np.ndarray) -> bool:
+            i, j = key(p)
+            near = [q for di in (-1, 0, 1) for dj in (-1, 0, 1) for q in grid.get((i + di, j + dj), ())]
+            return not near or float(np.min(np.hypot(*(np.asarray(near) - p).T))) > gap
+
+        for p in taken:
+            grid.setdefault(key(p), []).append(p)
         out: list[np.ndarray] = []
-        pts = [p for p in taken]
         for _ in range(count * 200):
             if len(out) == count:
                 break
@@ -177,9 +194,14 @@ class Floor:
                 p = taken[rng.integers(len(taken))] + rng.normal(0.0, 0.6, 2)
             else:
                 p = rng.uniform(lo, hi)
-            if not pts or np.min(np.hypot(*(np.asarray(pts) - p).T)) > 0.3:
+            if free(p):
                 out.append(p)
-                pts.append(p)
+                grid.setdefault(key(p), []).append(p)
+        if len(out) < count:
+            raise InputError(
+                f"floor: found room for only {len(out)} of {count} unmapped stickers {gap:g} m apart"
+                f" around the map's stickers ({200 * count} tries)"
+            )
         return np.array(out).reshape(-1, 2)
 
     def sticker_raster(self, row: int, size_px: int) -> np.ndarray:
