@@ -684,3 +684,18 @@ def test_cli_simulate_refuses_a_session_without_a_frame(tmp_path, capsys):
     with pytest.raises(InputError, match="no frame"):
         SimConfig(seconds=0.5, fps=1.0)
     assert SimConfig(seconds=1.0, fps=1.0).frame_count == 1 and SimConfig(seconds=0.2, fps=10.0).frame_count == 2
+
+
+def test_rolling_shutter_read_out_fits_in_the_frame_interval(tmp_path, capsys):
+    """A sensor reads one frame out before the next: a 50 ms read-out at 30 fps (33 ms frames) is
+    refused; without a rolling shutter the read-out plays no part, and 30 ms at 30 fps is fine."""
+    save_map(aisle_map(rows=1), tmp_path / "m.csv")
+    args = ["simulate", "--map", str(tmp_path / "m.csv"), "--scale", "0.25", "--quiet", "-o", str(tmp_path / "s")]
+    rc = main(args + ["--seconds", "0.1", "--rolling-shutter", "--readout-ms", "50"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "read-out 50 ms is longer than the frame interval" in err and err.count("\n") == 1
+    assert not (tmp_path / "s").exists()
+    with pytest.raises(InputError, match="frame interval"):
+        SimConfig(fps=60.0, rolling_shutter=True)
+    SimConfig(fps=60.0, rolling_shutter=False)
+    SimConfig(fps=30.0, rolling_shutter=True, exposure=ExposureConfig(readout_s=1 / 30))

@@ -155,6 +155,13 @@ class SimConfig:
             raise InputError(f"scale {self.scale} must be in (0, 4]")
         if not self.exposure.readout_s >= 0:
             raise InputError(f"rolling-shutter read-out {self.exposure.readout_s} s must be >= 0")
+        if self.rolling_shutter and self.exposure.readout_s > 1.0 / self.fps + 1e-12:
+            # A sensor reads a frame's last row before the next frame's first: rows of two frames
+            # are never read out at once (the Pi camera: 20-30 ms at up to 30-40 fps).
+            raise InputError(
+                f"rolling-shutter read-out {self.exposure.readout_s * 1e3:g} ms is longer than the frame"
+                f" interval {1e3 / self.fps:g} ms at {self.fps:g} fps"
+            )
         if not 0 <= self.flicker <= 1:
             raise InputError(f"flicker {self.flicker} must be a fraction in [0, 1]")
         if not self.mains_hz > 0:
