@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from tagloc.cli import main
-from tagloc.core.camera import Camera, default_camera
+from tagloc.core.camera import Camera, default_camera, save_calibration
 from tagloc.core.errors import InputError
 from tagloc.core.rig import looking_forward
 from tagloc.core.sticker import INNER_CORNERS, OUTER_CORNERS
@@ -699,3 +699,25 @@ def test_rolling_shutter_read_out_fits_in_the_frame_interval(tmp_path, capsys):
         SimConfig(fps=60.0, rolling_shutter=True)
     SimConfig(fps=60.0, rolling_shutter=False)
     SimConfig(fps=30.0, rolling_shutter=True, exposure=ExposureConfig(readout_s=1 / 30))
+
+
+def test_cli_simulate_does_not_write_over_its_inputs(tmp_path, capsys):
+    """-o naming the directory of --map (or --calibration, --rig) would write the session's map.csv
+    (with survey error, perturbed) and camera.yaml (scaled) over the files read: refused, untouched."""
+    d = tmp_path / "site"
+    d.mkdir()
+    save_map(aisle_map(rows=1), d / "map.csv")
+    before = (d / "map.csv").read_bytes()
+    base = ["simulate", "--seconds", "0.1", "--scale", "0.25", "--quiet", "--survey-sigma-cm", "5"]
+    rc = main(base + ["--map", str(d / "map.csv"), "-o", str(d)])
+    err = capsys.readouterr().err
+    assert rc == 2 and "holding the run's inputs" in err and err.count("\n") == 1
+    assert (d / "map.csv").read_bytes() == before and not (d / "frames").exists()
+    # A calibration beside the output is protected too; a new directory next to the inputs is fine.
+    save_calibration(default_camera(), tmp_path / "cam.yaml")
+    cal = (tmp_path / "cam.yaml").read_bytes()
+    rc = main(base + ["--map", str(d / "map.csv"), "--calibration", str(tmp_path / "cam.yaml"), "-o", str(tmp_path)])
+    assert rc == 2 and "holding the run's inputs" in capsys.readouterr().err
+    assert (tmp_path / "cam.yaml").read_bytes() == cal
+    assert main(base + ["--map", str(d / "map.csv"), "-o", str(d / "s1")]) == 0
+    assert (d / "map.csv").read_bytes() == before

@@ -96,6 +96,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
+def _out_apart_from_inputs(args: argparse.Namespace) -> None:
+    """Refuse ``-o`` naming a directory that holds the run's map, rig or calibration: the session
+    writes its own map.csv (with survey error, a perturbed one), rig.json and camera.yaml (scaled
+    by ``--scale``) there, over the files it reads."""
+    import os
+
+    from tagloc.core.errors import InputError
+
+    holding = {os.path.realpath(Path(f).parent) for f in (args.map, args.rig, args.calibration) if f is not None}
+    if os.path.realpath(args.out) in holding:
+        raise InputError(f"{args.out}: -o names a directory holding the run's inputs; choose a new one")
+
+
 def run(args: argparse.Namespace) -> int:
     from tagloc.cli import checks
     from tagloc.sim.render import ExposureConfig
@@ -128,6 +141,7 @@ def run(args: argparse.Namespace) -> int:
     checks.number(args.survey_sigma_deg, "--survey-sigma-deg", 0, 180)
     checks.number(args.missing_fraction, "--missing-fraction", 0, 1)
     checks.output_dir(args.out, "-o")
+    _out_apart_from_inputs(args)
 
     summary = simulate_session(
         args.map,
