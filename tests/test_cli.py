@@ -417,3 +417,23 @@ def test_live_refuses_a_video_file_it_opens_but_cannot_read_a_frame_of(tmp_path,
     err = capsys.readouterr().err
     assert rc == 2, err
     assert "no frame could be read" in err.strip().splitlines()[-1], err
+
+
+def test_demo_replaces_its_own_session_but_deletes_nothing_else(tmp_path, capsys):
+    """-o OUT: the demo replaces OUT/session, its earlier run's simulated walk; a session directory
+    that holds anything else (or is no simulated session) is refused with nothing deleted."""
+    args = ["demo", "--map", DEMO_MAP, "-o", str(tmp_path / "d"), "--quiet", "--no-rerun", "--seconds", "1"]
+    assert main(args) == 0
+    assert main(args) == 0  # the earlier run's session is replaced
+    precious = tmp_path / "d" / "session" / "precious.txt"
+    precious.write_text("keep")
+    capsys.readouterr()
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "nothing deleted" in err
+    assert precious.read_text() == "keep"
+    other = tmp_path / "e" / "session"
+    other.mkdir(parents=True)
+    (other / "notes.md").write_text("mine")
+    assert main([*args[:4], str(tmp_path / "e"), *args[5:]]) == 2
+    assert (other / "notes.md").exists()

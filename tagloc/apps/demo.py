@@ -35,6 +35,45 @@ def demo_map_path() -> Path:
     raise InputError("maps/demo.csv not found: run from the tagloc source tree or pass --map")
 
 
+#: What a simulated session holds (``tagloc simulate``, and so the demo's earlier run): a directory
+#: with anything else in it is not one the demo made, and is never deleted.
+SIMULATED_SESSION_FILES = frozenset(
+    {
+        "frames",
+        "frames.csv",
+        "session.json",
+        "map.csv",
+        "map_true.csv",
+        "map.refs.npz",
+        "rig.json",
+        "camera.yaml",
+        "groundtruth.tum",
+        "groundtruth_frames.jsonl",
+    }
+)
+
+
+def _check_replaceable(session: Path, map_path: Path) -> None:
+    """Refuse to delete ``session`` (the demo's earlier output, replaced on each run) unless it is a
+    simulated session and nothing else, and does not hold the map this run reads."""
+    import json
+    import os
+
+    refuse = f"{session} exists and is not a session an earlier tagloc demo wrote; choose another -o (nothing deleted)"
+    if not session.is_dir() or session.is_symlink():
+        raise InputError(refuse)
+    names = {p.name for p in session.iterdir()}
+    try:
+        info = json.loads((session / "session.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        raise InputError(refuse) from None
+    if not isinstance(info, dict) or info.get("source") != "simulated" or not names <= SIMULATED_SESSION_FILES:
+        raise InputError(refuse)
+    real = Path(os.path.realpath(session))
+    if real in Path(os.path.realpath(map_path)).parents:
+        raise InputError(f"{map_path}: the map lies inside {session}, which the demo replaces; choose another -o")
+
+
 def run_demo(cfg: DemoConfig) -> str:
     """Simulate, replay and write the outputs; returns the text to print."""
     from tagloc.apps.replay import ReplayConfig, replay
@@ -42,13 +81,15 @@ def run_demo(cfg: DemoConfig) -> str:
 
     out = Path(cfg.out)
     session = out / "session"
+    map_path = Path(cfg.map) if cfg.map is not None else demo_map_path()
     if session.exists():
+        _check_replaceable(session, map_path)
         import shutil
 
         shutil.rmtree(session)
     out.mkdir(parents=True, exist_ok=True)
     sim = simulate_session(
-        cfg.map or demo_map_path(),
+        map_path,
         session,
         SimConfig(seconds=cfg.seconds, lux=cfg.lux, speed_mps=cfg.speed, seed=cfg.seed),
         progress=cfg.progress,
