@@ -104,6 +104,25 @@ def test_bag_counts_timestamps_and_covariance(written):
     assert doc["vest"] == "vest-1" and doc["state"] == results[-1].output.state.value
 
 
+def test_bag_metadata_reads_as_humbles_rosbag2_reads_it(written):
+    # Humble's rosbag2 (metadata_io.cpp, rosbag2_transport/qos.cpp) reads every topic's
+    # offered_qos_profiles with as<std::string>() and parses that string's policies as integers; a
+    # list there (metadata version 9) made `ros2 bag info`/`play` stop at "yaml-cpp: bad conversion".
+    import yaml
+
+    meta = yaml.safe_load((written["bag"] / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert meta["version"] == 8 and meta["storage_identifier"] == "mcap"
+    topics = {t["topic_metadata"]["name"]: t for t in meta["topics_with_message_count"]}
+    for t in topics.values():
+        assert isinstance(t["topic_metadata"]["offered_qos_profiles"], str)
+    (latched,) = yaml.safe_load(topics["/tf_static"]["topic_metadata"]["offered_qos_profiles"])
+    # rmw's enums: KEEP_LAST 1, RELIABLE 1, TRANSIENT_LOCAL 1, AUTOMATIC 1
+    assert (latched["history"], latched["depth"], latched["reliability"], latched["durability"]) == (1, 1, 1, 1)
+    assert latched["liveliness"] == 1 and latched["deadline"] == {"sec": 0, "nsec": 0}
+    assert topics["/tf_static"]["message_count"] == 1 and topics["/tf"]["message_count"] > 50
+    assert meta["message_count"] == sum(t["message_count"] for t in topics.values())
+
+
 def test_replaying_the_bag_gives_the_sessions_trajectory(written):
     bag = BagSession(written["bag"], IMAGE_TOPIC, WALK / "map.csv", WALK / "rig.json")
     assert len(bag) == 60

@@ -50,6 +50,11 @@ from tagloc.io.sinks import SCHEMA, PoseMessage, Sink
 UNESTIMATED_VARIANCE = 1e6
 WORLD_FRAME = "map"  # REP 105's name for the fixed world frame the sticker map lives in
 IMAGE_JPEG_QUALITY = 90  # when a frame has to be encoded for the bag (no original JPEG at hand)
+# rosbag2 metadata version 8 (Iron's), the oldest rosbags writes: Humble's rosbag2 reads each topic's
+# offered_qos_profiles as a YAML string with integer policies, which version 8 writes and Iron and
+# Jazzy read too; version 9 (Jazzy's) makes it a list of named policies, and Humble's `ros2 bag info`
+# and `ros2 bag play` then stop at "yaml-cpp: bad conversion".
+BAG_VERSION = 8
 
 DETECTION_MSGDEF = """\
 int32 sticker_id
@@ -164,7 +169,7 @@ class BagWriter(Sink):
         self._types = self._store.types
         plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._writer = Writer(self.path, version=Writer.VERSION_LATEST, storage_plugin=plugin)
+        self._writer = Writer(self.path, version=BAG_VERSION, storage_plugin=plugin)
         self._writer.open()
         base = f"/tagloc/{self.vest}"
         add = self._writer.add_connection
