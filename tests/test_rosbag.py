@@ -474,3 +474,35 @@ def test_a_raw_image_whose_rows_are_shorter_than_its_width_is_refused():
     assert _image_to_grey(msg("mono16", 150), "sensor_msgs/msg/Image") is None
     assert _image_to_grey(msg("bgr8", 300), "sensor_msgs/msg/Image").shape == (10, 100)
     assert _image_to_grey(msg("mono8", 128), "sensor_msgs/msg/Image").shape == (10, 100)
+
+
+def test_an_empty_image_topic_or_one_without_a_usable_frame_is_refused(tmp_path):
+    """A topic holding no messages, or only frames in an encoding tagloc cannot read: the replay had
+    exited 0 having localised nothing, and from-bag written (exit 0) a session listing no frames,
+    which every reader then refuses."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    T = store.types
+    rig = WALK / "rig.json"
+    path = tmp_path / "empty"
+    with Writer(path, version=8, storage_plugin=StoragePlugin.MCAP) as w:
+        w.add_connection("/cam/image_raw", "sensor_msgs/msg/Image", typestore=store)
+    with pytest.raises(SessionError, match="/cam/image_raw holds no messages"):
+        BagSession(path, "/cam/image_raw", WALK / "map.csv", rig)
+    with pytest.raises(SessionError, match="holds no messages"):
+        bag_to_session(path, "/cam/image_raw", tmp_path / "s0", WALK / "map.csv", rig)
+    assert not (tmp_path / "s0").exists()
+
+    path = tmp_path / "yuv"
+    with Writer(path, version=8, storage_plugin=StoragePlugin.MCAP) as w:
+        conn = w.add_connection("/cam/image_raw", "sensor_msgs/msg/Image", typestore=store)
+        for k in range(3):
+            header = T["std_msgs/msg/Header"](T["builtin_interfaces/msg/Time"](100 + k, 0), "cam")
+            msg = T["sensor_msgs/msg/Image"](header, 4, 4, "yuv422", 0, 8, np.zeros(32, np.uint8))
+            w.write(conn, (100 + k) * 10**9, store.serialize_cdr(msg, "sensor_msgs/msg/Image"))
+    with pytest.raises(SessionError, match=r"none of the 3 frames of /cam/image_raw could be converted \(frame 0: "):
+        bag_to_session(path, "/cam/image_raw", tmp_path / "s1", WALK / "map.csv", rig)
+    # Nothing listed, so the directory can be written again (it holds no session).
+    assert (tmp_path / "s1" / "frames.csv").read_text() == "index,timestamp_s\n"

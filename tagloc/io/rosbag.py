@@ -472,6 +472,10 @@ class BagSession:
                 raise SessionError(f"{self.path}: {topic} is {conns[0].msgtype}, not an Image or CompressedImage")
             self.msgtype = conns[0].msgtype
             self.count = sum(c.msgcount for c in conns)
+            if self.count == 0:
+                # As a session whose frames.csv lists none: nothing to localise (a replay had exited 0
+                # with no output, a conversion written a session that replay refuses).
+                raise SessionError(f"{self.path}: {topic} holds no messages")
             # --calibration overrides the bag's CameraInfo, so a bad one (the very case for it) is not read.
             bag_camera = (
                 None
@@ -579,6 +583,7 @@ def bag_to_session(
     written = skipped = 0
     last = -math.inf  # the last written frame's time
     last_t = -math.inf  # the last stamp a replay of the bag takes (the localiser refuses one not after it)
+    first_skip = ""  # why the first undecodable frame was skipped
     with SessionWriter(out, src.map, src.rig, SessionInfo(source=src.info.source, fps=0.0), image_ext=".png") as w:
         try:
             for i, t, msg, msgtype in tqdm(src.encoded_frames(), total=len(src), disable=not progress, unit="frame"):
@@ -592,8 +597,15 @@ def bag_to_session(
                     last = stamp
                 else:
                     skipped += 1
+                    first_skip = (
+                        first_skip
+                        or f"frame {i}: {src.topic} message at t={t:.6f} is corrupt or in an unsupported encoding"
+                    )
         except SessionError as exc:
             raise SessionError(f"{exc}; {out} holds the {written} frames before it") from exc
+    if not written:
+        # A session listing no frames is refused by every reader: say so now, not at its replay.
+        raise SessionError(f"{src.path}: none of the {skipped} frames of {topic} could be converted ({first_skip})")
     return written, skipped
 
 
