@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from tagloc.core.errors import InputError, SessionError
-from tagloc.core.types import Frame, TrackerOutput, TrackState
+from tagloc.core.stickermap import load_map
+from tagloc.core.types import Frame, FrameResult, TrackerOutput, TrackState
 from tagloc.io.rosbag import (
     UNESTIMATED_VARIANCE,
     BagSession,
@@ -506,3 +507,35 @@ def test_an_empty_image_topic_or_one_without_a_usable_frame_is_refused(tmp_path)
         bag_to_session(path, "/cam/image_raw", tmp_path / "s1", WALK / "map.csv", rig)
     # Nothing listed, so the directory can be written again (it holds no session).
     assert (tmp_path / "s1" / "frames.csv").read_text() == "index,timestamp_s\n"
+
+
+def test_a_frames_detections_and_image_share_its_poses_stamp_across_a_reset_clock(tmp_path):
+    """After the source's clock goes back (a camera restarted), the output path stamps poses on from
+    the last one; the frame's detections, image and CameraInfo had kept the source's time, 99 s
+    before their pose, so nothing in the bag paired them (message filters, TF at the image's stamp)."""
+    from tagloc.core.rig import default_rig
+    from tagloc.pipeline.output import OutputConfig, Outputs
+
+    rig = default_rig()
+    dt = 1 / 30
+    stamps = [100.0 + k * dt for k in range(3)] + [1.0 + k * dt for k in range(3)]
+    out = Outputs(load_map(WALK / "map.csv"), rig, OutputConfig(), warn=lambda _: None)
+    bag = BagWriter(tmp_path / "b", "v1", rig, images=True)
+    out.add_sink(bag)
+    image = np.full((rig[0].camera.height, rig[0].camera.width), 128, np.uint8)
+    for index, t in enumerate(stamps):
+        o = TrackerOutput(t, np.array([1.0, 2.0, 0.5]), np.eye(3) * 1e-4, TrackState.TRACKING, 0.1)
+        res = FrameResult(index, t, [], o)
+        out.emit(res)
+        bag.write_frame(Frame(index, t, image), res)
+    out.close()
+    msgs = _read_all(tmp_path / "b")
+
+    def stamped(topic: str) -> list[float]:
+        return [m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for _, m in msgs[topic]]
+
+    poses = stamped("/tagloc/v1/pose")
+    assert np.all(np.diff(poses) > 0) and poses[3] == pytest.approx(100.0 + 3 * dt, abs=1e-6)
+    for topic in ("/tagloc/v1/front/detections", "/tagloc/v1/front/image/compressed", "/tagloc/v1/front/camera_info"):
+        assert stamped(topic) == pytest.approx(poses, abs=1e-9), topic
+        assert [ns / 1e9 for ns, _ in msgs[topic]] == pytest.approx(poses, abs=1e-9), topic

@@ -197,6 +197,12 @@ class BagWriter(Sink):
                 self._img[k] = add(f"{cam}/image/compressed", COMPRESSED_TYPE, typestore=self._store)
                 self._info[k] = add(f"{cam}/camera_info", INFO_TYPE, typestore=self._store)
         self._static_written = False
+        # A frame's messages go at the time its pose was published: after the source's clock is reset
+        # the output path stamps poses on from the last one (tagloc.pipeline.output), and the frame's
+        # detections and image must share its pose's stamp for a consumer to pair them (message
+        # filters, a TF lookup at the image's stamp). The offset is the last published pose's.
+        self._published: tuple[int, float] | None = None  # (frame index, stamp) of the last pose message
+        self._offset = 0.0
         self.frames = 0
 
     # --- message builders -------------------------------------------------------------------
@@ -244,6 +250,7 @@ class BagWriter(Sink):
             ]
             self._write(self._tf_static, t, T[TF_TYPE](transforms=tfs))
             self._static_written = True
+        self._published = (message.index, t)
         self._write(self._json, t, T[STRING_TYPE](data=message.encode().decode()))
         if out.state == TrackState.INITIALISING:
             self.dropped += 1
@@ -264,9 +271,12 @@ class BagWriter(Sink):
         return True
 
     def write_frame(self, frame: Frame, result: FrameResult, encoded: bytes | None = None) -> None:
-        """Write a frame's sticker detections and, with ``images``, its image (``encoded`` JPEG bytes if given)."""
+        """Write a frame's sticker detections and, with ``images``, its image (``encoded`` JPEG bytes if given),
+        at the time its pose was published (the frame's time, plus the offset of a reset source clock)."""
         T = self._types
-        t = float(result.timestamp)
+        if self._published is not None and self._published[0] == result.index:
+            self._offset = self._published[1] - float(result.output.t)
+        t = float(result.timestamp) + self._offset
         k = frame.camera
         dets = []
         for o in result.observations:
