@@ -211,3 +211,29 @@ def test_the_live_loops_frame_log_holds_the_fixes_deferred_work_made(blurred_wal
     doc = late_observations_json(7, 0.25, [o for _, o in frame_loc.late])
     assert doc["index"] == 7 and doc["late"] is True and doc["t"] == 0.25
     assert [o["sticker_id"] for o in doc["observations"]] == [STICKER] and doc["observations"][0]["accepted"]
+
+
+def test_the_live_loops_bag_holds_the_fixes_deferred_work_made(tmp_path):
+    """``tagloc live --record-bag``: a sticker named by deferred work after its frame went out is in
+    that frame's detections, identified and accepted (it had stayed -1, "none", not accepted, though
+    the tracker fused its fix), as the frame log's "late" line holds it."""
+    from rosbags.highlevel import AnyReader
+
+    from tagloc.apps.live import LiveConfig, run_live
+    from tagloc.io.session import SessionInfo, SessionWriter
+
+    smap, rig, img = _blurred_scene()
+    walk = tmp_path / "walk"
+    with SessionWriter(walk, smap, rig, SessionInfo(source="test", fps=2.0), image_ext=".png") as w:
+        w.write(0, 0.0, img)
+        w.write(1, 0.5, _again(img))  # half a second later: the first frame's deferred work has time
+    loc = Localiser(smap, rig, LocaliserConfig(odometry=False, defer_lsq=True))
+    bag = tmp_path / "live.bag2"
+    run_live(LiveConfig(source=str(walk), record_bag=bag), localiser=loc)
+    assert loc.counts["deferred_fixes"] >= 1  # frame 0's sticker at least, named after the frame went out
+    with AnyReader([bag]) as r:
+        conns = [c for c in r.connections if c.topic.endswith("/detections")]
+        dets = [r.deserialize(raw, c.msgtype).detections for c, _, raw in r.messages(connections=conns)]
+    assert [(d.sticker_id, d.source, d.accepted) for d in dets[0]] == [(STICKER, "decoded", True)]
+    accepted = sum(v for k, v in loc.tracker.stats.items() if k.startswith("accepted_"))
+    assert sum(d.accepted for frame in dets for d in frame) == accepted

@@ -393,6 +393,7 @@ class _LiveRun:
             self.latencies.append(outputs.emit(result, frame, grabbed=item.grabbed))
             self.fixes += sum(o.accepted is True for o in result.observations)
             deferred = getattr(self.localiser, "deferred_work", None)
+            late: list = []
             if deferred is not None:
                 # Published: the work the frame put off runs now, while no next frame is waiting
                 # (its fixes count with the run's, though its frame went out without them).
@@ -408,7 +409,7 @@ class _LiveRun:
             self.frames += 1
             self.state = result.output.state.value
             if self.bag is not None:
-                self.bag.write_frame(frame, result)
+                self.bag.write_frame(frame, result, late=late)
 
 
 def _stop_on_signals(stop: threading.Event):

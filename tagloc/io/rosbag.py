@@ -29,7 +29,7 @@ from __future__ import annotations
 import json
 import math
 import re
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,7 +41,7 @@ from tagloc.core.errors import BackendUnavailable, InputError, SessionError
 from tagloc.core.geometry import planar_T
 from tagloc.core.rig import Rig, default_rig, load_rig
 from tagloc.core.stickermap import StickerMap, load_map
-from tagloc.core.types import Frame, FrameResult, TrackState
+from tagloc.core.types import Frame, FrameResult, Observation, TrackState
 from tagloc.io.session import SessionInfo, SessionWriter, after_last, decode_grey
 from tagloc.io.sinks import SCHEMA, PoseMessage, Sink
 
@@ -270,9 +270,15 @@ class BagWriter(Sink):
         self.sent += 1
         return True
 
-    def write_frame(self, frame: Frame, result: FrameResult, encoded: bytes | None = None) -> None:
+    def write_frame(
+        self, frame: Frame, result: FrameResult, encoded: bytes | None = None, late: Sequence[Observation] = ()
+    ) -> None:
         """Write a frame's sticker detections and, with ``images``, its image (``encoded`` JPEG bytes if given),
-        at the time its pose was published (the frame's time, plus the offset of a reset source clock)."""
+        at the time its pose was published (the frame's time, plus the offset of a reset source clock).
+
+        ``late``: the frame's detections its deferred decoding named after the frame was published
+        (``tagloc live``; :attr:`Localiser.late`), written in place of their unidentified entries, so
+        that the detections hold every fix the tracker fused, as the frame log does."""
         T = self._types
         if self._published is not None and self._published[0] == result.index:
             self._offset = self._published[1] - float(result.output.t)
@@ -282,6 +288,7 @@ class BagWriter(Sink):
         for o in result.observations:
             if o.camera != k:
                 continue
+            o = next((n for n in late if n.detection is o.detection), o)
             dets.append(
                 T[DETECTION_TYPE](
                     sticker_id=-1 if o.sticker_id is None else int(o.sticker_id),
