@@ -539,3 +539,28 @@ def test_a_frames_detections_and_image_share_its_poses_stamp_across_a_reset_cloc
     for topic in ("/tagloc/v1/front/detections", "/tagloc/v1/front/image/compressed", "/tagloc/v1/front/camera_info"):
         assert stamped(topic) == pytest.approx(poses, abs=1e-9), topic
         assert [ns / 1e9 for ns, _ in msgs[topic]] == pytest.approx(poses, abs=1e-9), topic
+
+
+def test_an_encoding_tagloc_does_not_read_is_named(tmp_path):
+    """A bayer camera's frames: each skipped naming its encoding and what tagloc reads ("corrupt or in
+    an unsupported encoding" left the user to guess which)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    T = store.types
+    path = tmp_path / "bayer"
+    with Writer(path, version=8, storage_plugin=StoragePlugin.MCAP) as w:
+        conn = w.add_connection("/cam/image_raw", "sensor_msgs/msg/Image", typestore=store)
+        for k, enc in enumerate(["bayer_rggb8", "mono8"]):
+            header = T["std_msgs/msg/Header"](T["builtin_interfaces/msg/Time"](100 + k, 0), "cam")
+            msg = T["sensor_msgs/msg/Image"](header, 4, 4, enc, 0, 4, np.zeros(16, np.uint8))
+            w.write(conn, (100 + k) * 10**9, store.serialize_cdr(msg, "sensor_msgs/msg/Image"))
+    src = BagSession(path, "/cam/image_raw", WALK / "map.csv", WALK / "rig.json")
+    got = list(src.frames())
+    assert got[0].image is None and got[1].image is not None
+    assert got[0].error == (
+        "frame 0: /cam/image_raw message at t=100.000000 has encoding 'bayer_rggb8', which tagloc does not read"
+        " (mono8, bgr8, rgb8, bgra8, rgba8, mono16)"
+    )
+    assert src.skipped == [(0, got[0].error)]

@@ -411,6 +411,30 @@ def is_bag(path: str | Path) -> bool:
         raise SessionError(f"{p}: no permission to read") from None
 
 
+# Bytes per pixel of the sensor_msgs/Image encodings tagloc reads (lower-cased).
+RAW_ENCODINGS = {
+    "mono8": 1,
+    "8uc1": 1,
+    "bgr8": 3,
+    "rgb8": 3,
+    "8uc3": 3,
+    "bgra8": 4,
+    "rgba8": 4,
+    "mono16": 2,
+    "16uc1": 2,
+}
+
+
+def _unreadable(i: int, topic: str, t: float, msg: object, msgtype: str) -> str:
+    """Why frame ``i``'s image message could not be read: an encoding tagloc does not read is named
+    (a bayer or YUV camera's every frame is skipped, and "corrupt" alone sent the user to the bag)."""
+    where = f"frame {i}: {topic} message at t={t:.6f}"
+    enc = getattr(msg, "encoding", None)
+    if msg is not None and not msgtype.endswith("CompressedImage") and str(enc).lower() not in RAW_ENCODINGS:
+        return f"{where} has encoding {str(enc)[:40]!r}, which tagloc does not read (mono8, bgr8, rgb8, bgra8, rgba8, mono16)"
+    return f"{where} is corrupt or in an unsupported encoding"
+
+
 def _image_to_grey(msg: object, msgtype: str) -> np.ndarray | None:
     """(H, W) uint8 from a CompressedImage or Image message, None if it cannot be decoded."""
     if msgtype.endswith("CompressedImage"):
@@ -418,7 +442,7 @@ def _image_to_grey(msg: object, msgtype: str) -> np.ndarray | None:
     enc = msg.encoding.lower()
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     data = np.frombuffer(bytes(msg.data), np.uint8)
-    channels = {"mono8": 1, "8uc1": 1, "bgr8": 3, "rgb8": 3, "8uc3": 3, "bgra8": 4, "rgba8": 4, "mono16": 2, "16uc1": 2}
+    channels = RAW_ENCODINGS
     # A row (step bytes) must hold the width's pixels, and the data every row.
     if enc not in channels or h <= 0 or w <= 0 or step < channels[enc] * w or data.size < h * step:
         return None
@@ -570,7 +594,7 @@ class BagSession:
             img = None if msg is None else _image_to_grey(msg, msgtype)
             err = None
             if img is None:
-                err = f"frame {i}: {self.topic} message at t={t:.6f} is corrupt or in an unsupported encoding"
+                err = _unreadable(i, self.topic, t, msg, msgtype)
                 self.skipped.append((i, err))
             yield Frame(i, t, img, 0, err)
 
@@ -614,10 +638,7 @@ def bag_to_session(
                     last = stamp
                 else:
                     skipped += 1
-                    first_skip = (
-                        first_skip
-                        or f"frame {i}: {src.topic} message at t={t:.6f} is corrupt or in an unsupported encoding"
-                    )
+                    first_skip = first_skip or _unreadable(i, src.topic, t, msg, msgtype)
         except SessionError as exc:
             raise SessionError(f"{exc}; {out} holds the {written} frames before it") from exc
     if not written:
