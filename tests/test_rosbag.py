@@ -564,3 +564,33 @@ def test_an_encoding_tagloc_does_not_read_is_named(tmp_path):
         " (mono8, bgr8, rgb8, bgra8, rgba8, mono16)"
     )
     assert src.skipped == [(0, got[0].error)]
+
+
+def test_a_time_before_zero_is_refused_in_one_line_and_the_bag_stays_readable(tmp_path, capsys):
+    """A session whose clock starts at -10 s (frames.csv allows it): replay --bag failed at its first
+    frame with an internal OverflowError from the MCAP writer, leaving a bag directory no reader
+    opens. Now replay refuses it before any work, and the writer refuses such a time before writing
+    any of it (tagloc live), closing a bag that reads."""
+    from rosbags.rosbag2 import Reader
+
+    from tagloc.cli import main
+
+    walk = tmp_path / "walk"
+    shutil.copytree(WALK, walk)
+    rows = (walk / "frames.csv").read_text().splitlines()
+    shifted = [rows[0]] + [f"{i},{float(t) - 10.0:.6f}" for i, t in (r.split(",") for r in rows[1:])]
+    (walk / "frames.csv").write_text("\n".join(shifted) + "\n")
+    (walk / "groundtruth.tum").unlink(missing_ok=True)
+    bag, tum = tmp_path / "walk.bag2", tmp_path / "walk.tum"
+    assert main(["replay", str(walk), "--quiet", "--bag", str(bag), "--out", str(tum)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "frame 0: time -10.000000 s is before 0, which a ROS bag cannot hold" in err[0]
+    assert not bag.exists() and not tum.exists()
+
+    writer = BagWriter(bag, "v1", SessionReader(walk).rig)
+    o = TrackerOutput(-10.0, np.zeros(3), np.eye(3) * 1e-4, TrackState.TRACKING, 0.1)
+    with pytest.raises(InputError, match=r"walk.bag2: time -10.000000 s is before 0"):
+        writer.publish(PoseMessage("v1", 0, o))
+    writer.close()
+    with Reader(bag) as r:
+        assert r.message_count == 0

@@ -117,6 +117,16 @@ def _ns(t: float) -> int:
     return int(round(t * 1e9))
 
 
+def check_bag_time(t: float, where: str) -> None:
+    """Refuse a time a bag cannot hold: before 0 (rosbag2 stores unsigned nanoseconds; rosbags failed
+    deep inside the MCAP writer and left a bag directory no reader opens)."""
+    if not t >= 0:
+        raise InputError(
+            f"{where}: time {t:.6f} s is before 0, which a ROS bag cannot hold; shift the session's clock "
+            "(frames.csv) or leave out the bag"
+        )
+
+
 def _stamp_s(stamp: object) -> float:
     """Seconds of a ROS time (ROS 2 ``sec``/``nanosec``; ROS 1 ``secs``/``nsecs`` after rosbags' mapping)."""
     sec = getattr(stamp, "sec", getattr(stamp, "secs", 0))
@@ -227,6 +237,7 @@ class BagWriter(Sink):
         )
 
     def _write(self, connection, t: float, msg: object) -> None:
+        check_bag_time(t, str(self.path))  # before anything of the frame is written: the bag stays readable
         self._writer.write(connection, _ns(t), self._store.serialize_cdr(msg, connection.msgtype))
 
     def body_frame(self) -> str:
