@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import re
 import shutil
 from pathlib import Path
@@ -594,3 +595,35 @@ def test_a_time_before_zero_is_refused_in_one_line_and_the_bag_stays_readable(tm
     writer.close()
     with Reader(bag) as r:
         assert r.message_count == 0
+
+
+def test_a_time_past_ros_2s_int32_seconds_is_refused_in_one_line(tmp_path, capsys):
+    """A clock jumped far ahead (the tracker copes with 1e300 s): a bag stamp's seconds are an int32,
+    and writing one stopped the run with an internal struct.error (1e10 s) or OverflowError (1e300 s)."""
+    from rosbags.rosbag2 import Reader
+
+    from tagloc.cli import main
+
+    walk = tmp_path / "walk"
+    shutil.copytree(WALK, walk)
+    rows = (walk / "frames.csv").read_text().splitlines()
+    rows[-1] = f"{rows[-1].split(',')[0]},10000000000.000000"  # the last frame 317 years on
+    (walk / "frames.csv").write_text("\n".join(rows) + "\n")
+    (walk / "groundtruth.tum").unlink(missing_ok=True)
+    bag = tmp_path / "walk.bag2"
+    assert main(["replay", str(walk), "--quiet", "--bag", str(bag)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "frame 59: time 1e+10 s is past ROS 2's last time (2147483648 s" in err[0]
+    assert not bag.exists()
+
+    writer = BagWriter(bag, "v1", SessionReader(walk).rig)
+    for t in (1.0, 1e10, 1e300, math.inf):
+        o = TrackerOutput(t, np.zeros(3), np.eye(3) * 1e-4, TrackState.TRACKING, 0.1)
+        if t == 1.0:
+            writer.publish(PoseMessage("v1", 0, o))
+            continue
+        with pytest.raises(InputError, match="is past ROS 2's last time"):
+            writer.publish(PoseMessage("v1", 1, o))
+    writer.close()
+    with Reader(bag) as r:
+        assert r.message_count == 4  # the first frame's: /tf_static, pose_json, pose, /tf

@@ -127,11 +127,12 @@ def replay(cfg: ReplayConfig) -> ReplayResult:
     from tagloc.pipeline.run import run_session
 
     session = open_replay_source(cfg)
-    stamps = getattr(session, "timestamps", None)  # a bag source streams its stamps (none before 0)
-    if cfg.bag is not None and stamps is not None and len(stamps) and stamps[0] < 0:
+    stamps = getattr(session, "timestamps", None)  # a bag source streams its stamps (all a bag can hold)
+    if cfg.bag is not None and stamps is not None and len(stamps):
         from tagloc.io.rosbag import check_bag_time
 
-        check_bag_time(float(stamps[0]), f"{cfg.session}: frame {int(session.index[0])}")
+        for k in (0, -1):  # the stamps increase: the first and last bound them
+            check_bag_time(float(stamps[k]), f"{cfg.session}: frame {int(session.index[k])}")
     # Ground truth only serves the metrics after the run, and the Rerun view: read it when needed
     # (its quaternions pull in scipy.spatial, which a replay's start-up need not wait for).
     gt = session.groundtruth() if cfg.rerun_save or cfg.spawn else None

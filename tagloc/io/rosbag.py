@@ -49,6 +49,7 @@ from tagloc.io.sinks import SCHEMA, PoseMessage, Sink
 # a downstream filter (robot_localization, nav2's AMCL consumers) gives them no weight. m^2 and rad^2.
 UNESTIMATED_VARIANCE = 1e6
 WORLD_FRAME = "map"  # REP 105's name for the fixed world frame the sticker map lives in
+MAX_BAG_TIME_S = 2**31  # builtin_interfaces/Time's seconds are an int32: a stamp must be below this
 IMAGE_JPEG_QUALITY = 90  # when a frame has to be encoded for the bag (no original JPEG at hand)
 # rosbag2 metadata version 8 (Iron's), the oldest rosbags writes: Humble's rosbag2 reads each topic's
 # offered_qos_profiles as a YAML string with integer policies, which version 8 writes and Iron and
@@ -119,11 +120,18 @@ def _ns(t: float) -> int:
 
 def check_bag_time(t: float, where: str) -> None:
     """Refuse a time a bag cannot hold: before 0 (rosbag2 stores unsigned nanoseconds; rosbags failed
-    deep inside the MCAP writer and left a bag directory no reader opens)."""
+    deep inside the MCAP writer and left a bag directory no reader opens), or from ROS 2's int32
+    seconds on (2038-01-19 as an epoch time; a clock jumped to 1e10 s or 1e300 s stopped the run with
+    an internal struct or overflow error)."""
     if not t >= 0:
         raise InputError(
             f"{where}: time {t:.6f} s is before 0, which a ROS bag cannot hold; shift the session's clock "
             "(frames.csv) or leave out the bag"
+        )
+    if not t < MAX_BAG_TIME_S:
+        raise InputError(
+            f"{where}: time {t:.6g} s is past ROS 2's last time ({MAX_BAG_TIME_S} s, builtin_interfaces/Time's "
+            "int32 seconds), which a ROS bag cannot hold; fix the clock or leave out the bag"
         )
 
 
