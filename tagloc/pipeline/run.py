@@ -30,7 +30,8 @@ class RunLog:
         poses: (N, 3) (x, y, yaw) estimates; rows before the first pose are NaN-free but flagged
             by ``valid``.
         covs: (N, 3, 3) covariances.
-        valid: (N,) bool, False while the localiser had no pose yet.
+        valid: (N,) bool, False while the localiser had no pose yet and for the frames it skipped
+            (nothing is published for them).
         fixes: list of dicts, one per accepted fix (one a frame's deferred work made too, with that
             frame's index and time): frame index, time, sticker id, source, corners centre, the
             fix's body poses (x, y, yaw; one, or IPPE's two) and the tracker's reason.
@@ -144,7 +145,9 @@ def run_session(
         stamps.append(res.timestamp)
         poses.append(out.pose)
         covs.append(out.cov)
-        valid.append(out.state.value != "initialising")
+        # A skipped frame publishes nothing (the filter's prediction is no pose of it): it has none
+        # here either, so scores count what a receiver got.
+        valid.append(res.skipped is None and out.state.value != "initialising")
         frame_ms.append(res.times_ms.get("total", 0.0))
         tracker_ms.append(sum(res.times_ms.get(k, 0.0) for k in TRACKER_STAGES))
         odometry_ms.append(res.times_ms.get("odometry", 0.0))
