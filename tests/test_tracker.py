@@ -1156,3 +1156,33 @@ def test_a_late_fix_into_a_track_of_unknown_heading_walks_the_lag_at_the_fixs_he
         sigma = math.sqrt(largest_eig_2x2(out.cov))
         e = out.pose[:2] - truth(t)[:2]
         assert e @ np.linalg.solve(out.cov[:2, :2], e) < chi2.ppf(0.99, 2)
+
+
+def test_fix_magnitude_guards_come_from_the_config():
+    """The solver blow-up guards are TrackerConfig's ``fix_max_cov`` and ``fix_max_xy_m``: the
+    defaults take a 1 km fix, a config with tighter ones refuses it as unusable."""
+    assert TrackerConfig().fix_max_cov == 1e12 and TrackerConfig().fix_max_xy_m == 1e9
+    far = make_fix([1000.0, 0.0, 0.0])
+    assert Tracker().update([far], 1, IdSource.DECODED, 0.0).accepted
+    tr = Tracker(TrackerConfig(fix_max_xy_m=500.0))
+    res = tr.update([far], 1, IdSource.DECODED, 0.0)
+    assert not res.accepted and tr.stats["invalid_fixes"] == 1
+    tr = Tracker(TrackerConfig(fix_max_cov=1e-6))
+    assert not tr.update([make_fix([0.0, 0.0, 0.0])], 1, IdSource.DECODED, 0.0).accepted
+
+
+def test_lean_threshold_comes_from_the_config():
+    """``leaned_camera`` leaves the rig camera as it is below ``lean_min_rad`` (1e-4 rad by default)."""
+    from tagloc.core.camera import default_camera
+    from tagloc.core.rig import RigCamera, looking_forward
+
+    assert TrackerConfig().lean_min_rad == 1e-4
+    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0))
+    for lean_min, same in ((1e-4, False), (0.2, True)):  # the lean below is atan(1.3 * 1 / 9.81) = 0.13 rad
+        tr = Tracker(TrackerConfig(lean_min_rad=lean_min))
+        tr.predict(0.0)
+        assert tr.update([make_fix([0.0, 0.0, 0.0])], 1, IdSource.DECODED, 0.0).accepted
+        x = tr.filter.mean
+        x[motion.V], x[motion.W] = 1.3, 1.0
+        tr.filter.set(x, tr.filter.cov)
+        assert (tr.leaned_camera(rc) is rc) is same

@@ -228,6 +228,15 @@ class TrackerConfig:
     of the presets at either resolution, nor on twelve other walks at 648 x 486; at 1296 x 972 the
     tracker gates 0-1 steps a walk, and the presets' figures are unchanged.
 
+    Input guards (what no sticker gives, only a solver's blow-up, is refused before the gate):
+    a fix whose covariance has an entry beyond ``fix_max_cov`` (1e12 m^2 or rad^2: a 1000 km
+    sigma), or whose position is beyond ``fix_max_xy_m`` (1e9 m: ten thousand times the largest
+    map coordinate, :data:`tagloc.core.stickermap.MAX_COORD_M`) on either axis. The lean of
+    :meth:`tracker.tracker.Tracker.leaned_camera` is left out below ``lean_min_rad`` (1e-4 rad moves
+    a sticker's image by 0.13 px at the reference camera's 1286 px focal length, against the
+    candidates' 3 px ``pixel_sigma``), so that walking straight keeps the rig's own camera and the
+    projections cached for it.
+
     Covariance guards: eigenvalues are kept >= ``min_eig``; variances are capped (position
     ``pos_var_cap`` m^2, i.e. 1 km sigma; yaw pi^2/3, the variance of a uniform heading, whose
     covariances with the rest are then dropped (nothing follows from a uniform heading); speed
@@ -268,6 +277,9 @@ class TrackerConfig:
     reinit_window_s: float = 5.0
     reinit_own_sticker_s: float = 1.0
     overrule_odometry: bool = True
+    fix_max_cov: float = 1e12
+    fix_max_xy_m: float = 1e9
+    lean_min_rad: float = 1e-4
     min_eig: float = 1e-10
     pos_var_cap: float = 1e6
     yaw_var_cap: float = math.pi**2 / 3

@@ -336,7 +336,7 @@ class Tracker:
         :class:`tracker.candidates.CandidateConfig`'s ``tilt_sigma`` covers it."""
         x = self._ekf.x[:, 0]
         roll = -math.atan(float(x[motion.V] * x[motion.W]) / self.config.gravity)
-        if abs(roll) < 1e-4:
+        if abs(roll) < self.config.lean_min_rad:
             return rig_camera
         last = self._leaned
         if last is not None and last[0] is rig_camera and last[1] == roll:
@@ -504,7 +504,7 @@ class Tracker:
             if z.shape != (3,) or C.shape != (3, 3) or not (np.all(np.isfinite(z)) and np.all(np.isfinite(C))):
                 continue
             # Absurd magnitudes come from a solver blow-up, not from a sticker: refuse them.
-            if np.abs(C).max() > 1e12 or np.abs(z[:2]).max() > 1e9:
+            if np.abs(C).max() > self.config.fix_max_cov or np.abs(z[:2]).max() > self.config.fix_max_xy_m:
                 continue
             z = z.copy()
             z[2] = wrap_angle(float(z[2]))
