@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from tagloc.core.errors import InputError
 from tagloc.core.types import IdSource, PoseFix, TrackState
 from tracker import motion
 from tracker.config import TrackerConfig
@@ -1186,3 +1187,21 @@ def test_lean_threshold_comes_from_the_config():
         x[motion.V], x[motion.W] = 1.3, 1.0
         tr.filter.set(x, tr.filter.cov)
         assert (tr.leaned_camera(rc) is rc) is same
+
+
+def test_offset_and_map_error_caps_come_from_the_config():
+    """The filter's caps on the vest and tilt offsets (``offset_var_cap_factor`` times their
+    full-gait stationary variance) and on the map-error slots (``map_var_cap``) are config values."""
+    from tracker.ekf import MAP0, OFF, TILT, WalkingEKF
+
+    cfg = TrackerConfig()
+    assert cfg.offset_var_cap_factor == 4.0 and cfg.map_var_cap == 1.0
+    for factor, map_cap in ((4.0, 1.0), (9.0, 0.25)):
+        c = TrackerConfig(offset_var_cap_factor=factor, map_var_cap=map_cap, tilt_sigma_forward=0.05)
+        caps = WalkingEKF(c)._caps
+        full = c.floor_cov(0.0)
+        np.testing.assert_allclose(caps[OFF], factor * np.array([max(full[0, 0], full[1, 1])] * 2 + [full[2, 2]]))
+        assert caps[TILT][0] == pytest.approx(factor * 0.05**2)
+        assert np.all(caps[MAP0:] == map_cap)
+    with pytest.raises(InputError, match="variance caps must be > 0"):
+        TrackerConfig(offset_var_cap_factor=0.0)

@@ -241,6 +241,14 @@ class TrackerConfig:
     ``pos_var_cap`` m^2, i.e. 1 km sigma; yaw pi^2/3, the variance of a uniform heading, whose
     covariances with the rest are then dropped (nothing follows from a uniform heading); speed
     ``v_var_cap``; yaw rate ``w_var_cap``) so hours without a fix give a huge but finite covariance.
+    The vest and tilt offsets' variances are capped at ``offset_var_cap_factor`` (4: twice the
+    sigma) times their largest stationary variance (full gait): a Gauss-Markov state predicted
+    from at most its stationary covariance stays at most there, so the cap only catches numerical
+    growth and leaves the model's own values alone. A map-error slot's variance is capped at
+    ``map_var_cap`` (1 m^2 or rad^2: a 1 m, 57 deg sigma, far beyond a survey worth a map; survey
+    errors have no process noise, so it guards against numerical growth). Note that a map may state
+    sigmas up to 10 m and 180 deg (:data:`tagloc.core.stickermap.MAX_SIGMA`): such a sticker's survey
+    error enters the state at this cap.
     ``max_step_s`` splits long predictions into steps (at most ``max_steps``).
     """
 
@@ -285,6 +293,8 @@ class TrackerConfig:
     yaw_var_cap: float = math.pi**2 / 3
     v_var_cap: float = 4.0
     w_var_cap: float = 9.0
+    offset_var_cap_factor: float = 4.0
+    map_var_cap: float = 1.0
     max_step_s: float = 0.2
     max_steps: int = 50
     odometry_inflation: tuple[float, float, float] = (1.0, 1.0, 1.0)
@@ -317,7 +327,18 @@ class TrackerConfig:
                 "gate_prob, gate_prob_identified and odometry_gate_prob must be probabilities in (0, 1)",
             ),
             (
-                all(x > 0 for x in (self.min_eig, self.pos_var_cap, self.yaw_var_cap, self.v_var_cap, self.w_var_cap)),
+                all(
+                    x > 0
+                    for x in (
+                        self.min_eig,
+                        self.pos_var_cap,
+                        self.yaw_var_cap,
+                        self.v_var_cap,
+                        self.w_var_cap,
+                        self.offset_var_cap_factor,
+                        self.map_var_cap,
+                    )
+                ),
                 "min_eig and the variance caps must be > 0",
             ),
             (self.odometry_scale_max < 1.0, f"odometry_scale_max {self.odometry_scale_max} must be < 1"),

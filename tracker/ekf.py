@@ -219,13 +219,13 @@ class WalkingEKF(ExtendedKalmanFilter):
             config.yaw_var_cap,
             config.v_var_cap,
             config.w_var_cap,
-            4.0 * np.array([big, big, full[2, 2]]),
+            config.offset_var_cap_factor * np.array([big, big, full[2, 2]]),
             # (a floor above min_eig: with the tilt offset off, its variance sits at that floor)
-            np.full(2, max(4.0 * big_tilt, 1e-6)),
+            np.full(2, max(config.offset_var_cap_factor * big_tilt, 1e-6)),
             # The scale's random walk must not outgrow its prior while nothing pins it (a long gap).
             max(config.odometry_scale_sigma**2, 1e-6),
             # Map errors have no process noise: the cap only guards against numerical growth.
-            np.full(3 * MAP_SLOTS, 1.0),
+            np.full(3 * MAP_SLOTS, config.map_var_cap),
         ]
 
     def _decay(self, dt: float) -> float:
