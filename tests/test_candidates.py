@@ -242,3 +242,21 @@ def test_tracker_candidates_only_while_tracking(rng):
     assert ids and ids[0] == int(pr.ids[np.flatnonzero(pr.in_image)[0]])
     tr.predict(30.0)  # long gap: LOST, no candidates
     assert tr.candidates(smap, rc, observed) == []
+
+
+def test_footprint_sampling_and_map_query_margin_come_from_the_config():
+    """The footprint's rays per image side (``border_samples``, 17) and the map search's margin
+    beyond its bounding circle (``query_margin_m``, one sticker side) are CandidateConfig values: a
+    sticker 5 cm beyond the circle (its centre still within the image margin) is projected with the
+    default margin and not without one."""
+    rc = default_rig()[0]
+    assert CandidateConfig().border_samples == 17 and CandidateConfig().query_margin_m == 0.1
+    assert len(footprint(rc).polygon) == 4 * 17
+    coarse = footprint(rc, CandidateConfig(border_samples=5))
+    assert len(coarse.polygon) == 4 * 5 and coarse is not footprint(rc)  # cached apart
+    fp = footprint(rc)
+    x = fp.centre[0] + fp.radius + 0.05
+    smap = StickerMap(np.array([7]), np.array([[x, 0.0]]), np.zeros(1))
+    body = np.zeros(3)
+    assert list(project_map(body, smap, rc).ids) == [7]
+    assert len(project_map(body, smap, rc, CandidateConfig(query_margin_m=0.0)).ids) == 0

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from tagloc.core.camera import Camera
 from tagloc.core.geometry import invert, planar_T
 from tagloc.core.rig import RigCamera
 from tagloc.core.stickermap import StickerMap
@@ -55,6 +56,13 @@ class CandidateConfig:
         min_depth: points closer than this along the optical axis are not projected, m.
         image_margin: fraction of the image size around it where predicted stickers still count
             (a sticker predicted just outside may be the one seen just inside).
+        query_margin_m: the map is searched this far (m) beyond the footprint's bounding circle:
+            one sticker side (10 cm), so a sticker whose centre is just outside the floor under the
+            image border, with part of it in view, is still projected.
+        border_samples: points per image side where rays are cast for the footprint's polygon:
+            17 (16 segments, 81 px apart along the 1296 px side): on the reference camera
+            (:func:`tagloc.core.camera.default_camera`, 1.3 m up, pitched 55 deg) the floor under
+            the whole border strays 0.3 mm from that polygon.
     """
 
     pixel_sigma: float = 3.0
@@ -63,6 +71,8 @@ class CandidateConfig:
     max_range: float = 4.0
     min_depth: float = 0.1
     image_margin: float = 0.25
+    query_margin_m: float = 0.1
+    border_samples: int = 17
 
 
 @dataclass
@@ -110,22 +120,23 @@ def _key(rc: RigCamera, cfg: CandidateConfig) -> bytes:
         rc.T_body_camera.tobytes()
         + c.K.tobytes()
         + c.dist.tobytes()
-        + np.array([c.width, c.height, cfg.max_range], float).tobytes()
+        + np.array([c.width, c.height, cfg.max_range, cfg.border_samples], float).tobytes()
     )
 
 
 _BORDER_RAYS: dict[bytes, np.ndarray] = {}
 
 
-def _border_rays(cam) -> np.ndarray:
-    """(3, M) camera-frame rays (z = 1) through the image border, cached per intrinsics: the tracker
-    hands :func:`footprint` a new, leaned camera pose each frame (``Tracker.leaned_camera``), which
-    misses the footprint's own cache, but the rays through the border stay the camera's."""
-    key = cam.K.tobytes() + cam.dist.tobytes() + np.array([cam.width, cam.height], float).tobytes()
+def _border_rays(cam: Camera, samples: int) -> np.ndarray:
+    """(3, M) camera-frame rays (z = 1) through ``samples`` points on each side of the image border,
+    cached per intrinsics: the tracker hands :func:`footprint` a new, leaned camera pose each frame
+    (``Tracker.leaned_camera``), which misses the footprint's own cache, but the rays through the
+    border stay the camera's."""
+    key = cam.K.tobytes() + cam.dist.tobytes() + np.array([cam.width, cam.height, samples], float).tobytes()
     rays = _BORDER_RAYS.get(key)
     if rays is None:
         w, h = cam.width - 1.0, cam.height - 1.0
-        s = np.linspace(0.0, 1.0, 17)
+        s = np.linspace(0.0, 1.0, samples)
         border = np.vstack(
             [np.c_[s * w, 0 * s], np.c_[w + 0 * s, s * h], np.c_[(1 - s) * w, h + 0 * s], np.c_[0 * s, (1 - s) * h]]
         )
@@ -143,7 +154,7 @@ def footprint(rig_camera: RigCamera, config: CandidateConfig | None = None) -> F
         if hit is not None:
             _FOOTPRINTS.move_to_end(key)
             return hit
-    rays = rig_camera.T_body_camera[:3, :3] @ _border_rays(rig_camera.camera)  # (3, M), body
+    rays = rig_camera.T_body_camera[:3, :3] @ _border_rays(rig_camera.camera, cfg.border_samples)  # (3, M), body
     origin = rig_camera.T_body_camera[:3, 3]
     horiz = np.hypot(rays[0], rays[1])
     # Distance along the floor to where each ray meets it; rays at or above the horizon never do.
@@ -163,13 +174,20 @@ def footprint(rig_camera: RigCamera, config: CandidateConfig | None = None) -> F
 
 
 def _query_rows(
-    mean: np.ndarray, cov: np.ndarray | None, smap: StickerMap, fp: Footprint, n_sigma: float
+    mean: np.ndarray,
+    cov: np.ndarray | None,
+    smap: StickerMap,
+    fp: Footprint,
+    n_sigma: float,
+    margin_m: float,
 ) -> np.ndarray:
-    """Map rows near the footprint, widened by ``n_sigma`` of position and heading uncertainty."""
+    """Map rows near the footprint (within ``margin_m`` m of its bounding circle), widened by
+    ``n_sigma`` of the position and heading uncertainty of the body pose ``mean`` (3,), ``cov``
+    (3, 3) (None: none)."""
     x, y, yaw = (float(v) for v in mean)
     c, s = math.cos(yaw), math.sin(yaw)
     cx, cy = x + c * fp.centre[0] - s * fp.centre[1], y + s * fp.centre[0] + c * fp.centre[1]
-    radius = fp.radius + 0.1
+    radius = fp.radius + margin_m
     if cov is not None:
         pos_sigma = math.sqrt(max(largest_eig_2x2(cov), 0.0))
         reach = float(np.hypot(*fp.centre)) + fp.radius
@@ -215,7 +233,7 @@ def project_map(
     """
     cfg = config or CandidateConfig()
     mean = np.asarray(mean, float).ravel()
-    rows = _query_rows(mean, None, smap, footprint(rig_camera, cfg), 0.0)
+    rows = _query_rows(mean, None, smap, footprint(rig_camera, cfg), 0.0, cfg.query_margin_m)
     rows, pix, depth, _, _ = _project(mean, smap, rig_camera, rows, cfg, jacobians=False)
     cam = rig_camera.camera
     inside = (pix[:, 0] >= 0) & (pix[:, 0] <= cam.width - 1) & (pix[:, 1] >= 0) & (pix[:, 1] <= cam.height - 1)
@@ -285,7 +303,7 @@ def predicted_rows(
     cfg = config or CandidateConfig()
     mean = np.asarray(mean, float).ravel()
     cov = np.asarray(cov, float)
-    rows = _query_rows(mean, cov, smap, footprint(rig_camera, cfg), gate_sigma)
+    rows = _query_rows(mean, cov, smap, footprint(rig_camera, cfg), gate_sigma, cfg.query_margin_m)
     if len(rows) == 0:
         return rows, np.zeros((0, 2)), np.zeros((0, 2, 2))
     return predicted_pixels(mean, cov, smap, rig_camera, rows, cfg)
