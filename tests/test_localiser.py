@@ -312,3 +312,43 @@ def test_a_frozen_camera_ends_as_a_lost_track_not_a_stale_confident_pose(walk):
     sigma = np.array([np.sqrt(np.trace(o.cov[:2, :2])) for o in out])
     assert np.all(np.diff(sigma) >= 0) and sigma[-1] > 10 * sigma[0]
     assert out[-1].state is TrackState.LOST
+
+
+def test_region_search_reach_and_corner_memory_come_from_the_config():
+    """A predicted sticker's search region reaches ``TrackingConfig.search_sticker_reach`` sticker
+    sides (0.75) beyond its centre at its depth; the rolling-shutter corner sights of stickers not
+    seen for ``LocaliserConfig.rs_corner_forget_s`` (1 s) are dropped once 64 stickers' are kept."""
+    import dataclasses
+
+    from tagloc.core.rig import default_rig
+    from tagloc.core.sticker import SIZE_M
+    from tagloc.core.stickermap import StickerMap
+    from tagloc.core.types import Detection, Identity, PoseFix
+    from tagloc.pipeline.localiser import TrackingConfig
+    from tracker.candidates import project_map
+
+    assert TrackingConfig().search_sticker_reach == 0.75 and LocaliserConfig().rs_corner_forget_s == 1.0
+    rig = default_rig()
+    smap = StickerMap(np.array([1, 2]), np.array([[1.2, 0.0], [30.0, 30.0]]), np.zeros(2))
+    widths = {}
+    for reach in (0.75, 3.0):
+        loc = Localiser(smap, rig, LocaliserConfig(tracking=TrackingConfig(search_sticker_reach=reach)))
+        loc.tracker.predict(0.0)
+        fix = PoseFix(np.eye(4), np.zeros(3), np.diag([1e-6, 1e-6, 1e-6]), 0.1)
+        assert loc.tracker.update([fix], 1, IdSource.DECODED, 0.0).accepted
+        loc.tracker.predict(1 / 30)
+        loc._searched[0] = (0.0, [], 0, False)
+        boxes, _, crowded = loc._search_plan(0, rig[0], 1 / 30)
+        assert not crowded and len(boxes) == 1
+        widths[reach] = boxes[0][2] - boxes[0][0]
+    depth = project_map(loc.tracker.prior()[0], smap, rig[0]).depth[0]
+    assert widths[3.0] - widths[0.75] == pytest.approx(2 * 2.25 * SIZE_M * rig[0].camera.fx / depth, abs=2)
+
+    rs = dataclasses.replace(rig[0], readout_s=0.03)
+    square = np.array([[600.0, 400.0], [700.0, 400.0], [700.0, 500.0], [600.0, 500.0]])
+    for forget_s, kept in ((1.0, 1), (5.0, 65)):
+        loc = Localiser(smap, type(rig)([rs]), LocaliserConfig(rs_corner_forget_s=forget_s))
+        for k in range(65):  # 64 stickers seen at 0-0.64 s, the 65th at 2 s
+            t = 2.0 if k == 64 else 0.01 * k
+            loc._corner_velocity(Detection(square), Identity(k, 0, IdSource.DECODED), rs, 0, t)
+        assert len(loc._sticker_corners) == kept

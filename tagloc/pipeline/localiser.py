@@ -75,8 +75,11 @@ class StageTimer:
         return self.ms
 
 
-# Stickers whose last sights are kept for their corners' image velocity before old ones are dropped.
+# Stickers whose last sights are kept for their corners' image velocity before old ones are dropped
+# (LocaliserConfig.rs_corner_forget_s), and the sights kept per sticker: only the latest before a
+# frame is used; two more cover the same sticker detected twice in one frame.
 _CORNER_MEMORY = 64
+_CORNER_SIGHTS = 3
 
 
 @dataclass
@@ -120,6 +123,10 @@ class LocaliserConfig:
             walk f02 (30 ms read-out, 0.11 px corner noise), camera position RMS 7.8 cm
             uncorrected, 1.4 cm with the true planar body motion, 0.65 cm with the corners' motion
             since the previous frame, 0.51 cm with the camera's true instantaneous motion.
+        rs_corner_forget_s: once more than 64 stickers' sights are kept for that velocity, those of
+            stickers not seen for this long (s) are dropped. Any time above
+            ``rs_image_velocity_max_dt`` gives the same corrections (an older sight is never
+            used); 1 s keeps the sights of every sticker in view and of those just out of it.
         defer_lsq: (``tagloc live``) a detection that the quick decoding stages (zxing, grid
             sampling) leave unread is not sent through the least-squares stage (~6-11 ms), nor
             identified, within the frame: that work is done after the frame's result is published
@@ -218,6 +225,7 @@ class LocaliserConfig:
     pose: PoseConfig = field(default_factory=PoseConfig)
     rolling_shutter: bool = True
     rs_image_velocity_max_dt: float = 0.05
+    rs_corner_forget_s: float = 1.0
     defer_lsq: bool = False
     defer_odometry: bool = False
     tilt_gate_chi2: float = 13.8
@@ -273,6 +281,9 @@ class TrackingConfig:
             by another ~40 px: 2.8 rad/s (120 px a frame) leaves a margin.
         search_sigmas: a predicted sticker's region also covers this many standard deviations of the
             tracker's position and heading uncertainty.
+        search_sticker_reach: a predicted sticker's region reaches this many sticker sides (at the
+            sticker's depth) from its predicted centre, before the motion and uncertainty above:
+            half its diagonal (0.71) and a little more, so the whole outline is inside it.
         search_max_area: regions covering more than this share of the image (merged where they
             overlap) are not worth cutting out: the whole image is searched. The search's cost
             grows with the area searched plus a cut-out margin and set-up per region; on a walk
@@ -294,6 +305,7 @@ class TrackingConfig:
     search_every: int = 3
     search_rate_rad_s: float = 2.8
     search_sigmas: float = 3.0
+    search_sticker_reach: float = 0.75
     search_max_area: float = 0.4
     search_max_stickers: int = 2
 
@@ -834,7 +846,7 @@ class Localiser:
             pos_sigma = math.sqrt(max(largest_eig_2x2(cov), 0.0))
             yaw_sigma = math.sqrt(max(float(cov[2, 2]), 0.0))
             depth = np.maximum(proj.depth, 1e-3)
-            r = (0.75 * SIZE_M + cfg.search_sigmas * pos_sigma) * cam.fx / depth
+            r = (cfg.search_sticker_reach * SIZE_M + cfg.search_sigmas * pos_sigma) * cam.fx / depth
             r = r + reach + cfg.search_sigmas * yaw_sigma * cam.fx
             boxes += [(u - ri, v - ri, u + ri, v + ri) for (u, v), ri in zip(proj.pixels, r)]
         out = []
@@ -1291,10 +1303,10 @@ class Localiser:
         seen = self._sticker_corners.setdefault(key, [])
         prev = max((s for s in seen if s[0] < t), key=lambda s: s[0], default=None)
         seen.append((t, pts))
-        del seen[:-3]
+        del seen[:-_CORNER_SIGHTS]
         if len(self._sticker_corners) > _CORNER_MEMORY:
-            # Stickers not seen for a second are of no more use.
-            self._sticker_corners = {k: v for k, v in self._sticker_corners.items() if v[-1][0] > t - 1.0}
+            forget = t - self.config.rs_corner_forget_s
+            self._sticker_corners = {k: v for k, v in self._sticker_corners.items() if v[-1][0] > forget}
         if prev is None or not 0.0 < t - prev[0] <= self.config.rs_image_velocity_max_dt:
             return None
         if not _same_place(det, prev[1][:4], self.config.tracking):
