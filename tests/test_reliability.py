@@ -668,3 +668,19 @@ def test_published_stamps_carry_on_across_a_reset_source_clock():
     # Two cameras' frames at the same stamp are not a reset.
     messages, _, summary = _emitted([(0, 2.0, None), (1, 2.0, None), (2, 2.033, None)])
     assert [m.output.t for m in messages] == [2.0, 2.0, 2.033] and summary.clock_resets == 0
+
+
+def test_a_reset_before_two_stamps_carries_on_by_the_configured_step():
+    """A clock reset right after the first published pose carries the stamps on by
+    ``OutputConfig.reset_step_s`` (1/30 s by default: no step has been seen yet)."""
+    assert OutputConfig().reset_step_s == 1 / 30
+    for step in (1 / 30, 0.1):
+        warnings: list[str] = []
+        out = Outputs(line_map(), default_rig(), OutputConfig(reset_step_s=step), warn=warnings.append)
+        kept = _Kept()
+        out.add_sink(kept)
+        for index, t in ((0, 10.0), (1, 1.0)):
+            o = TrackerOutput(t, np.zeros(3), np.eye(3) * 1e-4, TrackState.TRACKING, 0.1)
+            out.emit(FrameResult(index, t, [], o))
+        out.close()
+        assert [m.output.t for m in kept.messages] == pytest.approx([10.0, 10.0 + step])

@@ -63,6 +63,9 @@ class OutputConfig:
             link is still detected).
         warn_every_s: repeat a sink's warning this often while it lasts (s).
         connect_grace_s: a network sink may take this long to connect before it is reported (s).
+        reset_step_s: after a reset source clock, the published stamps carry on from the last one by
+            the last step between two published stamps; this step (s) until two have been
+            published: one frame at 30 fps, the rate of tagloc's cameras.
     """
 
     publish: list[str] = field(default_factory=list)
@@ -79,6 +82,7 @@ class OutputConfig:
     drop_stale: bool = True
     warn_every_s: float = 10.0
     connect_grace_s: float = 1.0
+    reset_step_s: float = 1.0 / 30.0
 
     def __post_init__(self) -> None:
         check_vest_id(self.vest)  # refused before any frame, not first met by the monitor
@@ -145,7 +149,7 @@ class Outputs:
         self.view = None
         self._last_t = -float("inf")
         self._offset = 0.0  # added to the source's stamps since its clock was last reset
-        self._interval = 1.0 / 30.0  # the last step between two published stamps (s)
+        self._interval = config.reset_step_s  # the last step between two published stamps (s)
         self._started = time.monotonic()
         self._warned: dict[str, float] = {}  # sink name -> when its last warning went out
         self._closed = False
