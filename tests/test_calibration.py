@@ -403,3 +403,18 @@ def test_default_rig_sees_floor_ahead():
     p_cam = (invert(cam.T_body_camera) @ np.array([d, 0, 0, 1.0]))[:3]
     uv = cam.camera.project(p_cam[None])[0]
     assert uv == pytest.approx(cam.camera.K[:2, 2], abs=1e-6)
+
+
+def test_the_vest_height_has_the_camera_heights_bound(tmp_path, monkeypatch):
+    """``vest_height_m`` in rig.json is bounded by the one named limit of a worn camera's height
+    (``MAX_CAMERA_HEIGHT_M``, 3 m), not by a copy of its value."""
+    import tagloc.core.rig as rigmod
+
+    save_calibration(default_camera(), tmp_path / "camera.yaml")
+    doc = json.loads(_rig_doc(looking_forward(1.3, 55.0).tolist()))
+    doc["vest_height_m"] = 2.5
+    (tmp_path / "rig.json").write_text(json.dumps(doc))
+    assert load_rig(tmp_path / "rig.json").vest_point[2] == 2.5
+    monkeypatch.setattr(rigmod, "MAX_CAMERA_HEIGHT_M", 2.0)
+    with pytest.raises(CalibrationError, match=r"vest_height_m must be a height in metres \(0-2\)"):
+        load_rig(tmp_path / "rig.json")

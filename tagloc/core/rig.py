@@ -250,9 +250,13 @@ def load_rig(path: str | Path, calibration: Camera | None = None) -> Rig:
         out.append(rc)
     height = doc.get("vest_height_m")
     if height is not None and (
-        isinstance(height, bool) or not isinstance(height, (int, float)) or not 0.0 < float(height) < 3.0
+        isinstance(height, bool)
+        or not isinstance(height, (int, float))
+        or not 0.0 < float(height) < MAX_CAMERA_HEIGHT_M
     ):
-        raise CalibrationError(f"{path}: vest_height_m must be a height in metres (0-3), got {height!r}")
+        raise CalibrationError(
+            f"{path}: vest_height_m must be a height in metres (0-{MAX_CAMERA_HEIGHT_M:g}), got {height!r}"
+        )
     return Rig(_shared_height(out, height))
 
 
