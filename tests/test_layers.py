@@ -62,6 +62,17 @@ def layer_of(module: str) -> str:
     raise AssertionError(f"{module} belongs to no layer: add its package to ALLOWED")
 
 
+def _imported_by_call(node: ast.AST) -> str | None:
+    """The module a call ``importlib.import_module("a.b")`` or ``__import__("a.b")`` imports (a
+    literal name only), else None: a layer must not be crossed by naming the module in a string."""
+    if not (isinstance(node, ast.Call) and node.args and isinstance(node.args[0], ast.Constant)):
+        return None
+    f = node.func
+    name = f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else None
+    arg = node.args[0].value
+    return arg if name in ("import_module", "__import__") and isinstance(arg, str) else None
+
+
 def import_graph() -> dict[str, set[str]]:
     """Each project module and the project modules it imports (resolved to modules that exist)."""
     files = [p for top in ("tagloc", "tracker") for p in (ROOT / top).rglob("*.py")]
@@ -77,6 +88,8 @@ def import_graph() -> dict[str, set[str]]:
                 raise AssertionError(f"{path}: use absolute imports")
             elif isinstance(node, ast.Import):
                 cands = [a.name for a in node.names]
+            elif (called := _imported_by_call(node)) is not None:
+                cands = [called]
             else:
                 continue
             for c in cands:
@@ -119,3 +132,15 @@ def test_the_checker_sees_a_violation(tmp_path, monkeypatch):
     graph = import_graph()
     assert "tagloc.core.errors" in graph["tagloc.vision.detect"]  # imports are seen
     assert "tagloc.vision.paper_detector" in graph["tagloc.vision.detect"]  # also inside functions
+
+
+def test_the_checker_sees_the_trackers_imports_and_string_imports():
+    """The tracker's imports are seen (all of them in tagloc's bottom layer, ``tagloc.core``), and a
+    module imported by naming it in a string is an import like any other."""
+    assert ALLOWED["tracker"] == {"tagloc.core"}
+    graph = import_graph()
+    assert {"tagloc.core.types", "tagloc.core.geometry"} <= graph["tracker.tracker"]
+    assert {layer_of(t) for t in graph["tracker.tracker"]} == {"tracker", "tagloc.core"}
+    for code in ('importlib.import_module("tagloc.io.session")', '__import__("tagloc.io.session")'):
+        assert _imported_by_call(ast.parse(code).body[0].value) == "tagloc.io.session"
+    assert _imported_by_call(ast.parse('importlib.import_module(f"tagloc.cli.{x}")').body[0].value) is None
