@@ -47,7 +47,7 @@ class CloneSet:
         X: (n, 3k) their cross-covariance with the state (n = the state's dimension).
     """
 
-    def __init__(self, dim: int):
+    def __init__(self, dim: int) -> None:
         self.dim = int(dim)
         self.clear()
 

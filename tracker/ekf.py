@@ -201,7 +201,7 @@ class WalkingEKF(ExtendedKalmanFilter):
     """EKF: CTRV body (x, y, yaw, v, w), vest offset (dx, dy, dyaw), tilt offset (tx, ty) and the survey
     errors of up to ``MAP_SLOTS`` stickers; vest-pose measurements (fixes) and odometry-pose steps."""
 
-    def __init__(self, config: TrackerConfig):
+    def __init__(self, config: TrackerConfig) -> None:
         super().__init__(dim_x=DIM, dim_z=3)
         self.cfg = config
         self._dt = 0.0

@@ -50,7 +50,7 @@ import dataclasses
 import math
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass
-from typing import TypeVar
+from typing import Protocol, TypeVar
 
 import numpy as np
 
@@ -112,6 +112,22 @@ class _Hypothesis:
     last: int = 0  # which of the last offered alternatives it fused
 
 
+#: One usable fix as the filter takes it: vest pose (3,) (m, m, rad), its covariance (3, 3) SPD, and
+#: its sticker's survey error term (None: an exact map).
+Alt = tuple[np.ndarray, np.ndarray, MapTerm | None]
+
+
+class OdometryStepLike(Protocol):
+    """A floor-odometry step as the tracker reads it (:class:`tagloc.vision.odometry.OdometryStep`,
+    which the tracker's layer cannot import): the vest's pose at ``t1`` (s) in its body frame at
+    ``t0`` (s), ``delta`` (3,) (m, m, rad), with covariance ``cov`` (3, 3)."""
+
+    t0: float
+    t1: float
+    delta: np.ndarray
+    cov: np.ndarray
+
+
 _SOURCES = (IdSource.DECODED, IdSource.CHECKED, IdSource.ORB, IdSource.APPEARANCE)
 _ANGLES = (motion.YAW, OFF.stop - 1)  # the state's angles: body yaw, the vest offset's yaw
 
@@ -161,7 +177,7 @@ def _time_tol(t: float) -> float:
 class Tracker:
     """Walking-motion EKF over the body pose (x, y, yaw) fed with sticker pose fixes."""
 
-    def __init__(self, config: TrackerConfig | None = None):
+    def __init__(self, config: TrackerConfig | None = None) -> None:
         self.config = config or TrackerConfig()
         cfg = self.config
         self._gate = {
@@ -342,11 +358,12 @@ class Tracker:
         if last is not None and last[0] is rig_camera and last[1] == roll:
             return last[2]
         c, s = math.cos(roll), math.sin(roll)
-        T = np.eye(4)
-        T[1:3, 1:3] = [[c, -s], [s, c]]
+        # The leaned body in the upright one: a roll about the body's x axis through the vest point.
+        T_body_leaned = np.eye(4)
+        T_body_leaned[1:3, 1:3] = [[c, -s], [s, c]]
         p = rig_camera.vest_point
-        T[:3, 3] = p - T[:3, :3] @ p
-        leaned = dataclasses.replace(rig_camera, T_body_camera=T @ rig_camera.T_body_camera)
+        T_body_leaned[:3, 3] = p - T_body_leaned[:3, :3] @ p
+        leaned = dataclasses.replace(rig_camera, T_body_camera=T_body_leaned @ rig_camera.T_body_camera)
         self._leaned = (rig_camera, roll, leaned)
         return leaned
 
@@ -482,7 +499,7 @@ class Tracker:
         sigma = math.sqrt(max(largest_eig_2x2(P), 0.0))
         return sigma > self.config.lost_sigma_m or t - self._last_fix_t > self.config.lost_after_s
 
-    def _guarded(self, step) -> bool:
+    def _guarded(self, step: Callable[[], object]) -> bool:
         """Run a filter step; on a numerical failure restore the state before it, count it, return False."""
         x, P = self._ekf.x[:, 0].copy(), self._ekf.P
         ok, _ = _checked(step)
@@ -492,9 +509,7 @@ class Tracker:
         return ok
 
     # -- fixes --------------------------------------------------------------------------------------
-    def _clean(
-        self, fixes: list[PoseFix], sticker_id: int, survey: SurveyPrior | None
-    ) -> tuple[list[tuple[np.ndarray, np.ndarray, MapTerm | None]], list[int]]:
+    def _clean(self, fixes: list[PoseFix], sticker_id: int, survey: SurveyPrior | None) -> tuple[list[Alt], list[int]]:
         """(body (3,), cov (3, 3) SPD, map term or None) of the usable fixes, in the order given, and
         each one's index among ``fixes`` (what :attr:`UpdateResult.chosen` reports)."""
         out, where = [], []
@@ -586,7 +601,9 @@ class Tracker:
         self._stats[f"rejected_{source.value}"] += 1
         return UpdateResult(False, reason, nis, where[k])
 
-    def _without_track(self, alts, sticker_id: int, source: IdSource, t: float, lag: float) -> UpdateResult | None:
+    def _without_track(
+        self, alts: list[Alt], sticker_id: int, source: IdSource, t: float, lag: float
+    ) -> UpdateResult | None:
         """What becomes of a fix while there is no track to gate it against (initialising: a decoded
         one starts it; lost: only decoded ones are taken, and one starts it afresh while the heading is
         unknown), or None when there is a track."""
@@ -611,7 +628,9 @@ class Tracker:
             return UpdateResult(True, "reinitialised (lost, heading unknown)", chosen=0)
         return None
 
-    def _overrule_step(self, alts, lag: float, source: IdSource, k: int, nis: float) -> tuple[int, float, str]:
+    def _overrule_step(
+        self, alts: list[Alt], lag: float, source: IdSource, k: int, nis: float
+    ) -> tuple[int, float, str]:
         """A decoded (or checked) fix that the gate refuses right after this frame's odometry step, but
         that passes against the filter before that step, overrules the step: the filter goes back to
         before it.
@@ -636,7 +655,7 @@ class Tracker:
         self._stats["odometry_overruled"] += 1
         return k0, nis0, f"fused (NIS {nis:.1f} after this frame's odometry step, which it overruled)"
 
-    def _best(self, alts, lag: float) -> tuple[int, float]:
+    def _best(self, alts: list[Alt], lag: float) -> tuple[int, float]:
         """Index and NIS of the alternative closest to the prediction."""
         best = (0, math.inf)
         for i, (z, C, term) in enumerate(alts):
@@ -649,7 +668,7 @@ class Tracker:
                 best = (i, nis)
         return best
 
-    def _fuse(self, alt: tuple[np.ndarray, np.ndarray, MapTerm | None], lag: float) -> None:
+    def _fuse(self, alt: Alt, lag: float) -> None:
         """Fuse an accepted fix (vest pose, own covariance, map term); a late one through retrodiction."""
         z, C, term = alt
         if term is not None:
@@ -682,7 +701,7 @@ class Tracker:
 
     def _start(
         self,
-        alt: tuple[np.ndarray, np.ndarray, MapTerm | None],
+        alt: Alt,
         sticker_id: int,
         source: IdSource,
         t: float,
@@ -702,7 +721,7 @@ class Tracker:
         self._last_fix_t = -math.inf
         self._accept(sticker_id, source, t)
 
-    def _new_filter(self, alt: tuple[np.ndarray, np.ndarray, MapTerm | None]) -> WalkingEKF:
+    def _new_filter(self, alt: Alt) -> WalkingEKF:
         """A filter started from one fix; its odometry scale error is the current track's (the same
         vest on the same operator), 0 before the first track."""
         scale = 0.0 if self._state is TrackState.INITIALISING else self._ekf.odometry_scale()
@@ -710,7 +729,7 @@ class Tracker:
         ekf.reset_from_fix(*alt, scale=scale)
         return ekf
 
-    def _feed_hypothesis(self, alts, sticker_id: int, t: float) -> bool:
+    def _feed_hypothesis(self, alts: list[Alt], sticker_id: int, t: float) -> bool:
         """Add a rejected decoded fix to the competing hypothesis; True when it replaced the track."""
         cfg = self.config
         h = self._hyp
@@ -747,7 +766,7 @@ class Tracker:
         self._stats["reinit_consistent"] += 1
         return True
 
-    def _extend_hypothesis(self, h: _Hypothesis, alts, sticker_id: int, t: float) -> bool:
+    def _extend_hypothesis(self, h: _Hypothesis, alts: list[Alt], sticker_id: int, t: float) -> bool:
         """Fuse the best of ``alts`` into the hypothesis if it passes its gate; False if none does. A fix
         older than the hypothesis (within ``max_lag_s``) is fused through retrodiction."""
         lag = 0.0
@@ -767,7 +786,7 @@ class Tracker:
         return True
 
     # -- odometry ---------------------------------------------------------------------------------
-    def update_odometry(self, step, camera: Hashable = None) -> UpdateResult:
+    def update_odometry(self, step: OdometryStepLike, camera: Hashable = None) -> UpdateResult:
         """Fuse one floor-odometry step (:class:`tagloc.vision.odometry.OdometryStep`) of ``camera`` (the
         key given to :meth:`predict`): the body pose at ``step.t1`` relative to ``step.t0`` (``delta``
         (3,) in the body frame at ``t0``, ``cov`` (3, 3)).

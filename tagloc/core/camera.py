@@ -69,10 +69,12 @@ class Camera:
 
     @property
     def fx(self) -> float:
+        """Horizontal focal length, px."""
         return float(self.K[0, 0])
 
     @property
     def fy(self) -> float:
+        """Vertical focal length, px."""
         return float(self.K[1, 1])
 
     @property

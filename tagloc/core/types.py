@@ -161,18 +161,22 @@ class Observation:
 
     @property
     def source(self) -> IdSource:
+        """How the sticker was named (NONE: not named)."""
         return self.identity.source if self.identity is not None else IdSource.NONE
 
     @property
     def poses(self) -> list[PoseFix]:
+        """The fix's pose solutions (none without a fix)."""
         return self.fix.poses if self.fix is not None else []
 
     @property
     def accepted(self) -> bool | None:
+        """Whether the tracker took the fix (None: no fix was offered)."""
         return self.fix.accepted if self.fix is not None else None
 
     @property
     def gate_reason(self) -> str | None:
+        """The tracker's one-line reason for taking or refusing the fix (None: no fix)."""
         return self.fix.gate_reason if self.fix is not None else None
 
     def to_json(self) -> dict:
@@ -231,6 +235,7 @@ class TrackerOutput:
     last_source: IdSource | None = None
 
     def to_json(self) -> dict:
+        """Plain-data form for the JSON-lines log and the sinks (SI units, yaw in rad)."""
         return {
             "t": round(self.t, 6),
             "x": round(float(self.pose[0]), 5),

@@ -14,7 +14,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -46,6 +46,10 @@ from tracker.candidates import project_map
 from tracker.ekf import largest_eig_2x2
 from tracker.tracker import Tracker, TrackerConfig
 
+if TYPE_CHECKING:  # both are imported on first use: their modules' start-up is not every run's
+    from tagloc.vision.decode.lookalike import LookAlikes
+    from tagloc.vision.refs import ReferenceBank
+
 #: The stages whose time is the tracker's: its prediction, candidate choice, updates and output.
 TRACKER_STAGES = ("predict", "candidates", "update", "output")
 
@@ -63,6 +67,7 @@ class StageTimer:
 
     @contextmanager
     def __call__(self, stage: str) -> Iterator[None]:
+        """Time the block as (a part of) ``stage``."""
         ts = time.perf_counter()
         try:
             yield
@@ -530,7 +535,7 @@ def count_read(counts: dict[str, int], read: Read) -> None:
     counts["rejected_reads"] += read.rejected is not None and read.unmapped_id is None
 
 
-def reference_bank(smap: StickerMap, map_path: str | Path | None = None):
+def reference_bank(smap: StickerMap, map_path: str | Path | None = None) -> ReferenceBank:
     """The ORB/appearance references of ``smap``: cached beside ``map_path`` when given, else built."""
     from tagloc.vision.refs import build_refs, load_or_build_refs
 
@@ -546,9 +551,13 @@ class FrameProcessor(Protocol):
     rig: Rig
     counts: dict[str, int]
 
-    def process(self, frame: Frame) -> FrameResult: ...
+    def process(self, frame: Frame) -> FrameResult:
+        """One frame in, what was seen and the pose after it out."""
+        ...
 
-    def stats(self) -> dict[str, int]: ...
+    def stats(self) -> dict[str, int]:
+        """The run's counters."""
+        ...
 
 
 def load_setup(
@@ -615,9 +624,9 @@ class Localiser:
         smap: StickerMap,
         rig: Rig,
         config: LocaliserConfig | None = None,
-        refs=None,
+        refs: ReferenceBank | None = None,
         map_path: str | Path | None = None,
-    ):
+    ) -> None:
         self.map = smap
         self.rig = rig
         self.config = config or LocaliserConfig()
@@ -673,7 +682,7 @@ class Localiser:
         self._step = None  # this frame's odometry step, for the rolling-shutter correction
 
     @property
-    def refs(self):
+    def refs(self) -> ReferenceBank:
         """The ORB/appearance reference bank, built or loaded on first need."""
         if self._refs is None:
             self._refs = reference_bank(self.map, self._map_path)
@@ -1022,7 +1031,7 @@ class Localiser:
             prepare(self._refs)
 
     @property
-    def lookalikes(self):
+    def lookalikes(self) -> LookAlikes:
         """The map's look-alikes (:class:`tagloc.vision.decode.lookalike.LookAlikes`), made on first use."""
         if self._lookalikes is None:
             from tagloc.vision.decode.lookalike import LookAlikes

@@ -140,7 +140,7 @@ class Outputs:
         rig: Rig,
         config: OutputConfig,
         warn: Callable[[str], None] = warn_stderr,
-    ):
+    ) -> None:
         self.config = config
         self._warn = warn
         self.summary = OutputSummary()

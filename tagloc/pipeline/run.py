@@ -12,6 +12,7 @@ import contextlib
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -19,6 +20,9 @@ from tagloc.core.errors import SessionError
 from tagloc.core.types import FrameResult
 from tagloc.io.session import SessionReader
 from tagloc.pipeline.localiser import TRACKER_STAGES, FrameProcessor, Localiser, LocaliserConfig
+
+if TYPE_CHECKING:
+    from tagloc.vision.refs import ReferenceBank
 
 
 @dataclass
@@ -35,6 +39,7 @@ class RunLog:
         fixes: list of dicts, one per accepted fix (one a frame's deferred work made too, with that
             frame's index and time): frame index, time, sticker id, source, corners centre, the
             fix's body poses (x, y, yaw; one, or IPPE's two) and the tracker's reason.
+        rejected: the same for each fix the tracker refused.
         counts: counters from the localiser and tracker.
         frame_ms: (N,) wall time per frame, ms; tracker_ms, odometry_ms: (N,) of which in the
             tracker (``TRACKER_STAGES``: predict, candidates, update, output) and in the floor odometry.
@@ -119,7 +124,7 @@ def _results(
 def run_session(
     session: SessionReader,
     config: LocaliserConfig | None = None,
-    refs=None,
+    refs: ReferenceBank | None = None,
     progress: bool = False,
     on_result: Callable[[FrameResult], None] | None = None,
     realtime: bool = False,
