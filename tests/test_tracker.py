@@ -1194,8 +1194,6 @@ def test_offset_and_map_error_caps_come_from_the_config():
     full-gait stationary variance) and on the map-error slots (``map_var_cap``) are config values."""
     from tracker.ekf import MAP0, OFF, TILT, WalkingEKF
 
-    cfg = TrackerConfig()
-    assert cfg.offset_var_cap_factor == 4.0 and cfg.map_var_cap == 1.0
     for factor, map_cap in ((4.0, 1.0), (9.0, 0.25)):
         c = TrackerConfig(offset_var_cap_factor=factor, map_var_cap=map_cap, tilt_sigma_forward=0.05)
         caps = WalkingEKF(c)._caps
@@ -1205,3 +1203,18 @@ def test_offset_and_map_error_caps_come_from_the_config():
         assert np.all(caps[MAP0:] == map_cap)
     with pytest.raises(InputError, match="variance caps must be > 0"):
         TrackerConfig(offset_var_cap_factor=0.0)
+
+
+def test_a_stated_survey_enters_the_filter_whole_up_to_the_maps_largest_sigmas():
+    """A map may state sigmas up to MAX_SIGMA (10 m, 180 deg): a sticker's survey prior must enter its
+    map-error slot as stated, never clipped to a sharper one by the filter's numerical caps (a
+    clipped prior makes every fix from that sticker look better surveyed than it is)."""
+    from tagloc.core.stickermap import MAX_SIGMA
+    from tracker.ekf import MapTerm, WalkingEKF, map_slot
+
+    ekf = WalkingEKF(TrackerConfig())
+    prior = np.diag([MAX_SIGMA["sigma_m"] ** 2, 2.0**2, math.radians(MAX_SIGMA["sigma_deg"]) ** 2])
+    k, fresh = ekf.claim_slot(MapTerm(7, np.eye(3), prior))
+    ekf._tidy()
+    assert fresh
+    np.testing.assert_allclose(ekf.P[map_slot(k), map_slot(k)], prior, rtol=1e-12)

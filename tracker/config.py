@@ -245,10 +245,10 @@ class TrackerConfig:
     sigma) times their largest stationary variance (full gait): a Gauss-Markov state predicted
     from at most its stationary covariance stays at most there, so the cap only catches numerical
     growth and leaves the model's own values alone. A map-error slot's variance is capped at
-    ``map_var_cap`` (1 m^2 or rad^2: a 1 m, 57 deg sigma, far beyond a survey worth a map; survey
-    errors have no process noise, so it guards against numerical growth). Note that a map may state
-    sigmas up to 10 m and 180 deg (:data:`tagloc.core.stickermap.MAX_SIGMA`): such a sticker's survey
-    error enters the state at this cap.
+    ``map_var_cap`` (100 m^2 or rad^2: at least what a map may state, 10 m and 180 deg =
+    pi rad (:data:`tagloc.core.stickermap.MAX_SIGMA`), so a stated survey enters the state whole,
+    never clipped to a sharper one; survey errors have no process noise, so the cap only guards
+    against numerical growth).
     ``max_step_s`` splits long predictions into steps (at most ``max_steps``).
     """
 
@@ -294,7 +294,7 @@ class TrackerConfig:
     v_var_cap: float = 4.0
     w_var_cap: float = 9.0
     offset_var_cap_factor: float = 4.0
-    map_var_cap: float = 1.0
+    map_var_cap: float = 100.0
     max_step_s: float = 0.2
     max_steps: int = 50
     odometry_inflation: tuple[float, float, float] = (1.0, 1.0, 1.0)
