@@ -49,3 +49,20 @@ def test_no_recommendation_when_no_exposure_gives_a_fix(capsys):
     assert best_row(rows) is None
     rows[1].identified = 0.1
     assert best_row(rows) is rows[1] and "recommended: --exposure-ms 1 " in format_advice(rows, cfg)
+
+
+def test_an_exposure_that_gave_a_wrong_id_is_never_recommended():
+    """More fixes never buy a wrong sticker ID: the exposure with the most fixes among those without
+    one is recommended, and none when every exposure with fixes gave a wrong ID."""
+    cfg = AdviseConfig(exposures_ms=(1.0, 2.0, 4.0))
+    rows = [
+        AdviseRow(1.0, 8.0, 1.0, 5.0, 0.9, 10, 0.9, 0.5, 0.6, 0.0),
+        AdviseRow(2.0, 4.0, 2.0, 7.0, 0.9, 10, 0.9, 0.7, 0.8, 0.0),
+        AdviseRow(4.0, 2.0, 4.0, 9.0, 0.9, 10, 0.9, 0.8, 0.9, 0.1),
+    ]
+    assert best_row(rows) is rows[1]
+    assert "recommended: --exposure-ms 2 " in format_advice(rows, cfg)
+    for r in rows[:2]:
+        r.wrong = 0.05
+    assert best_row(rows) is None
+    assert "every exposure that gives a fix also gave a wrong sticker ID" in format_advice(rows, cfg)

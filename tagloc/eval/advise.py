@@ -187,10 +187,12 @@ def _inside(corners: np.ndarray, camera: Camera, margin: float = 4.0) -> bool:
 
 
 def best_row(rows: list[AdviseRow]) -> AdviseRow | None:
-    """The exposure giving the most fixes (decoded or identified); the shorter one on a tie; None
-    when none gives a fix (the shortest would win the tie at 0 %, where more light is the answer)."""
-    best = max(rows, key=lambda r: (round(r.identified, 3), -r.exposure_ms))
-    return best if best.identified > 0 else None
+    """The exposure giving the most fixes (decoded or identified) among those that gave no wrong ID
+    (a wrong sticker ID is the worst failure: no number of right fixes buys one); the shorter one on
+    a tie; None when none gives a fix without a wrong ID (the shortest would win the tie at 0 %,
+    where more light is the answer)."""
+    clean = [r for r in rows if r.wrong == 0 and r.identified > 0]
+    return max(clean, key=lambda r: (round(r.identified, 3), -r.exposure_ms)) if clean else None
 
 
 def format_advice(rows: list[AdviseRow], cfg: AdviseConfig) -> str:
@@ -211,7 +213,12 @@ def format_advice(rows: list[AdviseRow], cfg: AdviseConfig) -> str:
         "read: decoded; fixes: decoded or identified among the true sticker and its nearest map neighbours; "
         "bright: mean signal / AE target (below 1: gain capped)"
     )
-    if b is None:
+    if b is None and any(r.identified > 0 for r in rows):
+        lines.append(
+            "no recommendation: every exposure that gives a fix also gave a wrong sticker ID; check the map "
+            "(stickers closer than the map says, repeated IDs) before choosing one"
+        )
+    elif b is None:
         longest = max(r.exposure_ms for r in rows)
         lines.append(
             f"no recommendation: no exposure tried (up to {longest:g} ms) gives a fix; more light, a slower"
