@@ -271,3 +271,23 @@ def test_map_with_byte_order_mark_loads(tmp_path):
     (tmp_path / "bom.csv").write_bytes("\ufeffid,x_m,y_m,yaw_deg\n5,1.0,2.0,30\n".encode())
     smap = load_map(tmp_path / "bom.csv")
     assert smap.ids.tolist() == [5] and smap.yaw[0] == pytest.approx(math.radians(30))
+
+
+def test_saved_sigmas_are_never_sharper_than_stated(tmp_path):
+    """A sigma is written rounded up to the map's steps: rounded to nearest, one under 0.05 mm came
+    back as 0 (an exact map), a yaw sigma under 0.0005 deg too."""
+    sig_m = np.array([0.00003, 0.015, 0.01234567, 0.0])
+    sig_deg = np.array([0.0004, 1.5, 0.2601, 0.0])
+    smap = StickerMap(
+        np.array([1, 2, 3, 4]),
+        np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [3.0, 0.0]]),
+        np.zeros(4),
+        sigma_xy=sig_m,
+        sigma_yaw=np.radians(sig_deg),
+    )
+    save_map(smap, tmp_path / "m.csv")
+    back = load_map(tmp_path / "m.csv")
+    assert np.all(back.sigma_xy >= sig_m) and np.all(np.degrees(back.sigma_yaw) >= sig_deg - 1e-12)
+    np.testing.assert_allclose(back.sigma_xy, [0.0001, 0.015, 0.0124, 0.0])
+    np.testing.assert_allclose(np.degrees(back.sigma_yaw), [0.001, 1.5, 0.261, 0.0], atol=1e-12)
+    assert not math.isnan(back.sigma_xy[3])

@@ -205,11 +205,17 @@ def load_map(path: str | Path, min_spacing_m: float = SIZE_M) -> StickerMap:
 
 
 def save_map(smap: StickerMap, path: str | Path) -> None:
-    """Write a map CSV (0.1 mm on positions, 0.001 degree on yaw); the sigma columns only when some are stated."""
+    """Write a map CSV (0.1 mm on positions, 0.001 degree on yaw); the sigma columns only when some
+    are stated, rounded up to those steps."""
     with_sigma = bool(np.isfinite(smap.sigma_xy).any() or np.isfinite(smap.sigma_yaw).any())
 
-    def cell(v: float, fmt: str) -> str:
-        return format(v, fmt) if math.isfinite(v) else ""
+    def cell(v: float, decimals: int) -> str:
+        # Rounded up, never down: a sigma written sharper than it is (a tiny one as 0, an exact map)
+        # would make the tracker trust the sticker more than its survey allows. The 1e-6 keeps a
+        # value already on the grid (0.015 as 150.00000000000003e-4) where it is.
+        if not math.isfinite(v):
+            return ""
+        return f"{math.ceil(v * 10**decimals - 1e-6) / 10**decimals:.{decimals}f}"
 
     with Path(path).open("w", newline="", encoding="utf-8") as f:
         w = csv.writer(f)
@@ -217,5 +223,5 @@ def save_map(smap: StickerMap, path: str | Path) -> None:
         for k, (sid, (x, y), a) in enumerate(zip(smap.ids, smap.xy, smap.yaw)):
             row = [int(sid), f"{x:.4f}", f"{y:.4f}", f"{math.degrees(a):.3f}"]
             if with_sigma:
-                row += [cell(float(smap.sigma_xy[k]), ".4f"), cell(math.degrees(float(smap.sigma_yaw[k])), ".3f")]
+                row += [cell(float(smap.sigma_xy[k]), 4), cell(math.degrees(float(smap.sigma_yaw[k])), 3)]
             w.writerow(row)
