@@ -660,6 +660,7 @@ def test_session_notes_name_every_condition_that_is_not_the_default():
         survey=SurveyConfig(0.015, 1.5, True),
         sensor_preset="ov5647",
         pitch_deg=45.0,
+        calibration="site/wide.yaml",
     ).describe()
     for part in (
         "camera 1.3 m up, 45 deg down",
@@ -668,6 +669,7 @@ def test_session_notes_name_every_condition_that_is_not_the_default():
         "drops 4% + 2 bursts/min",
         "survey 1.5 cm 1.5 deg stated",
         "sensor ov5647",
+        "lens wide.yaml",
     ):
         assert part in field, (part, field)
 

@@ -178,6 +178,9 @@ class SimConfig:
             parts.append(f"rig {Path(self.rig).name if isinstance(self.rig, (str, Path)) else 'given'}")
         elif (self.pitch_deg, self.height_m) != (55.0, 1.3):
             parts.append(f"camera {self.height_m:g} m up, {self.pitch_deg:g} deg down")
+        if self.calibration is not None:
+            cal = self.calibration
+            parts.append(f"lens {Path(cal).name if isinstance(cal, (str, Path)) else f'{cal.width}x{cal.height}'}")
         if self.fps != 30.0:
             parts.append(f"{self.fps:g} fps")
         if self.scale != 1.0:
