@@ -125,6 +125,16 @@ def test_every_benchmark_script_ends_its_run_through_the_one_line_error_guard(sc
     assert script.read_text().rstrip().endswith(f'raise SystemExit(run_guarded("{script.name}", main))')
 
 
+@pytest.mark.parametrize("script", BENCHMARKS, ids=lambda p: p.name)
+def test_every_benchmark_script_answers_help_with_its_usage(script):
+    """``--help`` prints the usage and exits at once: it never starts the benchmark's work."""
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, str(script), "--help"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and r.stdout.startswith("usage: "), (r.stdout[:200], r.stderr[-300:])
+
+
 @pytest.mark.parametrize(
     "name", ["fix_error.py", "covariance_growth.py", "odometry_accuracy.py", "survey_sensitivity.py"]
 )
