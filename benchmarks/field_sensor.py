@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tagloc.cli import checks
 from tagloc.core.stickermap import StickerMap
 from tagloc.eval.evaluate import wrong_id_fixes
 from tagloc.eval.metrics import trajectory_errors
@@ -122,7 +123,7 @@ def make(path: Path, seed: int, seconds: float, condition: str) -> Path:
     return path
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     import cv2
 
     cv2.setNumThreads(1)
@@ -132,15 +133,20 @@ def main() -> None:
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
     ap.add_argument("--variants", default="default")
     ap.add_argument("-o", "--out", type=Path, default=Path("out/field_sensor"))
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     vs = variants()
+    # Checked before any walk is simulated: a misspelt name was a KeyError after the others' work.
+    conditions = checks.names(args.conditions, "--conditions", tuple(CONDITIONS))
+    chosen = checks.names(args.variants, "--variants", tuple(vs))
+    checks.number(args.seeds, "--seeds", 1)
+    checks.number(args.seconds, "--seconds", 0, lo_open=True)
     print(
         f"{'condition':10s} {'variant':18s} {'RMSE cm':>8s} {'worst cm':>8s} {'head deg':>8s} {'<10cm':>6s}"
         f" {'NEES':>6s} {'fixes':>6s} {'gated':>6s} {'wrong':>6s}"
     )
-    for cond in args.conditions.split(","):
+    for cond in conditions:
         paths = [make(args.out / f"{cond}-{s}", 100 + s, args.seconds, cond) for s in range(args.seeds)]
-        for vname in args.variants.split(","):
+        for vname in chosen:
             sq, yaw2, n, within, nees, fixes, gated, worst, wrong = 0.0, 0.0, 0, 0, [], 0, 0, 0.0, 0
             for p in paths:
                 session = SessionReader(p)

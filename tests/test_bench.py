@@ -173,3 +173,27 @@ def test_the_survey_sensitivity_map_scales_each_stickers_error_and_states_its_si
         assert np.allclose(m.xy, [[-0.01 * f, 0.03 * f], [2.0 + 0.02 * f, 1.0 - 0.01 * f]], atol=1e-12)
         assert np.allclose(np.degrees(m.yaw), [179.0 + 2.0 * f, math.degrees(0.5) - 1.0 * f], atol=1e-9)
         assert np.allclose(m.sigma_xy, 0.015 * f) and np.allclose(np.degrees(m.sigma_yaw), 1.5 * f)
+
+
+@pytest.mark.parametrize(
+    "args, named",
+    [
+        (["--conditions", "clean,nosuch"], "--conditions: unknown nosuch"),
+        (["--conditions", "clean", "--variants", "default,nosuch"], "--variants: unknown nosuch"),
+        (["--conditions", "clean", "--seeds", "0"], "--seeds must be a number >= 1"),
+    ],
+)
+def test_field_sensor_refuses_an_unknown_name_before_simulating_any_walk(monkeypatch, tmp_path, args, named):
+    """A misspelt condition or variant was a KeyError ("internal error") once the walks before it
+    had been simulated and replayed; it is now a user's error, before any work."""
+    import sys
+
+    monkeypatch.syspath_prepend(str(BENCHMARKS[0].parent))
+    sys.modules.pop("field_sensor", None)
+    import field_sensor
+
+    made = []
+    monkeypatch.setattr(field_sensor, "make", lambda *a: made.append(a))
+    with pytest.raises(InputError) as err:
+        field_sensor.main([*args, "-o", str(tmp_path / "fs")])
+    assert str(err.value).startswith(named) and made == []
