@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import tempfile
 import time
@@ -110,10 +111,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--core", type=int, default=0, help="CPU core to pin to (default 0; -1: no pinning)")
     p.add_argument("--json", type=Path, help="write every run's figures as JSON")
     args = p.parse_args(argv)
-    if args.core >= 0 and hasattr(os, "sched_setaffinity"):
-        os.sched_setaffinity(0, {args.core})
+    from replay_cost import _check_run_options
+
+    from tagloc.cli import checks
+
+    # Checked before any run: a bad value was a ValueError or ZeroDivisionError, reported as a bug.
+    slowdowns = checks.numbers(args.slowdown, "--slowdown", 0.0, math.inf, lo_open=True)
+    core = _check_run_options(args.repeat, args.core)
+    if core is not None:
+        os.sched_setaffinity(0, {core})
     cv2.setNumThreads(1)
-    slowdowns = [float(s) for s in args.slowdown.split(",")]
     runs = []
     print(f"tagloc live on {args.session}, the camera k times faster (a core k times slower), {args.repeat} runs each")
     print(

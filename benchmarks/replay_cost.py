@@ -295,6 +295,21 @@ def _spread(values: list[float]) -> str:
     return f"{np.median(v):7.2f} ({v.min():.2f}-{v.max():.2f})" if len(v) > 1 else f"{v[0]:7.2f}"
 
 
+def _check_run_options(repeat: int, core: int) -> int | None:
+    """The core to pin to (None: ``core`` < 0, no pinning), once ``repeat`` (>= 1) and ``core`` (one of
+    this process's CPUs) are checked: before any work, each a one-line error."""
+    from tagloc.cli import checks
+    from tagloc.core.errors import InputError
+
+    checks.number(repeat, "--repeat", 1)
+    if core < 0:
+        return None
+    cpus = sorted(os.sched_getaffinity(0))
+    if core not in cpus:
+        raise InputError(f"--core {core}: not a CPU this process may run on ({', '.join(map(str, cpus))}; -1: none)")
+    return core
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("session", type=Path, help="session directory (tagloc simulate ... -o DIR)")
@@ -316,7 +331,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--json", type=Path, help="write the figures as JSON")
     args = p.parse_args(argv)
-    core = None if args.core < 0 else args.core
+    core = _check_run_options(args.repeat, args.core)
     if core is not None:
         os.sched_setaffinity(0, {core})
     cv2.setNumThreads(1)

@@ -197,3 +197,28 @@ def test_field_sensor_refuses_an_unknown_name_before_simulating_any_walk(monkeyp
     with pytest.raises(InputError) as err:
         field_sensor.main([*args, "-o", str(tmp_path / "fs")])
     assert str(err.value).startswith(named) and made == []
+
+
+@pytest.mark.parametrize(
+    "script, args, named",
+    [
+        ("replay_cost", ["--repeat", "0"], "--repeat must be a number >= 1"),
+        ("replay_cost", ["--core", "100000"], "--core 100000: not a CPU"),
+        ("load_shedding", ["--repeat", "0"], "--repeat must be a number >= 1"),
+        ("load_shedding", ["--slowdown", "1,0"], "--slowdown must be a number > 0"),
+        ("load_shedding", ["--slowdown", "x"], "--slowdown: 'x' is not a number"),
+    ],
+)
+def test_the_speed_benchmarks_refuse_bad_run_options_before_any_work(monkeypatch, tmp_path, script, args, named):
+    """``--repeat 0`` printed the table's header and then an IndexError as an internal error, a
+    --core the process may not use OSError's bare "Invalid argument", ``--slowdown 0`` a
+    ZeroDivisionError; each is now the user's one-line error, given before the session is read."""
+    import importlib
+    import sys
+
+    monkeypatch.syspath_prepend(str(BENCHMARKS[0].parent))
+    sys.modules.pop(script, None)
+    mod = importlib.import_module(script)
+    with pytest.raises(InputError) as err:
+        mod.main([str(tmp_path / "no-session"), *args])
+    assert str(err.value).startswith(named)
