@@ -284,6 +284,13 @@ def test_bench_refuses_a_bad_option(option, value, tmp_path, capsys):
     _refused(["bench", "--quick", "--no-progress", option, value], option, tmp_path, capsys)
 
 
+@pytest.mark.parametrize("extra", [["--json", "{tmp}/profile.json"], ["--frames", "3"], ["--quick"], ["--no-paper"]])
+def test_bench_profile_refuses_the_benchmarks_own_options(extra, tmp_path, capsys):
+    """``--profile`` replays a session: the benchmark's options would be ignored (``--json`` wrote no file)."""
+    walk = Path(__file__).resolve().parent.parent / "logs" / "walk2s"
+    _refused(["bench", "--profile", str(walk), *extra], extra[0], tmp_path, capsys)
+
+
 @pytest.mark.parametrize("value", ["inf", "nan", "-1"])
 def test_live_refuses_a_gain_that_is_not_a_finite_number_from_0(value, tmp_path, capsys):
     _refused(["live", "--camera", "{tmp}/no-camera", "--map", "{map}", "--gain", value], "--gain", tmp_path, capsys)

@@ -44,9 +44,28 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+#: The benchmark's own options (flag, argument attribute): ``--profile`` replays a session instead and
+#: would ignore them (``--json`` wrote no file), so it refuses them.
+_BENCH_ONLY = (
+    ("--frames", "frames"),
+    ("--json", "json"),
+    ("--quick", "quick"),
+    ("--jpeg", "jpeg"),
+    ("--no-libdmtx", "no_libdmtx"),
+    ("--no-paper", "no_paper"),
+)
+
+
 def run(args: argparse.Namespace) -> int:
     if args.profile is not None:
+        from tagloc.core.errors import InputError
         from tagloc.eval.profile import profile_replay
+
+        given = [flag for flag, attr in _BENCH_ONLY if getattr(args, attr) not in (None, False)]
+        if given:
+            raise InputError(
+                f"{', '.join(given)}: not with --profile (it replays SESSION under cProfile and prints a summary)"
+            )
 
         print(profile_replay(args.profile).format())
         return 0
