@@ -222,3 +222,38 @@ def test_the_speed_benchmarks_refuse_bad_run_options_before_any_work(monkeypatch
     with pytest.raises(InputError) as err:
         mod.main([str(tmp_path / "no-session"), *args])
     assert str(err.value).startswith(named)
+
+
+def test_odometry_stride_compares_the_steps_with_the_vest_points_motion(monkeypatch, tmp_path):
+    """The odometry measures the vest point's motion (the camera's, carried through the nominal rig):
+    a torso that rolls 6 degrees about its feet moves the vest point 1.3 m up by 13.6 cm sideways
+    while the tilted body frame's origin on the floor stays put. The script compared the chained
+    steps with that origin's motion, so a step that read the vest's motion exactly came out 13.6 cm
+    off; against the vest point it is exact."""
+    import json
+    import math
+    import sys
+    import types
+
+    from tagloc.core.geometry import planar_T
+    from tagloc.core.rig import default_rig
+    from tagloc.vision.odometry import OdometryStep
+
+    monkeypatch.syspath_prepend(str(BENCHMARKS[0].parent))
+    sys.modules.pop("odometry_stride", None)
+    import odometry_stride
+
+    rig = default_rig()
+    roll = math.radians(6.0)
+    c, s = math.cos(roll), math.sin(roll)
+    T_world_body = [planar_T(2.0, 1.0, 0.3), planar_T(2.0, 1.0, 0.3) @ np.array(
+        [[1, 0, 0, 0], [0, c, -s, 0], [0, s, c, 0], [0, 0, 0, 1.0]]
+    )]  # fmt: skip
+    with (tmp_path / "groundtruth_frames.jsonl").open("w") as f:
+        for k, T in enumerate(T_world_body):
+            f.write(json.dumps({"index": k, "T_world_camera": (T @ rig[0].T_body_camera).tolist()}) + "\n")
+    truth = odometry_stride._vest_truth(tmp_path, types.SimpleNamespace(rig=rig), {0: 0.0, 1: 1 / 30})
+    sideways = -1.3 * s  # +roll tips the body's left (+y) up: the vest point goes right
+    step = OdometryStep(0.0, 1 / 30, np.array([0.0, sideways, 0.0]), np.eye(3) * 1e-6, 1.0)
+    err = odometry_stride._window_errors([step], truth, 1.0)
+    assert err.shape == (1, 3) and np.allclose(err, 0.0, atol=1e-9)
