@@ -257,3 +257,27 @@ def test_odometry_stride_compares_the_steps_with_the_vest_points_motion(monkeypa
     step = OdometryStep(0.0, 1 / 30, np.array([0.0, sideways, 0.0]), np.eye(3) * 1e-6, 1.0)
     err = odometry_stride._window_errors([step], truth, 1.0)
     assert err.shape == (1, 3) and np.allclose(err, 0.0, atol=1e-9)
+
+
+def test_the_bench_measures_with_one_blas_thread_and_gives_the_settings_back(monkeypatch):
+    """The bench set OpenCV to one thread but left BLAS on its default threads, whose spinning on a
+    busy machine counted in the stages' CPU time (the least-squares decode's p95 several times its
+    one-thread figure); it now measures as the localiser runs, and the process's settings come back."""
+    import threadpoolctl
+
+    import tagloc.eval.bench as bench
+
+    def blas_threads() -> set[int]:
+        return {i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"}
+
+    before, seen = (blas_threads(), cv2.getNumThreads()), []
+
+    def scene(cfg, rig):
+        seen.append((blas_threads(), cv2.getNumThreads()))
+        raise KeyboardInterrupt  # stop here: the rest is the bench's work
+
+    monkeypatch.setattr(bench, "_build_scene", scene)
+    with pytest.raises(KeyboardInterrupt):
+        bench.run_bench(BenchConfig.quick())
+    assert seen == [({1}, 1)]
+    assert (blas_threads(), cv2.getNumThreads()) == before

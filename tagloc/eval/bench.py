@@ -2,8 +2,9 @@
 
 Every view is rendered once by the physical simulator (:func:`tagloc.sim.simulate.render_view`, default
 Pi v1 camera at 1296x972, fixed seeds) and every measurement runs on that same image, single-threaded
-(``cv2.setNumThreads(1)``). The scene is one hand-made floor (:class:`tagloc.sim.floor.Floor`, textured,
-with painted lines, stains and dark distractor squares) holding, 16 m apart so that no view sees two:
+(OpenCV and BLAS on one thread each, :func:`tagloc.pipeline.run.single_threaded`). The scene is one
+hand-made floor (:class:`tagloc.sim.floor.Floor`, textured, with painted lines, stains and dark
+distractor squares) holding, 16 m apart so that no view sees two:
 
 * single stickers (mapped), looked at from a chosen 3-D distance: the camera's height is drawn in
   the vest range (1.1-1.5 m, lower when the distance demands it), the sticker is put at a random
@@ -55,6 +56,7 @@ from tagloc.core.types import IdSource, PoseFix
 from tagloc.eval.bench_detect import match_detections
 from tagloc.eval.bench_identify import candidate_ids
 from tagloc.pipeline.localiser import LocaliserConfig
+from tagloc.pipeline.run import single_threaded
 from tagloc.sim.floor import Floor, FloorConfig
 from tagloc.sim.simulate import render_view, true_corners
 from tagloc.vision.decode import BACKENDS, decode
@@ -553,9 +555,9 @@ def run_bench(config: BenchConfig | None = None) -> dict:
     cfg = config or BenchConfig()
     t_start = time.perf_counter()
     env_start = _environment()
-    threads = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
+    # One thread each for OpenCV and BLAS, as the localiser runs its frames: BLAS's default threads
+    # spin while they wait, and on a busy machine that spinning was counted in the stages' CPU time.
+    with single_threaded():
         rig = default_rig(camera=default_camera())
         scene = _build_scene(cfg, rig)
         runner = _Runner(cfg, scene)
@@ -574,8 +576,6 @@ def run_bench(config: BenchConfig | None = None) -> dict:
         dist_cells = _distance_sweep(cfg, runner, bar)
         timing = _timing(cfg, runner, bar)
         bar.close()
-    finally:
-        cv2.setNumThreads(threads)
     result = {
         "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg).items()},
         "environment": {"start": env_start, "end_load_average": _environment()["load_average"]},
