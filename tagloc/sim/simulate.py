@@ -174,6 +174,11 @@ class SimConfig:
         ``tagloc eval --walks`` prints): length, light, speed and seed, then every condition that is
         not the plain default, so that a walk's row names what it was rendered with."""
         parts = [f"{self.seconds:g} s at {self.lux:g} lux, {self.speed_mps:g} m/s, seed {self.seed}"]
+        return ", ".join(parts + self._camera_conditions() + self._field_conditions())
+
+    def _camera_conditions(self) -> list[str]:
+        """The mount, lens, frame rate and resolution, where not the default."""
+        parts = []
         if self.rig is not None:
             parts.append(f"rig {Path(self.rig).name if isinstance(self.rig, (str, Path)) else 'given'}")
         elif (self.pitch_deg, self.height_m) != (55.0, 1.3):
@@ -185,29 +190,34 @@ class SimConfig:
             parts.append(f"{self.fps:g} fps")
         if self.scale != 1.0:
             parts.append(f"resolution x{self.scale:g}")
-        if self.rolling_shutter:
-            parts.append(f"rolling shutter {1e3 * self.exposure.readout_s:g} ms")
-        t = self.timing
-        if t.jitter_s:
-            parts.append(f"jitter +-{1e3 * t.jitter_s:g} ms")
-        if t.drop_fraction or t.bursts_per_min:
-            parts.append(f"drops {100 * t.drop_fraction:g}% + {t.bursts_per_min:g} bursts/min")
-        sv = self.survey
-        if sv.sigma_m or sv.sigma_deg:
-            parts.append(f"survey {100 * sv.sigma_m:g} cm {sv.sigma_deg:g} deg{' stated' if sv.stated else ''}")
-        if self.missing_fraction or self.unmapped:
-            parts.append(f"{100 * self.missing_fraction:g}% missing, {self.unmapped} unmapped")
-        if self.sensor_preset and self.sensor_preset != "standard":
-            parts.append(f"sensor {self.sensor_preset}")
-        if self.flicker:
-            parts.append(f"flicker {100 * self.flicker:g}% at {self.mains_hz:g} Hz mains")
-        if self.shadow:
-            parts.append("shadow")
-        if self.legs:
-            parts.append("legs")
         if self.jpeg_quality != 85:
             parts.append(f"JPEG {self.jpeg_quality}")
-        return ", ".join(parts)
+        return parts
+
+    def _field_conditions(self) -> list[str]:
+        """Shutter, timing, survey, floor, sensor and light conditions that are on."""
+        t, sv = self.timing, self.survey
+        named = [
+            (self.rolling_shutter, f"rolling shutter {1e3 * self.exposure.readout_s:g} ms"),
+            (t.jitter_s, f"jitter +-{1e3 * t.jitter_s:g} ms"),
+            (
+                t.drop_fraction or t.bursts_per_min,
+                f"drops {100 * t.drop_fraction:g}% + {t.bursts_per_min:g} bursts/min",
+            ),
+            (
+                sv.sigma_m or sv.sigma_deg,
+                f"survey {100 * sv.sigma_m:g} cm {sv.sigma_deg:g} deg{' stated' if sv.stated else ''}",
+            ),
+            (
+                self.missing_fraction or self.unmapped,
+                f"{100 * self.missing_fraction:g}% missing, {self.unmapped} unmapped",
+            ),
+            (self.sensor_preset not in (None, "standard"), f"sensor {self.sensor_preset}"),
+            (self.flicker, f"flicker {100 * self.flicker:g}% at {self.mains_hz:g} Hz mains"),
+            (self.shadow, "shadow"),
+            (self.legs, "legs"),
+        ]
+        return [text for on, text in named if on]
 
     @property
     def frame_count(self) -> int:
