@@ -190,14 +190,15 @@ def test_monitor_refuses_a_save_path_that_is_a_directory(tmp_path, capsys):
         ("--candidates", "200"),
         ("--methods", "appearance,bogus"),
         ("--methods", ","),
+        ("--methods", "appearance,appearance"),
     ],
 )
 def test_bench_identify_refuses_a_bad_option(option, value, tmp_path, capsys):
     _refused(["bench-identify", "--no-progress", option, value], option, tmp_path, capsys)
 
 
-@pytest.mark.parametrize("value", ["bogus", ",", "full,,nope"])
-def test_eval_refuses_unknown_or_no_modes(value, tmp_path, capsys):
+@pytest.mark.parametrize("value", ["bogus", ",", "full,,nope", "full,decoded-only, full"])
+def test_eval_refuses_unknown_no_or_repeated_modes(value, tmp_path, capsys):
     _refused(["eval", "-o", "{tmp}/e", "--quiet", "--modes", value], "--modes", tmp_path, capsys)
 
 

@@ -45,12 +45,16 @@ def numbers(text: str, option: str, lo: float, hi: float, lo_open: bool = False)
 
 
 def names(text: str, option: str, allowed: tuple[str, ...]) -> tuple[str, ...]:
-    """The names of a comma-separated list such as ``full,orb-all``, at least one, each one of ``allowed``."""
+    """The names of a comma-separated list such as ``full,orb-all``, at least one, each one of ``allowed``
+    and none twice (a name given twice would run twice and be pooled as two independent runs)."""
     given = tuple(t.strip() for t in text.split(",") if t.strip())
     unknown = [n for n in given if n not in allowed]
     if unknown or not given:
         what = f"unknown {', '.join(unknown)}" if unknown else "none given"
         raise InputError(f"{option}: {what} (want some of {', '.join(allowed)})")
+    twice = [n for n in dict.fromkeys(given) if given.count(n) > 1]
+    if twice:
+        raise InputError(f"{option}: {', '.join(twice)} given twice")
     return given
 
 
