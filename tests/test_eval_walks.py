@@ -211,3 +211,14 @@ def test_pooling_weights_by_frame_and_a_walk_with_nothing_scored_does_not_blank_
     assert s["coverage"] == pytest.approx(3300 / 3900)  # by frame, not (1 + 1 + 0) / 3
     # A jittered last frame just past the ground truth's end is no miss: it is not counted at all.
     assert frames_in_span(np.array([0.0, 0.5, 1.0, 1.0003]), np.array([0.0, 1.0])) == 3
+
+
+def test_a_walk_none_of_whose_frames_could_be_read_is_refused(tmp_path, capsys):
+    """Found by a review: a walk whose every image was unreadable was scored as a walk the localiser
+    never placed (a row of NaN, a RuntimeWarning, exit 0); tagloc replay refuses such a run."""
+    walk = recorded_copy(tmp_path / "w")
+    for jpg in (walk / "frames").glob("*.jpg"):
+        jpg.write_bytes(b"not a jpeg")
+    assert main(["eval", "--walks", str(walk), "--modes", "full", "-o", str(tmp_path / "o"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "none of its" in err and str(walk) in err and len(err.strip().splitlines()) == 1, err

@@ -441,6 +441,7 @@ def score_session(
     # of the vest's computer, and the report's per-frame timings are taken inside it.)
     loc = make_localiser(mode, session.map, session.rig, map_path=session.path / "map.csv")
     log = run_session(session, localiser=loc, progress=progress)
+    log.require_frames(path)  # nothing localised: no figures to report as if something had been
     v = log.valid
     e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *gt)
     m = error_metrics(e)
