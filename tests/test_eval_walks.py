@@ -222,3 +222,44 @@ def test_a_walk_none_of_whose_frames_could_be_read_is_refused(tmp_path, capsys):
     assert main(["eval", "--walks", str(walk), "--modes", "full", "-o", str(tmp_path / "o"), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "none of its" in err and str(walk) in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_a_mode_that_never_placed_the_walker_reports_no_figures_without_a_warning(recwarn):
+    """Found by a review: a walk the localiser never placed (frames readable, no pose) made the
+    summary warn "All-NaN axis encountered" on stderr, print "nan%" in the pooled row beside the
+    walk's 0%, and state NEES bounds "[none: one block] for the 0 independent samples"."""
+    import math
+
+    from tagloc.eval.evaluate import format_notes, format_summary, format_table, summarise
+
+    nan = math.nan
+    row = {
+        "session": "w",
+        "conditions": "site walk",
+        "mode": "full",
+        "frames": 0,
+        "outside_gt": 0,
+        **dict.fromkeys(["rmse_m", "median_m", "p95_m", "max_m", "heading_rmse_deg", "nees_mean"], nan),
+        "within_10cm": 0.0,
+        "within_25cm": 0.0,
+        "nees_blocks": [],
+        "wrong_id_fixes": 0,
+        "fixes": 0,
+        "fixes_by_source": {},
+        "rejected_fixes": 0,
+        "coverage": 0.0,
+        "frames_run": 120,
+        "frames_all": 120,
+        "within_10cm_all": 0.0,
+        "frames_before_sticker": None,
+        **dict.fromkeys(["frame_ms_median", "tracker_ms_median", "tracker_ms_p95", "odometry_ms_median"], 1.0),
+        **dict.fromkeys(["tracking_ms_median", "tracking_ms_p95"], 1.0),
+        "by_time_since_fix": [[0, 0.0, 0.0]] * 7,
+    }
+    summary = summarise([row])
+    assert math.isnan(summary["full"]["worst_rmse_m"]) and summary["full"]["within_10cm_all"] == 0.0
+    assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
+    table, notes = format_table([row], summary), format_notes(summary)
+    assert "nan%" not in table and "| **all** | full | | **nan** | | | | nan | - | - |" in table, table
+    assert "no frame with a pose" in notes and "0 independent samples" not in notes, notes
+    assert "| nan | - | no data |" in format_summary("1 walk", summary)

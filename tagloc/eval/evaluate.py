@@ -549,7 +549,8 @@ def summarise(rows: list[dict]) -> dict:
             ),
             # The most of all frames any localiser could place: none before a sticker is in view.
             "within_10cm_reachable": _reachable(rs),
-            "worst_rmse_m": float(np.nanmax([r["rmse_m"] for r in rs])),
+            # (max, not nanmax: a mode no walk of which had a scored frame has no worst walk, and no warning)
+            "worst_rmse_m": max((r["rmse_m"] for r in rs if r["frames"] > 0), default=math.nan),
             "tracker_ms_median": float(np.median([r["tracker_ms_median"] for r in rs])),
             "tracker_ms_p95": float(np.median([r["tracker_ms_p95"] for r in rs])),
             "odometry_ms_median": float(np.median([r["odometry_ms_median"] for r in rs])),
@@ -625,11 +626,16 @@ def format_table(rows: list[dict], summary: dict) -> str:
     for mode, s in summary.items():
         lines.append(
             f"| **all** | {mode} | | **{100 * s['rmse_m']:.1f}** | | | | {s['heading_rmse_deg']:.2f} |"
-            f" {100 * s['within_10cm']:.0f}% | {100 * s['within_25cm']:.0f}% | {s['fixes']} | {s['rejected_fixes']} |"
+            f" {_percent(s['within_10cm'])} | {_percent(s['within_25cm'])} | {s['fixes']} | {s['rejected_fixes']} |"
             f" **{s['wrong_id_fixes']}** | {s['nees_mean']:.2f} | {100 * s['coverage']:.0f}% |"
             f" {100 * s['within_10cm_all']:.1f}% |"
         )
     return "\n".join(lines)
+
+
+def _percent(share: float) -> str:
+    """A share of scored frames as a whole percentage, "-" where no frame was scored (NaN)."""
+    return "-" if math.isnan(share) else f"{100 * share:.0f}%"
 
 
 def _conditions(row: dict) -> str:
@@ -654,10 +660,11 @@ def format_summary(preset: str, summary: dict) -> str:
     for mode, s in summary.items():
         # Two decimals: a bound of 98.97 % must not print as the 99 % goal.
         reach = s.get("within_10cm_reachable", math.nan)
+        bounds = "-" if s["nees_verdict"] == "no data" else bounds_text(s["nees_bounds_95_effective"])
         lines.append(
             f"| {mode} | {100 * s['rmse_m']:.2f} | {100 * s['worst_rmse_m']:.2f} | {100 * s['within_10cm_all']:.1f}% |"
             f" {'-' if math.isnan(reach) else f'{100 * reach:.2f}%'} |"
-            f" {s['heading_rmse_deg']:.2f} | {s['nees_mean']:.2f} | {bounds_text(s['nees_bounds_95_effective'])} |"
+            f" {s['heading_rmse_deg']:.2f} | {s['nees_mean']:.2f} | {bounds} |"
             f" {s['nees_verdict']} |"
             f" {s['wrong_id_fixes']} |"
         )
@@ -669,6 +676,9 @@ def format_notes(summary: dict) -> str:
     parts = ["## Consistency", ""]
     for mode, s in summary.items():
         lo, hi = s["nees_bounds_95"]
+        if s["nees_verdict"] == "no data":
+            parts.append(f"- {mode}: no frame with a pose inside the ground truth's time span, so no NEES to test")
+            continue
         effective = (
             f"95% bounds {bounds_text(s['nees_bounds_95_effective'])} for the {s['nees_effective_samples']:.0f}"
             " independent samples the frames are worth (batch means)"
