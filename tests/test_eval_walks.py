@@ -263,3 +263,29 @@ def test_a_mode_that_never_placed_the_walker_reports_no_figures_without_a_warnin
     assert "nan%" not in table and "| **all** | full | | **nan** | | | | nan | - | - |" in table, table
     assert "no frame with a pose" in notes and "0 independent samples" not in notes, notes
     assert "| nan | - | no data |" in format_summary("1 walk", summary)
+
+
+def test_a_simulated_walks_row_names_the_field_conditions_it_was_rendered_with(tmp_path, capsys):
+    """Found by a review: a walk rendered with --rolling-shutter --jitter-ms 2 --drop-fraction 0.04
+    --survey-sigma-cm 1.5 --survey-sigma-deg 1.5 had the conditions of a clear-weather one in its row
+    (the session's notes: seconds, lux, speed and seed only)."""
+    walk = tmp_path / "field"
+    shutil.copytree(WALK, walk, ignore=shutil.ignore_patterns("*.npz"))
+    info = json.loads((walk / "session.json").read_text())
+    info["simulation"]["config"] |= {
+        "rolling_shutter": True,
+        "timing": {"jitter_s": 0.002, "drop_fraction": 0.04, "bursts_per_min": 2.0},
+        "survey": {"sigma_m": 0.015, "sigma_deg": 1.5, "stated": False},
+        "missing_fraction": 0.1,
+        "unmapped": 20,
+        "sensor_preset": "ov5647",
+    }
+    (walk / "session.json").write_text(json.dumps(info))
+    assert main(["eval", "--walks", str(WALK), str(walk), "--modes", "full", "-o", str(tmp_path / "o"), "--quiet"]) == 0
+    plain, field = (r["conditions"] for r in rows_of(tmp_path / "o"))
+    assert plain == "tagloc simulate: 2 s at 120 lux, 1.3 m/s, seed 4"
+    assert field == (
+        "tagloc simulate: 2 s at 120 lux, 1.3 m/s, seed 4, rolling shutter, jitter 2 ms, drops 4% + 2 bursts/min,"
+        " survey 1.5 cm 1.5 deg, 10% missing, 20 unmapped, sensor ov5647"
+    )
+    assert field in capsys.readouterr().out

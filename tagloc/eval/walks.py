@@ -10,7 +10,8 @@ Wrong IDs: a session from tagloc's simulator carries its per-frame truth of whic
 in the image (``groundtruth_frames.jsonl``), and is checked against it; any other session is checked
 by pose (:func:`tagloc.eval.evaluate.wrong_id_fixes_by_pose`: a fix placed further from the ground
 truth than half the map's sticker spacing named the wrong sticker). The table's conditions column
-gives each session's ``session.json`` notes.
+gives each session's ``session.json`` notes, with the field conditions a simulated walk was
+rendered with (:func:`session_conditions`).
 """
 
 from __future__ import annotations
@@ -53,6 +54,43 @@ def find_sessions(paths: list[Path]) -> list[Path]:
             raise InputError(f"{p}: the same session is named twice")
         seen.add(real)
     return found
+
+
+def _number(d: dict, key: str) -> float:
+    """``d[key]`` as a finite number, else 0 (absent, or not a number: another simulator's file)."""
+    v = d.get(key) if isinstance(d, dict) else None
+    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) else 0.0
+
+
+def session_conditions(notes: str, extra: dict) -> str:
+    """A walk's conditions for the table: its ``session.json`` notes, and for a session from tagloc's
+    simulator the conditions its notes leave out and the presets' rows name (``extra`` is
+    ``session.json`` beyond its standard fields; its ``simulation.config`` is what the walk was
+    rendered with): otherwise a field walk's row reads as a clear-weather one."""
+    sim = extra.get("simulation") if isinstance(extra, dict) else None
+    cfg = sim.get("config") if isinstance(sim, dict) else None
+    if not isinstance(cfg, dict):
+        return notes
+    timing, survey = cfg.get("timing") or {}, cfg.get("survey") or {}
+    parts = [notes]
+    if cfg.get("rolling_shutter") is True:
+        parts.append("rolling shutter")
+    if _number(timing, "jitter_s"):
+        parts.append(f"jitter {1e3 * _number(timing, 'jitter_s'):g} ms")
+    if _number(timing, "drop_fraction") or _number(timing, "bursts_per_min"):
+        parts.append(
+            f"drops {100 * _number(timing, 'drop_fraction'):g}% + {_number(timing, 'bursts_per_min'):g} bursts/min"
+        )
+    if _number(survey, "sigma_m") or _number(survey, "sigma_deg"):
+        stated = " (stated)" if survey.get("stated") is True else ""
+        parts.append(f"survey {100 * _number(survey, 'sigma_m'):g} cm {_number(survey, 'sigma_deg'):g} deg{stated}")
+    if _number(cfg, "missing_fraction") or _number(cfg, "unmapped"):
+        parts.append(f"{100 * _number(cfg, 'missing_fraction'):g}% missing, {_number(cfg, 'unmapped'):g} unmapped")
+    if cfg.get("sensor_preset") not in (None, "standard"):
+        parts.append(f"sensor {cfg['sensor_preset']}")
+    if _number(cfg, "scale") not in (0.0, 1.0):
+        parts.append(f"resolution x{_number(cfg, 'scale'):g}")
+    return ", ".join(str(p) for p in parts)
 
 
 def walk_names(sessions: list[Path]) -> list[str]:
@@ -110,7 +148,7 @@ def score_walks(paths: list[Path], out: Path, modes: tuple[str, ...], progress: 
     for path, name, reader in tqdm(
         list(zip(sessions, walk_names(sessions), readers)), desc="eval", unit="session", disable=not progress
     ):
-        conditions = reader.info.notes or reader.info.source
+        conditions = session_conditions(reader.info.notes or reader.info.source, reader.info.extra)
         for mode in modes:
             row, session, log, gt = score_session(path, mode, progress)
             rows.append({"session": name, "path": str(path), "conditions": conditions, **row})
