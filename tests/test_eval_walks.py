@@ -289,3 +289,20 @@ def test_a_simulated_walks_row_names_the_field_conditions_it_was_rendered_with(t
         " survey 1.5 cm 1.5 deg, 10% missing, 20 unmapped, sensor ov5647"
     )
     assert field in capsys.readouterr().out
+
+
+def test_a_frame_the_localiser_skipped_counts_as_a_frame_without_a_pose(tmp_path):
+    """Found by a review: a frame that could not be read kept the filter's prediction in the run's
+    log, and eval scored it as a pose of that frame (covered, within 10 cm), though a replay does not
+    publish it: with 10 of a walk's frames corrupt, coverage and the share within 10 cm of all frames
+    both read 100 %."""
+    walk = recorded_copy(tmp_path / "w")
+    jpgs = sorted((walk / "frames").glob("*.jpg"))
+    for jpg in jpgs[30:40]:
+        jpg.write_bytes(b"not a jpeg")
+    assert main(["eval", "--walks", str(walk), "--modes", "full", "-o", str(tmp_path / "o"), "--quiet"]) == 0
+    (row,) = rows_of(tmp_path / "o")
+    n = len(jpgs)
+    assert row["counts"]["skipped_frames"] == 10 and row["frames_run"] == row["frames_all"] == n
+    assert row["coverage"] == pytest.approx((n - 10) / n, abs=1e-9)
+    assert row["frames"] == n - 10 and row["within_10cm_all"] == pytest.approx((n - 10) / n, abs=1e-9)
