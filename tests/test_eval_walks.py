@@ -306,3 +306,24 @@ def test_a_frame_the_localiser_skipped_counts_as_a_frame_without_a_pose(tmp_path
     assert row["counts"]["skipped_frames"] == 10 and row["frames_run"] == row["frames_all"] == n
     assert row["coverage"] == pytest.approx((n - 10) / n, abs=1e-9)
     assert row["frames"] == n - 10 and row["within_10cm_all"] == pytest.approx((n - 10) / n, abs=1e-9)
+
+
+def test_each_walks_row_gives_its_nees_bounds_and_verdict(tmp_path, capsys):
+    """Found by a review: a walk's row gave its mean NEES alone, so whether a walk was overconfident
+    by its own effective-sample bounds (the README's "no walk overconfident") could not be read from
+    tagloc eval's output. The bundled 2 s walk is one 5 s block: too short to judge."""
+    from tagloc.eval.evaluate import format_table, summarise
+
+    assert main(["eval", "--walks", str(WALK), "--modes", "full", "-o", str(tmp_path / "o"), "--quiet"]) == 0
+    (row,) = rows_of(tmp_path / "o")
+    assert row["nees_verdict"] == "too short"
+    assert f"| {row['nees_mean']:.2f} (one 5 s block: too short) |" in capsys.readouterr().out
+    # A walk of three blocks whose errors are twice what it states: overconfident by its own bounds.
+    row |= {
+        "nees_blocks": [[150, 600.0, 3000.0], [150, 570.0, 2800.0], [150, 630.0, 3200.0]],
+        "nees_mean": 4.0,
+        "nees_bounds_95_effective": [1.5, 2.6],
+        "nees_verdict": "overconfident",
+    }
+    table = format_table([row], summarise([row]))
+    assert "| 4.00 [1.50, 2.60] overconfident |" in table, table

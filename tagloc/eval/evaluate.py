@@ -483,6 +483,8 @@ def score_session(
         "nees_blocks": nees_blocks(e.stamps, e.nees).tolist(),
         "counts": log.counts,
     }
+    test = nees_test(np.array(row["nees_blocks"], float))  # the walk judged by its own bounds
+    row |= {"nees_bounds_95_effective": list(test.bounds_effective), "nees_verdict": test.verdict}
     return row, session, log, gt
 
 
@@ -611,7 +613,8 @@ def format_table(rows: list[dict], summary: dict) -> str:
     """The terminal/Markdown table of per-session and overall figures."""
     head = (
         "| session | mode | conditions | RMSE cm | median cm | p95 cm | max cm | heading deg | <10 cm | <25 cm |"
-        " fixes (by source) | rejected | wrong IDs | NEES | covered | <10 cm of all frames |"
+        " fixes (by source) | rejected | wrong IDs | NEES [95% bounds (effective)] verdict | covered |"
+        " <10 cm of all frames |"
     )
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in rows:
@@ -620,17 +623,27 @@ def format_table(rows: list[dict], summary: dict) -> str:
             f"| {r['session']} | {r['mode']} | {_conditions(r)} |"
             f" {100 * r['rmse_m']:.1f} | {100 * r['median_m']:.1f} | {100 * r['p95_m']:.1f} | {100 * r['max_m']:.1f} |"
             f" {r['heading_rmse_deg']:.2f} | {100 * r['within_10cm']:.0f}% | {100 * r['within_25cm']:.0f}% |"
-            f" {r['fixes']} ({src}) | {r['rejected_fixes']} | {r['wrong_id_fixes']} | {r['nees_mean']:.2f} |"
+            f" {r['fixes']} ({src}) | {r['rejected_fixes']} | {r['wrong_id_fixes']} | {_nees_cell(r)} |"
             f" {100 * r['coverage']:.0f}% | {100 * r['within_10cm_all']:.1f}% |"
         )
     for mode, s in summary.items():
         lines.append(
             f"| **all** | {mode} | | **{100 * s['rmse_m']:.1f}** | | | | {s['heading_rmse_deg']:.2f} |"
             f" {_percent(s['within_10cm'])} | {_percent(s['within_25cm'])} | {s['fixes']} | {s['rejected_fixes']} |"
-            f" **{s['wrong_id_fixes']}** | {s['nees_mean']:.2f} | {100 * s['coverage']:.0f}% |"
+            f" **{s['wrong_id_fixes']}** | {_nees_cell(s)} | {100 * s['coverage']:.0f}% |"
             f" {100 * s['within_10cm_all']:.1f}% |"
         )
     return "\n".join(lines)
+
+
+def _nees_cell(r: dict) -> str:
+    """Mean NEES with its effective-sample bounds and verdict (a row from before them: the mean alone)."""
+    verdict = r.get("nees_verdict")
+    if verdict is None or verdict == "no data":
+        return f"{r['nees_mean']:.2f}"
+    if verdict == "too short":
+        return f"{r['nees_mean']:.2f} (one {NEES_BLOCK_S:g} s block: too short)"
+    return f"{r['nees_mean']:.2f} {bounds_text(r['nees_bounds_95_effective'])} {verdict}"
 
 
 def _percent(share: float) -> str:
