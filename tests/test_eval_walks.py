@@ -327,3 +327,17 @@ def test_each_walks_row_gives_its_nees_bounds_and_verdict(tmp_path, capsys):
     }
     table = format_table([row], summarise([row]))
     assert "| 4.00 [1.50, 2.60] overconfident |" in table, table
+
+
+def test_results_json_is_standard_json_with_null_for_figures_it_cannot_give(tmp_path):
+    """Found by a review: results.json held Python's NaN token (a walk too short for NEES bounds,
+    one with nothing scored), which strict JSON parsers (JavaScript's JSON.parse, serde_json) refuse."""
+
+    def refuse(token):
+        raise ValueError(f"not JSON: {token}")
+
+    assert main(["eval", "--walks", str(WALK), "--modes", "full", "-o", str(tmp_path / "o"), "--quiet"]) == 0
+    doc = json.loads((tmp_path / "o" / "results.json").read_text(), parse_constant=refuse)
+    assert doc["summary"]["full"]["nees_verdict"] == "too short"
+    assert doc["summary"]["full"]["nees_bounds_95_effective"] == [None, None]
+    assert 0 < doc["rows"][0]["rmse_m"] < 0.03

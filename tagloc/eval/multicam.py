@@ -234,8 +234,10 @@ def run_two_camera(cfg: MultiCamConfig | None = None) -> str:
     summary = summarise(rows)
     table = format_rows(rows, summary)
     plot = plot_errors(rows, out / "two_camera.png")
+    from tagloc.eval.evaluate import write_json
+
     slim = [{k: v for k, v in r.items() if k != "errors"} for r in rows]
-    (out / "results.json").write_text(json.dumps({"rows": slim, "summary": summary}, indent=1, default=float))
+    write_json(out / "results.json", {"rows": slim, "summary": summary})
     conditions = (
         f"{len(cfg.seeds)} walks (seeds {', '.join(map(str, cfg.seeds))}) of {cfg.seconds:g} s over"
         f" {Path(cfg.map_path).name}, {cfg.fps:g} fps per camera, {cfg.lux:g} lux"
