@@ -341,3 +341,20 @@ def test_results_json_is_standard_json_with_null_for_figures_it_cannot_give(tmp_
     assert doc["summary"]["full"]["nees_verdict"] == "too short"
     assert doc["summary"]["full"]["nees_bounds_95_effective"] == [None, None]
     assert 0 < doc["rows"][0]["rmse_m"] < 0.03
+
+
+def test_the_two_camera_and_variant_scoring_leaves_skipped_frames_out_too(tmp_path):
+    """multicam.score_run (the two-camera preset, benchmarks/eval_variants.py) scored a skipped
+    frame's prediction as a pose, as eval's rows did."""
+    from tagloc.eval.multicam import score_run
+    from tagloc.io.session import SessionReader
+    from tagloc.pipeline.run import run_session
+
+    walk = recorded_copy(tmp_path / "w")
+    jpgs = sorted((walk / "frames").glob("*.jpg"))
+    for jpg in jpgs[30:40]:
+        jpg.write_bytes(b"not a jpeg")
+    session = SessionReader(walk)
+    log = run_session(session)
+    assert log.skipped == 10 and log.valid.all() and log.posed.sum() == len(jpgs) - 10
+    assert score_run(session, log)["coverage"] == pytest.approx((len(jpgs) - 10) / len(jpgs), abs=1e-9)

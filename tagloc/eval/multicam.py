@@ -120,12 +120,13 @@ def make_walk(cfg: MultiCamConfig, seed: int) -> Path:
 def score_run(session: SessionReader, log: RunLog) -> dict:
     """Accuracy, NEES and counters of one run against the session's ground truth."""
     gt = session.groundtruth()
-    e = trajectory_errors(log.stamps[log.valid], log.poses[log.valid], log.covs[log.valid], *gt)
+    v = log.posed  # a skipped frame's row is the filter's prediction, not a pose (as tagloc eval scores it)
+    e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *gt)
     m = error_metrics(e)
     return {
         "frames": len(log.stamps),
         "frames_in_gt": frames_in_span(log.stamps, gt[0]),  # the frames the ground truth can score
-        "coverage": float(np.mean(log.valid)) if len(log.valid) else 0.0,
+        "coverage": float(np.mean(v)) if len(v) else 0.0,
         "fixes": len(log.fixes),
         "rmse_m": m["rmse_m"],
         "max_m": m["max_m"],
