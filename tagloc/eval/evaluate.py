@@ -442,7 +442,7 @@ def score_session(
     loc = make_localiser(mode, session.map, session.rig, map_path=session.path / "map.csv")
     log = run_session(session, localiser=loc, progress=progress)
     log.require_frames(path)  # nothing localised: no figures to report as if something had been
-    v = log.posed  # (a skipped frame's row is the filter's prediction: a frame without a pose, a miss)
+    v = log.valid  # (a skipped frame has none: a frame without a pose, a miss)
     e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *gt)
     m = error_metrics(e)
     in_gt = frames_in_span(log.stamps, gt[0])
@@ -785,7 +785,7 @@ def plot_run(
 
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(13, 5), gridspec_kw={"width_ratios": [1.3, 1]})
     ax0.scatter(session.map.xy[:, 0], session.map.xy[:, 1], s=6, c="0.6", marker="s", label="stickers")
-    v = log.posed
+    v = log.valid
     if gt is not None:
         gx = np.array([T[0, 3] for T in gt[1]])
         gy = np.array([T[1, 3] for T in gt[1]])

@@ -120,7 +120,7 @@ def make_walk(cfg: MultiCamConfig, seed: int) -> Path:
 def score_run(session: SessionReader, log: RunLog) -> dict:
     """Accuracy, NEES and counters of one run against the session's ground truth."""
     gt = session.groundtruth()
-    v = log.posed  # a skipped frame's row is the filter's prediction, not a pose (as tagloc eval scores it)
+    v = log.valid  # (a skipped frame has none: the filter's prediction is no pose of it)
     e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *gt)
     m = error_metrics(e)
     return {

@@ -66,30 +66,37 @@ def session_conditions(notes: str, extra: dict) -> str:
     """A walk's conditions for the table: its ``session.json`` notes, and for a session from tagloc's
     simulator the conditions its notes leave out and the presets' rows name (``extra`` is
     ``session.json`` beyond its standard fields; its ``simulation.config`` is what the walk was
-    rendered with): otherwise a field walk's row reads as a clear-weather one."""
+    rendered with): otherwise a field walk's row reads as a clear-weather one. Today's simulator
+    names them in the notes already (:meth:`tagloc.sim.simulate.SimConfig.describe`); sessions
+    rendered before it did get them here, each once."""
     sim = extra.get("simulation") if isinstance(extra, dict) else None
     cfg = sim.get("config") if isinstance(sim, dict) else None
     if not isinstance(cfg, dict):
         return notes
     timing, survey = cfg.get("timing") or {}, cfg.get("survey") or {}
-    parts = [notes]
-    if cfg.get("rolling_shutter") is True:
-        parts.append("rolling shutter")
-    if _number(timing, "jitter_s"):
-        parts.append(f"jitter {1e3 * _number(timing, 'jitter_s'):g} ms")
-    if _number(timing, "drop_fraction") or _number(timing, "bursts_per_min"):
-        parts.append(
-            f"drops {100 * _number(timing, 'drop_fraction'):g}% + {_number(timing, 'bursts_per_min'):g} bursts/min"
-        )
-    if _number(survey, "sigma_m") or _number(survey, "sigma_deg"):
-        stated = " (stated)" if survey.get("stated") is True else ""
-        parts.append(f"survey {100 * _number(survey, 'sigma_m'):g} cm {_number(survey, 'sigma_deg'):g} deg{stated}")
-    if _number(cfg, "missing_fraction") or _number(cfg, "unmapped"):
-        parts.append(f"{100 * _number(cfg, 'missing_fraction'):g}% missing, {_number(cfg, 'unmapped'):g} unmapped")
-    if cfg.get("sensor_preset") not in (None, "standard"):
-        parts.append(f"sensor {cfg['sensor_preset']}")
-    if _number(cfg, "scale") not in (0.0, 1.0):
-        parts.append(f"resolution x{_number(cfg, 'scale'):g}")
+    named = [
+        ("rolling shutter", cfg.get("rolling_shutter") is True, "rolling shutter"),
+        ("jitter", _number(timing, "jitter_s"), f"jitter +-{1e3 * _number(timing, 'jitter_s'):g} ms"),
+        (
+            "drops",
+            _number(timing, "drop_fraction") or _number(timing, "bursts_per_min"),
+            f"drops {100 * _number(timing, 'drop_fraction'):g}% + {_number(timing, 'bursts_per_min'):g} bursts/min",
+        ),
+        (
+            "survey",
+            _number(survey, "sigma_m") or _number(survey, "sigma_deg"),
+            f"survey {100 * _number(survey, 'sigma_m'):g} cm {_number(survey, 'sigma_deg'):g} deg"
+            + (" stated" if survey.get("stated") is True else ""),
+        ),
+        (
+            "missing",
+            _number(cfg, "missing_fraction") or _number(cfg, "unmapped"),
+            f"{100 * _number(cfg, 'missing_fraction'):g}% missing, {_number(cfg, 'unmapped'):g} unmapped",
+        ),
+        ("sensor", cfg.get("sensor_preset") not in (None, "standard"), f"sensor {cfg.get('sensor_preset')}"),
+        ("resolution", _number(cfg, "scale") not in (0.0, 1.0), f"resolution x{_number(cfg, 'scale'):g}"),
+    ]
+    parts = [notes] + [text for word, on, text in named if on and word not in notes]
     return ", ".join(str(p) for p in parts)
 
 

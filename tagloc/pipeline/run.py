@@ -45,8 +45,6 @@ class RunLog:
             tracker (``TRACKER_STAGES``: predict, candidates, update, output) and in the floor odometry.
         skipped: frames the localiser skipped (unreadable, the wrong size, a refused time);
             first_skipped: why the first of them was, else None.
-        skipped_frames: (N,) bool, True for those frames: their row holds the filter's prediction,
-            not a pose of them (a replay does not publish it), so :attr:`posed` leaves them out.
     """
 
     stamps: np.ndarray
@@ -61,14 +59,6 @@ class RunLog:
     odometry_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     skipped: int = 0
     first_skipped: str | None = None
-    skipped_frames: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
-
-    @property
-    def posed(self) -> np.ndarray:
-        """(N,) bool: frames with a pose of their own, ``valid`` and not skipped."""
-        if len(self.skipped_frames) != len(self.valid):
-            return self.valid
-        return self.valid & ~self.skipped_frames
 
     def require_frames(self, source: object) -> None:
         """Refuse a run of ``source`` (a session, named in the message) none of whose frames could be
@@ -152,12 +142,10 @@ def run_session(
     fixes, rejected = [], []
     frame_t: dict[int, float] = {}  # frame index -> timestamp, for observations finished late
     skipped: list[str] = []
-    skipped_frames: list[bool] = []
     for res in iterate_results(session, loc, progress=progress, realtime=realtime):
         frame_t[res.index] = res.timestamp
         if res.skipped is not None:
             skipped.append(res.skipped)
-        skipped_frames.append(res.skipped is not None)
         out = res.output
         stamps.append(res.timestamp)
         poses.append(out.pose)
@@ -198,5 +186,4 @@ def run_session(
         np.array(odometry_ms),
         skipped=len(skipped),
         first_skipped=skipped[0] if skipped else None,
-        skipped_frames=np.array(skipped_frames, bool),
     )
