@@ -64,6 +64,8 @@ def test_preset_all_runs_both_and_prints_both_summaries(tmp_path, monkeypatch, c
         assert Scenario(**ev._scenario_fields(r)).sensor == r["sensor"]
     s = field["summary"]["full"]
     assert 0.0 <= s["within_10cm_all"] <= 1.0 and s["worst_rmse_m"] >= s["rmse_m"] - 1e-12
+    worst = max((r for r in field["rows"] if r["mode"] == "full"), key=lambda r: r["rmse_m"])
+    assert s["worst_walk"] == worst["session"] and f"({worst['session']})" in text
     assert all(isinstance(r["frames_before_sticker"], int) for r in field["rows"])
     assert 0.0 <= s["within_10cm_reachable"] <= 1.0
     assert (tmp_path / "standard" / "results.json").exists()

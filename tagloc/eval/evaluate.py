@@ -572,6 +572,7 @@ def summarise(rows: list[dict]) -> dict:
             "within_10cm_reachable": _reachable(rs),
             # (max, not nanmax: a mode no walk of which had a scored frame has no worst walk, and no warning)
             "worst_rmse_m": max((r["rmse_m"] for r in rs if r["frames"] > 0), default=math.nan),
+            "worst_walk": max((r for r in rs if r["frames"] > 0), key=lambda r: r["rmse_m"], default={}).get("session"),
             "tracker_ms_median": float(np.median([r["tracker_ms_median"] for r in rs])),
             "tracker_ms_p95": float(np.median([r["tracker_ms_p95"] for r in rs])),
             "odometry_ms_median": float(np.median([r["odometry_ms_median"] for r in rs])),
@@ -693,8 +694,9 @@ def format_summary(preset: str, summary: dict) -> str:
         # Two decimals: a bound of 98.97 % must not print as the 99 % goal.
         reach = s.get("within_10cm_reachable", math.nan)
         bounds = "-" if s["nees_verdict"] == "no data" else bounds_text(s["nees_bounds_95_effective"])
+        worst = f"{100 * s['worst_rmse_m']:.2f}" + (f" ({s['worst_walk']})" if s.get("worst_walk") else "")
         lines.append(
-            f"| {mode} | {100 * s['rmse_m']:.2f} | {100 * s['worst_rmse_m']:.2f} | {100 * s['within_10cm_all']:.1f}% |"
+            f"| {mode} | {100 * s['rmse_m']:.2f} | {worst} | {100 * s['within_10cm_all']:.1f}% |"
             f" {'-' if math.isnan(reach) else f'{100 * reach:.2f}%'} |"
             f" {s['heading_rmse_deg']:.2f} | {s['nees_mean']:.2f} | {bounds} |"
             f" {s['nees_verdict']} |"

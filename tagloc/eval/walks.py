@@ -179,6 +179,6 @@ def score_walks(paths: list[Path], out: Path, modes: tuple[str, ...], progress: 
         "",
         "## Summary",
         "",
-        format_summary(f"{len(sessions)} walks", res["summary"]),
+        format_summary(f"{len(sessions)} walk{'s' if len(sessions) != 1 else ''}", res["summary"]),
     ]
     return "\n".join(parts)
