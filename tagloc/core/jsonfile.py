@@ -1,9 +1,13 @@
-"""Reading a JSON file the user gave, every way it can be wrong turned into one line naming the file."""
+"""Reading a JSON file the user gave, every way it can be wrong turned into one line naming the file;
+writing one as standard JSON (null for a figure that is not a number)."""
 
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
+
+import numpy as np
 
 from tagloc.core.errors import InputError
 
@@ -26,3 +30,22 @@ def read_json(path: Path, error: type[InputError], what: str = "") -> object:
     except ValueError as exc:
         # Valid JSON that Python refuses to convert: an integer beyond its digit limit (4300 by default).
         raise error(f"{path}: not usable JSON ({str(exc).split(':')[0]})") from None
+
+
+def write_json(path: Path, doc: object) -> None:
+    """Write ``doc`` as standard JSON: numpy numbers as plain ones, and NaN or infinite figures (a
+    walk with nothing scored, a run too short for NEES bounds) as null, which JSON has for them
+    (Python's NaN token is refused by strict parsers: JavaScript's, Go's, Rust's serde_json)."""
+    path.write_text(json.dumps(_json_ready(doc), indent=1, allow_nan=False) + "\n", encoding="utf-8")
+
+
+def _json_ready(value: object) -> object:
+    if isinstance(value, dict):
+        return {k: _json_ready(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_ready(v) for v in value]
+    if isinstance(value, (np.floating, np.integer, np.bool_)):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value

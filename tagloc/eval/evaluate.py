@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from tagloc.core.errors import InputError
+from tagloc.core.jsonfile import write_json
 from tagloc.core.stickermap import StickerMap
 from tagloc.eval.baselines import MODES, make_localiser
 from tagloc.eval.consistency import NEES_BLOCK_S, bounds_text, nees_blocks, nees_test
@@ -514,25 +515,6 @@ def write_results(rows: list[dict], plots: list[Path], out: Path) -> dict:
     write_json(out / "results.json", {"rows": rows, "summary": summary})
     (out / "report.md").write_text(report_markdown(rows, summary, plots, out), encoding="utf-8")
     return {"rows": rows, "summary": summary, "report": str(out / "report.md")}
-
-
-def write_json(path: Path, doc: dict) -> None:
-    """Write ``doc`` as standard JSON: numpy numbers as plain ones, and NaN or infinite figures (a
-    walk with nothing scored, a run too short for NEES bounds) as null, which JSON has for them
-    (Python's NaN token is refused by strict parsers: JavaScript's, Go's, Rust's serde_json)."""
-    path.write_text(json.dumps(_json_ready(doc), indent=1, allow_nan=False))
-
-
-def _json_ready(value: object) -> object:
-    if isinstance(value, dict):
-        return {k: _json_ready(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_ready(v) for v in value]
-    if isinstance(value, (np.floating, np.integer, np.bool_)):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
 
 
 def _pooled(rows: list[dict], key: str, squared: bool = False) -> float:

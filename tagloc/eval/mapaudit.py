@@ -22,7 +22,6 @@ the angle where the lens's distortion polynomial folds back into the image
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -30,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from tagloc.core.geometry import invert, planar_from_T, planar_T, wrap_angle
+from tagloc.core.jsonfile import write_json
 from tagloc.core.sticker import OUTER_CORNERS
 from tagloc.core.stickermap import StickerMap, save_map
 from tagloc.eval.mapobs import FrameRecord, WalkLog, collect_walks
@@ -608,9 +608,9 @@ def write_audit(result: AuditResult, out_dir: str | Path, map_name: str) -> Path
         "walk_tracked_frames": result.walk_tracked,
         "unchecked_walks": result.unchecked,
         "counts": {kind: len(result.of(kind)) for kind in KIND_TITLES},
-        "findings": [_plain({**asdict(f), "yaw_deg": math.degrees(f.yaw)}) for f in result.findings],
+        "findings": [{**asdict(f), "yaw_deg": math.degrees(f.yaw)} for f in result.findings],
     }
-    (out / "audit.json").write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
+    write_json(out / "audit.json", doc)
     um = [f for f in result.of("unmapped") if math.isfinite(f.x)]  # rows need a position
     if um:
         save_map(
@@ -625,19 +625,6 @@ def write_audit(result: AuditResult, out_dir: str | Path, map_name: str) -> Path
             out / "unmapped.csv",
         )
     return out / "report.md"
-
-
-def _plain(value: object) -> object:
-    """JSON-ready: numpy scalars as Python numbers, NaN as null."""
-    if isinstance(value, dict):
-        return {k: _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    if isinstance(value, (np.floating, np.integer)):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
 
 
 def audit_sessions(

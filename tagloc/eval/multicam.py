@@ -235,7 +235,7 @@ def run_two_camera(cfg: MultiCamConfig | None = None) -> str:
     summary = summarise(rows)
     table = format_rows(rows, summary)
     plot = plot_errors(rows, out / "two_camera.png")
-    from tagloc.eval.evaluate import write_json
+    from tagloc.core.jsonfile import write_json
 
     slim = [{k: v for k, v in r.items() if k != "errors"} for r in rows]
     write_json(out / "results.json", {"rows": slim, "summary": summary})
