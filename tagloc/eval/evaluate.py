@@ -727,7 +727,8 @@ def format_notes(summary: dict) -> str:
     parts += ["", "## Timing (per frame)", ""]
     for mode, s in summary.items():
         parts.append(
-            f"- {mode}: median frame {s['frame_ms_median']:.1f} ms, of which tracker {s['tracker_ms_median']:.2f} ms"
+            f"- {mode} (each figure the median over the walks of each walk's own):"
+            f" median frame {s['frame_ms_median']:.1f} ms, of which tracker {s['tracker_ms_median']:.2f} ms"
             f" (p95 {s['tracker_ms_p95']:.2f} ms) and floor odometry {s['odometry_ms_median']:.2f} ms;"
             f" tracking in all (tracker + odometry, per frame) {s['tracking_ms_median']:.2f} ms"
             f" (p95 {s['tracking_ms_p95']:.2f} ms; target: at most 2 ms over the per-frame stage)"
