@@ -19,6 +19,7 @@ from synth import concrete, sticker_pose, synth_frame  # noqa: E402
 from tagloc.cli import main as cli_main  # noqa: E402
 from tagloc.core.camera import default_camera  # noqa: E402
 from tagloc.core.errors import InputError  # noqa: E402
+from tagloc.core.stickermap import load_map  # noqa: E402
 from tagloc.core.types import Detection, IdSource  # noqa: E402
 from tagloc.vision.identify import IdResult, identify  # noqa: E402
 from tagloc.vision.psf import motion_kernel  # noqa: E402
@@ -250,6 +251,21 @@ def test_cli_builds_the_bank(tmp_path, capsys):
     bad.write_text("id,x_m,y_m,yaw_deg\n1,0,0,0\nx,1,1,1\n")
     assert cli_main(["refs", "build", str(bad), "--quiet"]) == 2
     assert "bad.csv" in capsys.readouterr().err
+
+
+def test_a_bank_file_naming_the_map_is_refused_and_the_map_kept(tmp_path, capsys):
+    """``refs build site.csv -o site.csv`` had written the bank over the map (exit 0), and every
+    later run refused the map as not UTF-8 text."""
+    m = tmp_path / "site.csv"
+    write_map(m, [5, 6])
+    before = m.read_bytes()
+    assert cli_main(["refs", "build", str(m), "--quiet", "-o", str(m)]) == 2
+    cap = capsys.readouterr()
+    assert cap.out == "" and cap.err == f"tagloc refs: error: {m}: is the map itself; the bank would overwrite it\n"
+    assert m.read_bytes() == before
+    with pytest.raises(InputError, match="is the map itself"):
+        load_or_build_refs(m, progress=False, cache_path=tmp_path / "." / "site.csv")
+    assert m.read_bytes() == before and load_map(m).ids.tolist() == [5, 6]
 
 
 def test_an_asked_for_bank_file_that_cannot_be_written_is_an_error(tmp_path, capsys, monkeypatch):

@@ -333,7 +333,7 @@ def load_or_build_refs(
     The map is validated first (:func:`tagloc.core.stickermap.load_map`), so a bad map fails here with
     its file and line. A stale, corrupt or foreign cache is silently replaced. A ``cache_path`` given
     is an output asked for: failing to write it is an :class:`InputError` naming it (checked for a
-    missing directory before the build).
+    missing directory before the build). A cache that is the map file itself is refused, never written.
     """
     map_path = Path(map_path)
     params = params or BankParams()
@@ -342,6 +342,9 @@ def load_or_build_refs(
     cache = Path(cache_path) if cache_path is not None else default_cache_path(map_path)
     if cache_path is not None and not cache.parent.is_dir():
         raise InputError(f"{cache}: cannot write (no directory {cache.parent})")
+    if cache.exists() and cache.samefile(map_path):
+        # ``refs build site.csv -o site.csv`` had replaced the map by the bank built from it.
+        raise InputError(f"{cache}: is the map itself; the bank would overwrite it")
     if not rebuild and cache.exists():
         try:
             bank = load_refs(cache)
