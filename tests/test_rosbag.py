@@ -329,6 +329,34 @@ def test_cli_session_from_bag(written, capsys):
     assert len(err) == 1 and "no topic '/nope'" in err[0]
 
 
+def test_a_session_from_a_bag_may_not_overwrite_the_files_it_reads(written, capsys):
+    """``-o site`` with ``--map site/map.csv --rig site/rig.json`` had rewritten the map at 0.1 mm and
+    replaced the site's calibration by the bag's CameraInfo, exit 0."""
+    from tagloc.cli import main
+
+    site = written["tmp"] / "site"
+    site.mkdir()
+    for name in ("rig.json", "camera.yaml"):
+        shutil.copy(WALK / name, site / name)
+    rows = [r.split(",") for r in (WALK / "map.csv").read_text().splitlines()]
+    # A survey to the micrometre (x 1.9544 -> 1.954412): the session's map.csv holds 0.1 mm.
+    lines = [",".join(rows[0])] + [",".join([r[0], r[1] + "12", *r[2:]]) for r in rows[1:]]
+    (site / "map.csv").write_text("\n".join(lines) + "\n")
+    before = {p.name: p.read_bytes() for p in site.iterdir()}
+    base = ["session", "from-bag", str(written["bag"]), "--topic", IMAGE_TOPIC, "-o", str(site), "--quiet"]
+    for given, clash in [
+        (["--map", str(site / "map.csv"), "--rig", str(site / "rig.json")], "map.csv"),
+        (["--map", str(WALK / "map.csv"), "--rig", str(site / "rig.json")], "rig.json"),
+        (["--map", str(WALK / "map.csv"), "--calibration", str(site / "camera.yaml")], "camera.yaml"),
+    ]:
+        assert main([*base, *given]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err == [
+            f"tagloc session: error: {site / clash}: is one of the conversion's inputs, which the session would overwrite"
+        ]
+    assert {p.name: p.read_bytes() for p in site.iterdir()} == before
+
+
 def test_cli_replay_to_a_bag_and_back(tmp_path, capsys):
     from tagloc.cli import main
 

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -39,10 +40,19 @@ import numpy as np
 from tagloc.core.camera import Camera, check_calibration, distortion_model_problem, load_calibration
 from tagloc.core.errors import BackendUnavailable, InputError, SessionError
 from tagloc.core.geometry import planar_T
-from tagloc.core.rig import Rig, default_rig, load_rig
+from tagloc.core.rig import Rig, default_rig, load_rig, local_calibration_names
 from tagloc.core.stickermap import StickerMap, load_map
 from tagloc.core.types import Frame, FrameResult, Observation, TrackState
-from tagloc.io.session import SessionInfo, SessionWriter, after_last, decode_grey
+from tagloc.io.session import (
+    FRAMES_CSV,
+    MAP_FILE,
+    RIG_FILE,
+    SESSION_JSON,
+    SessionInfo,
+    SessionWriter,
+    after_last,
+    decode_grey,
+)
 from tagloc.io.sinks import SCHEMA, PoseMessage, Sink
 
 # ROS asks for a huge variance on axes that are not measured (z, roll, pitch of a planar pose), so that
@@ -640,6 +650,7 @@ def bag_to_session(
     from tqdm import tqdm
 
     src = BagSession(bag, topic, map_path, rig_path, calibration, info_topic)
+    _check_inputs_kept(Path(out), src, rig_path, calibration)
     written = skipped = 0
     last = -math.inf  # the last written frame's time
     last_t = -math.inf  # the last stamp a replay of the bag takes (the localiser refuses one not after it)
@@ -664,6 +675,20 @@ def bag_to_session(
         # A session listing no frames is refused by every reader: say so now, not at its replay.
         raise SessionError(f"{src.path}: none of the {skipped} frames of {topic} could be converted ({first_skip})")
     return written, skipped
+
+
+def _check_inputs_kept(out: Path, src: BagSession, rig_path: str | Path | None, calibration: str | Path | None) -> None:
+    """Refuse a session directory ``out`` whose files would be written over one the conversion reads:
+    ``-o site`` with ``--map site/map.csv`` had rewritten the map at the session's 0.1 mm, and the
+    calibration the rig names replaced by the bag's CameraInfo."""
+    inputs = [src.map_path, rig_path, calibration]
+    if rig_path is not None:
+        inputs += [Path(rig_path).parent / c.calibration_file for c in src.rig.cameras]
+    read = {os.path.realpath(p) for p in inputs if p is not None}
+    names = [SESSION_JSON, MAP_FILE, RIG_FILE, FRAMES_CSV, *local_calibration_names(src.rig)]
+    for name in names:
+        if os.path.realpath(out / name) in read:
+            raise SessionError(f"{out / name}: is one of the conversion's inputs, which the session would overwrite")
 
 
 def _convert(w: SessionWriter, i: int, t: float, msg: object, msgtype: str) -> bool:
