@@ -202,3 +202,40 @@ def test_a_dropout_in_the_ground_truth_is_not_scored_across():
     assert m["frames"] == kept == frames_in_span(est_t, gt_t) and m["rmse_m"] < 1e-4
     # Ground truth no denser than its gaps (one pose a second) is still interpolated.
     assert trajectory_metrics([0.5], [[0.0, 0.0, 0.0]], [np.eye(3)], [0.0, 1.0], gt_T[:2])["frames"] == 1
+
+
+def test_realtime_pacing_does_not_wait_out_a_clock_jump(monkeypatch):
+    """``replay --realtime`` over a session whose clock jumps (accepted and reported) waited the jump
+    out: an hour's jump slept an hour, one of 1e300 s stopped with an OverflowError from time.sleep.
+    Now pacing starts afresh after a step beyond CLOCK_JUMP_S, as live's does. A fake clock, no timing."""
+    import tagloc.pipeline.run as run
+    from tagloc.core.types import Frame
+
+    class Clock:
+        now = 0.0
+        slept: list[float] = []
+
+        def monotonic(self) -> float:
+            return self.now
+
+        def sleep(self, s: float) -> None:
+            self.slept.append(s)
+            self.now += s
+
+    clock = Clock()
+    monkeypatch.setattr(run, "time", clock)
+    stamps = [0.0, 0.1, 0.2, 3600.2, 3600.3, 1e300, 1e300 + 1e290]
+
+    class Source:
+        def frames(self):
+            return (Frame(i, t, None) for i, t in enumerate(stamps))
+
+    class Echo:
+        def process(self, frame):
+            return frame.timestamp
+
+    got = list(run._results(Source(), Echo(), progress=False, realtime=True))
+    assert got == stamps
+    # Each frame waited for its step from the one before, the jumps not at all.
+    assert clock.slept == pytest.approx([0.1, 0.1, 0.1])
+    assert clock.now == pytest.approx(0.3)

@@ -9,6 +9,7 @@ thing. Any :class:`tagloc.pipeline.localiser.FrameProcessor` runs: tagloc's
 from __future__ import annotations
 
 import contextlib
+import math
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -18,7 +19,7 @@ import numpy as np
 
 from tagloc.core.errors import SessionError
 from tagloc.core.types import FrameResult
-from tagloc.io.session import SessionReader
+from tagloc.io.session import CLOCK_JUMP_S, SessionReader
 from tagloc.pipeline.localiser import TRACKER_STAGES, FrameProcessor, Localiser, LocaliserConfig
 
 if TYPE_CHECKING:
@@ -110,11 +111,16 @@ def _results(
 
         it = tqdm(it, total=len(session), unit="frame", desc="replay", leave=False)
     start_wall, start_t = None, None
+    last_t = -math.inf
     for frame in it:
         if realtime:
             now = time.monotonic()
-            if start_wall is None:
+            if start_wall is None or frame.timestamp - last_t > CLOCK_JUMP_S:
+                # A gap in the recording is not waited out, as live's pacing does not: a session whose
+                # clock jumped an hour had the replay sleep an hour, one of 1e300 s stopped with an
+                # OverflowError from time.sleep.
                 start_wall, start_t = now, frame.timestamp
+            last_t = frame.timestamp
             delay = (frame.timestamp - start_t) - (now - start_wall)
             if delay > 0:
                 time.sleep(delay)
