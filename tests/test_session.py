@@ -157,6 +157,19 @@ def test_frames_csv_malformed_last_line_refused_unless_cut_short(tmp_path, rng, 
         assert list(SessionReader(tmp_path / "s").index) == [0, 1, 2, 3, 4]
 
 
+def test_frames_csv_saved_by_a_spreadsheet_reads_as_written(tmp_path, rng):
+    """A byte-order mark and CRLF line ends (a spreadsheet's "CSV UTF-8"): the session reads as before.
+    The mark had made the header a malformed frame line, the session refused."""
+    stamps = _write_session(tmp_path / "s", _images(rng))
+    csv_path = tmp_path / "s" / "frames.csv"
+    csv_path.write_bytes(b"\xef\xbb\xbf" + csv_path.read_bytes().replace(b"\n", b"\r\n"))
+    r = SessionReader(tmp_path / "s")
+    assert list(r.index) == list(range(N)) and np.array_equal(r.timestamps, stamps)
+    # Without a header, the mark is not part of the first index either.
+    csv_path.write_bytes(b"\xef\xbb\xbf" + b"".join(csv_path.read_bytes().splitlines(keepends=True)[1:]))
+    assert list(SessionReader(tmp_path / "s").index) == list(range(N))
+
+
 @pytest.mark.parametrize("content", ["", "index,timestamp_s\n", "index,timestamp_s\n\n", "index,timestamp_s\n0,1."])
 def test_frames_csv_listing_no_frames_refused(tmp_path, rng, content):
     csv_path = _session_with(tmp_path, rng, "frames.csv", content)

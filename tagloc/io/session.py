@@ -313,7 +313,9 @@ class SessionReader:
             return idx, idx / fps
         index, stamps, cams = [], [], []
         try:
-            lines = p.read_text(encoding="utf-8", errors="replace").splitlines(keepends=True)
+            # -sig: a spreadsheet's byte-order mark (a frames.csv sorted there, as a refusal advises) is
+            # fine, as in a map; it made the header line a malformed frame line.
+            lines = p.read_text(encoding="utf-8-sig", errors="replace").splitlines(keepends=True)
         except OSError as exc:
             raise SessionError(f"{p}: cannot read ({exc.strerror})") from exc
         if lines and not lines[-1].endswith("\n") and (self.path / SESSION_JSON).exists():
