@@ -170,6 +170,27 @@ def test_frames_csv_saved_by_a_spreadsheet_reads_as_written(tmp_path, rng):
     assert list(SessionReader(tmp_path / "s").index) == list(range(N))
 
 
+@pytest.mark.parametrize(
+    "content, line, why",
+    [
+        ("index,timestamp_s\n0,100.0\n1,100.1,0,0.003\n", 3, "want 'index,timestamp_s', got '1,100.1,0,0.003'"),
+        ("index,timestamp_ms\n0,0.0\n1,33.3\n", 1, "header is 'index,timestamp_ms', want "),
+        ("index,timestamp_s,exposure_s\n0,100.0,0\n", 1, "header is 'index,timestamp_s,exposure_s', want "),
+    ],
+)
+def test_frames_csv_with_columns_the_format_has_not_is_refused(tmp_path, rng, content, line, why):
+    """A column beyond index, timestamp and camera (read, then ignored) and a header naming other
+    columns (a time in ms read as seconds) were accepted; each is refused naming its line."""
+    csv_path = _session_with(tmp_path, rng, "frames.csv", content)
+    with pytest.raises(SessionError) as info:
+        SessionReader(tmp_path / "s")
+    assert str(info.value).startswith(f"{csv_path}:{line}: {why}")
+    # The format's own headers, in any case and spacing, still read.
+    for header in ("index,timestamp_s", "Index, Timestamp_s ,camera"):
+        csv_path.write_text(f"{header}\n0,100.0\n1,100.1\n")
+        assert list(SessionReader(tmp_path / "s").index) == [0, 1]
+
+
 @pytest.mark.parametrize("content", ["", "index,timestamp_s\n", "index,timestamp_s\n\n", "index,timestamp_s\n0,1."])
 def test_frames_csv_listing_no_frames_refused(tmp_path, rng, content):
     csv_path = _session_with(tmp_path, rng, "frames.csv", content)

@@ -210,6 +210,20 @@ def decode_grey(data: bytes) -> np.ndarray | None:
         return None
 
 
+#: frames.csv's columns; the camera only with several cameras (a session without it reads as camera 0).
+FRAMES_COLUMNS = ("index", "timestamp_s", "camera")
+
+
+def _check_frames_header(row: list[str], where: str) -> None:
+    """Refuse a frames.csv header naming other columns than the format's: one such as
+    ``index,timestamp_ms`` had its numbers read as seconds without a word."""
+    names = tuple(c.strip().lower() for c in row)
+    if names and names not in (FRAMES_COLUMNS[:2], FRAMES_COLUMNS):
+        raise SessionError(
+            f"{where}: header is {','.join(row)!r}, want 'index,timestamp_s' or 'index,timestamp_s,camera'"
+        )
+
+
 def frame_stem(index: int, camera: int = 0) -> str:
     """File name (no extension) of a frame: ``000123`` for camera 0, ``000123_cam1`` for camera 1."""
     return f"{index:06d}" if camera == 0 else f"{index:06d}_cam{camera}"
@@ -327,10 +341,12 @@ class SessionReader:
         for row in rows:
             n = rows.line_num
             if not row or (n == 1 and row[0].strip().lower() == "index"):
+                _check_frames_header(row, f"{p}:{n}")
                 continue
             try:
                 i, t = int(row[0]), float(row[1])
-                if not 0 <= i < 10**9:
+                # A column beyond the camera is no part of the format: what it holds would be ignored.
+                if not 0 <= i < 10**9 or len(row) > len(FRAMES_COLUMNS):
                     raise ValueError
             except (ValueError, IndexError):
                 raise SessionError(f"{p}:{n}: want 'index,timestamp_s', got {','.join(row)!r}") from None
