@@ -417,6 +417,41 @@ def test_corrupt_image_messages_are_skipped_and_counted(tmp_path):
     assert (n, skipped) == (2, 1)
 
 
+@pytest.mark.parametrize("received_after_s", [0.08, 1000.0])
+def test_a_message_that_cannot_be_read_costs_one_frame_not_those_after_it(tmp_path, received_after_s):
+    """An image message whose bytes are not the type's has no header stamp: it took the bag's receive
+    time, on which a driver's latency (80 ms here, beyond the 33 ms frame interval) or header stamps
+    from another clock (1000 s) put it after the frames that follow, each then refused by the replay
+    and skipped by the conversion (1000 s: the session kept the 3 frames before it of 8)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from tagloc.pipeline.localiser import Localiser
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    T = store.types
+    frames = list(SessionReader(WALK).frames())[:8]
+    path = tmp_path / "cam"
+    with Writer(path, version=9, storage_plugin=StoragePlugin.SQLITE3) as w:
+        conn = w.add_connection("/cam/image/compressed", "sensor_msgs/msg/CompressedImage", typestore=store)
+        for f in frames:
+            ns = round((f.timestamp + 100.0) * 1e9)
+            header = T["std_msgs/msg/Header"](T["builtin_interfaces/msg/Time"](*divmod(ns, 10**9)), "cam")
+            msg = T["sensor_msgs/msg/CompressedImage"](header, "jpeg", cv2.imencode(".jpg", f.image)[1].ravel())
+            raw = store.serialize_cdr(msg, "sensor_msgs/msg/CompressedImage")
+            w.write(conn, ns + round(received_after_s * 1e9), raw[:40] if f.index == 3 else raw)
+    src = BagSession(path, "/cam/image/compressed", WALK / "map.csv", WALK / "rig.json")
+    loc = Localiser(src.map, src.rig)
+    replayed = [loc.process(f) for f in src.frames()]
+    assert [r.skipped is not None for r in replayed] == [False, False, False, True, False, False, False, False]
+    assert loc.counts["refused_timestamps"] == 0 and len(src.skipped) == 1
+    n, skipped = bag_to_session(path, "/cam/image/compressed", tmp_path / "s", WALK / "map.csv", WALK / "rig.json")
+    assert (n, skipped) == (7, 1)
+    s = SessionReader(tmp_path / "s")
+    assert list(s.index) == [0, 1, 2, 4, 5, 6, 7]
+    assert np.allclose(s.timestamps, [frames[k].timestamp + 100.0 for k in s.index], atol=1e-6)
+
+
 def test_a_session_from_a_bag_whose_stamps_repeat_or_go_back_replays(tmp_path):
     """A camera driver that stamps two images alike (or one before its predecessor): the session
     written from the bag skips that frame, as a replay of the bag does, instead of being refused

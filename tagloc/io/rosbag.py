@@ -603,14 +603,21 @@ class BagSession:
         reader = _open_reader(self.path)
         try:
             conns = [c for c in reader.connections if c.topic == self.topic]
+            offset = 0.0  # the last message's frame time less its receive time (s)
             for i, (conn, bag_ns, raw) in enumerate(_messages(reader, self.path, conns)):
                 try:
                     msg = reader.deserialize(raw, conn.msgtype)
                 except Exception:  # noqa: BLE001 - a corrupt message is one skipped frame
-                    yield i, bag_ns / 1e9, None, conn.msgtype
+                    # No header to take its time from: its receive time, moved onto the frames' clock
+                    # as the last message's was. Unmoved, a driver's latency (or header stamps on
+                    # another clock) put it after the frames that follow, each then skipped as not
+                    # after it: one corrupt message cost the rest of the session.
+                    yield i, bag_ns / 1e9 + offset, None, conn.msgtype
                     continue
                 t = _stamp_s(msg.header.stamp)
-                yield i, (t if t > 0 else bag_ns / 1e9), msg, conn.msgtype
+                t = t if t > 0 else bag_ns / 1e9
+                offset = t - bag_ns / 1e9
+                yield i, t, msg, conn.msgtype
         finally:
             reader.close()
 
