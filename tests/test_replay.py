@@ -183,6 +183,26 @@ def test_replay_refuses_bad_ground_truth_before_it_writes_anything(session, tmp_
     assert not out.exists() and not log.exists()
 
 
+def test_a_bags_options_given_with_a_session_are_refused_not_ignored(session, tmp_path, capsys):
+    """``replay SESSION --map refined.csv`` (as ``map audit`` and ``map refine`` take --map) replayed
+    the session's own map.csv without a word; --rig, --calibration and --info-topic likewise."""
+    from tagloc.cli import main
+
+    other = tmp_path / "other.csv"
+    shutil.copy(session / "map.csv", other)
+    out = tmp_path / "e.tum"
+    args = ["replay", str(session), "--out", str(out), "--quiet"]
+    assert main([*args, "--map", str(other)]) == 2
+    assert capsys.readouterr().err == (
+        f"tagloc replay: error: {session}: --map only with a bag (--topic); a session is replayed with its own "
+        "map.csv, rig.json and camera.yaml\n"
+    )
+    assert main([*args, "--rig", str(session / "rig.json"), "--info-topic", "/cam/camera_info"]) == 2
+    assert "--rig, --info-topic only with a bag" in capsys.readouterr().err
+    assert not out.exists()
+    assert main(args) == 0 and out.exists()
+
+
 def test_a_dropout_in_the_ground_truth_is_not_scored_across():
     """Found by a review: an estimate equal to the truth, on a 2 m circle whose 100 Hz ground truth is
     lost for 6 s, scored 1.04 m RMSE (1.86 m max) against the chord drawn across the dropout; frames

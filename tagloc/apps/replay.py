@@ -16,7 +16,7 @@ from pathlib import Path
 from tagloc.core.errors import InputError
 from tagloc.core.types import FrameResult
 from tagloc.eval.metrics import trajectory_metrics
-from tagloc.io.session import SessionReader
+from tagloc.io.session import CAMERA_FILE, MAP_FILE, RIG_FILE, SessionReader
 from tagloc.pipeline.output import OutputConfig, Outputs, OutputSummary
 
 
@@ -68,6 +68,23 @@ def open_replay_source(cfg: ReplayConfig):
     from tagloc.io.rosbag import BagSession, is_bag
 
     if not is_bag(cfg.session) and cfg.topic is None:
+        # A session is localised with its own map.csv, rig.json and camera.yaml: one of these options
+        # given with it was ignored without a word (a replay "with" a refined map ran the old one).
+        given = [
+            option
+            for option, value in (
+                ("--map", cfg.map),
+                ("--rig", cfg.rig),
+                ("--calibration", cfg.calibration),
+                ("--info-topic", cfg.info_topic),
+            )
+            if value is not None
+        ]
+        if given:
+            raise InputError(
+                f"{cfg.session}: {', '.join(given)} only with a bag (--topic); a session is replayed with its own "
+                f"{MAP_FILE}, {RIG_FILE} and {CAMERA_FILE}"
+            )
         return SessionReader(cfg.session)
     if cfg.topic is None or cfg.map is None:
         raise InputError(f"{cfg.session}: replaying a bag needs --topic IMAGE_TOPIC and --map MAP.csv")
