@@ -136,7 +136,7 @@ def test_advise_refuses_bad_frames_and_exposures(option, values, tmp_path, capsy
 
 def test_advise_takes_a_camera_standing_still(capsys):
     """Speed 0, which a simulated walk refuses, is a question advise answers: no blur."""
-    argv = [*ADVISE, "--speed", "0", "--frames", "1", "--exposures", "2", "--scale", "0.25"]
+    argv = [*ADVISE, "--speed", "0", "--frames", "1", "--exposures", "2", "--scale", "0.5"]
     assert main(argv) == 0
     assert "recommended: --exposure-ms 2" in capsys.readouterr().out
 
