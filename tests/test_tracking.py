@@ -74,6 +74,18 @@ def test_stale_other_camera_or_due_tracks_are_not_carried():
     assert match_tracked(det, [_tracked(age=CFG.redecode_every - 2)], 0, 1 / 30, CFG, only(7))[0] is not None
 
 
+@pytest.mark.parametrize(("t0", "t1"), [("0.3", "0.4"), ("1000000.2", "1000000.3"), ("1800000000.1", "1800000000.2")])
+def test_a_track_one_max_gap_back_is_carried_whatever_the_clocks_origin(t0, t1):
+    # At 10 fps the previous frame is max_gap_s (0.1 s) back. Read from frames.csv, the difference of
+    # two such stamps is 0.1 s give or take the floats' rounding, which depends on where the clock
+    # started: of 60 frames at 10 fps, 32 on a clock from 0, 12 from 1e6 s and 24 from 1.8e9 s were
+    # more than 0.1 s apart, their tracks not carried, so one walk decoded differently on each clock.
+    det = [Detection(SQUARE + 1.0)]
+    (ident,) = match_tracked(det, [_tracked(t=float(t0))], 0, float(t1), CFG, only(7))
+    assert ident is not None and ident.sticker_id == 7
+    assert match_tracked(det, [_tracked(t=float(t0))], 0, float(t1) + 3e-6, CFG, only(7)) == [None]  # longer: not
+
+
 def test_a_track_due_for_re_decoding_is_matched_as_due():
     det = [Detection(np.roll(SQUARE, 1, axis=0) + 1.0)]
     (m,) = match_tracks(det, [_tracked(age=CFG.redecode_every - 1)], 0, 1 / 30, CFG, only(7))

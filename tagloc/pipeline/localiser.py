@@ -35,7 +35,7 @@ from tagloc.core.types import (
     SurveyPrior,
     frame_seconds,
 )
-from tagloc.io.session import CAMERA_FILE, MAP_FILE, RIG_FILE
+from tagloc.io.session import CAMERA_FILE, MAP_FILE, RIG_FILE, STAMP_RESOLUTION_S
 from tagloc.vision.decode import DecodeConfig, decode, verify_detection
 from tagloc.vision.deflicker import Deflicker, DeflickerConfig
 from tagloc.vision.detect import detect, merge_boxes
@@ -85,6 +85,15 @@ class StageTimer:
 # frame is used; two more cover the same sticker detected twice in one frame.
 _CORNER_MEMORY = 64
 _CORNER_SIGHTS = 3
+
+
+def within_gap(dt: float, limit: float) -> bool:
+    """Whether a frame ``dt`` s after another is after it and no more than ``limit`` s after, to the
+    stamps' microsecond (``STAMP_RESOLUTION_S``). Frame times are differences of large numbers on an
+    epoch clock: one frame period later reads 0.1000000001 s or 0.0999999 s depending on where the
+    clock started (1.8e9 s, 1e6 s, 0), and a limit equal to the period (``max_gap_s`` at 10 fps) had
+    carried sticker tracks on one clock and dropped them on another."""
+    return 0.0 < dt <= limit + STAMP_RESOLUTION_S
 
 
 @dataclass
@@ -428,7 +437,7 @@ def match_tracks(
     sticker a few metres away, while the relative prediction is good to a few pixels."""
     if not detections:
         return []
-    live = [k for k, tr in enumerate(tracked) if tr.camera == camera and 0.0 < t - tr.t <= config.max_gap_s]
+    live = [k for k, tr in enumerate(tracked) if tr.camera == camera and within_gap(t - tr.t, config.max_gap_s)]
     expected = {}
     for k in live:
         moved_px = image_motion(tracked[k]) if image_motion is not None else None
@@ -836,7 +845,7 @@ class Localiser:
         prev = self._searched.get(camera)
         if cfg.search_every <= 1 or not self.config.sticker_tracking or self.config.detector != "contour":
             return None, 0, False
-        if prev is None or prev[2] + 1 >= cfg.search_every or not 0.0 < t - prev[0] <= cfg.max_gap_s:
+        if prev is None or prev[2] + 1 >= cfg.search_every or not within_gap(t - prev[0], cfg.max_gap_s):
             return None, 0, False
         since, crowded = prev[2] + 1, prev[3]
         # The prior without the walking model's noise for the frame interval: ``reach`` bounds the
@@ -899,7 +908,7 @@ class Localiser:
         region search's memory) that no track holds (see :func:`match_tracks`'s ``others``; a
         deferred decode that named one after its frame made it a track), if that frame is recent
         enough to match against."""
-        if previous is None or not 0.0 < t - previous[0] <= self.config.tracking.max_gap_s:
+        if previous is None or not within_gap(t - previous[0], self.config.tracking.max_gap_s):
             return []
         held = [tr.outer for tr in self._tracked if tr.camera == camera and tr.t == previous[0]]
         return [o for o in previous[1] if not any(np.array_equal(o, h) for h in held)]
@@ -1155,7 +1164,7 @@ class Localiser:
             (
                 f
                 for f in self._failed
-                if f.camera == camera and 0.0 < t - f.t <= cfg.max_gap_s and _same_place(det, f.outer, cfg)
+                if f.camera == camera and within_gap(t - f.t, cfg.max_gap_s) and _same_place(det, f.outer, cfg)
             ),
             None,
         )
@@ -1316,7 +1325,7 @@ class Localiser:
         if len(self._sticker_corners) > _CORNER_MEMORY:
             forget = t - self.config.rs_corner_forget_s
             self._sticker_corners = {k: v for k, v in self._sticker_corners.items() if v[-1][0] > forget}
-        if prev is None or not 0.0 < t - prev[0] <= self.config.rs_image_velocity_max_dt:
+        if prev is None or not within_gap(t - prev[0], self.config.rs_image_velocity_max_dt):
             return None
         if not _same_place(det, prev[1][:4], self.config.tracking):
             # Not where and what the sticker was (a wrong name in either frame): no motion to take.
