@@ -303,3 +303,26 @@ def test_a_sticker_named_after_its_frame_is_relabelled_on_that_frame(tmp_path):
     view.close()
     assert column(path, "world/body/front/image/detections", "LineStrips2D:labels")[-1] == ["7 decoded", "? none"]
     assert times_on_clock(path, "world/body/front/image/detections") == {3: pytest.approx(0.1)}  # the same place
+
+
+def test_a_long_run_keeps_only_the_current_trajectory_piece(tmp_path, monkeypatch):
+    # Every pose of the run had been kept to draw the pieces from (~110 bytes a frame: 95 MB over an
+    # 8-hour shift at 30 fps); a piece needs only its own points and the last of the one before.
+    monkeypatch.setattr(rv, "PATH_PIECE", 4)
+    smap = StickerMap(np.array([7]), np.array([[0.0, 0.0]]), np.zeros(1))
+    view = RerunView(smap, default_rig(), save=tmp_path / "r.rrd")
+    for k in range(41):
+        out = TrackerOutput(
+            k / 10, np.array([0.1 * k, 0.0, 0.0]), np.diag([4e-4, 1e-4, 1e-3]), TrackState.TRACKING, 0.1
+        )
+        view.log(Frame(k, k / 10, None), FrameResult(k, k / 10, [], out, {}))
+        assert len(view._path) <= rv.PATH_PIECE + 1
+    view.close()
+    pieces = [
+        np.array(column(tmp_path / "r.rrd", f"world/estimate/path/{p:04d}", "LineStrips3D:strips")[-1][0])
+        for p in range(11)
+    ]
+    assert [len(p) for p in pieces] == [4] + [5] * 9 + [2]
+    for a, b in zip(pieces, pieces[1:]):
+        assert np.allclose(b[0], a[-1])  # joined
+    assert np.allclose(np.concatenate([pieces[0]] + [p[1:] for p in pieces[1:]])[:, 0], 0.1 * np.arange(41))
