@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tagloc.apps.live import LiveConfig, run_live
+from tagloc.apps.live import LiveConfig, _make_localiser, run_live
 from tagloc.core.types import Frame
 from tagloc.io.capture import FrameSource
 from tagloc.io.session import SessionReader
@@ -41,6 +41,8 @@ from tagloc.pipeline.localiser import Localiser
 from tagloc.sim.simulate import SimConfig, simulate_session
 
 REPO = Path(__file__).resolve().parent.parent
+#: The localiser's counters of the work live puts after publication or sheds when behind, reported.
+SHED = ("lsq_deferred", "deferred_fixes", "odometry_strided", "flow_skipped")
 
 
 class LoopSource(FrameSource):
@@ -126,17 +128,21 @@ class Subscriber:
         self.client.loop_stop()
 
 
-class TimedLocaliser:
-    """The localiser, noting when each frame finished (to bucket the live loop's latencies)."""
+def timed(loc: Localiser) -> list[float]:
+    """Note when ``loc`` finishes each frame (to bucket the live loop's latencies): its ``process``
+    wrapped on the instance, so that the live loop still finds the localiser's deferred work,
+    ``behind`` and ``warm_up`` as ``tagloc live`` does (a wrapper object offering ``process`` alone
+    had run every frame's work before publishing and never shed load). Returns the list of times."""
+    done: list[float] = []
+    process = loc.process
 
-    def __init__(self, loc: Localiser):
-        self.loc, self.map, self.rig = loc, loc.map, loc.rig
-        self.done: list[float] = []
-
-    def process(self, frame: Frame):
-        res = self.loc.process(frame)
-        self.done.append(time.monotonic())
+    def timed_process(frame: Frame):
+        res = process(frame)
+        done.append(time.monotonic())
         return res
+
+    loc.process = timed_process
+    return done
 
 
 def rss_mb() -> float:
@@ -161,10 +167,10 @@ def parse_args() -> argparse.Namespace:
     return ap.parse_args()
 
 
-def prepare(args: argparse.Namespace) -> tuple[LoopSource, TimedLocaliser]:
-    """The looped walk (simulated once, cached) and the localiser with its reference bank ready."""
-    from tagloc.vision.refs import load_or_build_refs
-
+def prepare(args: argparse.Namespace) -> tuple[LoopSource, Localiser, list[float]]:
+    """The looped walk (simulated once, cached), and the localiser ``tagloc live`` makes for it
+    (reference bank ready, the least-squares decodes and odometry deferred) with its list of frame
+    finishing times (:func:`timed`)."""
     args.work.mkdir(parents=True, exist_ok=True)
     sess_dir = args.work / f"walk_{args.sim_seconds:g}s_{args.fps:g}fps"
     if not (sess_dir / "frames.csv").exists():
@@ -174,8 +180,8 @@ def prepare(args: argparse.Namespace) -> tuple[LoopSource, TimedLocaliser]:
             REPO / "maps" / "demo.csv", sess_dir, SimConfig(seconds=args.sim_seconds, fps=args.fps, seed=1)
         )
     session = SessionReader(sess_dir)
-    refs = load_or_build_refs(sess_dir / "map.csv")
-    return LoopSource(session), TimedLocaliser(Localiser(session.map, session.rig, refs=refs))
+    loc = _make_localiser(LiveConfig(source="soak-loop", config_dir=sess_dir))
+    return LoopSource(session), loc, timed(loc)
 
 
 class Chaos:
@@ -252,6 +258,7 @@ def report(result: dict, max_age: float) -> None:
             f"{r['from_s']:>5.0f}s {r['frames']:>7d} {r['latency_p50_ms']:>8.1f} {r['latency_p99_ms']:>8.1f} "
             f"{r['rss_mb']:>8.1f}"
         )
+    print("localiser: " + ", ".join(f"{k} {v}" for k, v in result["localiser"].items()))
     m = result["messages"]
     print(
         f"messages: published {m['sent']} (broker confirmed {m['confirmed']}, unconfirmed {m['unconfirmed']}), "
@@ -263,7 +270,7 @@ def report(result: dict, max_age: float) -> None:
 def main() -> None:
     args = parse_args()
     seconds = args.minutes * 60.0
-    source, loc = prepare(args)
+    source, loc, done = prepare(args)
     broker = Broker(args.work)
     broker.start()
     topic = "tagloc/soak/pose"
@@ -289,10 +296,11 @@ def main() -> None:
         "seconds": summary.seconds,
         "frames": summary.frames,
         "capture_dropped": summary.capture.dropped,
-        "rows": buckets(np.array(loc.done) - chaos.t0, summary.latency_ms, chaos.rss, seconds, args.bucket),
+        "rows": buckets(np.array(done) - chaos.t0, summary.latency_ms, chaos.rss, seconds, args.bucket),
         "events": chaos.events,
         "messages": {**sink, "received": sub.received, "received_late": sub.late},
         "warnings": summary.outputs.warnings,
+        "localiser": {k: loc.counts[k] for k in SHED},
     }
     report(result, args.max_age)
     if args.json:

@@ -281,3 +281,30 @@ def test_the_bench_measures_with_one_blas_thread_and_gives_the_settings_back(mon
         bench.run_bench(BenchConfig.quick())
     assert seen == [({1}, 1)]
     assert (blas_threads(), cv2.getNumThreads()) == before
+
+
+def test_the_soak_runs_the_localiser_tagloc_live_runs(monkeypatch, tmp_path):
+    """The soak wrapped the localiser in an object offering ``process`` alone, built with the
+    library's defaults: the live loop found no deferred work (every frame decoded and measured in
+    full before publishing) and no ``behind`` to shed load by, so it soaked another configuration
+    than ``tagloc live``'s. Now it is live's localiser, only its ``process`` timed."""
+    import argparse
+    import shutil
+    import sys
+
+    from tagloc.apps.live import LiveConfig, run_live
+
+    monkeypatch.syspath_prepend(str(BENCHMARKS[0].parent))
+    sys.modules.pop("soak", None)
+    import soak
+
+    root = BENCHMARKS[0].parent.parent
+    shutil.copytree(root / "logs" / "walk2s", tmp_path / "walk_2s_30fps")
+    shutil.copy(root / "maps" / "demo.refs.npz", tmp_path / "walk_2s_30fps" / "map.refs.npz")
+    source, loc, done = soak.prepare(argparse.Namespace(work=tmp_path, sim_seconds=2.0, fps=30.0))
+    assert loc.config.defer_lsq and loc.config.defer_odometry
+    calls = []
+    deferred = loc.deferred_work
+    monkeypatch.setattr(loc, "deferred_work", lambda go_on=None: calls.append(1) or deferred(go_on))
+    summary = run_live(LiveConfig(source="soak-loop", max_frames=12, pace=False), localiser=loc, source=source)
+    assert summary.frames == 12 and len(done) == 12 and len(calls) == 12 and loc.counts["frames"] == 12
