@@ -571,3 +571,29 @@ def test_a_video_file_shorter_than_its_header_says_ends_without_failing(tmp_path
     good = t.stats.grabbed - t.stats.skipped
     assert 0 < good and src._n_frames - good > src.max_failures, t.stats  # the header overstates the frames
     assert not t.stats.failed, t.stats
+
+
+def test_a_live_stamp_held_back_by_the_last_one_lands_in_a_later_microsecond(tmp_path):
+    """A live source's frame time that is not after its last (a driver clock abandoned for grab
+    time, which runs behind it) goes on after the last. As the last plus a microsecond it fell, for
+    one epoch stamp in 20, within the last's microsecond as frames.csv writes it: the recording was
+    refused on replay ("frame 2: timestamp ... is not after the previous frame's")."""
+    from tagloc.core.rig import default_rig
+    from tagloc.core.stickermap import StickerMap
+    from tagloc.io.session import SessionInfo, SessionWriter
+
+    class Held(capture.FrameSource):
+        live = True
+
+        def read(self) -> Frame:
+            return Frame(0, self._live_stamp(1800000000.0737195), None)
+
+    src = Held()
+    stamps = [src.read().timestamp for _ in range(30)]
+    assert all(f"{a:.6f}" < f"{b:.6f}" for a, b in zip(stamps, stamps[1:]))
+    smap = StickerMap(np.array([7]), np.zeros((1, 2)), np.zeros(1))
+    writer = SessionWriter(tmp_path / "rec", smap, default_rig(), SessionInfo(source="test", fps=30.0))
+    for k, t in enumerate(stamps):
+        writer.write(k, t, np.full((972, 1296), k, np.uint8))
+    writer.close()
+    assert np.all(np.diff(SessionReader(tmp_path / "rec").timestamps) > 0)

@@ -48,7 +48,7 @@ import numpy as np
 
 from tagloc.core.errors import BackendUnavailable, InputError
 from tagloc.core.types import Frame
-from tagloc.io.session import CLOCK_JUMP_S, STAMP_RESOLUTION_S, SessionReader, after_last
+from tagloc.io.session import CLOCK_JUMP_S, SessionReader, after_last
 
 #: OpenCV's V4L2 backend passes CAP_PROP_AUTO_EXPOSURE through to V4L2's exposure_auto menu: 1 = manual.
 V4L2_MANUAL_EXPOSURE = 1
@@ -205,10 +205,12 @@ class FrameSource:
         return frame_time(stamp, self.stamp_at, self.readout_s, exposure_s, self.stamp_offset_s)
 
     def _live_stamp(self, raw: float, exposure_s: float = 0.0) -> float:
-        """A live source's ``raw`` stamp (where ``stamp_at`` says) as a frame time, never before the
-        last one it gave (``STAMP_RESOLUTION_S`` after it at least: a switch of clocks must not step
-        back)."""
-        stamp = max(self._frame_time(raw, exposure_s), self._last_stamp + STAMP_RESOLUTION_S)
+        """A live source's ``raw`` stamp (where ``stamp_at`` says) as a frame time, in a microsecond
+        after the last one it gave (:func:`~tagloc.io.session.after_last`: a switch of clocks must not
+        step back). The last stamp plus a microsecond, the rule before, fell in the last stamp's
+        microsecond as frames.csv and pose messages round it for one epoch stamp in 20, and the
+        recording was refused on replay for a repeated time."""
+        stamp = after_last(self._frame_time(raw, exposure_s), self._last_stamp)
         self._last_stamp = stamp
         return stamp
 
