@@ -145,6 +145,22 @@ def test_a_step_needs_its_camera_clone(rng):
     assert tr.odometry_cameras == ("rear",)
 
 
+@pytest.mark.parametrize("t0", [0.0, 1e6, 1.8e9])
+def test_a_step_from_an_earlier_frame_is_unmatched_on_any_clock(t0):
+    # The same frame's time was matched to 1e-9 of the time: 1.8 s on a live camera's epoch clock,
+    # where a step from the rear camera's frame before its last (30 ms earlier) was fused.
+    tr = Tracker()
+    fix = [PoseFix(np.eye(4), np.zeros(3), np.diag([1e-4, 1e-4, 1e-4]), 0.3)]
+    cov = np.diag([1e-5, 1e-5, 1e-5])
+    tr.predict(t0, "front")
+    tr.update(fix, 1, IdSource.DECODED, t0)
+    tr.predict(t0 + 0.03, "rear")
+    tr.predict(t0 + 0.07, "front")
+    step = OdometryStep(t0, t0 + 0.07, np.array([0.05, 0.0, 0.0]), cov, 0.5)
+    assert not tr.update_odometry(step, "rear").accepted and tr.stats["odometry_unmatched"] == 1
+    assert tr.update_odometry(step, "front").accepted
+
+
 def test_stale_clones_are_dropped(rng):
     _, _, tr = _two_cameras(rng, t_end=2.0, rear_until=1.0)
     # The rear camera's last frame is 1 s old, beyond odometry_max_dt: no step could use its clone.

@@ -170,8 +170,12 @@ def _pose_unknown(P: np.ndarray, cfg: TrackerConfig) -> np.ndarray:
 
 
 def _time_tol(t: float) -> float:
-    """How far apart (s) two frame times near ``t`` may be and still be the same frame's."""
-    return 1e-6 + 1e-9 * abs(t)
+    """How far apart (s) two frame times near ``t`` may be and still be the same frame's: a
+    microsecond (frame times are held to it), and the float rounding of two ways of reaching one
+    time there. The rounding was taken as 1e-9 of ``t``, which on an epoch clock (1.8e9 s) is 1.8 s:
+    a live run's odometry step from a camera's earlier frame matched its clone of the last frame, and
+    was fused over the wrong interval."""
+    return 1e-6 + 4.0 * math.ulp(t)
 
 
 class Tracker:
