@@ -484,3 +484,28 @@ def test_a_long_live_run_keeps_little_per_frame(tmp_path):
     a, b, c = (probe.seen[k] for k in sorted(probe.seen))
     assert summary.frames == 500 + 2 * n and len(summary.latency_ms) == summary.frames
     assert (b - a) / n < 16 and (c - b) / n < 16  # bytes a frame, over n frames and the next n
+
+
+def test_frames_still_buffered_at_the_stop_are_counted():
+    """Stopped with frames in its buffer (the live loop's --max-seconds, a signal), the capture counts
+    them as unprocessed: grabbed = delivered + dropped + skipped + unprocessed, so the summary accounts
+    for every frame (before, 182 grabbed against 180 processed and 0 dropped)."""
+    cap = CaptureThread(ListSource(10, bad=(4,)), buffer=20).start()
+    cap.join(timeout=10)
+    taken = [cap.get(timeout=10) for _ in range(3)]
+    cap.stop()
+    s = cap.stats
+    assert all(t is not None for t in taken)
+    assert (s.grabbed, s.delivered, s.dropped, s.skipped, s.unprocessed) == (10, 3, 0, 1, 6)
+
+    from tagloc.io.capture import MultiCapture
+
+    multi = MultiCapture([ListSource(6), ListSource(6)], buffer=20)
+    multi.start()
+    multi.join(timeout=10)
+    first = multi.get(timeout=10)
+    multi.stop()
+    m = multi.stats
+    assert first is not None
+    assert m.grabbed == 12 and m.delivered == 1
+    assert m.grabbed == m.delivered + m.dropped + m.skipped + m.unprocessed

@@ -145,7 +145,8 @@ class LiveSummary:
         c = self.capture
         lines = [
             f"frames: {self.frames} processed in {self.seconds:.1f} s ({fps:.1f} fps); grabbed {c.grabbed}, "
-            f"dropped {c.dropped} (processing behind), skipped {c.skipped} (corrupt)",
+            f"dropped {c.dropped} (processing behind), skipped {c.skipped} (corrupt)"
+            + (f", {c.unprocessed} still buffered at the stop" if c.unprocessed else ""),
             f"fixes: {self.fixes}; final state: {self.final_state}; capture ended: {c.ended or 'stopped'}",
             f"latency: median {self.latency(50):.1f} ms, p95 {self.latency(95):.1f} ms (grab to publication)",
         ]

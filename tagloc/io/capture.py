@@ -74,6 +74,8 @@ class CaptureStats:
         delivered: frames handed to the consumer.
         dropped: good frames discarded because the consumer fell behind.
         skipped: corrupt or empty frames skipped.
+        unprocessed: good frames still buffered when the capture was stopped (never handed over):
+            with the others, every frame grabbed is accounted for.
         ended: why reading stopped ("" while running).
         failed: reading stopped because the source failed (a camera gone, an error), not at its end
             or when told to stop.
@@ -83,6 +85,7 @@ class CaptureStats:
     delivered: int = 0
     dropped: int = 0
     skipped: int = 0
+    unprocessed: int = 0
     ended: str = ""
     failed: bool = False
 
@@ -630,12 +633,15 @@ class CaptureThread:
             return self._done and not self._buf
 
     def stop(self) -> None:
-        """Stop reading and release the source."""
+        """Stop reading and release the source; frames still buffered are counted as unprocessed."""
         self._stop.set()
         with self._cond:
             self._cond.notify_all()
         if self._thread.ident is not None:  # started
             self._thread.join(timeout=5.0)
+        with self._cond:
+            self.stats.unprocessed += len(self._buf)
+            self._buf.clear()
         self.source.close()
 
 
@@ -674,6 +680,7 @@ class MultiCapture:
         self.merge_wait_s = merge_wait_s if merge_wait_s is not None else default_wait
         self.late = [0] * len(sources)
         self._pending: list[CapturedFrame | None] = [None] * len(sources)
+        self._stopped = False
         self._last_t = -math.inf  # the time of the last frame handed over (moved on, see get)
         self._last_stamp = -math.inf  # and its source stamp
         self._camera_stamp = [-math.inf] * len(sources)  # each camera's last stamp handed over
@@ -760,7 +767,12 @@ class MultiCapture:
             s.delivered += t.stats.delivered - late
             s.dropped += t.stats.dropped + late
             s.skipped += t.stats.skipped
+            s.unprocessed += t.stats.unprocessed
             s.failed = s.failed or t.stats.failed
+        # Taken from their cameras, waiting to be merged in time order when the capture stopped.
+        held = sum(p is not None for p in self._pending) if self._stopped else 0
+        s.delivered -= held
+        s.unprocessed += held
         s.ended = "; ".join(f"camera {c}: {t.stats.ended or 'running'}" for c, t in enumerate(self.threads))
         return s
 
@@ -776,5 +788,7 @@ class MultiCapture:
             t.join(timeout)
 
     def stop(self) -> None:
+        """Stop every camera; frames buffered or waiting to be merged are counted as unprocessed."""
+        self._stopped = True
         for t in self.threads:
             t.stop()
