@@ -339,3 +339,11 @@ def test_jpeg_exif_orientation_not_applied(tmp_path, rng, orientation):
     path.write_bytes(with_exif_orientation(path.read_bytes(), orientation))
     img, err = read_image(path)
     assert err is None and np.array_equal(img, plain)
+
+
+def test_a_corrupt_huge_stamp_is_named_in_a_short_line(tmp_path):
+    """A non-increasing 1e300 s stamp was printed to the microsecond: a 650-character 'one line'."""
+    from tagloc.core.types import seconds_text
+
+    assert seconds_text(1.5) == "1.500000" and seconds_text(1800000000.0737195) == "1800000000.073720"
+    assert seconds_text(1e300) == "1e+300" and len(seconds_text(-3.2e15)) < 12

@@ -20,6 +20,12 @@ def frame_seconds(t: object) -> float:
     return math.nan if isinstance(t, bool) or not isinstance(t, numbers.Real) else float(t)
 
 
+def seconds_text(t: float) -> str:
+    """A time (s) for a message: to the microsecond (frames.csv's resolution), or in exponent form
+    past 1e12 s, where the microseconds would print hundreds of digits of a corrupt stamp."""
+    return f"{t:.6f}" if abs(t) < 1e12 else f"{t:.6g}"
+
+
 @dataclass
 class Frame:
     """One frame of one camera.

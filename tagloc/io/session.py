@@ -36,7 +36,7 @@ from tagloc.core.geometry import T_from_tum, T_to_tum
 from tagloc.core.jsonfile import read_json
 from tagloc.core.rig import Rig, load_rig, save_rig
 from tagloc.core.stickermap import StickerMap, load_map, save_map
-from tagloc.core.types import Frame
+from tagloc.core.types import Frame, seconds_text
 
 FORMAT = "tagloc-session"
 VERSION = 1
@@ -303,8 +303,8 @@ class SessionReader:
         if len(back):
             k = int(back[0]) + 1
             raise SessionError(
-                f"{p}: frame {int(self.index[k])}: timestamp {self.timestamps[k]:.6f} s is not after the previous "
-                f"frame's {self.timestamps[k - 1]:.6f} s (sort frames.csv by time, or fix the clock)"
+                f"{p}: frame {int(self.index[k])}: timestamp {seconds_text(self.timestamps[k])} s is not after the"
+                f" previous frame's {seconds_text(self.timestamps[k - 1])} s (sort frames.csv by time, or fix the clock)"
             )
         for k in np.flatnonzero(steps > CLOCK_JUMP_S)[:5]:
             self.warnings.append(

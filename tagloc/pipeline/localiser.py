@@ -34,6 +34,7 @@ from tagloc.core.types import (
     PoseFix,
     SurveyPrior,
     frame_seconds,
+    seconds_text,
 )
 from tagloc.io.session import CAMERA_FILE, MAP_FILE, RIG_FILE, STAMP_RESOLUTION_S
 from tagloc.vision.decode import DecodeConfig, decode, verify_detection
@@ -973,7 +974,10 @@ class Localiser:
             self._refused_run += 1
             if self._refused_run < self.config.clock_reset_frames:
                 self.counts["refused_timestamps"] += 1
-                return f"frame {frame.index}: timestamp {t:.6f} s is not after the previous frame's {last:.6f} s"
+                return (
+                    f"frame {frame.index}: timestamp {seconds_text(t)} s is not after the previous frame's"
+                    f" {seconds_text(last)} s"
+                )
             self._restart()
         self._refused_run = 0
         self._last_t = t
