@@ -25,11 +25,17 @@ def _stats(name: str, times: list[float]) -> None:
     print(f"{name:32s} median {np.median(t):.3f} ms   p95 {np.percentile(t, 95):.3f} ms   (n={len(t)})")
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--n", type=int, default=100_000, help="stickers in the random map")
+    ap.add_argument("--n", type=int, default=100_000, help="stickers in the random map (at least 9)")
     ap.add_argument("--calls", type=int, default=2000, help="timed calls per measurement")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    from tagloc.cli import checks
+
+    # The poses keep 2 m inside the map's square: a 3 x 3 grid (4.5 m) at least. Fewer stickers, or
+    # no calls, were a ValueError or IndexError reported as a bug.
+    checks.number(args.n, "--n", 9)
+    checks.number(args.calls, "--calls", 1)
     rng = np.random.default_rng(1)
     side = math.ceil(math.sqrt(args.n))
     g = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2)[: args.n] * 1.5

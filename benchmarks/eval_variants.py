@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tagloc.core.errors import InputError
 from tagloc.eval.baselines import LiveOrderLocaliser
 from tagloc.eval.consistency import bounds_text, nees_test
 from tagloc.eval.evaluate import wrong_id_fixes
@@ -39,14 +40,19 @@ from tagloc.pipeline.localiser import Localiser, LocaliserConfig
 from tagloc.pipeline.run import run_session
 
 
-def configure(overrides: dict) -> LocaliserConfig:
-    """The default configuration with ``overrides`` ({"a.b.c": value}) applied (nested dataclasses)."""
+def configure(overrides: dict, option: str = "--variant") -> LocaliserConfig:
+    """The default configuration with ``overrides`` ({"a.b.c": value}) applied (nested dataclasses);
+    a path that names no setting, or a group of settings given one value, is the user's error
+    naming ``option``."""
 
     def put(obj, path: list[str], value):
         if not dataclasses.is_dataclass(obj) or path[0] not in {f.name for f in dataclasses.fields(obj)}:
-            raise SystemExit(f"eval_variants: no setting {path[0]!r} in {type(obj).__name__}")
+            raise InputError(f"{option}: no setting {path[0]!r} in {type(obj).__name__}")
         if len(path) == 1:
             old = getattr(obj, path[0])
+            if dataclasses.is_dataclass(old):
+                # Replaced by a plain value, it failed in the first replay (after the default's runs).
+                raise InputError(f"{option}: {path[0]!r} is a group of settings ({type(old).__name__}): name one field")
             if isinstance(old, tuple):
                 value = tuple(value)
             return dataclasses.replace(obj, **{path[0]: value})
@@ -108,24 +114,26 @@ def pooled(rows: list[dict]) -> dict:
     }
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("eval_dir", type=Path, help="output directory of `tagloc eval` (holds <preset>/sessions/*)")
     ap.add_argument("--variant", action="append", default=[], help='NAME={"dotted.field": value, ...}')
     ap.add_argument("--jobs", type=int, default=1, help="processes (default 1)")
     ap.add_argument("--json", type=Path, help="write the rows and the pooled figures here")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     variants = {"default": {}}
     for spec in args.variant:
         name, _, text = spec.partition("=")
         try:
             variants[name] = json.loads(text)
         except json.JSONDecodeError as exc:
-            raise SystemExit(f"eval_variants: --variant {name}: not JSON ({exc})") from None
-        configure(variants[name])  # refuse a misspelt setting before any work
+            raise InputError(f"--variant {name}: not JSON ({exc})") from None
+        if not isinstance(variants[name], dict):
+            raise InputError(f"--variant {name}: want a JSON object of dotted settings, not {text!r}")
+        configure(variants[name], f"--variant {name}")  # refuse a misspelt setting before any work
     walks = sorted(str(p) for p in args.eval_dir.glob("*/sessions/*") if (p / "session.json").exists())
     if not walks:
-        raise SystemExit(f"eval_variants: no sessions under {args.eval_dir}/*/sessions")
+        raise InputError(f"no sessions under {args.eval_dir}/*/sessions")
     jobs = [(name, ov, w) for name, ov in variants.items() for w in walks]
     with ProcessPoolExecutor(max(1, args.jobs)) as ex:
         rows = list(ex.map(run_walk, jobs))

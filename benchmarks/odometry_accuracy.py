@@ -48,6 +48,7 @@ faster than 0.9 m/s, with the standing part subtracted.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import time
@@ -164,8 +165,6 @@ def run_session(path: Path, config: OdometryConfig, reference: str = "vest") -> 
 def run_session_in_localiser(path: Path, config: OdometryConfig) -> dict:
     """As :func:`run_session`, for the steps :class:`tagloc.pipeline.localiser.Localiser` fuses into its
     tracker (the default configuration with ``config`` as its odometry's), camera 0's."""
-    import dataclasses
-
     from tagloc.pipeline.localiser import Localiser, LocaliserConfig
     from tagloc.pipeline.run import iterate_results
 
@@ -370,7 +369,25 @@ def calibrate(results: list[dict]) -> dict[str, float]:
     }
 
 
-def main() -> None:
+def odometry_config(text: str, option: str = "--config") -> OdometryConfig:
+    """The :class:`OdometryConfig` with the JSON object ``text``'s overrides, a one-line error naming
+    ``option`` for text that is no JSON object or names no field (before, a bug report's line)."""
+    from tagloc.core.errors import InputError
+
+    try:
+        overrides = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{option}: not JSON ({exc})") from None
+    if not isinstance(overrides, dict):
+        raise InputError(f"{option}: want a JSON object of OdometryConfig fields, not {text!r}")
+    fields = {f.name for f in dataclasses.fields(OdometryConfig)}
+    unknown = sorted(set(overrides) - fields)
+    if unknown:
+        raise InputError(f"{option}: no OdometryConfig field {', '.join(map(repr, unknown))}")
+    return OdometryConfig(**overrides)
+
+
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("sessions", nargs="+", type=Path, help="session directories with groundtruth_frames.jsonl")
     ap.add_argument("--config", default="{}", help="OdometryConfig overrides as JSON (angles in radians)")
@@ -400,8 +417,8 @@ def main() -> None:
     ap.add_argument(
         "--windows", action="store_true", help="also the steps summed over 15-60-step windows against their stated sums"
     )
-    args = ap.parse_args()
-    config = OdometryConfig(**json.loads(args.config))
+    args = ap.parse_args(argv)
+    config = odometry_config(args.config)
     if args.bridged and not args.in_localiser:
         raise SystemExit("odometry_accuracy: --bridged needs --in-localiser (the steps the localiser fuses)")
     if args.in_localiser and args.reference != "vest":

@@ -22,6 +22,7 @@ Run (from the repository root, on sessions made by ``tagloc eval --preset all`` 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import time
@@ -118,13 +119,16 @@ def localiser_errors(path: Path, stride: bool) -> tuple[float, float, int]:
     return float(np.sum(e.position**2)), float(np.sum(e.yaw**2)), len(e.position)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("sessions", nargs="+", type=Path, help="session directories with groundtruth_frames.jsonl")
     ap.add_argument("--window", type=float, default=1.0, help="chain length, s (default 1.0)")
     ap.add_argument("--config", default="{}", help="OdometryConfig overrides as JSON (angles in radians)")
     ap.add_argument("--localiser", action="store_true", help="the whole localiser, odometry_stride off and on")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    from odometry_accuracy import odometry_config
+
+    base = odometry_config(args.config)  # a bad --config refused before any walk
     cv2.setNumThreads(1)
     if args.localiser:
         print(f"{'walk':10s} {'RMSE cm off -> on':>18s} {'heading deg off -> on':>22s}")
@@ -137,14 +141,13 @@ def main() -> None:
         rm, hd = 100 * np.sqrt(total[:, 0] / total[:, 2]), np.degrees(np.sqrt(total[:, 1] / total[:, 2]))
         print(f"{'all':10s} {rm[0]:8.2f} -> {rm[1]:5.2f} {hd[0]:12.2f} -> {hd[1]:5.2f}")
         return
-    base = json.loads(args.config)
     print(f"{'walk':10s} {'stride':>6s} {'skipped %':>9s} {'ms/frame':>8s}  {'window RMS fwd / lat mm, turn deg':>34s}")
     for path in tqdm(args.sessions, desc="sessions", unit="walk", leave=False):
         session = SessionReader(path)
         stamps = {fr.index: fr.timestamp for fr in session.frames(with_images=False)}
         truth = _vest_truth(path, session, stamps)
         for stride in (1, OdometryConfig().max_stride):
-            steps, skipped, n, cpu = _steps(session, OdometryConfig(**{**base, "max_stride": stride}))
+            steps, skipped, n, cpu = _steps(session, dataclasses.replace(base, max_stride=stride))
             e = _window_errors(steps, truth, args.window)
             rms = np.sqrt(np.mean(e**2, axis=0))
             tqdm.write(

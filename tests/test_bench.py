@@ -308,3 +308,34 @@ def test_the_soak_runs_the_localiser_tagloc_live_runs(monkeypatch, tmp_path):
     monkeypatch.setattr(loc, "deferred_work", lambda go_on=None: calls.append(1) or deferred(go_on))
     summary = run_live(LiveConfig(source="soak-loop", max_frames=12, pace=False), localiser=loc, source=source)
     assert summary.frames == 12 and len(done) == 12 and len(calls) == 12 and loc.counts["frames"] == 12
+
+
+@pytest.mark.parametrize(
+    "script, args, named",
+    [
+        ("odometry_accuracy", ["--config", "x"], "--config: not JSON"),
+        ("odometry_accuracy", ["--config", '{"no_such_field": 1}'], "--config: no OdometryConfig field"),
+        ("odometry_accuracy", ["--config", "[1]"], "--config: want a JSON object"),
+        ("odometry_stride", ["--config", '{"no_such_field": 1}'], "--config: no OdometryConfig field"),
+        ("bench_candidates", ["--n", "0"], "--n must be a number >= 9"),
+        ("bench_candidates", ["--calls", "0"], "--calls must be a number >= 1"),
+        ("eval_variants", ["--variant", 'x={"tracker": 1}'], "--variant x: 'tracker' is a group of settings"),
+        ("eval_variants", ["--variant", 'x={"nosuch": 1}'], "--variant x: no setting 'nosuch'"),
+        ("eval_variants", ["--variant", "x=[1]"], "--variant x: want a JSON object"),
+    ],
+)
+def test_bad_option_values_are_the_users_one_line_error_before_any_work(monkeypatch, tmp_path, script, args, named):
+    """A bad --config was a JSONDecodeError or TypeError, ``--n 0`` or ``--calls 0`` a ValueError or
+    IndexError, and a variant giving a group of settings one value an AttributeError in the first
+    replay after the default's: each reported as a bug ("internal error ... please report it"). Each is
+    now an InputError naming the option (exit 2), raised before any session is read."""
+    import importlib
+    import sys
+
+    monkeypatch.syspath_prepend(str(BENCHMARKS[0].parent))
+    sys.modules.pop(script, None)
+    mod = importlib.import_module(script)
+    session = [] if script == "bench_candidates" else [str(tmp_path / "no-session")]
+    with pytest.raises(InputError) as err:
+        mod.main([*session, *args])
+    assert str(err.value).startswith(named)
