@@ -339,3 +339,44 @@ def test_bad_option_values_are_the_users_one_line_error_before_any_work(monkeypa
     with pytest.raises(InputError) as err:
         mod.main([*session, *args])
     assert str(err.value).startswith(named)
+
+
+def _blas_and_cv_threads() -> tuple[set[int], int]:
+    import threadpoolctl
+
+    return {i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"}, cv2.getNumThreads()
+
+
+@pytest.mark.parametrize("script", ["odometry_accuracy", "odometry_stride", "bench_candidates"])
+def test_the_odometry_and_tracker_timings_run_on_one_blas_thread(monkeypatch, script):
+    """odometry_accuracy's and odometry_stride's process time per ``measure`` and bench_candidates'
+    timings ran with BLAS on its default threads, whose spinning on a busy machine counts in the
+    time; they now measure inside ``single_threaded()`` as ``tagloc bench`` does, settings given back."""
+    import importlib
+    import sys
+
+    from tagloc.io.session import SessionReader
+    from tagloc.vision.odometry import FloorOdometry, OdometryConfig
+
+    monkeypatch.syspath_prepend(str(BENCHMARKS[0].parent))
+    sys.modules.pop(script, None)
+    mod = importlib.import_module(script)
+    before, seen = _blas_and_cv_threads(), []
+
+    def timed(*args, **kwargs):
+        seen.append(_blas_and_cv_threads())
+        raise KeyboardInterrupt  # stop here: the rest is the benchmark's work
+
+    walk = BENCHMARKS[0].parent.parent / "logs" / "walk2s"
+    with pytest.raises(KeyboardInterrupt):
+        if script == "bench_candidates":
+            monkeypatch.setattr(mod.Tracker, "predict", timed)
+            mod.main(["--n", "9", "--calls", "2"])
+        else:
+            monkeypatch.setattr(FloorOdometry, "measure", timed)
+            if script == "odometry_accuracy":
+                mod.run_session(walk, OdometryConfig())
+            else:
+                mod._steps(SessionReader(walk), OdometryConfig(max_stride=1))
+    assert seen == [({1}, 1)]
+    assert _blas_and_cv_threads() == before
