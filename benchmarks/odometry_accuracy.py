@@ -376,14 +376,20 @@ def calibrate(results: list[dict]) -> dict[str, float]:
                 speed.append(float(np.sum(np.hypot(r["true"][sl, 0], r["true"][sl, 1]))) / (w / 30.0))
     sums, dsq, n_steps, speed = map(np.array, (sums, dsq, n_steps, speed))
     slow, fast = speed < SLOW_MPS, speed > FAST_MPS
+    print(f"windows: {slow.sum()} standing (< {SLOW_MPS} m/s), {fast.sum()} walking (> {FAST_MPS} m/s)")
+    # Without such windows the sums below are 0 / 0: NaN sigmas and a RuntimeWarning, once.
+    if not slow.any():
+        print(f"no window slower than {SLOW_MPS} m/s: no sigma fitted (the per-metre ones need the standing ones)")
+        return {}
+    names = ("forward", "lateral", "yaw")
     s0 = np.sqrt(np.sum(sums[slow] ** 2, axis=0) / np.sum(n_steps[slow]))
+    fitted = {f"sigma_{n}": float(v) for n, v in zip(names, s0)}
+    if not fast.any():
+        print(f"no window faster than {FAST_MPS} m/s: no per-metre sigma fitted")
+        return fitted
     per_m2 = (np.sum(sums[fast] ** 2, axis=0) - s0**2 * np.sum(n_steps[fast])) / np.sum(dsq[fast])
     s1 = np.sqrt(np.maximum(per_m2, 0.0))
-    print(f"windows: {slow.sum()} standing (< {SLOW_MPS} m/s), {fast.sum()} walking (> {FAST_MPS} m/s)")
-    names = ("forward", "lateral", "yaw")
-    return {f"sigma_{n}": float(v) for n, v in zip(names, s0)} | {
-        f"sigma_{n}_per_m": float(v) for n, v in zip(names, s1)
-    }
+    return fitted | {f"sigma_{n}_per_m": float(v) for n, v in zip(names, s1)}
 
 
 def odometry_config(text: str, option: str = "--config") -> OdometryConfig:

@@ -414,3 +414,35 @@ def test_odometry_accuracy_in_the_localiser_times_the_measure_calls_alone(monkey
     r = odometry_accuracy.run_session_in_localiser(walk, OdometryConfig())
     assert len(r["true"]) > 30
     assert r["cost_s"] == pytest.approx(0.003, abs=1e-9)
+
+
+@pytest.mark.parametrize(
+    "speeds, fitted, said",
+    [
+        ((1.3,), set(), "no window slower than 0.3 m/s: no sigma fitted"),
+        ((0.1,), {"sigma_forward", "sigma_lateral", "sigma_yaw"}, "no window faster than 0.9 m/s"),
+        ((0.1, 1.3), {f"sigma_{n}{m}" for n in ("forward", "lateral", "yaw") for m in ("", "_per_m")}, "8 walking"),
+    ],
+)
+def test_odometry_calibration_says_when_it_has_no_window_to_fit_on(monkeypatch, capsys, speeds, fitted, said):
+    """A short walk with no window slower than 0.3 m/s printed NaN sigmas with a RuntimeWarning; the
+    calibration now says there was no such window and fits only what it has windows for."""
+    import sys
+    import types
+    import warnings
+
+    monkeypatch.syspath_prepend(str(BENCHMARKS[0].parent))
+    sys.modules.pop("odometry_accuracy", None)
+    import odometry_accuracy
+
+    rng = np.random.default_rng(4)
+    results = []
+    for v in speeds:  # 60 steps at 30 fps straight ahead: 8 windows (4 of 15 frames, 2 of 30, 1 of 45, 1 of 60)
+        true = np.tile([v / 30.0, 0.0, 0.0], (60, 1))
+        odo = types.SimpleNamespace(patch=types.SimpleNamespace(centre=(0.6, 0.0)))
+        results.append({"true": true, "meas": true + rng.normal(0.0, 1e-3, true.shape), "odo": odo})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = odometry_accuracy.calibrate(results)
+    assert set(got) == fitted and all(math.isfinite(v) for v in got.values())
+    assert said in capsys.readouterr().out
