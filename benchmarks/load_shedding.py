@@ -99,8 +99,9 @@ def run_once(session: Path, slowdown: float, shed: bool) -> dict:
 
 
 def _spread(values: list[float], fmt: str = "{:.2f}") -> str:
-    v = sorted(values)
-    return f"{fmt.format(v[len(v) // 2])} ({fmt.format(v[0])}-{fmt.format(v[-1])})"
+    """The median of ``values`` and their range, ``median (min-max)`` (an even count's median the
+    mean of the middle two: it was the upper one)."""
+    return f"{fmt.format(float(np.median(values)))} ({fmt.format(min(values))}-{fmt.format(max(values))})"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -132,9 +133,9 @@ def main(argv: list[str] | None = None) -> int:
             rs = [run_once(args.session, k, shed) for _ in range(args.repeat)]
             runs += rs
             print(
-                f"{k:>4g} {'on' if shed else 'off':>8} {_spread([r['processed'] for r in rs], '{:.0f}'):>10} "
-                f"{_spread([r['dropped'] for r in rs], '{:.0f}'):>8} {_spread([r['strided'] for r in rs], '{:.0f}'):>8} "
-                f"{_spread([r['flow_skipped'] for r in rs], '{:.0f}'):>9} {_spread([r['p99_ms'] for r in rs]):>20} "
+                f"{k:>4g} {'on' if shed else 'off':>8} {_spread([r['processed'] for r in rs], '{:g}'):>10} "
+                f"{_spread([r['dropped'] for r in rs], '{:g}'):>8} {_spread([r['strided'] for r in rs], '{:g}'):>8} "
+                f"{_spread([r['flow_skipped'] for r in rs], '{:g}'):>9} {_spread([r['p99_ms'] for r in rs]):>20} "
                 f"{_spread([r['rmse_cm'] for r in rs]):>20} "
                 f"{_spread([100 * r['within_10cm_of_all'] for r in rs], '{:.1f}'):>22}",
                 flush=True,

@@ -446,3 +446,16 @@ def test_odometry_calibration_says_when_it_has_no_window_to_fit_on(monkeypatch, 
         got = odometry_accuracy.calibrate(results)
     assert set(got) == fitted and all(math.isfinite(v) for v in got.values())
     assert said in capsys.readouterr().out
+
+
+def test_load_shedding_shows_the_true_median_of_an_even_count_of_runs(monkeypatch):
+    """With ``--repeat 2`` or 4 the "median" shown was the upper of the two middle runs."""
+    import sys
+
+    monkeypatch.syspath_prepend(str(BENCHMARKS[0].parent))
+    sys.modules.pop("load_shedding", None)
+    from load_shedding import _spread
+
+    assert _spread([4.0, 1.0, 3.0, 2.0]) == "2.50 (1.00-4.00)"
+    assert _spread([181, 180], "{:g}") == "180.5 (180-181)"
+    assert _spread([7.0, 5.0, 6.0]) == "6.00 (5.00-7.00)"
