@@ -1,6 +1,7 @@
 """Time candidate selection and the tracker's per-frame work on a 100,000-sticker map.
 
-Run: ``/opt/venv/bin/python benchmarks/bench_candidates.py [--n 100000] [--calls 2000]``.
+Run from the repository root, as the README runs the benchmarks: ``PYTHONPATH=$PWD python
+benchmarks/bench_candidates.py [--n 100000] [--calls 2000]``.
 The map is a jittered 1.5 m grid (stickers 1.2-1.8 m apart, ~470 m square). Prints median and
 95th-percentile wall time per call.
 """

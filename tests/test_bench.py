@@ -459,3 +459,14 @@ def test_load_shedding_shows_the_true_median_of_an_even_count_of_runs(monkeypatc
     assert _spread([4.0, 1.0, 3.0, 2.0]) == "2.50 (1.00-4.00)"
     assert _spread([181, 180], "{:g}") == "180.5 (180-181)"
     assert _spread([7.0, 5.0, 6.0]) == "6.00 (5.00-7.00)"
+
+
+@pytest.mark.parametrize("script", BENCHMARKS, ids=lambda p: p.name)
+def test_every_benchmark_says_to_run_it_with_an_interpreter_that_exists(script):
+    """bench_candidates.py said to run it with /opt/venv/bin/python, which is nowhere; a script names
+    ``python`` (the README's ``PYTHONPATH=$PWD python benchmarks/...``) or a path that exists."""
+    import re
+    from pathlib import Path
+
+    for path in re.findall(r"(?<![\w$}])(/[\w./-]*/bin/python[\d.]*)", script.read_text()):
+        assert Path(path).exists(), path
