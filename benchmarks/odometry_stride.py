@@ -67,13 +67,16 @@ def _steps(session: SessionReader, config: OdometryConfig) -> tuple[list[Odometr
 
 def _window_errors(steps: list[OdometryStep], truth: dict[float, np.ndarray], window: float) -> np.ndarray:
     """Errors (N, 3) (forward m, sideways m, turn rad) of the steps chained over consecutive windows of
-    at most ``window`` s (a chain ends where a step does not start at the previous one's end)."""
+    at most ``window`` s, or of one longer step (a chain ends where a step does not start at the
+    previous one's end)."""
     errs = []
     i = 0
     while i < len(steps):
         pose = np.zeros(3)
         j = i
-        while j < len(steps) and steps[j].t1 - steps[i].t0 <= window + 1e-6:
+        # A chain holds its first step even when that step alone is longer than ``window`` (a gap
+        # bridged, or a window under a frame): the loop went round without end on such a step.
+        while j < len(steps) and (j == i or steps[j].t1 - steps[i].t0 <= window + 1e-6):
             if j > i and abs(steps[j].t0 - steps[j - 1].t1) > 1e-9:
                 break
             c, s = math.cos(pose[2]), math.sin(pose[2])
@@ -131,7 +134,10 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     from odometry_accuracy import odometry_config
 
+    from tagloc.cli import checks
+
     base = odometry_config(args.config)  # a bad --config refused before any walk
+    checks.number(args.window, "--window", 0.0, lo_open=True)
     cv2.setNumThreads(1)
     if args.localiser:
         print(f"{'walk':10s} {'RMSE cm off -> on':>18s} {'heading deg off -> on':>22s}")

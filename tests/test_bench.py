@@ -470,3 +470,38 @@ def test_every_benchmark_says_to_run_it_with_an_interpreter_that_exists(script):
 
     for path in re.findall(r"(?<![\w$}])(/[\w./-]*/bin/python[\d.]*)", script.read_text()):
         assert Path(path).exists(), path
+
+
+def test_odometry_stride_chains_a_step_longer_than_the_window_alone(monkeypatch):
+    """A step longer than ``--window`` (a bridged gap, or a window under a frame: ``--window 0.01``)
+    sent the chaining round without end; it is now a chain of its own, and ``--window 0`` is refused."""
+    import sys
+
+    from tagloc.core.geometry import planar_T
+    from tagloc.vision.odometry import OdometryStep
+
+    monkeypatch.syspath_prepend(str(BENCHMARKS[0].parent))
+    sys.modules.pop("odometry_stride", None)
+    import odometry_stride
+
+    class Bounded(list):
+        """The steps, refusing to be asked their length without end (the old loop's symptom)."""
+
+        asked = 0
+
+        def __len__(self) -> int:
+            Bounded.asked += 1
+            if Bounded.asked > 1000:
+                raise RuntimeError("the chaining never ends")
+            return super().__len__()
+
+    times = [0.0, 1 / 30, 2 / 30, 0.5]  # two frame steps, then a 0.43 s bridged gap
+    steps = Bounded(
+        OdometryStep(t0, t1, np.array([0.04, 0.0, 0.0]), np.eye(3) * 1e-6, 1.0) for t0, t1 in zip(times, times[1:])
+    )
+    truth = {round(t, 6): planar_T(0.04 * k, 0.0, 0.0) for k, t in enumerate(times)}
+    assert len(odometry_stride._window_errors(steps, truth, 0.01)) == 3  # each step alone
+    err = odometry_stride._window_errors(steps, truth, 0.1)  # the two frame steps, then the gap
+    assert err.shape == (2, 3) and np.allclose(err, 0.0, atol=1e-12)
+    with pytest.raises(InputError, match="--window must be a number > 0"):
+        odometry_stride.main(["no-session", "--window", "0"])
