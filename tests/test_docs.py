@@ -52,3 +52,13 @@ def test_every_anchor_link_between_readme_and_history_resolves():
     assert sum(len(found) for _, found, _ in checks) > 20  # the documents do link to each other
     broken = [(where, a) for where, found, known in checks for a in found if a not in known]
     assert not broken, broken
+
+
+def test_the_set_up_says_how_the_bare_commands_below_it_run():
+    """The first screen runs `.venv/bin/tagloc`, every later command is written `tagloc ...` (and
+    `rerun ...`, `python benchmarks/...`), which a fresh shell does not find: the set-up must say to
+    activate the environment (a review ran the README top to bottom on a fresh clone)."""
+    readme = README.read_text()
+    set_up, rest = readme.split("\n## Contents", 1)
+    assert re.search(r"^tagloc \w", rest, re.M)  # bare commands in code blocks below the set-up
+    assert ". .venv/bin/activate" in set_up
