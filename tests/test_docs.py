@@ -81,3 +81,14 @@ def test_what_the_readme_commands_write_at_the_top_is_ignored_by_git():
     ]  # fmt: skip
     run = subprocess.run(["git", "check-ignore", "--no-index", *written], cwd=REPO, capture_output=True, text=True)
     assert sorted(run.stdout.split()) == sorted(written)
+
+
+def test_the_readme_gives_every_exit_code_an_error_can_have():
+    """A missing backend (libdmtx, a Rerun viewer at --rerun-connect) exits 3 and an internal error 70,
+    which the README never said (it named 1 and 2 only), though a supervisor acts on the code."""
+    from tagloc.core import errors
+
+    codes = {c.exit_code for c in vars(errors).values() if isinstance(c, type) and issubclass(c, errors.TaglocError)}
+    intro = README.read_text().split("\n## Commands\n", 1)[1].split("\n|", 1)[0]
+    for code in sorted(codes | {70, 130}):
+        assert re.search(rf"\b{code} (for|when)\b", intro), code
