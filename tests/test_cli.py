@@ -445,3 +445,14 @@ def test_demo_replaces_its_own_session_but_deletes_nothing_else(tmp_path, capsys
     (other / "notes.md").write_text("mine")
     assert main([*args[:4], str(tmp_path / "e"), *args[5:]]) == 2
     assert (other / "notes.md").exists()
+
+
+def test_the_demo_names_a_rerun_viewer_that_starts_from_here():
+    """The demo's hint ('open it with: rerun ...') named a bare 'rerun', which the README's set-up
+    does not put on the shell's path: it names the virtual environment's when that is the one."""
+    import shutil
+
+    from tagloc.apps.demo import _rerun_command
+
+    cmd = _rerun_command()
+    assert (cmd == "rerun" and shutil.which("rerun")) or Path(cmd).exists()

@@ -74,6 +74,19 @@ def _check_replaceable(session: Path, map_path: Path) -> None:
         raise InputError(f"{map_path}: the map lies inside {session}, which the demo replaces; choose another -o")
 
 
+def _rerun_command() -> str:
+    """How to start the Rerun viewer from here: the ``rerun`` beside this Python (a virtual
+    environment's, which the README's set-up does not put on the shell's path), else ``rerun``."""
+    import os
+    import shutil
+    import sys
+
+    beside = Path(sys.executable).parent / "rerun"
+    if beside.exists() and shutil.which("rerun") != str(beside):
+        return os.path.relpath(beside) if not os.path.relpath(beside).startswith("..") else str(beside)
+    return "rerun"
+
+
 def run_demo(cfg: DemoConfig) -> str:
     """Simulate, replay and write the outputs; returns the text to print."""
     from tagloc.apps.replay import ReplayConfig, replay
@@ -107,5 +120,5 @@ def run_demo(cfg: DemoConfig) -> str:
         f"per-frame log: {out / 'frames.jsonl'}",
     ]
     if rrd is not None:
-        lines.append(f"Rerun recording: {rrd}  -> open it with:  rerun {rrd}")
+        lines.append(f"Rerun recording: {rrd}  -> open it with:  {_rerun_command()} {rrd}")
     return "\n".join(lines)
