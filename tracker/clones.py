@@ -76,9 +76,6 @@ class CloneSet:
         """Time of ``key``'s clone, or None."""
         return float(self.t0[self.keys.index(key)]) if key in self.keys else None
 
-    def _block(self, i: int) -> slice:
-        return slice(3 * i, 3 * i + 3)
-
     def _keep(self, idx: Sequence[int]) -> None:
         cols = np.concatenate([np.arange(3 * i, 3 * i + 3) for i in idx]) if idx else np.zeros(0, int)
         self.keys = [self.keys[i] for i in idx]

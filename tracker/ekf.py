@@ -115,11 +115,6 @@ def odometry_pose(x: np.ndarray) -> np.ndarray:
     return M_ODO @ x
 
 
-def odometry_cov(P: np.ndarray) -> np.ndarray:
-    """(3, 3) covariance of :func:`odometry_pose` from the state covariance ``P`` (DIM, DIM)."""
-    return M_ODO @ P @ M_ODO.T
-
-
 def pose_residual(z: np.ndarray, hx: np.ndarray) -> np.ndarray:
     """``z - hx`` for stacked (x, y, yaw) blocks, each yaw difference wrapped."""
     y = np.asarray(z, float) - np.asarray(hx, float)
