@@ -43,7 +43,7 @@ import cv2
 import numpy as np
 
 from tagloc.core.errors import BackendUnavailable, InputError
-from tagloc.core.geometry import interpolate_groundtruth
+from tagloc.core.geometry import interpolate_groundtruth, wrap_angle
 from tagloc.core.rig import Rig
 from tagloc.core.sticker import OUTER_CORNERS
 from tagloc.core.stickermap import StickerMap
@@ -496,7 +496,7 @@ class RerunView:
             return
         p = result.output.pose
         self.rec.log("plots/error/position_m", rr.Scalars(float(np.hypot(p[0] - gt[0, 0], p[1] - gt[0, 1]))))
-        dyaw = (p[2] - gt[0, 2] + math.pi) % (2 * math.pi) - math.pi
+        dyaw = wrap_angle(p[2] - gt[0, 2])
         self.rec.log("plots/error/yaw_deg", rr.Scalars(math.degrees(abs(dyaw))))
 
     def _log_image(self, frame: Frame, result: FrameResult) -> None:

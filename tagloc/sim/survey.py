@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tagloc.core.errors import InputError
+from tagloc.core.geometry import wrap_angle
 from tagloc.core.stickermap import StickerMap
 
 
@@ -86,7 +87,7 @@ def surveyed_map(smap: StickerMap, survey: SurveyConfig, seed: int) -> StickerMa
             raise InputError(f"survey: moved sticker {sid} is not in the map {smap.source}")
         dxy[smap.row(sid)] += (dx, dy)
     dyaw = z[:, 2] * math.radians(survey.sigma_deg)
-    yaw = (smap.yaw + dyaw + math.pi) % (2 * math.pi) - math.pi
+    yaw = wrap_angle(smap.yaw + dyaw)
     sig_xy = np.full(n, survey.sigma_m if survey.stated else np.nan)
     sig_yaw = np.full(n, math.radians(survey.sigma_deg) if survey.stated else np.nan)
     return StickerMap(smap.ids.copy(), smap.xy + dxy, yaw, smap.source, sig_xy, sig_yaw)
