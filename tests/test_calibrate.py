@@ -40,7 +40,6 @@ def test_board_spec_checks():
         BoardSpec(marker_m=0.03)
     with pytest.raises(InputError, match="markers"):
         BoardSpec(squares_x=20, squares_y=12, dictionary="4x4_50")
-    assert BoardSpec().corner_count == 70
 
 
 def test_board_sheet_true_scale(tmp_path):

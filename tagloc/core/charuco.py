@@ -72,11 +72,6 @@ class BoardSpec:
         """(width, height) of the chessboard, metres."""
         return self.squares_x * self.square_m, self.squares_y * self.square_m
 
-    @property
-    def corner_count(self) -> int:
-        """Number of inner chessboard corners (the calibration points)."""
-        return (self.squares_x - 1) * (self.squares_y - 1)
-
     def describe(self) -> str:
         """One line naming the board, as printed on the sheet."""
         return (

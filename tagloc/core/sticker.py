@@ -24,8 +24,6 @@ SIZE_M = 0.100
 FRAME_M = 0.008
 #: Side of the white inner area (m).
 INNER_M = SIZE_M - 2 * FRAME_M
-#: Side of one quadrant (m).
-QUADRANT_M = INNER_M / 2
 #: Data Matrix module size (m) and symbol size in modules.
 MODULE_M = 0.0035
 SYMBOL_MODULES = 10

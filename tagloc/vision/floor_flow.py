@@ -274,8 +274,6 @@ class FloorFlow:
         # model: the odometry's step error grows with it (benchmarks/odometry_accuracy.py
         # --by-residual).
         self.last_residual: float | None = None
-        # Fits tracked again on the plain coarse levels (``flatten_retry_px``).
-        self.retries = 0
 
     def refine(
         self,
@@ -313,7 +311,6 @@ class FloorFlow:
         fit = self._fit(gray0, gray1, problem, bool(self._box))
         if self._box and (fit is None or fit[1] > cfg.flatten_retry_px):
             # Flattened, the coarse levels' reach is shorter (see ``flatten_retry_px``).
-            self.retries += 1
             alt = self._fit(gray0, gray1, problem, False)
             if alt is not None and (fit is None or alt[1] < fit[1]):
                 fit = alt

@@ -46,7 +46,6 @@ time, 0.06 cm corrected to the sticker's time.
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass
 
 import cv2
@@ -122,7 +121,6 @@ class PoseSolution:
 
     poses: list[PoseFix]
     ambiguous: bool
-    time_ms: float
     sigma_px: float = 0.0  # corner noise used for the covariances
     # When the poses hold, in seconds after the frame's time: a rolling-shutter camera's sticker is
     # solved at its corners' mean row's time (PoseConfig.at_sticker_rows); 0 otherwise.
@@ -295,7 +293,6 @@ def solve_pose(
         poses hold ``row_time_s`` after the frame's time (a rolling shutter's sticker rows).
     """
     config = config or PoseConfig()
-    t0 = time.perf_counter()
     if rotation not in (0, 1, 2, 3):
         raise InputError(f"solve_pose: rotation {rotation!r} is not 0-3")
     cam = rig_camera.camera
@@ -325,7 +322,7 @@ def solve_pose(
         outer = img[:4]
         uniq = _ippe_solutions(outer, img, obj, use8, K, dist)
     if not uniq:
-        return PoseSolution([], False, (time.perf_counter() - t0) * 1e3, row_time_s=row_time)
+        return PoseSolution([], False, row_time_s=row_time)
 
     n = len(obj)
     dof = 2 * n - 6
@@ -357,4 +354,4 @@ def solve_pose(
         if sig_m > 0 or sig_yaw > 0:
             cov = cov + map_covariance(body, T_world_sticker[:2, 3], sig_m, sig_yaw)
         poses.append(PoseFix(T_world_camera, body, cov, rms))
-    return PoseSolution(poses, len(poses) > 1, (time.perf_counter() - t0) * 1e3, sigma, row_time)
+    return PoseSolution(poses, len(poses) > 1, sigma, row_time)
