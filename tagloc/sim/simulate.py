@@ -44,7 +44,7 @@ from tagloc.core.geometry import make_T, planar_T
 from tagloc.core.rig import Rig, RigCamera, default_rig, load_rig, looking_forward
 from tagloc.core.sticker import INNER_CORNERS, OUTER_CORNERS
 from tagloc.core.stickermap import StickerMap, load_map, save_map
-from tagloc.io.session import GROUNDTRUTH_FILE, SessionInfo, SessionWriter, write_tum
+from tagloc.io.session import GROUNDTRUTH_FILE, SessionInfo, SessionWriter, after_last, write_tum
 from tagloc.sim.floor import Floor, FloorConfig
 from tagloc.sim.lamps import LampConfig, Lamps
 from tagloc.sim.legs import Legs, LegsConfig
@@ -512,7 +512,8 @@ def _delivered(schedules: list, stagger: float) -> list[_Shot]:
     The cameras' jitter is independent, so with jitter of half the stagger or more two cameras'
     stamps can swap (against the true times) or meet: a stamp that would not come after the one
     before it once rounded to frames.csv's microseconds is put one microsecond after it, the
-    resolution the recorder's clock has there (frames.csv's stamps must increase).
+    resolution the recorder's clock has there (frames.csv's stamps must increase), by the recorders'
+    own rule, :func:`~tagloc.io.session.after_last`.
     """
     shots = sorted(
         _Shot(float(sc.stamp[j]) + c * stagger, float(sc.true_t[j]) + c * stagger, c, int(sc.index[j]))
@@ -521,8 +522,8 @@ def _delivered(schedules: list, stagger: float) -> list[_Shot]:
     )
     out: list[_Shot] = []
     for shot in shots:
-        if out and round(shot.stamp, 6) <= round(out[-1].stamp, 6):
-            shot = replace(shot, stamp=round(out[-1].stamp, 6) + 1e-6)
+        if out:
+            shot = replace(shot, stamp=after_last(shot.stamp, out[-1].stamp))
         out.append(shot)
     return out
 
