@@ -50,6 +50,7 @@ import numpy as np
 from tagloc.core.camera import Camera, default_camera
 from tagloc.core.errors import InputError
 from tagloc.core.geometry import planar_T
+from tagloc.core.jsonfile import write_json
 from tagloc.core.rig import Rig, default_rig, looking_forward
 from tagloc.core.stickermap import StickerMap
 from tagloc.core.types import IdSource, PoseFix
@@ -1073,7 +1074,6 @@ def bench_command(
     progress: bool = True,
 ) -> int:
     """``tagloc bench``: run the bench, print the tables, optionally write the JSON; returns 0."""
-    import json
     from pathlib import Path
 
     if json_path is not None and not Path(json_path).parent.exists():
@@ -1085,5 +1085,5 @@ def bench_command(
     result = run_bench(cfg)
     print(format_tables(result))
     if json_path is not None:
-        Path(json_path).write_text(json.dumps(result, indent=1) + "\n", encoding="utf-8")
+        write_json(Path(json_path), result)  # standard JSON: a figure that is not a number as null
     return 0
