@@ -79,6 +79,14 @@ class DeflickerConfig:
       A read-out that holds a period or more (25-30 ms: 2.5-3.6 periods) gives bands the cubic
       cannot follow. Under about one period (a read-out under 10 ms at 100 Hz), the trend takes
       up the band, which is then not found.
+    - ``min_periods``: a frequency is tried only when the read-out holds at least this many of its
+      periods. Under that the sinusoid is nearly a cubic in the row, and the fit, unable to tell
+      them apart, gave steady light bands of any depth: with a 5 ms read-out 3-70 %, the
+      correction switched on and left the frames brighter or darker by half (at 2 ms the gain
+      reached 1e-13). On the painted-line floor of ``tests/test_deflicker.py`` in steady light the
+      deepest fitted band was 5 % at 1 period, 2.2 % at 1.25 and 1.2 % (``off_depth``) at 1.5,
+      while 5 % bands were fitted within 0.3 % from 1.5 periods on. So a read-out under 15 ms
+      gets no correction at 100 Hz, under 12.5 ms none at 120 Hz.
     - ``min_level``: rows whose profile is darker than this (grey levels) are left out of the fit:
       in the log their noise would dominate.
     - ``huber_k``, ``fit_iterations``: the fit is reweighted (Huber weights beyond ``huber_k``
@@ -98,6 +106,7 @@ class DeflickerConfig:
     row_step: int = 8
     strips: int = 8
     trend_degree: int = 3
+    min_periods: float = 1.5
     min_level: float = 8.0
     huber_k: float = 1.5
     fit_iterations: int = 6
@@ -116,16 +125,18 @@ class Bands:
 def find_bands(gray: np.ndarray, readout_s: float, config: DeflickerConfig | None = None) -> Bands | None:
     """The flicker bands of ``gray`` ((H, W) uint8) from a rolling shutter that reads its rows in
     ``readout_s`` s (the deepest sinusoid fitted, however shallow), or None when the frame has too
-    few lit rows to tell, or there is no rolling shutter."""
+    few lit rows to tell, or there is no rolling shutter, or none long enough to tell a band from
+    the floor's own brightness (``min_periods``)."""
     cfg = config or DeflickerConfig()
     H = gray.shape[0]
-    if not readout_s > 0 or H < 8 * cfg.row_step:
+    frequencies = tuple(f for f in cfg.frequencies_hz if readout_s * f >= cfg.min_periods)
+    if not readout_s > 0 or H < 8 * cfg.row_step or not frequencies:
         return None
     n = len(range(0, H, cfg.row_step))
     strips = cv2.resize(gray[:: cfg.row_step], (cfg.strips, n), interpolation=cv2.INTER_AREA)
     level = median_last(strips.astype(float))
     lit = level > cfg.min_level
-    freqs, A = _designs(H, float(readout_s), cfg.row_step, cfg.trend_degree, tuple(cfg.frequencies_hz))
+    freqs, A = _designs(H, float(readout_s), cfg.row_step, cfg.trend_degree, frequencies)
     if int(lit.sum()) < 4 * A.shape[2]:
         return None
     y = np.log(np.maximum(level, 1.0))
