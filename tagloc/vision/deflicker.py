@@ -19,7 +19,7 @@ The bands' form is known: the light is ``1 + a cos(2 pi f t + phi)`` and row ``r
 depth ``a`` (times ``sinc(pi f T)``). The phase is free, because the camera's clock is not locked
 to the mains. So each frame's robust row profile is fitted, in log, with a smooth trend (the
 floor's own brightness from the near rows to the far ones: vignetting, light pools) plus one
-sinusoid at each candidate frequency; the stronger sinusoid is the frame's bands (in the 8-bit
+sinusoid at each candidate frequency; the one that fits better is the frame's bands (in the 8-bit
 image, whose tone curve keeps the bands multiplicative). A camera's frames are corrected all
 alike, or none of them (:class:`Deflicker`): correcting one frame of a pair and not the other
 would itself put a band between them. While the camera's fitted depth, averaged
@@ -124,7 +124,7 @@ class Bands:
 
 def find_bands(gray: np.ndarray, readout_s: float, config: DeflickerConfig | None = None) -> Bands | None:
     """The flicker bands of ``gray`` ((H, W) uint8) from a rolling shutter that reads its rows in
-    ``readout_s`` s (the deepest sinusoid fitted, however shallow), or None when the frame has too
+    ``readout_s`` s (the sinusoid that fits best, however shallow), or None when the frame has too
     few lit rows to tell, or there is no rolling shutter, or none long enough to tell a band from
     the floor's own brightness (``min_periods``)."""
     cfg = config or DeflickerConfig()
@@ -140,10 +140,12 @@ def find_bands(gray: np.ndarray, readout_s: float, config: DeflickerConfig | Non
     if int(lit.sum()) < 4 * A.shape[2]:
         return None
     y = np.log(np.maximum(level, 1.0))
-    coef = _robust_fit(A, y, lit.astype(float), cfg.huber_k, cfg.fit_iterations)  # (F, p)
+    coef, loss = _robust_fit(A, y, lit.astype(float), cfg.huber_k, cfg.fit_iterations)  # (F, p), (F,)
     depths = np.hypot(coef[:, -2], coef[:, -1])
-    k = int(np.argmax(depths))
-    if not np.isfinite(depths[k]):
+    # The frequency whose fit leaves the least (robust) residual, not the deepest: under two periods
+    # or so a 120 Hz band was fitted deeper at 100 Hz, and that sinusoid left it as deep as before.
+    k = int(np.argmin(loss))
+    if not (np.isfinite(depths[k]) and np.isfinite(loss[k])):
         return None
     depth, f, b, c = float(depths[k]), freqs[k], float(coef[k, -2]), float(coef[k, -1])
     w = 2.0 * math.pi * f
@@ -168,10 +170,13 @@ def _designs(
     return frequencies, A
 
 
-def _robust_fit(A: np.ndarray, y: np.ndarray, w0: np.ndarray, k: float, iterations: int) -> np.ndarray:
+def _robust_fit(
+    A: np.ndarray, y: np.ndarray, w0: np.ndarray, k: float, iterations: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Weighted least squares of ``A[i] x = y`` for each design ``A`` (F, n, p) (row weights ``w0``
     (n,)), reweighted ``iterations`` times with Huber weights at ``k`` robust sigmas (1.4826
-    median absolute residual of the rows kept): (F, p), NaN where singular."""
+    median absolute residual of the rows kept): (F, p), NaN where singular, and each fit's Huber
+    loss over the rows kept, on one scale for all (F,)."""
     F = A.shape[0]
     w = np.broadcast_to(w0, (F, len(w0)))
     kept = w0 > 0
@@ -181,11 +186,14 @@ def _robust_fit(A: np.ndarray, y: np.ndarray, w0: np.ndarray, k: float, iteratio
         try:
             coef = np.linalg.solve(AwT @ A, (AwT @ y)[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:
-            return np.full((F, A.shape[2]), np.nan)
+            return np.full((F, A.shape[2]), np.nan), np.full(F, np.nan)
         r = np.abs(y[None] - np.einsum("fnp,fp->fn", A, coef))
         sigma = 1.4826 * median_last(r[:, kept])[:, None] + 1e-6
         w = w0[None] * np.minimum(1.0, k * sigma / np.maximum(r, 1e-12))
-    return coef
+    # Each fit's Huber loss on one common scale (the smaller sigma), over the rows kept.
+    c = k * sigma.min()
+    loss = np.where(r <= c, 0.5 * r**2, c * (r - 0.5 * c))
+    return coef, (loss * w0[None]).sum(axis=1)
 
 
 def remove_bands(gray: np.ndarray, bands: Bands) -> np.ndarray:
