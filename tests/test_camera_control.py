@@ -597,3 +597,23 @@ def test_a_live_stamp_held_back_by_the_last_one_lands_in_a_later_microsecond(tmp
         writer.write(k, t, np.full((972, 1296), k, np.uint8))
     writer.close()
     assert np.all(np.diff(SessionReader(tmp_path / "rec").timestamps) > 0)
+
+
+def test_a_driver_clock_that_jumps_is_abandoned(monkeypatch, v4l2):
+    """A driver clock that jumps ahead (a driver reset, a wrap) is left for grab time, as one that
+    stops rising is (a review: a jump of 1000 s stamped every later frame 1000 s in the future)."""
+    import time as _time
+
+    def read(self):
+        self.n += 1
+        self.props[cv2.CAP_PROP_POS_MSEC] = 5e6 + self.n * 33.3 + (1e6 if self.n >= 5 else 0.0)
+        return True, np.full((480, 640, 3), self.n % 256, np.uint8)
+
+    monkeypatch.setattr(FakeV4L2, "read", read)
+    src = open_source("0")
+    frames = [src.read() for _ in range(8)]
+    t = np.array([f.timestamp for f in frames])
+    assert src.clock.startswith("grab (driver clock jumped") and src.stamp_at == capture.STAMP_GRAB
+    assert np.all(np.diff(t) > 0) and np.diff(t).max() < 1.0
+    assert abs(t[-1] - _time.time()) < 5.0
+    src.close()

@@ -269,6 +269,7 @@ class VideoSource(FrameSource):
         self._requested: CameraSettings | None = None
         self._driver_offset = 0.0  # epoch - driver clock, fixed at the first frame
         self._last_driver = -math.inf
+        self._last_grab = -math.inf  # monotonic time of the last good frame
         self._clock_chosen = False  # whether the first good frame has chosen the driver's or grab clock
 
     def apply_settings(self, settings: CameraSettings) -> None:
@@ -316,8 +317,9 @@ class VideoSource(FrameSource):
         """This frame's time: from the driver's buffer timestamp while it gives rising ones, else from
         the grab time, each converted to the frame's time (:func:`frame_time`).
 
-        A driver clock that stops rising is abandoned for good (never mixed back in), and stamps
-        never go backwards across the switch. Called for good frames only: a failed read leaves the
+        A driver clock that stops rising, or jumps (its step from the last good frame differs from the
+        monotonic clock's by ``CLOCK_JUMP_S`` or more: a driver reset, a wrap), is abandoned for good
+        (never mixed back in), and stamps never go backwards across the switch. Called for good frames only: a failed read leaves the
         driver's stamp at the last buffer's, which is neither a clock that stopped nor a first frame.
         """
         if not self.live:
@@ -326,11 +328,13 @@ class VideoSource(FrameSource):
         raw = now + self._epoch_offset  # the grab time
         if self.clock == "driver":
             driver_s = float(self._cap.get(cv2.CAP_PROP_POS_MSEC) or 0.0) * 1e-3
-            if driver_s > self._last_driver:
+            step_s = driver_s - self._last_driver
+            if step_s > 0 and abs(step_s - (now - self._last_grab)) < CLOCK_JUMP_S:
                 self._last_driver = driver_s
                 raw = driver_s + self._driver_offset
             else:
-                self.clock, self.stamp_at = "grab (driver clock stopped rising)", STAMP_GRAB
+                why = "stopped rising" if not step_s > 0 else f"jumped {step_s:+.3g} s"
+                self.clock, self.stamp_at = f"grab (driver clock {why})", STAMP_GRAB
         elif self.clock == "grab" and not self._clock_chosen:
             driver_s = float(self._cap.get(cv2.CAP_PROP_POS_MSEC) or 0.0) * 1e-3
             if driver_s > 0:  # the driver stamps its buffers: use that clock from now on
@@ -338,6 +342,7 @@ class VideoSource(FrameSource):
                 self._driver_offset, self.stamp_at = _driver_clock(driver_s, now, self._epoch_offset)
                 raw = driver_s + self._driver_offset
         self._clock_chosen = True
+        self._last_grab = now
         exposure = self._requested.exposure_ms * 1e-3 if self._requested and self._requested.exposure_ms else 0.0
         return self._live_stamp(raw, exposure)
 
