@@ -130,7 +130,7 @@ class FakeRequest:
         assert name == "main"
         w, h = self.cam.config["main"]["size"]
         yuv = np.zeros((h * 3 // 2, w), np.uint8)
-        yuv[:h] = self.n  # the Y plane
+        yuv[:h] = self.n % 256  # the Y plane (a live run grabs hundreds ahead of its frames)
         yuv[h:] = 128
         return yuv
 
@@ -617,3 +617,19 @@ def test_a_driver_clock_that_jumps_is_abandoned(monkeypatch, v4l2):
     assert np.all(np.diff(t) > 0) and np.diff(t).max() < 1.0
     assert abs(t[-1] - _time.time()) < 5.0
     src.close()
+
+
+def test_a_picam_recording_holds_what_the_sensor_did(tmp_path, monkeypatch):
+    """picamera2 reads exposure, gain and frame duration back from each frame's metadata, and there
+    is none before the first frame, when the report is taken (a review: session.json held the
+    requested 25 fps and no exposure or gain; the sensor ran 2.0 ms, gain 16, 30 fps)."""
+    monkeypatch.setitem(sys.modules, "picamera2", types.SimpleNamespace(Picamera2=FakePicamera2))
+    get_metadata = FakeRequest.get_metadata
+    monkeypatch.setattr(FakeRequest, "get_metadata", lambda self: {**get_metadata(self), "FrameDuration": 33333})
+    sess = make_session(tmp_path / "s", 3, 10.0)
+    settings = CameraSettings(exposure_ms=2.004, gain=20.0, fps=25.0, resolution=(W, H))
+    run_live(LiveConfig(source="picam", record=tmp_path / "rec", max_frames=3, camera_settings=settings), Echo(sess))
+    cam = json.loads((tmp_path / "rec" / "session.json").read_text())["camera"]
+    assert cam["exposure_ms"] == pytest.approx(2.0) and cam["gain"] == 16.0
+    assert cam["fps"] == pytest.approx(30.0, abs=0.01) and cam["requested"]["fps"] == 25.0
+    assert cam["resolution"] == [W, H] and cam["clock"] == "driver"

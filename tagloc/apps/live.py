@@ -239,8 +239,10 @@ def run_live(
             # The clock the frames were stamped on is known only once frames came (a driver's stamps
             # are taken up at the first, abandoned if they stop rising): the report from before the
             # first frame had recorded "grab" for a camera stamped on its driver's clock.
-            # Only those attributes: the driver is released by now, its properties would read 0.
-            final = [{**rep, "clock": s.clock, "stamp": s.stamp_at} if rep else rep for s, rep in zip(sources, reports)]
+            # (picamera2 reads exposure and gain back from each frame: none before the first.)
+            final = [
+                s.report_after_run(rep) if hasattr(s, "report_after_run") else rep for s, rep in zip(sources, reports)
+            ]
             writer.update_info(dataclasses.replace(info, extra={"camera": final[0] if len(final) == 1 else final}))
             writer.close()
     return LiveSummary(

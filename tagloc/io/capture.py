@@ -232,6 +232,12 @@ class FrameSource:
         """What the source runs at (as read back from the driver) and its timestamp clock."""
         return {"clock": self.clock, "fps": self.fps, "stamp": self.stamp_at}
 
+    def report_after_run(self, report: dict) -> dict:
+        """``report`` (:meth:`settings_report` from before the first frame) brought up to date once
+        the frames came, without the driver (released by then, its properties would read 0): the
+        clock and stamp the frames were given (a driver's are taken up at the first frame)."""
+        return {**report, "clock": self.clock, "stamp": self.stamp_at} if report else report
+
 
 def _grey(image: np.ndarray | None) -> np.ndarray | None:
     if image is None or image.size == 0:
@@ -488,6 +494,12 @@ class PiCamera2Source(FrameSource):
             out["fps"] = 1e6 / float(md["FrameDuration"])
         out["requested"] = self._requested.to_json()
         return out
+
+    def report_after_run(self, report: dict) -> dict:
+        """As read back from the last frame's metadata (exposure, gain, frame rate): before the
+        first frame, when the report printed at start was taken, there was none, and a recording's
+        session.json had held the requested frame rate and no exposure or gain at all."""
+        return {**report, **self.settings_report()} if self._metadata else super().report_after_run(report)
 
     def close(self) -> None:
         self._cam.stop()
