@@ -633,3 +633,25 @@ def test_a_picam_recording_holds_what_the_sensor_did(tmp_path, monkeypatch):
     assert cam["exposure_ms"] == pytest.approx(2.0) and cam["gain"] == 16.0
     assert cam["fps"] == pytest.approx(30.0, abs=0.01) and cam["requested"]["fps"] == 25.0
     assert cam["resolution"] == [W, H] and cam["clock"] == "driver"
+
+
+def test_values_a_driver_does_not_report_are_named_so_not_made_up(tmp_path, monkeypatch, v4l2, capsys):
+    """OpenCV reads 0 or -1 for a property the backend lacks. A camera reporting 0 fps was printed
+    and recorded at the 30 fps assumed for pacing, an exposure of -1 as -0.1 ms, a gain of -1 as -1
+    (a review); they are now said to be not reported, and recorded as null."""
+
+    def set_nothing(self, prop, value):
+        self.calls.append((prop, value))
+        return False  # a driver that ignores every request
+
+    monkeypatch.setattr(FakeV4L2, "set", set_nothing)
+    sess = make_session(tmp_path / "s", 3, 10.0)
+    src = open_source("0", CameraSettings(exposure_ms=2.0, gain=4.0))
+    cap = v4l2.instances[0]
+    cap.props.update({cv2.CAP_PROP_FPS: 0.0, cv2.CAP_PROP_EXPOSURE: -1.0, cv2.CAP_PROP_GAIN: -1.0})
+    run_live(LiveConfig(source="0", record=tmp_path / "rec", max_frames=2), localiser=Echo(sess), source=src)
+    line = capsys.readouterr().err.splitlines()[0]
+    assert "fps not reported, exposure not reported, gain not reported" in line and "requested" in line
+    cam = json.loads((tmp_path / "rec" / "session.json").read_text())["camera"]
+    assert cam["fps"] is None and cam["exposure_ms"] is None and cam["gain"] is None
+    assert cam["requested"]["exposure_ms"] == 2.0 and cam["resolution"] == [640, 480]

@@ -283,6 +283,8 @@ def format_camera_report(report: dict) -> str:
     for key, unit in (("fps", " fps"), ("exposure_ms", " ms exposure"), ("gain", " gain")):
         if report.get(key) is not None:
             parts.append(f"{report[key]:g}{unit}")
+        elif key in report:  # the driver gave no value (0 fps, a negative exposure): say so
+            parts.append(f"{unit.split()[-1]} not reported")
     req = report.get("requested") or {}
     asked = [f"{k} {v}" for k, v in req.items() if v is not None]
     text = ", ".join(parts) + f" (timestamps: {report.get('clock', '?')} clock)"

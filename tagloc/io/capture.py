@@ -249,6 +249,12 @@ def _grey(image: np.ndarray | None) -> np.ndarray | None:
     return image
 
 
+def _read_back(value: float | None, above: float, below: float = math.inf) -> float | None:
+    """A driver's read-back ``value`` when it lies in (``above``, ``below``), else None (not reported)."""
+    v = float(value or 0.0)
+    return v if above < v < below else None
+
+
 class VideoSource(FrameSource):
     """A camera, stream or video file read through ``cv2.VideoCapture``.
 
@@ -302,19 +308,25 @@ class VideoSource(FrameSource):
             self.fps = fps
 
     def settings_report(self) -> dict:
-        """Requested and read-back values (exposure in ms, assuming V4L2's 100 us units)."""
+        """Requested and read-back values (exposure in ms, assuming V4L2's 100 us units). A camera's
+        value the driver does not report (OpenCV reads 0 or -1 for a property the backend lacks: a
+        0 fps, a negative exposure or gain) is None, not the 30 fps assumed for pacing or a
+        -0.1 ms exposure."""
         cap = self._cap
+        size = [int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))]
         out = {
             "clock": self.clock,
-            "fps": self.fps,
-            "resolution": [int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))],
+            "fps": _read_back(cap.get(cv2.CAP_PROP_FPS), 0.0, 1000.0) if self.live else self.fps,
+            "resolution": size if min(size) > 0 else None,
             "backend": cap.getBackendName() if hasattr(cap, "getBackendName") else "",
             "stamp": self.stamp_at,
         }
         if self.live:
-            out["exposure_ms"] = float(cap.get(cv2.CAP_PROP_EXPOSURE)) / 10.0
+            exposure = _read_back(cap.get(cv2.CAP_PROP_EXPOSURE), 0.0)
+            out["exposure_ms"] = exposure / 10.0 if exposure is not None else None
             out["auto_exposure"] = float(cap.get(cv2.CAP_PROP_AUTO_EXPOSURE))
-            out["gain"] = float(cap.get(cv2.CAP_PROP_GAIN))
+            gain = float(cap.get(cv2.CAP_PROP_GAIN) or 0.0)
+            out["gain"] = gain if 0.0 <= gain < math.inf else None
         if self._requested is not None:
             out["requested"] = self._requested.to_json()
         return out
