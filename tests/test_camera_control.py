@@ -655,3 +655,31 @@ def test_values_a_driver_does_not_report_are_named_so_not_made_up(tmp_path, monk
     cam = json.loads((tmp_path / "rec" / "session.json").read_text())["camera"]
     assert cam["fps"] is None and cam["exposure_ms"] is None and cam["gain"] is None
     assert cam["requested"]["exposure_ms"] == 2.0 and cam["resolution"] == [640, 480]
+
+
+def test_frame_times_take_the_exposure_the_driver_set(monkeypatch, v4l2):
+    """A frame's time is its stamp less half its exposure: the one the driver set, read back, not the
+    one asked for (a review: 30 ms asked, 10 ms set, every frame time 10 ms early)."""
+    import time as _time
+
+    mono0 = _time.monotonic()
+
+    def read(self):
+        self.n += 1
+        self.props[cv2.CAP_PROP_POS_MSEC] = (mono0 - 0.050 + self.n / 30) * 1e3
+        return True, np.full((480, 640, 3), self.n % 256, np.uint8)
+
+    clamp = FakeV4L2.set
+
+    def set_clamped(self, prop, value):  # this sensor's longest exposure is 10 ms
+        return clamp(self, prop, min(value, 100.0) if prop == cv2.CAP_PROP_EXPOSURE else value)
+
+    monkeypatch.setattr(FakeV4L2, "read", read)
+    monkeypatch.setattr(FakeV4L2, "set", set_clamped)
+    src = open_source("0", CameraSettings(exposure_ms=30.0))
+    src.set_timing(0.030)
+    epoch = _time.time() - _time.monotonic()
+    f = src.read()
+    assert src.settings_report()["exposure_ms"] == pytest.approx(10.0)
+    assert f.timestamp == pytest.approx(mono0 - 0.050 + 1 / 30 + epoch + 0.015 - 0.005, abs=2e-3)
+    src.close()

@@ -282,6 +282,7 @@ class VideoSource(FrameSource):
         self._driver_offset = 0.0  # epoch - driver clock, fixed at the first frame
         self._last_driver = -math.inf
         self._last_grab = -math.inf  # monotonic time of the last good frame
+        self._exposure_s = 0.0  # the manual exposure (s); 0: unknown (auto exposure)
         self._clock_chosen = False  # whether the first good frame has chosen the driver's or grab clock
 
     def apply_settings(self, settings: CameraSettings) -> None:
@@ -301,6 +302,10 @@ class VideoSource(FrameSource):
             # V4L2 backend: auto-exposure menu 1 = manual; exposure_time_absolute in 100 us units.
             cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, V4L2_MANUAL_EXPOSURE)
             cap.set(cv2.CAP_PROP_EXPOSURE, settings.exposure_ms * 10.0)
+            # The frames' times take the exposure the driver set (it rounds and clamps without an
+            # error), the request only when it reads none back.
+            got = _read_back(cap.get(cv2.CAP_PROP_EXPOSURE), 0.0)
+            self._exposure_s = got * 1e-4 if got is not None else settings.exposure_ms * 1e-3
         if settings.gain is not None:
             cap.set(cv2.CAP_PROP_GAIN, settings.gain)
         fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
@@ -361,8 +366,7 @@ class VideoSource(FrameSource):
                 raw = driver_s + self._driver_offset
         self._clock_chosen = True
         self._last_grab = now
-        exposure = self._requested.exposure_ms * 1e-3 if self._requested and self._requested.exposure_ms else 0.0
-        return self._live_stamp(raw, exposure)
+        return self._live_stamp(raw, self._exposure_s)
 
     def _failed_stamp(self) -> float:
         """A failed read's stamp: a file's frame time; live, the last frame time given (or the grab
