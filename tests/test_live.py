@@ -509,3 +509,26 @@ def test_frames_still_buffered_at_the_stop_are_counted():
     assert first is not None
     assert m.grabbed == 12 and m.delivered == 1
     assert m.grabbed == m.delivered + m.dropped + m.skipped + m.unprocessed
+
+
+class ClockSwitchingSource(CountingSource):
+    """A source stamped on its driver's clock until frame 5, when the clock is abandoned for grab time."""
+
+    clock = "driver"
+
+    def read(self) -> Frame | None:
+        frame = super().read()
+        if frame is not None and frame.index == 5:
+            self.clock = "grab (driver clock jumped +1e+03 s)"
+        return frame
+
+
+def test_a_camera_leaving_its_driver_clock_is_said_when_it_happens(tmp_path, capsys):
+    """A driver clock that stopped or jumped is abandoned for grab time (its jitter then in every
+    frame time); that was written only into session.json's "clock": now one warning, once."""
+    probe = MemoryProbe(set())
+    cfg = LiveConfig(source="probe", publish=[str(tmp_path / "p.jsonl")], pace=False)
+    summary = run_live(cfg, localiser=probe, source=ClockSwitchingSource(12))
+    assert summary.frames == 12
+    err = [ln for ln in capsys.readouterr().err.splitlines() if "grab time" in ln]
+    assert len(err) == 1 and "driver clock jumped" in err[0], err

@@ -353,6 +353,26 @@ class _LiveRun:
         self.t_start = time.monotonic()
         self.seconds = 0.0
         self.bag = None  # a tagloc.io.rosbag.BagWriter when recording a bag
+        # Each camera's timestamp clock as last seen (see :meth:`_clock_changes`).
+        self._clocks: list[str | None] = [getattr(s, "clock", None) for s in self._sources()]
+
+    def _sources(self) -> list:
+        """The frame sources behind the capture (one per camera)."""
+        threads = getattr(self.cap, "threads", None)
+        return [t.source for t in threads] if threads is not None else [getattr(self.cap, "source", None)]
+
+    def _clock_changes(self) -> list[str]:
+        """A line for each camera whose timestamps left the driver's clock since the last call (a
+        driver clock that stopped or jumped is abandoned for grab time, which carries the capture's
+        latency jitter): said when it happens, not only in ``session.json``."""
+        out = []
+        for k, src in enumerate(self._sources()):
+            clock = getattr(src, "clock", None)
+            if clock != self._clocks[k] and self._clocks[k] == "driver" and str(clock).startswith("grab"):
+                name = f"camera {k}: " if len(self._clocks) > 1 else ""
+                out.append(f"{name}timestamps now from grab time, not the driver's: {clock}")
+            self._clocks[k] = clock
+        return out
 
     def _wait(self) -> float | None:
         """How long to wait for the next frame (s), or None when a limit is reached."""
@@ -387,6 +407,8 @@ class _LiveRun:
                 outputs.warn_skipped(why)  # named as replay names its unreadable frames
             for why in getattr(self.cap, "take_failed", list)():
                 outputs.warn(why)  # a rig camera lost: said when it happens, not in the summary only
+            for why in self._clock_changes():
+                outputs.warn(why)
             if item is None:
                 if self.cap.finished:
                     break
