@@ -208,7 +208,7 @@ def run_live(
         if len(sources) == 1
         else MultiCapture(sources, buffer=cfg.buffer, pace=cfg.pace)
     )
-    run = _LiveRun(cfg, localiser, cap, stop)
+    run = _LiveRun(cfg, localiser, cap, stop, sources)
     restore = _stop_on_signals(stop)
     outputs = writer = None
     try:
@@ -344,8 +344,9 @@ def _output_config(cfg: LiveConfig, live_clock: bool, real_time: bool) -> Output
 class _LiveRun:
     """The loop's state: counts, latencies, the tracker state after the last frame."""
 
-    def __init__(self, cfg: LiveConfig, localiser, cap: CaptureThread, stop: threading.Event):
-        self.cfg, self.localiser, self.cap, self.stop = cfg, localiser, cap, stop
+    def __init__(self, cfg: LiveConfig, localiser, cap: CaptureThread, stop: threading.Event, sources: list):
+        """``sources``: the frame sources behind ``cap``, one per rig camera in order."""
+        self.cfg, self.localiser, self.cap, self.stop, self.sources = cfg, localiser, cap, stop, sources
         # 8 bytes a frame (a list of floats took 32: 28 MB over an 8-hour shift at 30 fps).
         self.latencies = array.array("d")
         self.frames = self.fixes = 0
@@ -354,19 +355,14 @@ class _LiveRun:
         self.seconds = 0.0
         self.bag = None  # a tagloc.io.rosbag.BagWriter when recording a bag
         # Each camera's timestamp clock as last seen (see :meth:`_clock_changes`).
-        self._clocks: list[str | None] = [getattr(s, "clock", None) for s in self._sources()]
-
-    def _sources(self) -> list:
-        """The frame sources behind the capture (one per camera)."""
-        threads = getattr(self.cap, "threads", None)
-        return [t.source for t in threads] if threads is not None else [getattr(self.cap, "source", None)]
+        self._clocks: list[str | None] = [getattr(s, "clock", None) for s in sources]
 
     def _clock_changes(self) -> list[str]:
         """A line for each camera whose timestamps left the driver's clock since the last call (a
         driver clock that stopped or jumped is abandoned for grab time, which carries the capture's
         latency jitter): said when it happens, not only in ``session.json``."""
         out = []
-        for k, src in enumerate(self._sources()):
+        for k, src in enumerate(self.sources):
             clock = getattr(src, "clock", None)
             if clock != self._clocks[k] and self._clocks[k] == "driver" and str(clock).startswith("grab"):
                 name = f"camera {k}: " if len(self._clocks) > 1 else ""
