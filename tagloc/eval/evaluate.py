@@ -534,6 +534,8 @@ def summarise(rows: list[dict]) -> dict:
     summary = {}
     for mode in dict.fromkeys(r["mode"] for r in rows):
         rs = [r for r in rows if r["mode"] == mode]
+        # The walk with the largest RMSE among those with a scored frame ({}: none had one).
+        worst = max((r for r in rs if r["frames"] > 0), key=lambda r: r["rmse_m"], default={})
         summary[mode] = {
             "rmse_m": _pooled(rs, "rmse_m", squared=True),
             "within_10cm": _pooled(rs, "within_10cm"),
@@ -552,9 +554,9 @@ def summarise(rows: list[dict]) -> dict:
             ),
             # The most of all frames any localiser could place: none before a sticker is in view.
             "within_10cm_reachable": _reachable(rs),
-            # (max, not nanmax: a mode no walk of which had a scored frame has no worst walk, and no warning)
-            "worst_rmse_m": max((r["rmse_m"] for r in rs if r["frames"] > 0), default=math.nan),
-            "worst_walk": max((r for r in rs if r["frames"] > 0), key=lambda r: r["rmse_m"], default={}).get("session"),
+            # (not nanmax: a mode no walk of which had a scored frame has no worst walk, and no warning)
+            "worst_rmse_m": worst.get("rmse_m", math.nan),
+            "worst_walk": worst.get("session"),
             "tracker_ms_median": float(np.median([r["tracker_ms_median"] for r in rs])),
             "tracker_ms_p95": float(np.median([r["tracker_ms_p95"] for r in rs])),
             "odometry_ms_median": float(np.median([r["odometry_ms_median"] for r in rs])),

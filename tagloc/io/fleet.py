@@ -315,7 +315,7 @@ class FleetState:
                 track.drop_reason = "ahead of the monitor's clock"
             return None
         first = track is None
-        if track is None:
+        if first:
             track = self.vests[doc.vest] = VestTrack(doc.vest, doc, received, seen)
         # Before the order check: two senders on session clocks look "older" to each other.
         self._note_run(track, doc.run, seen)
