@@ -42,7 +42,7 @@ from tagloc.core.errors import BackendUnavailable, InputError, SessionError
 from tagloc.core.geometry import planar_T
 from tagloc.core.rig import Rig, default_rig, load_rig, local_calibration_names
 from tagloc.core.stickermap import StickerMap, load_map
-from tagloc.core.types import Frame, FrameResult, Observation, TrackState
+from tagloc.core.types import Frame, FrameResult, Observation, TrackState, seconds_text
 from tagloc.io.session import (
     FRAMES_CSV,
     MAP_FILE,
@@ -135,7 +135,7 @@ def check_bag_time(t: float, where: str) -> None:
     an internal struct or overflow error)."""
     if not t >= 0:
         raise InputError(
-            f"{where}: time {t:.6f} s is before 0, which a ROS bag cannot hold; shift the session's clock "
+            f"{where}: time {seconds_text(t)} s is before 0, which a ROS bag cannot hold; shift the session's clock "
             "(frames.csv) or leave out the bag"
         )
     if not t < MAX_BAG_TIME_S:
