@@ -13,7 +13,7 @@ from tagloc.core.errors import InputError
 from tagloc.core.types import IdSource, PoseFix, TrackState
 from tracker import motion
 from tracker.config import TrackerConfig
-from tracker.ekf import largest_eig_2x2
+from tracker.ekf import heading_widened, largest_eig_2x2
 from tracker.tracker import Tracker
 
 FIX_COV = np.diag([0.01**2, 0.01**2, math.radians(0.5) ** 2])  # what the pose solver claims
@@ -1218,3 +1218,103 @@ def test_a_stated_survey_enters_the_filter_whole_up_to_the_maps_largest_sigmas()
     ekf._tidy()
     assert fresh
     np.testing.assert_allclose(ekf.P[map_slot(k), map_slot(k)], prior, rtol=1e-12)
+
+
+# -- heading-widened covariance ---------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("yaw_sd", [0.001, 0.05, 0.4, 1.0, 1.8])
+@pytest.mark.parametrize("ellipse", [(0.5, 0.01, 0.3), (0.02, 0.3, -1.1), (0.2, 0.2, 0.0)])
+def test_heading_widening_is_the_rotation_average_on_the_minor_axis(yaw_sd, ellipse):
+    """The widened minor variance is the minor variance of the ellipse averaged over rotations drawn
+    from the heading's N(0, s^2) (checked by sampling), the major kept, nothing made tighter."""
+    major, minor, ang = ellipse
+    R = np.array([[math.cos(ang), -math.sin(ang)], [math.sin(ang), math.cos(ang)]])
+    cov = np.eye(3)
+    cov[:2, :2] = R @ np.diag([major, minor]) @ R.T
+    cov[2, 2] = yaw_sd**2
+    cov[:2, 2] = cov[2, :2] = [0.3 * yaw_sd * math.sqrt(major), -0.2 * yaw_sd * math.sqrt(minor)]
+    out = heading_widened(cov)
+    d = np.random.default_rng(7).normal(0.0, yaw_sd, 200_000)
+    c, s = np.cos(d), np.sin(d)
+    rot = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+    averaged = np.mean(rot @ cov[:2, :2] @ rot.transpose(0, 2, 1), axis=0)
+    ev_avg, ev_out = np.linalg.eigvalsh(averaged), np.linalg.eigvalsh(out[:2, :2])
+    np.testing.assert_allclose(ev_out[0], ev_avg[0], rtol=0.01, atol=1e-6)
+    np.testing.assert_allclose(ev_out[1], max(major, minor), rtol=1e-9)
+    np.testing.assert_array_equal(out[2], cov[2])  # yaw row untouched
+    assert np.linalg.eigvalsh(out - cov).min() > -1e-12  # never tighter
+    assert np.linalg.eigvalsh(out).min() > 0
+
+
+def arc_then_straight(t: float, t_turn: float = 4.0, v: float = 1.3, w: float = -0.9) -> np.ndarray:
+    """Walk an arc at ``w`` rad/s for ``t_turn`` s, then straight on."""
+    yaw = w * min(t, t_turn)
+    x, y = v / w * math.sin(yaw), v / w * (1.0 - math.cos(yaw))
+    if t > t_turn:
+        x, y = x + v * (t - t_turn) * math.cos(yaw), y + v * (t - t_turn) * math.sin(yaw)
+    return np.array([x, y, float(wrap(yaw))])
+
+
+def blind_after_turn_nees(widen: bool, seed: int) -> np.ndarray:
+    """Position NEES of each frame of a 2.5 s blind span that starts as the walker leaves a turn
+    (fixes every 4th frame of 30 fps until then): the filter carries the turn on, the walker does not."""
+    cfg = TrackerConfig(heading_widening=widen)
+    rng = np.random.default_rng(seed)
+    tr, nees = Tracker(cfg), []
+    for i in range(196):
+        t = i / 30
+        tr.predict(t)
+        if t <= 4.0 and i % 4 == 0:
+            assert tr.update([noisy_fix(arc_then_straight(t), rng, cfg)], 100 + i, IdSource.DECODED, t).accepted
+        out = tr.output(t)
+        e = out.pose[:2] - arc_then_straight(t)[:2]
+        if t > 4.0:
+            assert_spd(out.cov)
+            nees.append(float(e @ np.linalg.solve(out.cov[:2, :2], e)))
+    assert out.state is TrackState.LOST and math.sqrt(out.cov[2, 2]) > 1.0  # the heading is lost
+    return np.array(nees)
+
+
+def test_blind_after_a_turn_is_not_overconfident():
+    # Without the widening the thin ellipse has the walker outside its single-frame 95 % point
+    # (chi-square 2 DoF, 5.99) on two of these three seeds; with it, no frame is.
+    limit = chi2.ppf(0.95, 2)
+    widened = [blind_after_turn_nees(True, s).max() for s in range(3)]
+    filter_own = [blind_after_turn_nees(False, s).max() for s in range(3)]
+    assert max(widened) < limit, widened
+    assert sum(n > limit for n in filter_own) >= 2, filter_own
+
+
+def test_odometry_step_refused_once_the_heading_is_lost():
+    """Frames without a step or a fix after a start from one fix (speed and turn unknown): once
+    the heading's sigma passes ``odometry_max_yaw_sd`` a step cannot be placed on the map and is
+    refused and counted; with the limit raised, the same step is fused."""
+    import dataclasses
+
+    from tagloc.vision.odometry import OdometryStep
+
+    step_cov = np.diag([0.005**2, 0.005**2, math.radians(0.2) ** 2])
+
+    def offer(limit: float) -> tuple[Tracker, list[tuple[float, bool]]]:
+        tr = Tracker(dataclasses.replace(TrackerConfig(), odometry_max_yaw_sd=limit))
+        tr.predict(0.0, "cam")
+        assert tr.update([make_fix([1.0, 2.0, 0.3])], 11, IdSource.DECODED, 0.0).accepted
+        seen = []
+        for k in (2, 45, 60, 75, 89):  # steps from the frame before; other frames have none
+            t0, t1 = (k - 1) / 30, k / 30
+            tr.predict(t0, "cam")
+            tr.predict(t1, "cam")
+            yaw_sd = math.sqrt(tr.filter.P[motion.YAW, motion.YAW])
+            res = tr.update_odometry(OdometryStep(t0, t1, np.array([0.04, 0.0, 0.0]), step_cov, 0.5), "cam")
+            seen.append((yaw_sd, res.accepted))
+        return tr, seen
+
+    tr, seen = offer(TrackerConfig().odometry_max_yaw_sd)
+    assert TrackerConfig().odometry_max_yaw_sd == 1.0
+    assert any(a for sd, a in seen if sd < 1.0)  # steps fused while the heading is known
+    late = [a for sd, a in seen if sd > 1.0]
+    assert late and not any(late)
+    assert tr.stats["odometry_heading_unknown"] == len(late)
+    _, seen_all = offer(100.0)
+    assert all(a for sd, a in seen_all if sd > 1.0) and any(sd > 1.0 for sd, _ in seen_all)

@@ -143,6 +143,12 @@ class TrackerConfig:
       walking (an honest limit without odometry): decoded fixes still resume tracking.
     - ``lost_after_s``: or when no fix was accepted for this long; after it the speed and yaw rate
       are forgotten (zero mean, initial variance), so the mean stops extrapolating.
+    - ``heading_widening``: the published (x, y) covariance is widened for the heading's own
+      uncertainty (:func:`tracker.ekf.heading_widened`): its ellipse's orientation comes from the
+      heading, so a heading uncertain by a radian (seconds blind in a turn) leaves the ellipse's
+      orientation unknown too. Blind 2 s into a turn, the thin ellipse had the walker 1.7 m off
+      across it at NEES 5 for 1.5 s (``benchmarks/blind_spans.py``). Below a degree of heading
+      sigma it changes nothing measurable. Off: the filter's ellipse as it is.
     - ``max_lag_s``: a fix from a frame up to this much older than the filter is fused against the
       state retrodicted to its time (multi-camera rigs interleave frames); older ones are rejected
       and counted, and so are frames older than the filter (they do not move it).
@@ -185,6 +191,18 @@ class TrackerConfig:
     - ``odometry_gate_prob``: chi-square bound (3 DoF) on the relative-pose innovation.
     - ``odometry_max_dt``: the longest interval between the two frames of a step (so also how long
       a camera's clone of its last frame is kept, see :mod:`tracker.clones`).
+    - ``odometry_max_yaw_sd``: a step is fused only while the heading's standard deviation is
+      within this (rad). A step is measured in the body frame and placed on the map through the
+      heading; the filter places it linearly about its mean heading, whose error the linear term
+      spreads across the step only. With the heading lost (seconds blind in a turn: 1-2.5 rad
+      off) that places every step in the wrong direction, and the speed it learns narrows the
+      ellipse along the wrong one: blind 2 s in a turn, the steps fused after it had the walker
+      2-3 m off at NEES 15-21 (``benchmarks/blind_spans.py``). At 1 rad (57 deg) the placement
+      is meaningless: the step's second-order displacement (1 - cos 1 = 46 % of it, along) is of
+      the size of its linear spread; the track is lost by then (decoded fixes only), and refusing
+      its steps lets the pose spread at the walking model's rate. 0.5 rad refused the steps after
+      half-second blind spans too and cost accuracy there (RMSE 11.9 -> 16.5 cm) for nothing in
+      NEES. Counted as ``odometry_heading_unknown``.
 
     Frame gaps (dropped frames: the driver loses single frames and bursts of 3-8): the filter
     predicts across a gap like across any interval, and what the walker did in a gap longer than
@@ -279,6 +297,7 @@ class TrackerConfig:
     gate_prob_identified: float = 0.99
     lost_sigma_m: float = 0.5
     lost_after_s: float = 10.0
+    heading_widening: bool = True
     max_lag_s: float = 0.25
     reinit_fixes: int = 3
     reinit_min_ids: int = 2
@@ -300,6 +319,7 @@ class TrackerConfig:
     odometry_inflation: tuple[float, float, float] = (1.0, 1.0, 1.0)
     odometry_gate_prob: float = 0.999
     odometry_max_dt: float = 0.35
+    odometry_max_yaw_sd: float = 1.0
     gap_s: float = 0.12
     gap_yaw_accel_psd: float = 2.5
     missed_step_noise: bool = True

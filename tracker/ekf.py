@@ -110,6 +110,32 @@ def vest_cov(P: np.ndarray) -> np.ndarray:
     return P[POSE, POSE] + P[POSE, OFF] + P[OFF, POSE] + P[OFF, OFF]
 
 
+def heading_widened(cov: np.ndarray) -> np.ndarray:
+    """(3, 3) pose covariance ``cov`` with its (x, y) ellipse widened for the heading's uncertainty.
+
+    The filter's (x, y) ellipse is oriented by the heading it believes: long across the walk when
+    the heading is uncertain, short along it. That orientation is itself only as certain as the
+    heading. Rotating a 2-D error by an angle drawn from N(0, s^2) (s^2 the yaw variance) keeps
+    the mean of the ellipse's two variances and multiplies their difference by exp(-2 s^2) (the
+    expectation of cos 2d). Here the minor axis is raised by what that takes from it and the major
+    axis kept, so the result is never tighter than the filter's and stays positive semi-definite
+    (a term is added along one axis). With the heading known to a degree the change is below a
+    thousandth; after seconds blind in a turn (the heading off by a radian or more, the track
+    extrapolating a turn the walker left) the ellipse tends to a disc of its major radius rather
+    than staying thin where the walker may well be."""
+    cov = np.array(cov, float)
+    k = math.exp(-2.0 * max(float(cov[2, 2]), 0.0))
+    a, b, c = cov[0, 0], cov[1, 1], cov[0, 1]
+    half = math.hypot(0.5 * (a - b), c)  # half the difference of the two eigenvalues
+    if half <= 0.0 or k >= 1.0:
+        return cov
+    # Minor axis (unit): the eigenvector of the smaller eigenvalue of [[a, c], [c, b]].
+    ang = 0.5 * math.atan2(2.0 * c, a - b) + 0.5 * math.pi
+    n = np.array([math.cos(ang), math.sin(ang)])
+    cov[:2, :2] += (1.0 - k) * half * np.outer(n, n)
+    return cov
+
+
 def odometry_pose(x: np.ndarray) -> np.ndarray:
     """(3,) the pose floor odometry follows (vest pose + tilt offset on x, y) from the mean ``x`` (DIM,)."""
     return M_ODO @ x

@@ -68,6 +68,7 @@ from tracker.ekf import (
     OFF,
     MapTerm,
     WalkingEKF,
+    heading_widened,
     largest_eig_2x2,
     map_slot,
     odometry_model,
@@ -251,6 +252,7 @@ class Tracker:
                     "frame_gaps",
                     "missed_steps",
                     "odometry_disagreements",
+                    "odometry_heading_unknown",
                 ),
                 0,
             )
@@ -817,6 +819,10 @@ class Tracker:
             return UpdateResult(False, "initialising: odometry needs a pose to move")
         if self._t is None or t1 > self._t:
             self.predict(t1, camera)
+        if self._ekf.P[motion.YAW, motion.YAW] > cfg.odometry_max_yaw_sd**2:
+            # Its direction on the map is unknown (see TrackerConfig.odometry_max_yaw_sd).
+            self._stats["odometry_heading_unknown"] += 1
+            return UpdateResult(False, "heading too uncertain to place the step on the map")
         t_clone = self._clones.time(camera)
         tol = _time_tol(t1)
         if t_clone is None and t0 <= self._clones_dropped_t + tol:
@@ -937,6 +943,8 @@ class Tracker:
         pose = vest_pose(x)
         pose[2] = wrap_angle(float(pose[2]))
         cov = sym_spd(vest_cov(P), cfg.min_eig)
+        if cfg.heading_widening:
+            cov = heading_widened(cov)
         # The body's caps hold for the sum too (scaling rows and columns alike keeps it SPD).
         caps = np.array([cfg.pos_var_cap, cfg.pos_var_cap, cfg.yaw_var_cap])
         if (cov.diagonal() > caps).any():
