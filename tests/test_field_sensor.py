@@ -301,7 +301,8 @@ def test_rolling_shutter_frame_gives_the_right_pose(turn):
     ``turn`` rad/s. The fix holds when the sticker's rows were read (``row_time_s``: their mean
     row's delay, ~8 ms late low in the image). Straightened with the body's motion, or with the
     corners' own motion since the previous frame (rendered 1/30 s earlier), it is that instant's
-    pose within three of its sigmas; without, the sticker's shear puts it over 1 cm off."""
+    pose within three of its sigmas; without, the sticker's shear puts it over 1 cm off, and the
+    fix says so (``PoseConfig.unknown_twist_sigma``)."""
     from scipy.spatial.transform import Rotation
 
     from tagloc.core.camera import default_camera
@@ -361,6 +362,12 @@ def test_rolling_shutter_frame_gives_the_right_pose(turn):
         )
 
     plain = solve_pose(det, rot, T_ws, rc)
+    # Not straightened (no motion known), the shear is stated as the fix's error: within three of
+    # its sigmas, which without that term (the corner noise alone) it is far outside.
+    e_mm, sig_mm, e_deg, sig_deg = err(plain)
+    assert e_mm < 3 * sig_mm and e_deg < 3 * sig_deg, (e_mm, sig_mm, e_deg, sig_deg)
+    bare = solve_pose(det, rot, T_ws, rc, config=PoseConfig(unknown_twist_sigma=(0.0, 0.0, 0.0)))
+    assert err(bare)[0] > 3 * err(bare)[1]
     rows = rotate_corners(det.points, rot)[:, 1]
     assert plain.row_time_s == pytest.approx(np.mean(row_delay_s(rows, cam.height, 0.030)))
     assert plain.row_time_s > 0.005

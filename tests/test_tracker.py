@@ -1256,10 +1256,9 @@ def arc_then_straight(t: float, t_turn: float = 4.0, v: float = 1.3, w: float = 
     return np.array([x, y, float(wrap(yaw))])
 
 
-def blind_after_turn_nees(widen: bool, seed: int) -> np.ndarray:
+def blind_after_turn_nees(cfg: TrackerConfig, seed: int) -> np.ndarray:
     """Position NEES of each frame of a 2.5 s blind span that starts as the walker leaves a turn
     (fixes every 4th frame of 30 fps until then): the filter carries the turn on, the walker does not."""
-    cfg = TrackerConfig(heading_widening=widen)
     rng = np.random.default_rng(seed)
     tr, nees = Tracker(cfg), []
     for i in range(196):
@@ -1276,13 +1275,20 @@ def blind_after_turn_nees(widen: bool, seed: int) -> np.ndarray:
     return np.array(nees)
 
 
-def test_blind_after_a_turn_is_not_overconfident():
-    # Without the widening the thin ellipse has the walker outside its single-frame 95 % point
-    # (chi-square 2 DoF, 5.99) on two of these three seeds; with it, no frame is.
+@pytest.mark.parametrize(
+    "rules",
+    [{}, {"forget_turn_heading_lost": False}, {"heading_widening": False}],
+    ids=["both", "widening", "forgetting"],
+)
+def test_blind_after_a_turn_is_not_overconfident(rules):
+    # With neither rule the filter's thin ellipse, carried along the turn, has the walker outside
+    # its single-frame 95 % point (chi-square 2 DoF, 5.99) on two of these three seeds; with
+    # either rule, or both (as shipped), no frame is.
     limit = chi2.ppf(0.95, 2)
-    widened = [blind_after_turn_nees(True, s).max() for s in range(3)]
-    filter_own = [blind_after_turn_nees(False, s).max() for s in range(3)]
-    assert max(widened) < limit, widened
+    neither = TrackerConfig(heading_widening=False, forget_turn_heading_lost=False)
+    shipped = [blind_after_turn_nees(TrackerConfig(**rules), s).max() for s in range(3)]
+    filter_own = [blind_after_turn_nees(neither, s).max() for s in range(3)]
+    assert max(shipped) < limit, shipped
     assert sum(n > limit for n in filter_own) >= 2, filter_own
 
 

@@ -203,6 +203,14 @@ class TrackerConfig:
       its steps lets the pose spread at the walking model's rate. 0.5 rad refused the steps after
       half-second blind spans too and cost accuracy there (RMSE 11.9 -> 16.5 cm) for nothing in
       NEES. Counted as ``odometry_heading_unknown``.
+    - ``forget_turn_heading_lost``: on a lost track whose heading sigma passes
+      ``odometry_max_yaw_sd``, the yaw rate is forgotten (zero mean, ``init_w_sigma``), once until
+      the next fix. A walker's turn lasts about a second (90 deg at the 1-1.5 rad/s of a walking
+      turn); a heading a radian uncertain has had longer than that without sight, so the rate of
+      the last turn seen says nothing of the present one, and carrying it on only turns the mean
+      away from a walker who has long since walked out of the turn (standard s03 blind 2 s as it
+      left a turn: 2.2 rad of heading carried against 0.1, NEES 7.4 -> 2.8,
+      ``benchmarks/blind_spans.py``).
 
     Frame gaps (dropped frames: the driver loses single frames and bursts of 3-8): the filter
     predicts across a gap like across any interval, and what the walker did in a gap longer than
@@ -320,6 +328,7 @@ class TrackerConfig:
     odometry_gate_prob: float = 0.999
     odometry_max_dt: float = 0.35
     odometry_max_yaw_sd: float = 1.0
+    forget_turn_heading_lost: bool = True
     gap_s: float = 0.12
     gap_yaw_accel_psd: float = 2.5
     missed_step_noise: bool = True

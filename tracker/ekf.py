@@ -330,6 +330,15 @@ class WalkingEKF(ExtendedKalmanFilter):
         P[motion.W, motion.W] = self.cfg.init_w_sigma**2
         self.set(x, P)
 
+    def forget_turn(self) -> None:
+        """Drop what is known about the yaw rate alone (zero mean, initial variance, uncorrelated)."""
+        x, P = self.mean, self.cov
+        x[motion.W] = 0.0
+        P[motion.W, :] = 0.0
+        P[:, motion.W] = 0.0
+        P[motion.W, motion.W] = self.cfg.init_w_sigma**2
+        self.set(x, P)
+
     # -- prediction ---------------------------------------------------------------------------
     def predict_x(self, u: object = 0) -> None:
         """Nonlinear mean propagation (filterpy calls this from ``predict``)."""

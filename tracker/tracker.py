@@ -199,6 +199,7 @@ class Tracker:
         self._last_source: IdSource | None = None
         self._track_ids: set[int] = set()  # stickers whose fixes the track took since it (re)started
         self._forgot = False  # speed and yaw rate dropped after a long time without fixes
+        self._turn_forgot = False  # yaw rate dropped once the heading was lost
         self._hyp: _Hypothesis | None = None
         # Per camera (key given to predict/update_odometry; None when the caller names none): the
         # odometry pose at that camera's last frame, for its next step.
@@ -493,6 +494,15 @@ class Tracker:
         if self._state is TrackState.TRACKING and self._is_lost(self._ekf.cov, self._t):
             self._state = TrackState.LOST
             self._stats["lost"] += 1
+        if (
+            self._state is TrackState.LOST
+            and self.config.forget_turn_heading_lost
+            and not self._turn_forgot
+            and self._ekf.P[motion.YAW, motion.YAW] > self.config.odometry_max_yaw_sd**2
+        ):
+            # See TrackerConfig.forget_turn_heading_lost.
+            self._turn_forgot = True
+            self._guarded(self._ekf.forget_turn)
         stale = self._t - self._last_fix_t > self.config.lost_after_s
         if self._state is TrackState.LOST and stale and not self._forgot:
             # Long without a fix, the speed and turn rate are stale: keep the pose mean and let a
@@ -704,6 +714,7 @@ class Tracker:
             self._stats["lost"] += 1
         self._state = TrackState.LOST if lost else TrackState.TRACKING
         self._forgot = False
+        self._turn_forgot = False
 
     def _start(
         self,

@@ -94,6 +94,17 @@ class PoseConfig:
         at_sticker_rows: with a rolling-shutter camera, solve the pose for the time the sticker's
             rows were read (:attr:`PoseSolution.row_time_s`) instead of the frame's time (see the
             module docstring); False: the frame's time, the correction spanning half the read-out.
+        unknown_twist_sigma: (vx m/s, vy m/s, yaw rate rad/s) of the body's motion when nothing
+            measured it (no ``body_twist``, no ``corner_velocity``: a rolling-shutter camera's
+            first frame after a blind spell, before the tracker knows a velocity). The sticker is
+            then solved sheared by whatever motion there was: a 10 cm sticker read over 3 ms while
+            the camera moves 4 mm is sheared by 4 %, which the solve takes for a tilt of a degree
+            or two, and the vest point 1.3 m below moves 3-6 cm. Its covariance gets the pose's
+            response to each component at this sigma (the solve repeated with the corners
+            straightened for it). 1 m/s forward: the root mean square of a walking speed anywhere
+            in 0-2 m/s (1.15) rounded to the tracker's own start-up sigma; 0.3 m/s sideways (sway
+            and sidesteps); 1 rad/s of turn (the tracker's start-up sigma, a walking turn's
+            rate). Zeros: no such term (the fix's covariance is its corner noise alone).
     """
 
     use_inner: bool = True
@@ -105,6 +116,7 @@ class PoseConfig:
     map_sigma_m: float = 0.015
     map_sigma_yaw: float = math.radians(1.5)
     at_sticker_rows: bool = True
+    unknown_twist_sigma: tuple[float, float, float] = (1.0, 0.3, 1.0)
 
     def survey_sigmas(self, sigma_m: float, sigma_yaw: float) -> tuple[float, float]:
         """A sticker's survey sigmas (m per axis, rad of yaw): the map's where it states them, else
@@ -133,6 +145,44 @@ def _body_from_rt(
     """Body (x, y, yaw) (vest point on the floor, heading) for sticker-in-camera pose (rvec ``r``, tvec ``t``)."""
     T_world_camera = T_world_sticker @ invert(T_from_rvec_tvec(r, t))
     return vest_planar(T_world_camera @ T_camera_body, vest_point)
+
+
+def _row_times(img: np.ndarray, rig_camera: RigCamera, at_sticker_rows: bool) -> tuple[np.ndarray, float]:
+    """Each corner's row delay (N,) s after the frame's time (zeros for a global shutter) and the
+    time the pose is solved for: the corners' mean delay with ``at_sticker_rows`` on a
+    rolling-shutter camera, else 0 (the frame's time)."""
+    if rig_camera.readout_s <= 0:
+        return np.zeros(len(img)), 0.0
+    delays = row_delay_s(img[:, 1], rig_camera.camera.height, rig_camera.readout_s)
+    return delays, float(np.mean(delays)) if at_sticker_rows else 0.0
+
+
+def _unknown_motion_cov(
+    J: np.ndarray,
+    Jb: np.ndarray,
+    points_camera: np.ndarray,
+    img: np.ndarray,
+    rig_camera: RigCamera,
+    row_time: float,
+    sigmas: tuple[float, float, float],
+) -> np.ndarray:
+    """(3, 3) covariance of the body pose (x, y, yaw) from the motion a rolling-shutter frame was
+    read under when that motion is unknown (``PoseConfig.unknown_twist_sigma``), to first order:
+    for each twist component at its sigma, the corners' shear (:func:`rolling_shutter_shift`,
+    ``points_camera`` (N, 3) the solved corners in the camera), the least-squares pose's response
+    to it through the reprojection Jacobian ``J`` (2N, 6), and the body's through ``Jb`` (3, 6);
+    the components independent."""
+    fit = np.linalg.pinv(J)  # (6, 2N): pose change per corner displacement
+    cov = np.zeros((3, 3))
+    for k, sigma in enumerate(sigmas):
+        if sigma <= 0:
+            continue
+        twist = np.zeros(3)
+        twist[k] = sigma
+        # The corners seen are the straight ones minus the shift that would straighten them.
+        d = Jb @ (fit @ -rolling_shutter_shift(points_camera, img, rig_camera, twist, row_time).ravel())
+        cov += np.outer(d, d)
+    return cov
 
 
 def _rodrigues_batch(r: np.ndarray) -> np.ndarray:
@@ -302,11 +352,9 @@ def solve_pose(
     img = rotate_corners(np.asarray(detection.points, float), rotation) if use8 else outer
     obj = ALL_CORNERS if use8 else OUTER_CORNERS
 
-    row_time = 0.0
-    if rig_camera.readout_s > 0:
-        delays = row_delay_s(img[:, 1], cam.height, rig_camera.readout_s)
-        if config.at_sticker_rows:
-            row_time = float(np.mean(delays))
+    delays, row_time = _row_times(img, rig_camera, config.at_sticker_rows)
+    # With no measure of the motion the frame was read under, its shear is an error of the fix.
+    motion_unknown = rig_camera.readout_s > 0 and body_twist is None and corner_velocity is None
     if corner_velocity is not None and rig_camera.readout_s > 0:
         vel = np.asarray(corner_velocity, float)
         if vel.shape[0] < len(img) or not np.all(np.isfinite(vel)):
@@ -353,5 +401,8 @@ def solve_pose(
         body = vest_planar(T_world_camera @ T_camera_body, rig_camera.vest_point)
         if sig_m > 0 or sig_yaw > 0:
             cov = cov + map_covariance(body, T_world_sticker[:2, 3], sig_m, sig_yaw)
+        if motion_unknown:
+            points = obj @ cv2.Rodrigues(rvec)[0].T + np.asarray(tvec, float).ravel()
+            cov = cov + _unknown_motion_cov(J, Jb, points, img, rig_camera, row_time, config.unknown_twist_sigma)
         poses.append(PoseFix(T_world_camera, body, cov, rms))
     return PoseSolution(poses, len(poses) > 1, sigma, row_time)
