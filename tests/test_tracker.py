@@ -1324,3 +1324,37 @@ def test_odometry_step_refused_once_the_heading_is_lost():
     assert tr.stats["odometry_heading_unknown"] == len(late)
     _, seen_all = offer(100.0)
     assert all(a for sd, a in seen_all if sd > 1.0) and any(sd > 1.0 for sd, _ in seen_all)
+
+
+def test_forgotten_turn_rate_is_not_relearnt_from_the_clones_old_correlation():
+    """The turn is forgotten on the frame the lost track's heading sigma passes 1 rad, while the
+    camera still holds its clone of the frame before. The new yaw rate is independent of that clone:
+    a fix and that frame's odometry step (live's order) measure the turn over 1/30 s to 0.2 deg, so
+    no better than 0.1 rad/s. Kept, the clone's correlation with the old rate made the joint
+    covariance indefinite, and the step set the rate's sigma to 0.016 rad/s."""
+    from tagloc.vision.odometry import OdometryStep
+
+    cfg = TrackerConfig()
+    rng = np.random.default_rng(0)
+    tr = Tracker(cfg)
+    dt = 1 / 30
+    for i in range(300):
+        t = i * dt
+        tr.predict(t, "cam")
+        if t <= 4.0 and i % 4 == 0:
+            assert tr.update([noisy_fix(arc_then_straight(t), rng, cfg)], 100 + i, IdSource.DECODED, t).accepted
+        P = tr.filter.P
+        if t > 4.0 and P[motion.W, motion.W] == cfg.init_w_sigma**2 and tr.filter.x[motion.W, 0] == 0.0:
+            break
+    else:
+        pytest.fail("the turn was never forgotten")
+    assert tr.state is TrackState.LOST and "cam" in tr.odometry_cameras
+    truth, before = arc_then_straight(t), arc_then_straight(t - dt)
+    assert tr.update([make_fix(truth)], 999, IdSource.DECODED, t).accepted
+    c, s = math.cos(before[2]), math.sin(before[2])
+    d = truth[:2] - before[:2]
+    delta = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], float(wrap(truth[2] - before[2]))])
+    step_cov = np.diag([0.005**2, 0.005**2, math.radians(0.2) ** 2])
+    assert tr.update_odometry(OdometryStep(t - dt, t, delta, step_cov, 0.5), "cam").accepted
+    assert math.sqrt(tr.filter.P[motion.W, motion.W]) > 0.1
+    assert_spd(tr.filter.P)

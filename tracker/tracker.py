@@ -502,7 +502,10 @@ class Tracker:
         ):
             # See TrackerConfig.forget_turn_heading_lost.
             self._turn_forgot = True
-            self._guarded(self._ekf.forget_turn)
+            if self._guarded(self._ekf.forget_turn):
+                # The new yaw rate is independent of the past, so of the clones too: their kept
+                # cross-covariance with the old one would make the joint covariance indefinite.
+                self._clones.decorrelate(slice(motion.W, motion.W + 1))
         stale = self._t - self._last_fix_t > self.config.lost_after_s
         if self._state is TrackState.LOST and stale and not self._forgot:
             # Long without a fix, the speed and turn rate are stale: keep the pose mean and let a
