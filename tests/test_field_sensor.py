@@ -382,6 +382,15 @@ def test_rolling_shutter_frame_gives_the_right_pose(turn):
         assert e_mm < 3 * sig_mm and e_deg < 3 * sig_deg, (e_mm, sig_mm, e_deg, sig_deg)
         assert err(plain)[0] > 10.0
         assert err(plain)[0] > 2.5 * e_mm
+    # Straightened with an estimate of the motion (the tracker's extrapolation a second after its
+    # last fix: 0.6 m/s and 1.2 rad/s sigmas, here a sigma off in each), the fix states the shear
+    # that estimate leaves; taken as exact, the estimate's error was outside three of its sigmas.
+    estimate = np.array([v - 0.6, 0.0, turn - 1.2])
+    guessed = solve_pose(det, rot, T_ws, rc, body_twist=estimate, body_twist_sigma=np.array([0.6, 0.0, 1.2]))
+    e_mm, sig_mm, e_deg, sig_deg = err(guessed)
+    assert e_mm < 3 * sig_mm and e_deg < 3 * sig_deg, (e_mm, sig_mm, e_deg, sig_deg)
+    as_exact = solve_pose(det, rot, T_ws, rc, body_twist=estimate)
+    assert err(as_exact)[0] > 3 * err(as_exact)[1], err(as_exact)
     # At the frame's time instead, the twist carries the sticker ~8 ms back: still right for this
     # uniform motion (the walk's gait is what makes that extrapolation fail, see tagloc.vision.pose).
     at_frame = solve_pose(

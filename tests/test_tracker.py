@@ -1358,3 +1358,20 @@ def test_forgotten_turn_rate_is_not_relearnt_from_the_clones_old_correlation():
     assert tr.update_odometry(OdometryStep(t - dt, t, delta, step_cov, 0.5), "cam").accepted
     assert math.sqrt(tr.filter.P[motion.W, motion.W]) > 0.1
     assert_spd(tr.filter.P)
+
+
+def test_velocity_sigma_is_the_predictions_own():
+    """The twist the tracker hands the rolling-shutter straightening comes with its sigmas: a track
+    started from one fix knows neither speed nor turn (the start-up sigmas), and they grow blind."""
+    cfg = TrackerConfig()
+    tr = Tracker(cfg)
+    assert tr.velocity_sigma() is None
+    tr.predict(0.0)
+    assert tr.update([make_fix([1.0, 2.0, 0.3])], 11, IdSource.DECODED, 0.0).accepted
+    np.testing.assert_allclose(tr.velocity_sigma(), [cfg.init_v_sigma, 0.0, cfg.init_w_sigma], rtol=1e-9)
+    tr.predict(0.1)
+    assert tr.state is TrackState.TRACKING
+    sd = tr.velocity_sigma()
+    P = tr.filter.P
+    np.testing.assert_allclose(sd, np.sqrt([P[motion.V, motion.V], 0.0, P[motion.W, motion.W]]))
+    assert sd[0] >= cfg.init_v_sigma and sd[2] >= cfg.init_w_sigma

@@ -319,6 +319,15 @@ class Tracker:
         x = self._ekf.x[:, 0]
         return np.array([float(x[3]), 0.0, float(x[4])])
 
+    def velocity_sigma(self) -> np.ndarray | None:
+        """(3,) standard deviations of :meth:`velocity`'s forward speed (m/s), sideways speed (0: the
+        model has none) and yaw rate (rad/s); None unless TRACKING. Seconds after the last fix they
+        are those of an extrapolation (blind 1 s: 0.6 m/s and 1.2 rad/s)."""
+        if self._state is not TrackState.TRACKING:
+            return None
+        P = self._ekf.P
+        return np.sqrt(np.maximum([P[motion.V, motion.V], 0.0, P[motion.W, motion.W]], 0.0))
+
     def candidates(self, smap: StickerMap, rig_camera: RigCamera, observed_px: np.ndarray, k: int = 5) -> list[int]:
         """Sticker IDs that may be the one seen at ``observed_px``, most likely first ([] unless TRACKING).
 

@@ -1115,15 +1115,17 @@ class Localiser:
             self.counts["odometry_steps"] += 1
             self.tracker.update_odometry(step, camera)
 
-    def _body_twist(self, rig_cam: RigCamera, t: float) -> np.ndarray | None:
-        """The body's motion (vx, vy, yaw rate; body frame) for the rolling-shutter correction, or None."""
+    def _body_twist(self, rig_cam: RigCamera, t: float) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The body's motion (vx, vy, yaw rate; body frame) for the rolling-shutter correction, or
+        None, and its standard deviations when it is the tracker's estimate (None: measured)."""
         if not (self.config.rolling_shutter and rig_cam.readout_s > 0):
-            return None
+            return None, None
         s = self._step
         if s is not None and s.t1 == t and s.t1 > s.t0:
             # The vest's own motion over the last frame interval, wobble included.
-            return np.asarray(s.delta, float) / (s.t1 - s.t0)
-        return self.tracker.velocity()
+            return np.asarray(s.delta, float) / (s.t1 - s.t0), None
+        # The prediction is only as good as its sigmas: after a second blind, 0.6 m/s and 1.2 rad/s.
+        return self.tracker.velocity(), self.tracker.velocity_sigma()
 
     def survey_prior(self, sticker_id: int) -> SurveyPrior:
         """The sticker's map position and survey sigmas: the map's ``sigma_m``/``sigma_deg`` where
@@ -1269,6 +1271,7 @@ class Localiser:
         with timer("pose"):
             T_world_sticker = self.map.T_world_sticker(identity.sticker_id)
             velocity = self._corner_velocity(det, identity, rig_cam, camera, t)
+            twist, twist_sigma = self._body_twist(rig_cam, t) if velocity is None else (None, None)
             # The fix itself is solved against the map as if exact: the tracker carries the sticker's
             # survey error as a state, shared by all of that sticker's fixes.
             sol = solve_pose(
@@ -1277,8 +1280,9 @@ class Localiser:
                 T_world_sticker,
                 rig_cam,
                 config=self.config.pose,
-                body_twist=self._body_twist(rig_cam, t) if velocity is None else None,
+                body_twist=twist,
                 corner_velocity=velocity,
+                body_twist_sigma=twist_sigma,
             )
         if not sol.poses:
             return Fix([], sol.ambiguous, row_time_s=sol.row_time_s)

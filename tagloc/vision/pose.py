@@ -157,6 +157,29 @@ def _row_times(img: np.ndarray, rig_camera: RigCamera, at_sticker_rows: bool) ->
     return delays, float(np.mean(delays)) if at_sticker_rows else 0.0
 
 
+def _twist_sigma(
+    rig_camera: RigCamera,
+    body_twist: np.ndarray | None,
+    corner_velocity: np.ndarray | None,
+    body_twist_sigma: np.ndarray | None,
+    config: PoseConfig,
+) -> tuple[float, float, float] | None:
+    """The sigmas (vx, vy, yaw rate) of the motion a rolling-shutter frame was read under that the
+    straightening did not know (:func:`_unknown_motion_cov`): ``config.unknown_twist_sigma`` with
+    nothing given, ``body_twist_sigma`` with an estimated ``body_twist``; None with a global shutter,
+    the corners' own velocity or an exact twist."""
+    if rig_camera.readout_s <= 0 or corner_velocity is not None:
+        return None
+    if body_twist is None:
+        return config.unknown_twist_sigma
+    if body_twist_sigma is None:
+        return None
+    sd = np.asarray(body_twist_sigma, float).ravel()
+    if sd.shape != (3,) or not np.all(np.isfinite(sd)) or np.any(sd < 0):
+        raise InputError(f"solve_pose: body_twist_sigma {sd} is not three finite sigmas >= 0")
+    return (float(sd[0]), float(sd[1]), float(sd[2]))
+
+
 def _unknown_motion_cov(
     J: np.ndarray,
     Jb: np.ndarray,
@@ -167,7 +190,8 @@ def _unknown_motion_cov(
     sigmas: tuple[float, float, float],
 ) -> np.ndarray:
     """(3, 3) covariance of the body pose (x, y, yaw) from the motion a rolling-shutter frame was
-    read under when that motion is unknown (``PoseConfig.unknown_twist_sigma``), to first order:
+    read under when that motion is unknown (``PoseConfig.unknown_twist_sigma``) or only estimated
+    (``sigmas`` the estimate's), to first order:
     for each twist component at its sigma, the corners' shear (:func:`rolling_shutter_shift`,
     ``points_camera`` (N, 3) the solved corners in the camera), the least-squares pose's response
     to it through the reprojection Jacobian ``J`` (2N, 6), and the body's through ``Jb`` (3, 6);
@@ -314,6 +338,7 @@ def solve_pose(
     map_sigma: tuple[float, float] | None = None,
     body_twist: np.ndarray | None = None,
     corner_velocity: np.ndarray | None = None,
+    body_twist_sigma: np.ndarray | None = None,
 ) -> PoseSolution:
     """Pose of the camera and the body from one sticker.
 
@@ -336,6 +361,10 @@ def solve_pose(
             canonical order (rotated as the corners are; outer then inner), e.g. their motion since
             the previous frame: each corner is moved by its velocity over its row's delay from
             the pose's time, and the pose solved once.
+        body_twist_sigma: (3,) standard deviations of ``body_twist``'s components when it is an
+            estimate (the tracker's prediction, seconds after its last fix): the covariance gets
+            the pose's response to each at its sigma, as for an unknown motion
+            (``PoseConfig.unknown_twist_sigma``). None: ``body_twist`` is taken as exact.
     Returns:
         :class:`PoseSolution` with PoseFix(T_world_camera, body (x, y, yaw), cov (3, 3), RMS px);
         body (x, y) is the vest point's vertical projection, yaw the heading of the body's +x axis;
@@ -353,8 +382,9 @@ def solve_pose(
     obj = ALL_CORNERS if use8 else OUTER_CORNERS
 
     delays, row_time = _row_times(img, rig_camera, config.at_sticker_rows)
-    # With no measure of the motion the frame was read under, its shear is an error of the fix.
-    motion_unknown = rig_camera.readout_s > 0 and body_twist is None and corner_velocity is None
+    # The shear of a motion the frame was read under that nothing measured (none given, or only
+    # an estimate of it) is an error of the fix.
+    twist_sigma = _twist_sigma(rig_camera, body_twist, corner_velocity, body_twist_sigma, config)
     if corner_velocity is not None and rig_camera.readout_s > 0:
         vel = np.asarray(corner_velocity, float)
         if vel.shape[0] < len(img) or not np.all(np.isfinite(vel)):
@@ -401,8 +431,8 @@ def solve_pose(
         body = vest_planar(T_world_camera @ T_camera_body, rig_camera.vest_point)
         if sig_m > 0 or sig_yaw > 0:
             cov = cov + map_covariance(body, T_world_sticker[:2, 3], sig_m, sig_yaw)
-        if motion_unknown:
+        if twist_sigma is not None:
             points = obj @ cv2.Rodrigues(rvec)[0].T + np.asarray(tvec, float).ravel()
-            cov = cov + _unknown_motion_cov(J, Jb, points, img, rig_camera, row_time, config.unknown_twist_sigma)
+            cov = cov + _unknown_motion_cov(J, Jb, points, img, rig_camera, row_time, twist_sigma)
         poses.append(PoseFix(T_world_camera, body, cov, rms))
     return PoseSolution(poses, len(poses) > 1, sigma, row_time)
