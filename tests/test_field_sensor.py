@@ -391,6 +391,12 @@ def test_rolling_shutter_frame_gives_the_right_pose(turn):
     assert e_mm < 3 * sig_mm and e_deg < 3 * sig_deg, (e_mm, sig_mm, e_deg, sig_deg)
     as_exact = solve_pose(det, rot, T_ws, rc, body_twist=estimate)
     assert err(as_exact)[0] > 3 * err(as_exact)[1], err(as_exact)
+    # The switch that turns the term off (PoseConfig.estimated_twist_term) gives the exact reading.
+    off = PoseConfig(estimated_twist_term=False)
+    switched = solve_pose(
+        det, rot, T_ws, rc, body_twist=estimate, body_twist_sigma=np.array([0.6, 0.0, 1.2]), config=off
+    )
+    np.testing.assert_allclose(switched.poses[0].cov, as_exact.poses[0].cov, rtol=1e-12)
     # At the frame's time instead, the twist carries the sticker ~8 ms back: still right for this
     # uniform motion (the walk's gait is what makes that extrapolation fail, see tagloc.vision.pose).
     at_frame = solve_pose(

@@ -105,6 +105,9 @@ class PoseConfig:
             in 0-2 m/s (1.15) rounded to the tracker's own start-up sigma; 0.3 m/s sideways (sway
             and sidesteps); 1 rad/s of turn (the tracker's start-up sigma, a walking turn's
             rate). Zeros: no such term (the fix's covariance is its corner noise alone).
+        estimated_twist_term: likewise for a ``body_twist`` that is an estimate with sigmas
+            (``body_twist_sigma``: the tracker's prediction when no odometry step measured the
+            motion): the shear those sigmas leave. False: such a twist is taken as exact.
     """
 
     use_inner: bool = True
@@ -117,6 +120,7 @@ class PoseConfig:
     map_sigma_yaw: float = math.radians(1.5)
     at_sticker_rows: bool = True
     unknown_twist_sigma: tuple[float, float, float] = (1.0, 0.3, 1.0)
+    estimated_twist_term: bool = True
 
     def survey_sigmas(self, sigma_m: float, sigma_yaw: float) -> tuple[float, float]:
         """A sticker's survey sigmas (m per axis, rad of yaw): the map's where it states them, else
@@ -172,7 +176,7 @@ def _twist_sigma(
         return None
     if body_twist is None:
         return config.unknown_twist_sigma
-    if body_twist_sigma is None:
+    if body_twist_sigma is None or not config.estimated_twist_term:
         return None
     sd = np.asarray(body_twist_sigma, float).ravel()
     if sd.shape != (3,) or not np.all(np.isfinite(sd)) or np.any(sd < 0):
