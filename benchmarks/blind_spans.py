@@ -152,4 +152,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from tagloc.cli import run_guarded
+
+    raise SystemExit(run_guarded("blind_spans.py", main))
