@@ -31,9 +31,8 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
-from eval_variants import configure  # (benchmarks/ is on the path of a script run from it)
+from eval_variants import configure, parse_variant  # (benchmarks/ is on the path of a script run from it)
 
-from tagloc.core.errors import InputError
 from tagloc.core.types import Frame
 from tagloc.eval.metrics import trajectory_errors
 from tagloc.io.session import SessionReader
@@ -130,18 +129,15 @@ def main(argv: list[str] | None = None) -> int:
     durations = [float(x) for x in a.durations.split(",")]
     if a.every <= 0 or a.tail < 0 or min(durations) <= 0:
         ap.error("--every and the durations must be positive, --tail not negative")
+    variants = {"default": LocaliserConfig()}
+    for v in a.variant:
+        name, overrides = parse_variant(v)
+        if not name or name == "default":
+            ap.error(f"--variant {v!r}: want NAME=JSON with a name other than 'default'")
+        variants[name] = configure(overrides)
     for s in a.sessions:
         if not (Path(s) / "groundtruth.tum").is_file():
             ap.error(f"{s}: no groundtruth.tum")
-    variants = {"default": LocaliserConfig()}
-    for v in a.variant:
-        name, eq, text = v.partition("=")
-        try:
-            variants[name] = configure(json.loads(text))
-        except (ValueError, InputError) as exc:
-            ap.error(f"--variant {v!r}: {exc}")
-        if not (name and eq) or name == "default":
-            ap.error(f"--variant {v!r}: want NAME=JSON with a name other than 'default'")
     jobs = [(s, durations, a.start, a.every, a.tail, variants) for s in a.sessions]
     with ProcessPoolExecutor(max_workers=max(1, a.jobs)) as pool:
         rows = [r for part in pool.map(_blind_runs, jobs) for r in part]

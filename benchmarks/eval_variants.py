@@ -64,6 +64,20 @@ def configure(overrides: dict, option: str = "--variant") -> LocaliserConfig:
     return cfg
 
 
+def parse_variant(spec: str) -> tuple[str, dict]:
+    """``--variant NAME=JSON`` as (NAME, its overrides {"a.b.c": value}), checked against the
+    configuration (:func:`configure`) so that a misspelt setting is refused before any work."""
+    name, _, text = spec.partition("=")
+    try:
+        overrides = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InputError(f"--variant {name}: not JSON ({exc})") from None
+    if not isinstance(overrides, dict):
+        raise InputError(f"--variant {name}: want a JSON object of dotted settings, not {text!r}")
+    configure(overrides, f"--variant {name}")
+    return name, overrides
+
+
 def run_walk(job: tuple[str, dict, str]) -> dict:
     """Replay one session with one variant; its row (errors kept for pooling)."""
     import cv2
@@ -123,14 +137,8 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     variants = {"default": {}}
     for spec in args.variant:
-        name, _, text = spec.partition("=")
-        try:
-            variants[name] = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise InputError(f"--variant {name}: not JSON ({exc})") from None
-        if not isinstance(variants[name], dict):
-            raise InputError(f"--variant {name}: want a JSON object of dotted settings, not {text!r}")
-        configure(variants[name], f"--variant {name}")  # refuse a misspelt setting before any work
+        name, overrides = parse_variant(spec)
+        variants[name] = overrides
     walks = sorted(str(p) for p in args.eval_dir.glob("*/sessions/*") if (p / "session.json").exists())
     if not walks:
         raise InputError(f"no sessions under {args.eval_dir}/*/sessions")

@@ -322,6 +322,7 @@ def test_the_soak_runs_the_localiser_tagloc_live_runs(monkeypatch, tmp_path):
         ("eval_variants", ["--variant", 'x={"tracker": 1}'], "--variant x: 'tracker' is a group of settings"),
         ("eval_variants", ["--variant", 'x={"nosuch": 1}'], "--variant x: no setting 'nosuch'"),
         ("eval_variants", ["--variant", "x=[1]"], "--variant x: want a JSON object"),
+        ("blind_spans", ["--variant", "x=[1]"], "--variant x: want a JSON object"),
     ],
 )
 def test_bad_option_values_are_the_users_one_line_error_before_any_work(monkeypatch, tmp_path, script, args, named):
