@@ -321,22 +321,22 @@ class WalkingEKF(ExtendedKalmanFilter):
 
     def forget_motion(self) -> None:
         """Drop what is known about speed and yaw rate (zero mean, initial variance, uncorrelated)."""
-        x, P = self.mean, self.cov
-        vw = slice(motion.V, motion.W + 1)
-        x[vw] = 0.0
-        P[vw, :] = 0.0
-        P[:, vw] = 0.0
-        P[motion.V, motion.V] = self.cfg.init_v_sigma**2
-        P[motion.W, motion.W] = self.cfg.init_w_sigma**2
-        self.set(x, P)
+        self._forget((motion.V, motion.W))
 
     def forget_turn(self) -> None:
         """Drop what is known about the yaw rate alone (zero mean, initial variance, uncorrelated)."""
+        self._forget((motion.W,))
+
+    def _forget(self, rates: tuple[int, ...]) -> None:
+        """Reset the states ``rates`` (of V, W) to zero mean and their start-up variance, uncorrelated."""
         x, P = self.mean, self.cov
-        x[motion.W] = 0.0
-        P[motion.W, :] = 0.0
-        P[:, motion.W] = 0.0
-        P[motion.W, motion.W] = self.cfg.init_w_sigma**2
+        start = {motion.V: self.cfg.init_v_sigma**2, motion.W: self.cfg.init_w_sigma**2}
+        idx = list(rates)
+        x[idx] = 0.0
+        P[idx, :] = 0.0
+        P[:, idx] = 0.0
+        for i in idx:
+            P[i, i] = start[i]
         self.set(x, P)
 
     # -- prediction ---------------------------------------------------------------------------

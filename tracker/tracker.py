@@ -507,7 +507,7 @@ class Tracker:
             self._state is TrackState.LOST
             and self.config.forget_turn_heading_lost
             and not self._turn_forgot
-            and self._ekf.P[motion.YAW, motion.YAW] > self.config.odometry_max_yaw_sd**2
+            and self._heading_lost()
         ):
             # See TrackerConfig.forget_turn_heading_lost.
             self._turn_forgot = True
@@ -522,6 +522,10 @@ class Tracker:
             self._forgot = True
             self._drop_clones()
             self._guarded(self._ekf.forget_motion)
+
+    def _heading_lost(self) -> bool:
+        """The heading's sigma is past ``odometry_max_yaw_sd``: nothing placed through it means much."""
+        return self._ekf.P[motion.YAW, motion.YAW] > self.config.odometry_max_yaw_sd**2
 
     def _is_lost(self, P: np.ndarray, t: float) -> bool:
         sigma = math.sqrt(max(largest_eig_2x2(P), 0.0))
@@ -842,7 +846,7 @@ class Tracker:
             return UpdateResult(False, "initialising: odometry needs a pose to move")
         if self._t is None or t1 > self._t:
             self.predict(t1, camera)
-        if self._ekf.P[motion.YAW, motion.YAW] > cfg.odometry_max_yaw_sd**2:
+        if self._heading_lost():
             # Its direction on the map is unknown (see TrackerConfig.odometry_max_yaw_sd).
             self._stats["odometry_heading_unknown"] += 1
             return UpdateResult(False, "heading too uncertain to place the step on the map")
