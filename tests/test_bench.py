@@ -213,14 +213,21 @@ def test_the_speed_benchmarks_refuse_bad_run_options_before_any_work(monkeypatch
     """``--repeat 0`` printed the table's header and then an IndexError as an internal error, a
     --core the process may not use OSError's bare "Invalid argument", ``--slowdown 0`` a
     ZeroDivisionError; each is now the user's one-line error, given before the session is read."""
+    _refused_before_any_work(monkeypatch, tmp_path, script, args, named)
+
+
+def _refused_before_any_work(monkeypatch, tmp_path, script: str, args: list[str], named: str) -> None:
+    """``benchmarks/<script>.py``'s main, given ``args`` and a session that does not exist (none for
+    bench_candidates, which takes none), raises the InputError that starts with ``named``."""
     import importlib
     import sys
 
     monkeypatch.syspath_prepend(str(BENCHMARKS[0].parent))
     sys.modules.pop(script, None)
     mod = importlib.import_module(script)
+    session = [] if script == "bench_candidates" else [str(tmp_path / "no-session")]
     with pytest.raises(InputError) as err:
-        mod.main([str(tmp_path / "no-session"), *args])
+        mod.main([*session, *args])
     assert str(err.value).startswith(named)
 
 
@@ -330,16 +337,7 @@ def test_bad_option_values_are_the_users_one_line_error_before_any_work(monkeypa
     IndexError, and a variant giving a group of settings one value an AttributeError in the first
     replay after the default's: each reported as a bug ("internal error ... please report it"). Each is
     now an InputError naming the option (exit 2), raised before any session is read."""
-    import importlib
-    import sys
-
-    monkeypatch.syspath_prepend(str(BENCHMARKS[0].parent))
-    sys.modules.pop(script, None)
-    mod = importlib.import_module(script)
-    session = [] if script == "bench_candidates" else [str(tmp_path / "no-session")]
-    with pytest.raises(InputError) as err:
-        mod.main([*session, *args])
-    assert str(err.value).startswith(named)
+    _refused_before_any_work(monkeypatch, tmp_path, script, args, named)
 
 
 def _blas_and_cv_threads() -> tuple[set[int], int]:
