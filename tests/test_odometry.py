@@ -22,7 +22,14 @@ from tagloc.pipeline.run import run_session
 from tagloc.sim.mapgen import GridMapConfig, grid_map
 from tagloc.sim.simulate import SimConfig, simulate_session
 from tagloc.sim.walk import WalkConfig
-from tagloc.vision.odometry import FloorOdometry, OdometryConfig, OdometryStep, floor_patch, flow_cov_scale
+from tagloc.vision.odometry import (
+    FloorOdometry,
+    OdometryConfig,
+    OdometryStep,
+    floor_patch,
+    flow_cov_scale,
+    overlap_mask,
+)
 from tracker.tracker import Tracker
 
 FPS = 30.0
@@ -306,6 +313,28 @@ def test_a_burst_of_dropped_frames_is_bridged(gap_turn_deg):
     assert float(e @ np.linalg.solve(got.cov, e)) < 7.8  # chi-square 3 DoF, 95 %
     off, _ = bridged(OdometryConfig(lean_correction=False, flow=False, bridge_max_dt=OdometryConfig().max_dt))
     assert off is None
+
+
+def test_overlap_mask_keeps_the_pixels_the_motion_brings_over_the_earlier_patch():
+    """A bridged match correlates only the patch's part that the start's motion maps inside the
+    earlier patch (``bridge_overlap_mask``): a 25 deg turn about the centre and a shift of a third
+    of the side keep the pixels whose image lies in the earlier square and no other (checked pixel
+    by pixel), 63 % of them."""
+    m = 80
+    a = math.radians(25.0)
+    R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    c = np.full(2, (m - 1) / 2.0)
+    W = np.hstack([R, (c - R @ c + (m / 3.0, 0.0))[:, None]])  # turned about the centre, shifted
+    ys, xs = np.mgrid[0:m, 0:m]
+    p = np.stack([xs.ravel(), ys.ravel()], axis=1) @ W[:, :2].T + W[:, 2]
+    # Nearest-pixel sampling rounds the image to the grid: inside when it rounds into [0, m - 1].
+    r = np.rint(p)
+    inside = np.all((r >= 0) & (r <= m - 1), axis=1).reshape(m, m)
+    mask = overlap_mask(W, m)
+    assert mask.dtype == np.uint8 and set(np.unique(mask)) == {0, 255}
+    assert np.array_equal(mask == 255, inside)
+    assert 0.55 < inside.mean() < 0.7
+    assert overlap_mask(np.array([[1.0, 0, 0], [0, 1.0, 0]]), m).min() == 255  # no motion: all of it
 
 
 def test_the_localiser_bridges_bursts_of_dropped_frames(stop_walk):
