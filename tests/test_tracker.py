@@ -1375,3 +1375,57 @@ def test_velocity_sigma_is_the_predictions_own():
     P = tr.filter.P
     np.testing.assert_allclose(sd, np.sqrt([P[motion.V, motion.V], 0.0, P[motion.W, motion.W]]))
     assert sd[0] >= cfg.init_v_sigma and sd[2] >= cfg.init_w_sigma
+
+
+def _bridge_after_turning_walk(narrow: bool, error: tuple[float, float, float]) -> tuple[bool, float, int]:
+    """A walker on a 1 m arc at 1.2 m/s: fixes every 0.1 s for 1.5 s and odometry steps every frame,
+    then 8 frames lost (0.3 s) and one step bridging the gap, off the truth by ``error`` (forward m,
+    sideways m, turn rad) and stated at a bridge's 3 cm and 1.5 deg. Returns whether the tracker
+    fused it, the published pose's 3-DoF NEES after it and the bridges it refused."""
+    import dataclasses
+
+    from tagloc.vision.odometry import OdometryStep
+
+    def truth(t: float) -> np.ndarray:
+        return np.array([math.sin(1.2 * t), 1.0 - math.cos(1.2 * t), 1.2 * t])
+
+    def relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        c, s = math.cos(a[2]), math.sin(a[2])
+        d = b[:2] - a[:2]
+        return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], float(wrap(b[2] - a[2]))])
+
+    step_cov = np.diag([0.004**2, 0.004**2, math.radians(0.15) ** 2])
+    bridge_cov = np.diag([0.03**2, 0.03**2, math.radians(1.5) ** 2])
+    rng = np.random.default_rng(1)
+    tr = Tracker(dataclasses.replace(TrackerConfig(), gate_bridge_narrow=narrow))
+    frames = [k / 30 for k in range(62)] + [70 / 30]
+    for i, t in enumerate(frames):
+        tr.predict(t, "cam")
+        if i and t - frames[i - 1] < 0.1:
+            z = relative(truth(frames[i - 1]), truth(t)) + rng.multivariate_normal(np.zeros(3), step_cov)
+            assert tr.update_odometry(OdometryStep(frames[i - 1], t, z, step_cov, 0.5), "cam").accepted
+        elif i:
+            z = relative(truth(frames[i - 1]), truth(t)) + np.asarray(error)
+            res = tr.update_odometry(OdometryStep(frames[i - 1], t, z, bridge_cov, 0.5), "cam")
+        if t < 1.5 and i % 3 == 0:
+            assert tr.update([noisy_fix(truth(t), rng, tr.config)], 5, IdSource.DECODED, t).accepted
+    out = tr.output(t)
+    e = out.pose - truth(t)
+    e[2] = float(wrap(e[2]))
+    return res.accepted, float(e @ np.linalg.solve(out.cov, e)), tr.stats["odometry_bridge_rejected"]
+
+
+def test_a_bridged_step_is_gated_against_the_walk_without_the_gaps_widening():
+    """A step bridging a burst of lost frames that turned 26 deg too far and slid 20 cm short (as a
+    bridged match slides along a painted line in a fast turn) passes the gate against the yaw
+    widened for the gap (NIS 13.5 < 16.3) and leaves the pose far off at a few centimetres and
+    degrees; against the walk without the widening (``gate_bridge_narrow``, NIS 28) it is refused
+    and counted, and the pose stays honest. A right bridge is fused either way."""
+    wrong = (-0.2, -0.1, 0.45)
+    for narrow in (True, False):
+        fused, nees, _ = _bridge_after_turning_walk(narrow, (0.0, 0.0, 0.0))
+        assert fused and nees < 11.34
+    fused, nees, refused = _bridge_after_turning_walk(True, wrong)
+    assert not fused and refused == 1 and nees < 11.34
+    fused, nees, refused = _bridge_after_turning_walk(False, wrong)
+    assert fused and refused == 0 and nees > 100.0

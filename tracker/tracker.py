@@ -210,6 +210,10 @@ class Tracker:
         # (camera, end time, yaw innovation, gated steps in a row that disagree the same way) of the
         # last odometry step gated, while no step has been fused since (see disagreement_noise).
         self._gated: tuple[Hashable, float, float, int] | None = None
+        # (end time, covariance (DIM, DIM) with the gap's yaw noise, the covariance without it) of
+        # the last frame gap (see gate_bridge_narrow); the first is the filter's own array, so an
+        # update since (the filter replaces its arrays) shows as a different one.
+        self._gap: tuple[float, np.ndarray, np.ndarray] | None = None
         # The filter (mean, covariance, clones, _last_odo_t) just before the odometry step fused at
         # the filter's current time, while no fix has been fused after it (see overrule_odometry).
         self._before_step: tuple[float, Hashable, np.ndarray, np.ndarray, CloneSet, float] | None = None
@@ -254,6 +258,7 @@ class Tracker:
                     "missed_steps",
                     "odometry_disagreements",
                     "odometry_heading_unknown",
+                    "odometry_bridge_rejected",
                 ),
                 0,
             )
@@ -427,7 +432,8 @@ class Tracker:
                 else:
                     self._drop_clones()
                 if t - t0 > self.config.gap_s and t0 - self._last_odo_t <= self.config.gap_s:
-                    self._gap_noise(t - t0)
+                    narrow = self._ekf.P
+                    self._gap = (t, self._ekf.P, narrow) if self._gap_noise(t - t0) else None
                 elif (
                     self.config.missed_step_noise
                     and self._here
@@ -462,8 +468,9 @@ class Tracker:
         # Nor can a fix overrule a step of the track that was: its state before the step is history.
         self._before_step = None
 
-    def _gap_noise(self, dt: float, stat: str = "frame_gaps") -> None:
-        """Widen yaw and yaw rate after ``dt`` s no odometry could follow (see ``gap_yaw_accel_psd``).
+    def _gap_noise(self, dt: float, stat: str = "frame_gaps") -> bool:
+        """Widen yaw and yaw rate after ``dt`` s no odometry could follow (see ``gap_yaw_accel_psd``);
+        False when the filter refused it.
 
         The noise is independent of the state before the gap, so a clone's cross-covariance stands."""
         q = self.config.gap_yaw_accel_psd
@@ -476,8 +483,8 @@ class Tracker:
         P[yaw, w] += q * dt**2 / 2.0
         P[w, yaw] += q * dt**2 / 2.0
         P[w, w] += q * dt
-        self._guarded(lambda: self._ekf.set(self._ekf.x[:, 0], P))
         self._stats[stat] += 1
+        return self._guarded(lambda: self._ekf.set(self._ekf.x[:, 0], P))
 
     def _disagreement(self, camera: Hashable, t0: float, t1: float, e_yaw: float) -> None:
         """A gated odometry step of ``camera`` over ``t0``-``t1`` whose turn differs by ``e_yaw`` (rad)
@@ -882,6 +889,13 @@ class Tracker:
             self._stats["odometry_rejected"] += 1
             self._disagreement(camera, t0, t1, float(y[2]))
             return UpdateResult(False, f"odometry gated: NIS {nis:.1f} > {cfg.gate_odometry:.1f}", nis)
+        narrow = self._bridge_nis(camera, x8, y, H, R, t1)
+        if narrow is not None and not narrow <= cfg.gate_odometry:
+            # See TrackerConfig.gate_bridge_narrow.
+            self._stats["odometry_bridge_rejected"] += 1
+            return UpdateResult(
+                False, f"bridged step gated by the walk: NIS {narrow:.1f} > {cfg.gate_odometry:.1f}", nis
+            )
 
         def fuse() -> None:
             # filterpy's functional update is the linear one (residual z - H x): hand it the
@@ -905,6 +919,24 @@ class Tracker:
         self._gated = None
         self._before_step = before
         return UpdateResult(True, "fused", nis)
+
+    def _bridge_nis(
+        self, camera: Hashable, x8: np.ndarray, y: np.ndarray, H: np.ndarray, R: np.ndarray, t1: float
+    ) -> float | None:
+        """The NIS of a step ending at ``t1`` (residual ``y`` (3,), Jacobian ``H``, noise ``R``) against
+        the filter without the yaw noise of the frame gap it bridges (see ``gate_bridge_narrow``);
+        None when it bridges no gap, or the covariance changed since the gap's noise was added."""
+        gap = self._gap
+        if not self.config.gate_bridge_narrow or gap is None or abs(gap[0] - t1) > _time_tol(t1):
+            return None
+        if gap[1] is not self._ekf.P:
+            return None
+        P = sym_spd(self._clones.joint(x8, gap[2])[1], self.config.min_eig)
+        S = H @ P @ H.T + R
+        try:
+            return float(y @ np.linalg.solve(0.5 * (S + S.T), y))
+        except np.linalg.LinAlgError:
+            return None
 
     def _predicted_step(self, camera: Hashable, t1: float) -> np.ndarray | None:
         """The odometry step (dx, dy) (2,) m of ``camera`` from its clone to ``t1`` as the filter
