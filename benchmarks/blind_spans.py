@@ -31,7 +31,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
-from eval_variants import configure, parse_variant  # (benchmarks/ is on the path of a script run from it)
+from eval_variants import variant_configs  # (benchmarks/ is on the path of a script run from it)
 
 from tagloc.core.types import Frame
 from tagloc.eval.metrics import trajectory_errors
@@ -129,12 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     durations = [float(x) for x in a.durations.split(",")]
     if a.every <= 0 or a.tail < 0 or min(durations) <= 0:
         ap.error("--every and the durations must be positive, --tail not negative")
-    variants = {"default": LocaliserConfig()}
-    for v in a.variant:
-        name, overrides = parse_variant(v)
-        if not name or name == "default":
-            ap.error(f"--variant {v!r}: want NAME=JSON with a name other than 'default'")
-        variants[name] = configure(overrides)
+    variants = variant_configs(a.variant)
     for s in a.sessions:
         if not (Path(s) / "groundtruth.tum").is_file():
             ap.error(f"{s}: no groundtruth.tum")

@@ -78,6 +78,18 @@ def parse_variant(spec: str) -> tuple[str, dict]:
     return name, overrides
 
 
+def variant_configs(specs: list[str]) -> dict[str, LocaliserConfig]:
+    """``default`` and each ``--variant NAME=JSON`` of ``specs`` (:func:`parse_variant`) as
+    configurations, in order; a variant without a name, or named ``default``, is the user's error."""
+    configs = {"default": LocaliserConfig()}
+    for spec in specs:
+        name, overrides = parse_variant(spec)
+        if not name or name == "default":
+            raise InputError(f"--variant {spec!r}: want NAME=JSON with a name other than 'default'")
+        configs[name] = configure(overrides)
+    return configs
+
+
 def run_walk(job: tuple[str, dict, str]) -> dict:
     """Replay one session with one variant; its row (errors kept for pooling)."""
     import cv2

@@ -330,6 +330,7 @@ def test_the_soak_runs_the_localiser_tagloc_live_runs(monkeypatch, tmp_path):
         ("eval_variants", ["--variant", 'x={"nosuch": 1}'], "--variant x: no setting 'nosuch'"),
         ("eval_variants", ["--variant", "x=[1]"], "--variant x: want a JSON object"),
         ("blind_spans", ["--variant", "x=[1]"], "--variant x: want a JSON object"),
+        ("bridges", ["--variant", "x=[1]"], "--variant x: want a JSON object"),
     ],
 )
 def test_bad_option_values_are_the_users_one_line_error_before_any_work(monkeypatch, tmp_path, script, args, named):
@@ -504,3 +505,27 @@ def test_odometry_stride_chains_a_step_longer_than_the_window_alone(monkeypatch)
     assert err.shape == (2, 3) and np.allclose(err, 0.0, atol=1e-12)
     with pytest.raises(InputError, match="--window must be a number > 0"):
         odometry_stride.main(["no-session", "--window", "0"])
+
+
+def test_bridges_counts_the_bridged_bursts_of_a_walk(monkeypatch, tmp_path):
+    """benchmarks/bridges.py on a 2 s straight walk (seed 5, the demo map), 3 frames dropped after
+    every frame from the fifth: the odometry bridges the gaps, none beyond the bound, and the
+    published pose after each stays within the tracker's gate level. Every count is of bridges."""
+    import sys
+    from pathlib import Path
+
+    from tagloc.core.stickermap import load_map
+    from tagloc.pipeline.localiser import LocaliserConfig
+    from tagloc.sim.simulate import SimConfig, simulate_session
+
+    monkeypatch.syspath_prepend(str(BENCHMARKS[0].parent))
+    sys.modules.pop("bridges", None)
+    import bridges
+
+    root = Path(__file__).resolve().parent.parent
+    walk = tmp_path / "walk"
+    simulate_session(load_map(root / "maps" / "demo.csv"), walk, SimConfig(seconds=2, seed=5), progress=False)
+    (row,) = bridges._session_rows((str(walk), [3], 5, {"default": LocaliserConfig()}))
+    assert 45 <= row["bridges"] <= 51  # of the 51 gaps that end inside the walk (51 measured)
+    assert row["wrong"] == row["fused"] == row["right_refused"] == 0
+    assert 0.0 < row["after_max"] < bridges.CHI2_3_999 and row["after_over"] == 0
