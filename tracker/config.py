@@ -210,7 +210,9 @@ class TrackerConfig:
       the last turn seen says nothing of the present one, and carrying it on only turns the mean
       away from a walker who has long since walked out of the turn (standard s03 blind 2 s as it
       left a turn: 2.2 rad of heading carried against 0.1, NEES 7.4 -> 2.8,
-      ``benchmarks/blind_spans.py``).
+      ``benchmarks/blind_spans.py``). Within one long prediction (a camera that stalled, an
+      output asked for ahead) it happens at the end of the filter's step where the sigma passes
+      the limit, not at the prediction's end.
 
     Frame gaps (dropped frames: the driver loses single frames and bursts of 3-8): the filter
     predicts across a gap like across any interval, and what the walker did in a gap longer than
@@ -224,7 +226,12 @@ class TrackerConfig:
     PSD ``gap_yaw_accel_psd`` over the whole interval (without odometry the narrow model is the
     design above, and fixes after a spin re-initialise):
     2.5 rad^2/s^3 makes a spin's first 0.27 s (an 8-frame burst) a 2-sigma event in yaw rate
-    (1.6 against 0.82 rad/s) and in yaw (12.6 against 7.3 degrees).
+    (1.6 against 0.82 rad/s) and in yaw (12.6 against 7.3 degrees). The noise is part of the
+    prediction across the gap (:meth:`tracker.ekf.WalkingEKF.advance`), so the heading's spread
+    also spreads the position as the gap goes on; added at the gap's end instead, as it was, it
+    could not: a camera that delivered no frame for 2 s as standard walk s03 left a turn gave a
+    first pose after the stall at NEES 4.6-7.1 over half a second (2 DoF), 1.7-3.3 with it
+    (scratch ``/tmp/s57/stall.py``; ``tests/test_tracker.py`` has a synthetic stall).
     ``gate_bridge_narrow``: that noise is for the steps after a gap nothing measured; the step that
     bridges the gap (one match between the frames either side, with no frame between to check it)
     must also pass the gate against the walk as predicted without it, as an ordinary interval's

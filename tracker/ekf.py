@@ -349,8 +349,9 @@ class WalkingEKF(ExtendedKalmanFilter):
             DIM, 1
         )
 
-    def _transition(self, x: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
-        """(F (DIM, DIM), Q (DIM, DIM)) of a step of ``h`` s (negative: backwards) from state ``x``."""
+    def _transition(self, x: np.ndarray, h: float, extra_yaw_psd: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """(F (DIM, DIM), Q (DIM, DIM)) of a step of ``h`` s (negative: backwards) from state ``x``,
+        with ``extra_yaw_psd`` (rad^2/s^3) of yaw acceleration on top of the walking model's."""
         cfg = self.cfg
         a = self._decay(h)
         F = np.zeros((DIM, DIM))
@@ -358,7 +359,7 @@ class WalkingEKF(ExtendedKalmanFilter):
         F[: motion.DIM, : motion.DIM] = motion.jacobian(x[: motion.DIM], h)
         F[OFF, OFF] = a * np.eye(3)
         Q[: motion.DIM, : motion.DIM] = motion.process_noise(
-            x[: motion.DIM], h, cfg.accel_psd, cfg.yaw_accel_psd, cfg.lateral_psd
+            x[: motion.DIM], h, cfg.accel_psd, cfg.yaw_accel_psd + extra_yaw_psd, cfg.lateral_psd
         )
         Q[OFF, OFF] = (1.0 - a * a) * cfg.floor_cov(float(x[motion.YAW]), float(x[motion.V]))
         b = self._tilt_decay(h)
@@ -368,8 +369,10 @@ class WalkingEKF(ExtendedKalmanFilter):
         Q[SCALE, SCALE] = cfg.odometry_scale_rw**2 * abs(h)
         return F, Q
 
-    def advance(self, dt: float) -> np.ndarray:
-        """Predict ``dt`` >= 0 seconds ahead, in steps of at most ``max_step_s`` (then one last step).
+    def advance(self, dt: float, extra_yaw_psd: float = 0.0) -> np.ndarray:
+        """Predict ``dt`` >= 0 seconds ahead, in steps of at most ``max_step_s`` (then one last step),
+        with ``extra_yaw_psd`` (rad^2/s^3) of yaw acceleration noise on top of the walking model's
+        (a frame gap nothing measured, see ``TrackerConfig.gap_yaw_accel_psd``).
 
         Returns the (DIM, DIM) Jacobian of the new state with respect to the old one (the steps'
         ``F`` multiplied), which gives the cross-covariance with a clone of the old state.
@@ -383,7 +386,7 @@ class WalkingEKF(ExtendedKalmanFilter):
         steps.append(dt - sum(steps))
         for h in steps:
             self._dt = h
-            self.F, self.Q = self._transition(self.x[:, 0], h)
+            self.F, self.Q = self._transition(self.x[:, 0], h, extra_yaw_psd)
             self.predict()
             self._tidy()
             F_total = self.F @ F_total

@@ -151,13 +151,23 @@ def _checked(step: Callable[[], R]) -> tuple[bool, R | None]:
 MAX_SPREAD_S = 3600.0
 
 
-def _advance_forgetting(ekf: WalkingEKF, h_walk: float, h_spread: float) -> None:
-    """Predict ``ekf`` ``h_walk`` s with the walk's own speed and turn rate, forget them, then let a
-    walker of unknown velocity spread for ``h_spread`` s (at most :data:`MAX_SPREAD_S`)."""
+def _advance_forgetting(
+    ekf: WalkingEKF, h_walk: float, h_spread: float | None, h_turn: float | None = None, extra_yaw_psd: float = 0.0
+) -> None:
+    """Predict ``ekf`` ``h_walk`` s with the walk's own speed and turn rate (and ``extra_yaw_psd``, see
+    :meth:`WalkingEKF.advance`), forgetting the turn rate alone after ``h_turn`` s of it (when
+    inside, see ``forget_turn_heading_lost``); then, unless ``h_spread`` is None, forget the speed
+    and turn rate and let a walker of unknown velocity spread for ``h_spread`` s (at most
+    :data:`MAX_SPREAD_S`)."""
+    if h_turn is not None and 0.0 < h_turn < h_walk:
+        ekf.advance(h_turn, extra_yaw_psd)
+        ekf.forget_turn()
+        h_walk -= h_turn
     if h_walk > 0.0:
-        ekf.advance(h_walk)
-    ekf.forget_motion()
-    ekf.advance(min(h_spread, MAX_SPREAD_S))
+        ekf.advance(h_walk, extra_yaw_psd)
+    if h_spread is not None:
+        ekf.forget_motion()
+        ekf.advance(min(h_spread, MAX_SPREAD_S))
 
 
 def _pose_unknown(P: np.ndarray, cfg: TrackerConfig) -> np.ndarray:
@@ -213,7 +223,7 @@ class Tracker:
         # (end time, covariance (DIM, DIM) with the gap's yaw noise, the covariance without it) of
         # the last frame gap (see gate_bridge_narrow); the first is the filter's own array, so an
         # update since (the filter replaces its arrays) shows as a different one.
-        self._gap: tuple[float, np.ndarray, np.ndarray] | None = None
+        self._gap: tuple[float, np.ndarray, np.ndarray | None] | None = None
         # The filter (mean, covariance, clones, _last_odo_t) just before the odometry step fused at
         # the filter's current time, while no fix has been fused after it (see overrule_odometry).
         self._before_step: tuple[float, Hashable, np.ndarray, np.ndarray, CloneSet, float] | None = None
@@ -410,19 +420,32 @@ class Tracker:
                 t0, x0, P0 = self._t, self._ekf.x[:, 0], self._ekf.P
                 self._P_before_predict = P0
                 jac: list[np.ndarray] = []
+                # A frame gap nothing measured (see gap_yaw_accel_psd): its yaw noise is in the whole
+                # prediction, so that it spreads the position through the heading as the gap goes on.
+                gap = t - t0 > self.config.gap_s and t0 - self._last_odo_t <= self.config.gap_s
+                extra = self.config.gap_yaw_accel_psd if gap else 0.0
+                self._stats["frame_gaps"] += gap
                 forget_at = self._forget_motion_at(t0, t)
-                if forget_at is not None:
+                turn_at = self._forget_turn_at(t0, t if forget_at is None else forget_at, extra)
+                if forget_at is not None or turn_at is not None:
                     # The walk is extrapolated until the track goes stale, not across the whole gap
                     # (a clock that jumped hours, or 1e300 s, ahead): then, as _check_lost does,
                     # its speed and turn rate are forgotten and no step from before can be fused.
-                    if not self._guarded(lambda: _advance_forgetting(self._ekf, forget_at - t0, t - forget_at)):
+                    # The turn rate alone is forgotten where the heading is lost within the gap,
+                    # and no step is placed through a lost heading either.
+                    h_walk = (t if forget_at is None else forget_at) - t0
+                    h_spread = None if forget_at is None else t - forget_at
+                    h_turn = None if turn_at is None else turn_at - t0
+                    if not self._guarded(lambda: _advance_forgetting(self._ekf, h_walk, h_spread, h_turn, extra)):
                         self._ekf.set(self._ekf.mean, _pose_unknown(self._ekf.cov, self.config))
-                    self._forgot = True
+                    self._forgot = self._forgot or forget_at is not None
+                    self._turn_forgot = self._turn_forgot or turn_at is not None
                     self._drop_clones()
-                elif self._guarded(lambda: jac.append(self._ekf.advance(t - t0))):
+                elif self._guarded(lambda: jac.append(self._ekf.advance(t - t0, extra))):
                     # The cameras of the frames just left start their next steps here; a clone older
                     # than any step can span is of no more use.
                     self._clones.advance(jac[0], x0, P0, M_ODO, t0, t, self._here, self.config.odometry_max_dt)
+                    self._gap = (t, self._ekf.P, self._narrow(x0, P0, t - t0)) if gap else None
                     self._step_prediction = (
                         t,
                         odometry_pose(self._ekf.x[:, 0]),
@@ -431,16 +454,14 @@ class Tracker:
                     )
                 else:
                     self._drop_clones()
-                if t - t0 > self.config.gap_s and t0 - self._last_odo_t <= self.config.gap_s:
-                    narrow = self._ekf.P
-                    self._gap = (t, self._ekf.P, narrow) if self._gap_noise(t - t0) else None
-                elif (
-                    self.config.missed_step_noise
+                if (
+                    not gap
+                    and self.config.missed_step_noise
                     and self._here
                     and 0.0 < t0 - self._last_odo_t <= self.config.odometry_max_dt
                 ):
                     # The last frame's step was wanted and none ended there (see missed_step_noise).
-                    self._gap_noise(t - t0, "missed_steps")
+                    self._missed_step_noise(t - t0)
             self._here = set()
             self._before_step = None
         if odometry:
@@ -459,6 +480,29 @@ class Tracker:
             return t0
         return None
 
+    def _forget_turn_at(self, t0: float, t: float, extra_yaw_psd: float = 0.0) -> float | None:
+        """When, strictly within a prediction from ``t0`` to ``t``, a lost track's heading sigma passes
+        ``odometry_max_yaw_sd`` (at the end of one of the filter's ``max_step_s`` steps), or None:
+        not in this interval (the end of an interval is :meth:`_check_lost`'s). One long prediction
+        (a camera that stalled, an output asked for ahead) otherwise carried the turn on to its end
+        (see ``forget_turn_heading_lost``)."""
+        cfg = self.config
+        if not cfg.forget_turn_heading_lost or self._turn_forgot or t - t0 <= cfg.max_step_s:
+            return None
+        ekf = WalkingEKF(cfg)
+        ekf.set(self._ekf.mean, self._ekf.cov)
+        tk = t0
+        # The filter's own steps (WalkingEKF.advance), so the real prediction passes the same points.
+        for _ in range(cfg.max_steps - 1):
+            tk += cfg.max_step_s
+            if tk >= t or not _checked(lambda: ekf.advance(cfg.max_step_s, extra_yaw_psd))[0]:
+                return None
+            P = ekf.cov
+            lost = self._state is TrackState.LOST or self._is_lost(P, tk)
+            if lost and P[motion.YAW, motion.YAW] > cfg.odometry_max_yaw_sd**2:
+                return tk
+        return None
+
     def _drop_clones(self) -> None:
         """Forget every camera's clone: the track restarted or forgot its past, so no step from before
         now can be fused (such steps are counted as ``odometry_ignored``, not unmatched)."""
@@ -468,11 +512,23 @@ class Tracker:
         # Nor can a fix overrule a step of the track that was: its state before the step is history.
         self._before_step = None
 
-    def _gap_noise(self, dt: float, stat: str = "frame_gaps") -> bool:
-        """Widen yaw and yaw rate after ``dt`` s no odometry could follow (see ``gap_yaw_accel_psd``);
-        False when the filter refused it.
+    def _narrow(self, x0: np.ndarray, P0: np.ndarray, dt: float) -> np.ndarray | None:
+        """The covariance (DIM, DIM) of the walk predicted ``dt`` s from (``x0``, ``P0``) by the walking
+        model alone, without a gap's yaw noise (see ``gate_bridge_narrow``); None when off or it
+        failed numerically."""
+        if not self.config.gate_bridge_narrow:
+            return None
+        ekf = WalkingEKF(self.config)
+        ekf.set(x0, P0)
+        ok, _ = _checked(lambda: ekf.advance(dt))
+        return ekf.cov if ok else None
 
-        The noise is independent of the state before the gap, so a clone's cross-covariance stands."""
+    def _missed_step_noise(self, dt: float) -> bool:
+        """Widen yaw and yaw rate after a frame interval of ``dt`` s whose odometry step was wanted and
+        none came (see ``missed_step_noise``); False when the filter refused it.
+
+        The noise is independent of the state before the interval, so a clone's cross-covariance
+        stands."""
         q = self.config.gap_yaw_accel_psd
         # Beyond lost_after_s the track is lost and its motion forgotten (_check_lost), and the
         # variances are capped anyway: a longer gap (a clock that jumped) adds nothing but overflow.
@@ -483,7 +539,7 @@ class Tracker:
         P[yaw, w] += q * dt**2 / 2.0
         P[w, yaw] += q * dt**2 / 2.0
         P[w, w] += q * dt
-        self._stats[stat] += 1
+        self._stats["missed_steps"] += 1
         return self._guarded(lambda: self._ekf.set(self._ekf.x[:, 0], P))
 
     def _disagreement(self, camera: Hashable, t0: float, t1: float, e_yaw: float) -> None:
@@ -927,7 +983,7 @@ class Tracker:
         the filter without the yaw noise of the frame gap it bridges (see ``gate_bridge_narrow``);
         None when it bridges no gap, or the covariance changed since the gap's noise was added."""
         gap = self._gap
-        if not self.config.gate_bridge_narrow or gap is None or abs(gap[0] - t1) > _time_tol(t1):
+        if gap is None or gap[2] is None or abs(gap[0] - t1) > _time_tol(t1):
             return None
         if gap[1] is not self._ekf.P:
             return None
@@ -986,10 +1042,11 @@ class Tracker:
             ekf = WalkingEKF(cfg)
             ekf.set(self._ekf.mean, self._ekf.cov)
             forget_at = self._forget_motion_at(now, target)
-            if forget_at is None:
-                ok = _checked(lambda: ekf.advance(target - now))[0]
-            else:
-                ok = _checked(lambda: _advance_forgetting(ekf, forget_at - now, target - forget_at))[0]
+            end = target if forget_at is None else forget_at
+            turn_at = self._forget_turn_at(now, end)
+            h_spread = None if forget_at is None else target - forget_at
+            h_turn = None if turn_at is None else turn_at - now
+            ok = _checked(lambda: _advance_forgetting(ekf, end - now, h_spread, h_turn))[0]
             if not ok:
                 # Never the pose of ``now`` stamped ``target`` as if known as well: nothing is known.
                 ekf.set(self._ekf.mean, _pose_unknown(self._ekf.cov, cfg))
