@@ -6,7 +6,9 @@ model carries the last turn rate on into the blind span, the heading drifts by a
 the (x, y) ellipse, oriented by that heading, can be thin exactly where the walker is.
 
 Each session is replayed once per blind span: the frames of the span replaced by a dark, noisy
-image (a covered lens: grey level 2 +- 1.5, seeded), the rest as recorded. Spans of each
+image (a covered lens: grey level 2 +- 1.5, seeded), the rest as recorded; with ``--stall``, left
+out instead (a camera that delivered no frame at all: the tracker then predicts across the whole
+span at once). Spans of each
 ``--durations`` start every ``--every`` s from ``--start`` s on. Scored are the frames from the
 span's start to ``--tail`` s after its end, against the simulator's truth: horizontal error, and
 the position NEES (2 DoF) of the published pose (its mean 2 if honest; a single frame's above
@@ -45,8 +47,8 @@ CHI2_2_95 = 5.991
 DARK_LEVEL = (2.0, 1.5)
 
 
-def _blind_runs(args: tuple[str, list[float], float, float, float, dict[str, LocaliserConfig]]) -> list[dict]:
-    path, durations, start, every, tail, variants = args
+def _blind_runs(args: tuple[str, list[float], float, float, float, dict[str, LocaliserConfig], bool]) -> list[dict]:
+    path, durations, start, every, tail, variants, stall = args
     session = SessionReader(Path(path))
     gt = session.groundtruth()
     frames = [f for f in session.frames() if f.image is not None]
@@ -57,14 +59,22 @@ def _blind_runs(args: tuple[str, list[float], float, float, float, dict[str, Loc
         while s + dur + tail <= t1:
             for name, cfg in variants.items():
                 rows.append(
-                    _one(session, frames, gt, s, s + dur, tail, cfg) | {"walk": path, "duration": dur, "variant": name}
+                    _one(session, frames, gt, s, s + dur, tail, cfg, stall)
+                    | {"walk": path, "duration": dur, "variant": name}
                 )
             s += every
     return rows
 
 
 def _one(
-    session: SessionReader, frames: list[Frame], gt, a: float, b: float, tail: float, cfg: LocaliserConfig
+    session: SessionReader,
+    frames: list[Frame],
+    gt,
+    a: float,
+    b: float,
+    tail: float,
+    cfg: LocaliserConfig,
+    stall: bool = False,
 ) -> dict:
     loc = Localiser(session.map, session.rig, cfg, map_path=session.map_path)
     rng = np.random.default_rng(0)
@@ -75,6 +85,8 @@ def _one(
                 break
             img = f.image
             if a <= f.timestamp < b:
+                if stall:
+                    continue
                 img = np.clip(rng.normal(*DARK_LEVEL, img.shape), 0, 255).astype(np.uint8)
             o = loc.process(Frame(f.index, f.timestamp, img, camera=f.camera)).output
             if f.timestamp >= a and o.state.value != "initialising":
@@ -124,6 +136,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tail", type=float, default=1.0, help="frames scored after a span's end, s")
     ap.add_argument("--jobs", type=int, default=1, help="sessions replayed in parallel")
     ap.add_argument("--variant", action="append", default=[], metavar="NAME=JSON", help="settings to compare")
+    ap.add_argument("--stall", action="store_true", help="leave the span's frames out instead of darkening them")
     ap.add_argument("--json", type=Path, help="write every span's row here")
     a = ap.parse_args(argv)
     durations = [float(x) for x in a.durations.split(",")]
@@ -133,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     for s in a.sessions:
         if not (Path(s) / "groundtruth.tum").is_file():
             ap.error(f"{s}: no groundtruth.tum")
-    jobs = [(s, durations, a.start, a.every, a.tail, variants) for s in a.sessions]
+    jobs = [(s, durations, a.start, a.every, a.tail, variants, a.stall) for s in a.sessions]
     with ProcessPoolExecutor(max_workers=max(1, a.jobs)) as pool:
         rows = [r for part in pool.map(_blind_runs, jobs) for r in part]
     print(summarise(rows))
