@@ -991,3 +991,25 @@ def test_an_unlit_part_of_the_view_is_not_matched_as_a_still_floor():
     assert np.hypot(got.delta[0] - 0.04, got.delta[1]) < 0.003 and abs(got.delta[2]) < math.radians(0.1)
     got, odo = step(0.7)
     assert got is None and odo.dark_frames == 2
+
+
+def test_a_lean_known_only_after_a_gap_is_not_read_as_a_roll_change():
+    """After a gap the odometry knows no lean until its first step, whose own motion gives the lean
+    of the turn under way (4 deg here). The torso's roll filter, anchored by a fix at that step's
+    first frame while no lean was known, read the lean as the roll changing by 4 deg within one
+    frame interval and put 12 cm of sideways motion into the step (4 mm now), as on standard walk
+    s03 after a 2 s stall, where the fixes of the next frame were then tilt-gated. The lean became
+    known; it did not change."""
+    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0), legs_in_view=False)
+    delta = np.array([0.04, 0.0, -0.008])
+    t0, t1 = 12.0, 12.0 + 1 / FPS
+
+    def untilted(lean_known: bool) -> np.ndarray:
+        odo = FloorOdometry(rc)
+        assert odo._torso is not None  # the tilt filter is on by default
+        odo.anchor_tilt_angles(t0, 0.0, 0.0)  # a fix's upright torso, no lean known yet
+        odo._lean_state = [t1, math.radians(-4.0), math.radians(-4.0)]  # this step's lean
+        return odo._untilted_step(None, None, None, delta, t0, t1, None, None, False, lean_known)
+
+    assert abs(untilted(False)[1] - delta[1]) < 0.005
+    assert abs(untilted(True)[1] - delta[1]) > 0.05  # a continuing lean's change is the roll's

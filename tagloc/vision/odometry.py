@@ -1229,6 +1229,7 @@ class FloorOdometry:
         if np.hypot(*shift) > cfg.max_shift_frac * cfg.patch_px * cfg.ecc_shift_allowance:
             return None
         R_tilt = self._tilt(t0)
+        lean_known = self._lean(t0) is not None
         if R_tilt is None:
             level = self.body_motion(W[:, :2], W[:, 2])
         else:
@@ -1247,7 +1248,7 @@ class FloorOdometry:
             else:
                 self.flow_steps += 1
         if cfg.tilt_correction:
-            delta = self._untilted_step(small, psmall, W, level, t0, t, R_tilt, flow, refine)
+            delta = self._untilted_step(small, psmall, W, level, t0, t, R_tilt, flow, refine, lean_known)
         else:
             delta = level if flow is None else flow.delta
         cov = self.covariance(delta) * (1.0 if rho >= cfg.min_ecc else cfg.weak_ecc_cov_scale)
@@ -1266,12 +1267,15 @@ class FloorOdometry:
         R_tilt: np.ndarray | None = None,
         flow: FlowStep | None = None,
         refine: bool = True,
+        lean_known: bool = True,
     ) -> np.ndarray:
         """The step ``delta`` (3,) from ``t0`` to ``t1`` (s) with the vest's tilt change taken out
         (see ``tilt_correction`` and ``tilt_filter``), on top of the lean ``R_tilt`` (3, 3; None:
         level) both frames share. With the ``flow``'s fit, its tilt change is the measurement and
         its step (which has that change taken out) is corrected by the filtered change less it.
-        ``refine`` False: no tilt fit (the frame's sticker fixes anchor the tilt instead)."""
+        ``refine`` False: no tilt fit (the frame's sticker fixes anchor the tilt instead).
+        ``lean_known`` False: no lean was known at ``t0`` (the first step after a gap), so the one
+        this step gives is what the lean was all along, not a change of the torso's roll."""
         if flow is not None:
             fit: tuple[float, float | None] | None = (flow.d_pitch, flow.d_roll)
             fit_sigma = self.config.flow_config.tilt_sigma * self._pixel_scale
@@ -1290,6 +1294,11 @@ class FloorOdometry:
             d_pitch, d_roll = fit[0], fit[1] or 0.0
         else:
             lean = self._lean_roll(t1)
+            if not lean_known:
+                # The roll's prior mean in force was "no lean" for want of one: the lean under way
+                # became known here, it did not change (read as a change, a 4 deg lean after a
+                # 2 s stall put 12 cm of sideways motion into one step).
+                torso.roll.rebase(lean)
             if torso.pitch.t is None or torso.pitch.t < t0:
                 # First step, or steps were missed: start from the prior, or carry the estimate, to t0.
                 torso.step(t0, lean, None, None)

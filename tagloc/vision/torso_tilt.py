@@ -72,6 +72,11 @@ class TiltAxis:
         self.t, self.value, self.var, self.mean = t, v1, max(p1, 0.0), mean
         return v1 - before
 
+    def rebase(self, mean: float) -> None:
+        """Take ``mean`` (rad) as the prior mean in force since the last time: the estimate keeps its
+        value (the angle itself) and its deviation from the prior becomes the one from ``mean``."""
+        self.mean = float(mean)
+
     def anchor(
         self, t: float, mean: float, measured: float, measured_var: float, posture_count: int, posture_prior: int
     ) -> None:
