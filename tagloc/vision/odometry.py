@@ -168,7 +168,7 @@ class OdometryConfig:
       allows: in a fast turn across a painted lane line, the match slid along the line
       (``benchmarks/bridges.py`` on a 4 s walk, ``tagloc simulate --seconds 4 --seed 1``, with 3,
       6 and 9 frames dropped after every frame: 24 of 243 bridged steps beyond the 99 % bound,
-      10-35 cm off, against 16 of 228 with the mask; the same walk's seeds 2 and 3 bridged 293 and
+      10-35 cm off, against 15 of 228 with the mask; the same walk's seeds 2 and 3 bridged 293 and
       301 gaps without the mask, 285 and 289 with it, none wrong either way). Measured on
       the three field_sensor ``timing`` walks and the field walks f00, f02, f03-long, f04-dim
       (odometry alone): 10 of 15 gaps bridged, 1.2 / 1.1 cm (forward / sideways) and 0.4 deg RMS,
@@ -1274,8 +1274,9 @@ class FloorOdometry:
         level) both frames share. With the ``flow``'s fit, its tilt change is the measurement and
         its step (which has that change taken out) is corrected by the filtered change less it.
         ``refine`` False: no tilt fit (the frame's sticker fixes anchor the tilt instead).
-        ``lean_known`` False: no lean was known at ``t0`` (the first step after a gap), so the one
-        this step gives is what the lean was all along, not a change of the torso's roll."""
+        ``lean_known`` False: no lean was known at ``t0`` (the first step after a gap), so where a
+        fix measured the roll at ``t0``, the lean this step gives is what the lean was all along,
+        not a change of the torso's roll."""
         if flow is not None:
             fit: tuple[float, float | None] | None = (flow.d_pitch, flow.d_roll)
             fit_sigma = self.config.flow_config.tilt_sigma * self._pixel_scale
@@ -1294,10 +1295,11 @@ class FloorOdometry:
             d_pitch, d_roll = fit[0], fit[1] or 0.0
         else:
             lean = self._lean_roll(t1)
-            if not lean_known:
-                # The roll's prior mean in force was "no lean" for want of one: the lean under way
-                # became known here, it did not change (read as a change, a 4 deg lean after a
-                # 2 s stall put 12 cm of sideways motion into one step).
+            if not lean_known and torso.roll.t is not None and torso.roll.t >= t0:
+                # A fix measured the roll at t0 about a prior mean of "no lean", for want of one: the
+                # lean under way became known here, it did not change (read as a change, a 4 deg
+                # lean after a 2 s stall put 12 cm of sideways motion into one step). A roll only
+                # carried to t0 from before the gap follows the lean as before.
                 torso.roll.rebase(lean)
             if torso.pitch.t is None or torso.pitch.t < t0:
                 # First step, or steps were missed: start from the prior, or carry the estimate, to t0.
