@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from tagloc.core.errors import InputError
+from tagloc.core.sticker import rotate_corners
 
 
 def as_gray(image: np.ndarray) -> np.ndarray:
@@ -64,6 +65,7 @@ def require_gray(image: np.ndarray, stage: str) -> np.ndarray:
 def clockwise(quad: np.ndarray) -> np.ndarray:
     """Quad (4, 2) in clockwise on-screen order (positive shoelace area with y down), top-left-most first."""
     x, y = quad[:, 0], quad[:, 1]
-    if np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y) < 0:
+    # rotate_corners(a, k)[i] is a[i + k]: np.roll(a, -k) without its set-up, which cost more here.
+    if np.dot(x, rotate_corners(y, 1)) - np.dot(rotate_corners(x, 1), y) < 0:
         quad = quad[::-1]
-    return np.roll(quad, -int(np.argmin(quad.sum(axis=1))), axis=0)
+    return rotate_corners(quad, int(np.argmin(quad.sum(axis=1))))
