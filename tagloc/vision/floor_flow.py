@@ -196,6 +196,9 @@ class FlowStep:
 # Forward differences of the fit's Jacobian: 0.1 mm, 0.6 mdeg (far below the noise, far above
 # float rounding at these magnitudes; the problem is nearly linear over them).
 _H = np.array([1e-4, 1e-4, 1e-5, 1e-5, 1e-5, 1e-4])
+# The rows projected for each Gauss-Newton step, added to the estimate: itself, then each parameter
+# moved by _H.
+_STEPS = np.vstack([np.zeros(6), np.diag(_H)])
 # The fit's parameters (dx, dy, dyaw, d_pitch, d_roll, dz) by unit, for its stop (``fit_tolerance_m``).
 _TRANSLATIONS = [0, 1, 5]
 _ANGLES = [2, 3, 4]
@@ -347,7 +350,6 @@ class FloorFlow:
         # Each point's interval, in frame intervals (rolling shutter; 1 for a global shutter).
         delay1 = np.asarray(row_delay_s(p1[:, 1], cam.height, self._readout))
         scale = 1.0 + (delay1 - self._delay0[pb.down][ok]) / pb.dt
-        E = np.vstack([np.zeros(6), np.diag(_H)])
 
         def errors(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             """Normalised errors (k, N, 2) of parameter rows (k, 6), and the first row's in px (N,)."""
@@ -356,15 +358,18 @@ class FloorFlow:
 
         x = pb.x0.copy()
         for i in range(cfg.fit_iterations):
-            P, res = errors(x[None] + E)
+            P, res = errors(x[None] + _STEPS)
             # Huber weights from the residuals at the current estimate (all 1 at the start).
-            sigma = 1.4826 * float(median_last(res)) + 1e-3
-            w = np.minimum(1.0, cfg.huber_k * sigma / np.maximum(res, 1e-9)) if i else np.ones(len(res))
+            if i:
+                sigma = 1.4826 * float(median_last(res)) + 1e-3
+                w = np.minimum(1.0, cfg.huber_k * sigma / np.maximum(res, 1e-9))
+            else:
+                w = np.ones(len(res))
             r = P[0].ravel()
             J = ((P[1:] - P[0]).reshape(6, -1) / _H[:, None]).T
             sw = np.repeat(np.sqrt(w), 2)
             step = np.linalg.lstsq(J * sw[:, None], -r * sw, rcond=None)[0]
-            if not np.all(np.isfinite(step)):
+            if not np.isfinite(step).all():
                 return None
             x += step
             # Not after the first step: its weights are all 1, and the Huber weights may move it.
