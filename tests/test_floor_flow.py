@@ -89,6 +89,20 @@ def test_step_tilt_change_and_rise_of_a_rendered_pair(floor):
         assert fit.dz == pytest.approx(rise, abs=2e-3 * tol)
 
 
+def test_one_scale_for_all_points_projects_as_the_per_point_scales():
+    """A global shutter's fit hands the projection one scale (1,) for all points instead of one
+    per point (N,) (the rows' trigonometry then works per row): the same numbers, bit for bit."""
+    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0))
+    rng = np.random.default_rng(2)
+    X = np.column_stack([rng.uniform(0.6, 3.0, 60), rng.uniform(-1.2, 1.2, 60), np.zeros(60)])
+    M0 = rc.T_body_camera[:3, :3]
+    model = _Model(X, rc.T_body_camera[:3, 3] - rc.vest_point, rc.vest_point, M0)
+    x = np.array([0.043, 0.006, math.radians(1.2), math.radians(0.1), math.radians(-0.05), 0.001])
+    rows = x + np.vstack([np.zeros(6), np.diag(np.full(6, 1e-5))])
+    for s in (1.0, 1.02):
+        assert np.array_equal(model.project(rows, np.full(1, s)), model.project(rows, np.full(len(X), s)))
+
+
 def test_fit_stops_once_converged_where_the_full_iterations_would_end(monkeypatch):
     """The six-parameter fit stops once a Gauss-Newton step moves nothing by more than
     ``fit_tolerance_m`` / ``fit_tolerance_rad``. Given the exact pixels of a known motion (a typical

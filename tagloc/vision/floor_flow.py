@@ -306,7 +306,7 @@ class FloorFlow:
         model = _Model(X, lever, self._vp, M0)
         x = np.array([*g, 0.0, 0.0, 0.0])
         cam = self.rig_camera.camera
-        start = model.project(x[None], np.ones(len(X)))[0]
+        start = model.project(x[None], np.ones(1))[0]
         p_guess = cv2.projectPoints(
             np.column_stack([start, np.ones(len(start))]), np.zeros(3), np.zeros(3), cam.K, cam.dist
         )[0].reshape(-1, 2)
@@ -350,6 +350,8 @@ class FloorFlow:
         # Each point's interval, in frame intervals (rolling shutter; 1 for a global shutter).
         delay1 = np.asarray(row_delay_s(p1[:, 1], cam.height, self._readout))
         scale = 1.0 + (delay1 - self._delay0[pb.down][ok]) / pb.dt
+        if (scale == scale[0]).all():
+            scale = scale[:1]  # a global shutter's: see _Model.project
 
         def errors(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             """Normalised errors (k, N, 2) of parameter rows (k, 6), and the first row's in px (N,)."""
@@ -478,7 +480,12 @@ class _Model:
 
     def project(self, params: np.ndarray, scale: np.ndarray) -> np.ndarray:
         """(k, N, 2) normalised coordinates for k parameter rows ``params`` (k, 6): (dx, dy, dyaw,
-        d_pitch, d_roll, dz), each point's motion times its ``scale`` (N,)."""
+        d_pitch, d_roll, dz), each point's motion times its ``scale`` (N,), or all points' by one
+        ``scale`` (1,).
+
+        One scale for all (a global shutter's, 1) gives the same numbers, with the rows' sines,
+        cosines and lever worked out once per row rather than once per point: the fit's 7-row
+        projection took 44 us instead of 70 (the Speed walk)."""
         P = params[:, None, :] * scale[None, :, None]
         dx, dy, dyaw, dp, dr, dz = (P[..., i] for i in range(6))
         cp, sp, cr, sr = np.cos(dp), np.sin(dp), np.cos(dr), np.sin(dr)
