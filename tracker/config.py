@@ -229,9 +229,9 @@ class TrackerConfig:
     (1.6 against 0.82 rad/s) and in yaw (12.6 against 7.3 degrees). The noise is part of the
     prediction across the gap (:meth:`tracker.ekf.WalkingEKF.advance`), so the heading's spread
     also spreads the position as the gap goes on; added at the gap's end instead, as it was, it
-    could not: a camera that delivered no frame for 2 s as standard walk s03 left a turn gave a
-    first pose after the stall at NEES 4.6-7.1 over half a second (2 DoF), 1.7-3.3 with it
-    (scratch ``/tmp/s57/stall.py``; ``tests/test_tracker.py`` has a synthetic stall).
+    could not: a camera that delivered no frame for 2 s as standard walk s03 left a turn had the
+    pose at NEES 4.6-7.8 (2 DoF) for half a second after the stall, 1.7-3.3 with it
+    (``benchmarks/blind_spans.py --stall``; ``tests/test_tracker.py`` has a synthetic stall).
     ``gate_bridge_narrow``: that noise is for the steps after a gap nothing measured; the step that
     bridges the gap (one match between the frames either side, with no frame between to check it)
     must also pass the gate against the walk as predicted without it, as an ordinary interval's
@@ -242,9 +242,9 @@ class TrackerConfig:
     yaw and the steps after it, which is honest; counted as ``odometry_bridge_rejected``.
     Measured with ``benchmarks/bridges.py`` (3, 6 and 9 frames dropped after every frame of
     three 4 s walks, ``tagloc simulate --map maps/demo.csv --seconds 4 --seed 1..3``, with the
-    odometry's ``bridge_overlap_mask``): of the 16 wrong bridges of seed 1, 14 were fused without
+    odometry's ``bridge_overlap_mask``): of the 15 wrong bridges of seed 1, 13 were fused without
     this gate and 9 with it, and the published pose after the gap was beyond the 99.9 % bound
-    after 8 of the bridges and after 5; it refused 2 of the 212 right bridges there and none of
+    after 8 of the bridges and after 5; it refused 3 of the 213 right bridges there and none of
     the 574 of seeds 2 and 3.
     ``missed_step_noise``: the same, frame interval by frame interval, when frames arrive but their
     odometry steps are refused (the camera's last frame was to be measured and no step ended
