@@ -1275,8 +1275,8 @@ class FloorOdometry:
         its step (which has that change taken out) is corrected by the filtered change less it.
         ``refine`` False: no tilt fit (the frame's sticker fixes anchor the tilt instead).
         ``lean_known`` False: no lean was known at ``t0`` (the first step after a gap), so where a
-        fix measured the roll at ``t0``, the lean this step gives is what the lean was all along,
-        not a change of the torso's roll."""
+        fix measured the roll at ``t0`` and no tilt change is measured, the lean this step gives is
+        what the lean was all along, not a change of the torso's roll."""
         if flow is not None:
             fit: tuple[float, float | None] | None = (flow.d_pitch, flow.d_roll)
             fit_sigma = self.config.flow_config.tilt_sigma * self._pixel_scale
@@ -1295,11 +1295,12 @@ class FloorOdometry:
             d_pitch, d_roll = fit[0], fit[1] or 0.0
         else:
             lean = self._lean_roll(t1)
-            if not lean_known and torso.roll.t is not None and torso.roll.t >= t0:
+            if not lean_known and fit is None and torso.roll.t is not None and torso.roll.t >= t0:
                 # A fix measured the roll at t0 about a prior mean of "no lean", for want of one: the
                 # lean under way became known here, it did not change (read as a change, a 4 deg
                 # lean after a 2 s stall put 12 cm of sideways motion into one step). A roll only
-                # carried to t0 from before the gap follows the lean as before.
+                # carried to t0 from before the gap follows the lean as before, and a measured
+                # change (a tilt fit) is weighed against the prior as before.
                 torso.roll.rebase(lean)
             if torso.pitch.t is None or torso.pitch.t < t0:
                 # First step, or steps were missed: start from the prior, or carry the estimate, to t0.
