@@ -68,6 +68,7 @@ def _session_rows(args: tuple[str, list[int], int, dict[str, LocaliserConfig]]) 
     true_step = {i: vest_planar(T @ T_camera_body, rc.vest_point) for i, T in _groundtruth(Path(path)).items()}
     gt_t, gt_T = session.groundtruth()
     frames = [f for f in session.frames() if f.image is not None]
+    index_at = {float(f.timestamp): f.index for f in frames}
     rows = []
     for name, cfg in variants.items():
         row = {"walk": path, "variant": name, "bridges": 0, "wrong": 0, "fused": 0, "right_refused": 0}
@@ -87,9 +88,12 @@ def _session_rows(args: tuple[str, list[int], int, dict[str, LocaliserConfig]]) 
                     bridged, fused = odo.bridged, trial.tracker.stats["odometry_accepted"]
                     out = trial.process(g).output
                     step = trial._step
-                    if odo.bridged == bridged or step is None or f.index not in true_step or g.index not in true_step:
+                    # The step's own frames: it starts at the odometry's last measured frame, which is
+                    # not ``f`` when the odometry skipped ``f`` (a variant with odometry_stride).
+                    i0 = None if step is None else index_at.get(float(step.t0))
+                    if odo.bridged == bridged or i0 not in true_step or g.index not in true_step:
                         continue
-                    e = np.asarray(step.delta, float) - _relative(true_step[f.index], true_step[g.index])
+                    e = np.asarray(step.delta, float) - _relative(true_step[i0], true_step[g.index])
                     e[2] = wrap_angle(e[2])
                     wrong = float(_nees(e[None], np.asarray(step.cov, float)[None])[0]) > CHI2_3_99
                     accepted = trial.tracker.stats["odometry_accepted"] > fused
