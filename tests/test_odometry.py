@@ -316,8 +316,8 @@ def test_a_burst_of_dropped_frames_is_bridged(gap_turn_deg):
 
 
 def test_overlap_mask_keeps_the_pixels_the_motion_brings_over_the_earlier_patch():
-    """A bridged match correlates only the patch's part that the start's motion maps inside the
-    earlier patch (``bridge_overlap_mask``): a 25 deg turn about the centre and a shift of a third
+    """The bridge mask (``bridge_overlap_mask``; what ECC then correlates: the next test) keeps the
+    pixels that the start's motion maps inside the patch: a 25 deg turn about the centre and a shift of a third
     of the side keep the pixels whose image lies in the earlier square and no other (checked pixel
     by pixel), 63 % of them."""
     m = 80
@@ -335,6 +335,38 @@ def test_overlap_mask_keeps_the_pixels_the_motion_brings_over_the_earlier_patch(
     assert np.array_equal(mask == 255, inside)
     assert 0.55 < inside.mean() < 0.7
     assert overlap_mask(np.array([[1.0, 0, 0], [0, 1.0, 0]]), m).min() == 255  # no motion: all of it
+
+
+def test_ecc_reads_the_bridge_mask_in_the_earlier_patch_and_correlates_the_overlap_less_a_shift():
+    """What a bridged match correlates (``bridge_overlap_mask``): ECC leaves out by itself what its
+    map sends outside the earlier patch, and reads its mask in the earlier patch's pixels. With
+    the current patch 20 px along the earlier one (80 px), the overlap is its columns 0-59; its
+    columns 40-59 replaced by noise: without a mask the correlation at the true map is that of
+    the overlap (0.4), with :func:`overlap_mask` it is that of columns 0-39 alone (1.0: the
+    overlap less one more shift), and a mask of the overlap in the earlier patch's pixels is no
+    mask."""
+    rng = np.random.default_rng(0)
+    m, s = 80, 20
+    img = cv2.GaussianBlur(rng.uniform(0, 255, (200, 300)).astype(np.float32), (0, 0), 2.0)
+    img = cv2.normalize(img, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    earlier = img[50 : 50 + m, 50 : 50 + m].copy()
+    current = img[50 : 50 + m, 50 + s : 50 + s + m].copy()  # current[:, x] = earlier[:, x + s]
+    current[:, 40:60] = rng.integers(0, 256, (m, 20))
+    W = np.array([[1.0, 0.0, s], [0.0, 1.0, 0.0]], np.float32)
+
+    def rho(mask: np.ndarray | None) -> float:
+        crit = (cv2.TERM_CRITERIA_COUNT, 1, 0.0)  # the correlation at the start map
+        return cv2.findTransformECC(current, earlier, W.copy(), cv2.MOTION_EUCLIDEAN, crit, mask, 1)[0]
+
+    def zncc(cols: slice) -> float:
+        a, b = current[:, cols].astype(float), earlier[:, cols.start + s : cols.stop + s].astype(float)
+        a, b = a - a.mean(), b - b.mean()
+        return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum()))
+
+    overlap_in_earlier = cv2.warpAffine(np.full((m, m), 255, np.uint8), W, (m, m), flags=cv2.INTER_NEAREST)
+    assert rho(None) == pytest.approx(zncc(slice(0, 60)), abs=0.02) and rho(None) < 0.5
+    assert rho(overlap_mask(W, m)) == pytest.approx(zncc(slice(0, 40)), abs=0.02) and rho(overlap_mask(W, m)) > 0.99
+    assert rho(overlap_in_earlier) == pytest.approx(rho(None), abs=0.02)
 
 
 def test_the_localiser_bridges_bursts_of_dropped_frames(stop_walk):

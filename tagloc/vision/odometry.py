@@ -161,12 +161,15 @@ class OdometryConfig:
       squared (8 rad/s^2: trunk yaw rate builds up to ~150-200 deg/s within 0.3-0.5 s in a brisk
       turn), compete as starts for ECC (:meth:`FloorOdometry._bridge`). A bridged match must reach
       ``min_ecc``; its covariance is generous (see :meth:`FloorOdometry._bridge`).
-      ``bridge_overlap_mask``: the bridged match correlates only the part of the patch that the
-      start's motion brings over the earlier patch. Over a gap the patch moves by a third to a
-      half of its side, and ECC over the whole square also correlates floor that only one of the
-      two patches saw, which pulls the match towards whatever the shared part's strongest edge
-      allows: in a fast turn across a painted lane line, the match slid along the line
-      (``benchmarks/bridges.py`` on a 4 s walk, ``tagloc simulate --seconds 4 --seed 1``, with 3,
+      ``bridge_overlap_mask``: the bridged match correlates a part of the overlap only. ECC by
+      itself already correlates just the pixels its map brings inside the earlier patch (the
+      overlap); the mask (:func:`overlap_mask` of the start) is read by ECC in the earlier
+      patch's pixels, so it leaves out a further band as wide as the start's motion: what is
+      correlated is the overlap shrunk by that motion once more. Over a gap the patch moves by a
+      third to a half of its side, and the whole overlap let the match follow whatever its
+      strongest edge allows: in a fast turn across a painted lane line, the match slid along the
+      line. (A mask of the overlap itself, in the earlier patch's pixels, changes nothing: 23
+      wrong of 245 on the walk below.) (``benchmarks/bridges.py`` on a 4 s walk, ``tagloc simulate --seconds 4 --seed 1``, with 3,
       6 and 9 frames dropped after every frame: 24 of 243 bridged steps beyond the 99 % bound,
       10-35 cm off, against 15 of 228 with the mask; the same walk's seeds 2 and 3 bridged 293 and
       301 gaps without the mask, 285 and 289 with it, none wrong either way). Measured on
@@ -551,8 +554,12 @@ def flow_cov_scale(residual_px: float, config: OdometryConfig) -> float:
 
 def overlap_mask(W: np.ndarray, m: int) -> np.ndarray:
     """(m, m) uint8 mask of the pixels of an m x m patch that the map ``W`` (2, 3; this patch's pixels
-    -> the earlier patch's) sends inside the earlier patch: 255 there, 0 elsewhere (see
-    ``OdometryConfig.bridge_overlap_mask``)."""
+    -> the earlier patch's) sends inside the earlier patch: 255 there, 0 elsewhere.
+
+    ECC reads its mask in the earlier patch's pixels (its ``inputMask``), where this one keeps
+    those that ``W`` sends inside the patch once more: ECC, which leaves out what falls outside the
+    earlier patch by itself, then correlates the overlap less a band as wide as ``W``'s motion
+    (see ``OdometryConfig.bridge_overlap_mask``)."""
     full = np.full((m, m), 255, np.uint8)
     return cv2.warpAffine(
         full,
