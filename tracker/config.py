@@ -242,9 +242,9 @@ class TrackerConfig:
     yaw and the steps after it, which is honest; counted as ``odometry_bridge_rejected``.
     Measured with ``benchmarks/bridges.py`` (3, 6 and 9 frames dropped after every frame of
     three 4 s walks, ``tagloc simulate --map maps/demo.csv --seconds 4 --seed 1..3``, with the
-    odometry's ``bridge_overlap_mask``): of the 15 wrong bridges of seed 1, 13 were fused without
+    odometry's ``bridge_overlap_mask``): of the 16 wrong bridges of seed 1, 14 were fused without
     this gate and 9 with it, and the published pose after the gap was beyond the 99.9 % bound
-    after 8 of the bridges and after 5; it refused 3 of the 213 right bridges there and none of
+    after 8 of the bridges and after 5; it refused 2 of the 212 right bridges there and none of
     the 574 of seeds 2 and 3.
     ``missed_step_noise``: the same, frame interval by frame interval, when frames arrive but their
     odometry steps are refused (the camera's last frame was to be measured and no step ended

@@ -171,7 +171,7 @@ class OdometryConfig:
       line. (A mask of the overlap itself, in the earlier patch's pixels, changes nothing: 23
       wrong of 245 on the walk below.) (``benchmarks/bridges.py`` on a 4 s walk, ``tagloc simulate --seconds 4 --seed 1``, with 3,
       6 and 9 frames dropped after every frame: 24 of 243 bridged steps beyond the 99 % bound,
-      10-35 cm off, against 15 of 228 with the mask; the same walk's seeds 2 and 3 bridged 293 and
+      10-35 cm off, against 16 of 228 with the mask; the same walk's seeds 2 and 3 bridged 293 and
       301 gaps without the mask, 285 and 289 with it, none wrong either way). Measured on
       the three field_sensor ``timing`` walks and the field walks f00, f02, f03-long, f04-dim
       (odometry alone): 10 of 15 gaps bridged, 1.2 / 1.1 cm (forward / sideways) and 0.4 deg RMS,
