@@ -1045,3 +1045,38 @@ def test_a_lean_known_only_after_a_gap_is_not_read_as_a_roll_change():
 
     assert abs(untilted(False)[1] - delta[1]) < 0.005
     assert abs(untilted(True)[1] - delta[1]) > 0.05  # a continuing lean's change is the roll's
+
+
+def test_a_bridge_the_tracker_refuses_takes_back_what_the_odometry_learnt_from_it(stop_walk):
+    """A step bridging dropped frames that the tracker's gate refuses moved the odometry's lean and
+    turn guess all the same; kept, a refused wrong bridge's lean had the tilt gate refuse a right fix
+    after it (benchmarks/bridges.py's walk, frames 73-74 after a burst at 60-68). The localiser now
+    has the odometry forget them (counted), keeping its last frame; with the switch off it does not,
+    and a bridge the tracker fuses leaves them."""
+    import dataclasses
+
+    session = SessionReader(stop_walk)
+    frames = [f for f in session.frames() if f.image is not None][:40]
+    cov = np.diag([0.02**2, 0.02**2, 0.02**2])
+
+    def offer(forget: bool, off_turn: float) -> tuple[Localiser, FloorOdometry, bool]:
+        loc = Localiser(session.map, session.rig, dataclasses.replace(LocaliserConfig(), forget_refused_bridge=forget))
+        for f in frames:
+            loc.process(f)
+        odo = loc.floor_odometry(0)
+        assert odo._lean_state is not None and odo._last_twist is not None and odo._prev is not None
+        # A 0.3 s bridge from the camera's last frame: the walk the tracker predicts, turned off_turn.
+        t0 = loc.tracker.time
+        v, _, w = loc.tracker.velocity()
+        loc.tracker.predict(t0 + 0.3, 0)
+        fused = loc.tracker.stats["odometry_accepted"]
+        loc._fuse_step(OdometryStep(t0, t0 + 0.3, np.array([0.3 * v, 0.0, 0.3 * w + off_turn]), cov, 0.5), 0)
+        return loc, odo, loc.tracker.stats["odometry_accepted"] > fused
+
+    loc, odo, fused = offer(True, 1.2)
+    assert not fused and loc.counts["odometry_bridge_forgotten"] == 1
+    assert odo._lean_state is None and odo._last_twist is None and odo._prev is not None
+    loc, odo, fused = offer(False, 1.2)
+    assert not fused and loc.counts["odometry_bridge_forgotten"] == 0 and odo._lean_state is not None
+    loc, odo, fused = offer(True, 0.0)
+    assert fused and loc.counts["odometry_bridge_forgotten"] == 0 and odo._lean_state is not None

@@ -189,6 +189,12 @@ class LocaliserConfig:
             ``maps/demo.csv`` each sticker's closest look-alike correlates 0.26-0.65 (median 0.39),
             and 206 of its 214 stickers have at least one rival at 0.3 (four on average: about
             0.05 ms of module scoring each, only when the quick stages read nothing).
+        forget_refused_bridge: a step bridging dropped frames that the tracker refuses (see
+            ``TrackerConfig.gate_bridge_narrow``) also takes back what the odometry learnt from it
+            (:meth:`tagloc.vision.odometry.FloorOdometry.forget_motion`: the turn guess, the lean,
+            the torso's filtered tilt), which is as doubtful as the step: kept, a refused wrong
+            bridge's lean had the tilt gate refuse a right fix after it (``benchmarks/bridges.py``).
+            Counted as ``odometry_bridge_forgotten``.
         skip_flow_after_fix: when the camera's last frame was placed by a read fix (a sticker
             decoded, checked or carried, its fix accepted) and the tracker predicts that sticker at
             least ``skip_flow_margin_px`` inside this frame, the frame will very likely be placed
@@ -246,6 +252,7 @@ class LocaliserConfig:
     tilt_gate_chi2: float = 13.8
     check_expected: bool = True
     lookalike_min_corr: float = 0.3
+    forget_refused_bridge: bool = True
     skip_flow_after_fix: bool = False
     skip_flow_min_fixes: int = 2
     skip_flow_margin_px: float = 80.0
@@ -526,6 +533,7 @@ def new_counts() -> dict[str, int]:
             *keys,
             "odometry_steps",
             "odometry_bridged",
+            "odometry_bridge_forgotten",
             "odometry_strided",
             "odometry_unavailable",
             "flow_skipped",
@@ -1082,10 +1090,21 @@ class Localiser:
             # Only a step over dropped frames spans more than max_dt (see OdometryConfig.bridge_max_dt).
             self.counts["odometry_bridged"] += int(step.t1 - step.t0 > odo.config.max_dt)
             if refine:
-                self.counts["odometry_steps"] += 1
-                self.tracker.update_odometry(step, camera)
+                self._fuse_step(step, camera)
             else:
                 self._unrefined = (step, camera)
+
+    def _fuse_step(self, step: OdometryStep, camera: int) -> None:
+        """Fuse a camera's odometry step; a bridged step the tracker refuses also takes back what the
+        odometry learnt from it (``LocaliserConfig.forget_refused_bridge``)."""
+        self.counts["odometry_steps"] += 1
+        res = self.tracker.update_odometry(step, camera)
+        odo = self.floor_odometry(camera)
+        # Refused by a gate (its NIS known), not for want of a track or a clone to move.
+        gated = not res.accepted and math.isfinite(res.nis)
+        if self.config.forget_refused_bridge and gated and step.t1 - step.t0 > odo.config.max_dt:
+            odo.forget_motion()
+            self.counts["odometry_bridge_forgotten"] += 1
 
     def _flow_needed(self, camera: int) -> bool:
         """Whether this frame's odometry step needs the floor flow's refinement: False only when the
@@ -1112,8 +1131,7 @@ class Localiser:
         if self._read_fixed.get(camera, False):
             self.counts["odometry_unfused"] += 1
         else:
-            self.counts["odometry_steps"] += 1
-            self.tracker.update_odometry(step, camera)
+            self._fuse_step(step, camera)
 
     def _body_twist(self, rig_cam: RigCamera, t: float) -> tuple[np.ndarray | None, np.ndarray | None]:
         """The body's motion (vx, vy, yaw rate; body frame) for the rolling-shutter correction, or

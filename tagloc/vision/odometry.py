@@ -972,6 +972,18 @@ class FloorOdometry:
         if self._torso is not None:
             self._torso.reset()
 
+    def forget_motion(self) -> None:
+        """Forget what the last steps said of the walk (the turn guess, the last twist, the lean into
+        the turn, the pitch with speed changes, the torso's filtered tilt), keeping the last frame:
+        the next step is matched from it as after a gap. For a step the tracker refused (see
+        ``LocaliserConfig.forget_refused_bridge``)."""
+        self._last_turn = None
+        self._last_twist = None
+        self._lean_state = None
+        self._pitch_state = None
+        if self._torso is not None:
+            self._torso.reset()
+
     def _lean(self, t: float) -> float | None:
         """The lean's roll (rad) at time ``t`` as the steps up to then say (see
         :meth:`_update_lean`); None when off, or when no step that recent is known."""
