@@ -64,16 +64,23 @@ def configure(overrides: dict, option: str = "--variant") -> LocaliserConfig:
     return cfg
 
 
+def json_object(text: str, option: str, what: str) -> dict:
+    """The JSON object ``text`` given to ``option``; a one-line error naming the option for text that
+    is not JSON or not an object (of ``what``, for the message)."""
+    try:
+        obj = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{option}: not JSON ({exc})") from None
+    if not isinstance(obj, dict):
+        raise InputError(f"{option}: want a JSON object of {what}, not {text!r}")
+    return obj
+
+
 def parse_variant(spec: str) -> tuple[str, dict]:
     """``--variant NAME=JSON`` as (NAME, its overrides {"a.b.c": value}), checked against the
     configuration (:func:`configure`) so that a misspelt setting is refused before any work."""
     name, _, text = spec.partition("=")
-    try:
-        overrides = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputError(f"--variant {name}: not JSON ({exc})") from None
-    if not isinstance(overrides, dict):
-        raise InputError(f"--variant {name}: want a JSON object of dotted settings, not {text!r}")
+    overrides = json_object(text, f"--variant {name}", "dotted settings")
     configure(overrides, f"--variant {name}")
     return name, overrides
 

@@ -395,14 +395,11 @@ def calibrate(results: list[dict]) -> dict[str, float]:
 def odometry_config(text: str, option: str = "--config") -> OdometryConfig:
     """The :class:`OdometryConfig` with the JSON object ``text``'s overrides, a one-line error naming
     ``option`` for text that is no JSON object or names no field (before, a bug report's line)."""
+    from eval_variants import json_object  # (benchmarks/ is on the path of a script run from it)
+
     from tagloc.core.errors import InputError
 
-    try:
-        overrides = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{option}: not JSON ({exc})") from None
-    if not isinstance(overrides, dict):
-        raise InputError(f"{option}: want a JSON object of OdometryConfig fields, not {text!r}")
+    overrides = json_object(text, option, "OdometryConfig fields")
     fields = {f.name for f in dataclasses.fields(OdometryConfig)}
     unknown = sorted(set(overrides) - fields)
     if unknown:

@@ -151,6 +151,12 @@ def _checked(step: Callable[[], R]) -> tuple[bool, R | None]:
 MAX_SPREAD_S = 3600.0
 
 
+def _nis(y: np.ndarray, S: np.ndarray) -> float:
+    """Squared Mahalanobis distance of the residual ``y`` (m,) under the innovation covariance ``S``
+    (m, m), symmetrised (raises LinAlgError when singular)."""
+    return float(y @ np.linalg.solve(0.5 * (S + S.T), y))
+
+
 def _advance_forgetting(
     ekf: WalkingEKF, h_walk: float, h_spread: float | None, h_turn: float | None = None, extra_yaw_psd: float = 0.0
 ) -> None:
@@ -498,8 +504,7 @@ class Tracker:
             if tk >= t or not _checked(lambda: ekf.advance(cfg.max_step_s, extra_yaw_psd))[0]:
                 return None
             P = ekf.cov
-            lost = self._state is TrackState.LOST or self._is_lost(P, tk)
-            if lost and P[motion.YAW, motion.YAW] > cfg.odometry_max_yaw_sd**2:
+            if (self._state is TrackState.LOST or self._is_lost(P, tk)) and self._heading_lost(P):
                 return tk
         return None
 
@@ -586,9 +591,11 @@ class Tracker:
             self._drop_clones()
             self._guarded(self._ekf.forget_motion)
 
-    def _heading_lost(self) -> bool:
-        """The heading's sigma is past ``odometry_max_yaw_sd``: nothing placed through it means much."""
-        return self._ekf.P[motion.YAW, motion.YAW] > self.config.odometry_max_yaw_sd**2
+    def _heading_lost(self, P: np.ndarray | None = None) -> bool:
+        """The heading's sigma (in ``P`` (DIM, DIM), default the filter's) is past
+        ``odometry_max_yaw_sd``: nothing placed through it means much."""
+        P = self._ekf.P if P is None else P
+        return P[motion.YAW, motion.YAW] > self.config.odometry_max_yaw_sd**2
 
     def _is_lost(self, P: np.ndarray, t: float) -> bool:
         sigma = math.sqrt(max(largest_eig_2x2(P), 0.0))
@@ -937,7 +944,7 @@ class Tracker:
         y = pose_residual(z, hx)
         S = H @ P @ H.T + R
         try:
-            nis = float(y @ np.linalg.solve(0.5 * (S + S.T), y))
+            nis = _nis(y, S)
         except np.linalg.LinAlgError:
             self._stats["numeric_errors"] += 1
             return UpdateResult(False, "singular odometry innovation")
@@ -945,7 +952,7 @@ class Tracker:
             self._stats["odometry_rejected"] += 1
             self._disagreement(camera, t0, t1, float(y[2]))
             return UpdateResult(False, f"odometry gated: NIS {nis:.1f} > {cfg.gate_odometry:.1f}", nis)
-        narrow = self._bridge_nis(camera, x8, y, H, R, t1)
+        narrow = self._bridge_nis(x8, y, H, R, t1)
         if narrow is not None and not narrow <= cfg.gate_odometry:
             # See TrackerConfig.gate_bridge_narrow.
             self._stats["odometry_bridge_rejected"] += 1
@@ -976,9 +983,7 @@ class Tracker:
         self._before_step = before
         return UpdateResult(True, "fused", nis)
 
-    def _bridge_nis(
-        self, camera: Hashable, x8: np.ndarray, y: np.ndarray, H: np.ndarray, R: np.ndarray, t1: float
-    ) -> float | None:
+    def _bridge_nis(self, x8: np.ndarray, y: np.ndarray, H: np.ndarray, R: np.ndarray, t1: float) -> float | None:
         """The NIS of a step ending at ``t1`` (residual ``y`` (3,), Jacobian ``H``, noise ``R``) against
         the filter without the yaw noise of the frame gap it bridges (see ``gate_bridge_narrow``);
         None when it bridges no gap, or the covariance changed since the gap's noise was added."""
@@ -988,9 +993,8 @@ class Tracker:
         if gap[1] is not self._ekf.P:
             return None
         P = sym_spd(self._clones.joint(x8, gap[2])[1], self.config.min_eig)
-        S = H @ P @ H.T + R
         try:
-            return float(y @ np.linalg.solve(0.5 * (S + S.T), y))
+            return _nis(y, H @ P @ H.T + R)
         except np.linalg.LinAlgError:
             return None
 

@@ -965,12 +965,7 @@ class FloorOdometry:
         self._skipped = 0
         self._held = None
         self._last_sure = False
-        self._last_turn = None
-        self._last_twist = None
-        self._lean_state = None
-        self._pitch_state = None
-        if self._torso is not None:
-            self._torso.reset()
+        self.forget_motion()
 
     def forget_motion(self) -> None:
         """Forget what the last steps said of the walk (the turn guess, the last twist, the lean into
