@@ -149,6 +149,27 @@ class FloorFlowConfig:
       mostly stay under 1.5 px, the flow is the better one there). Through the localiser a limit
       of 1.25 px was better than refusing every fast turn or 1.5 px (see the README's
       field-physics section).
+    - ``rs_acceleration``, ``rs_acceleration_max_dt``: with a rolling shutter, each point's motion
+      between its two sightings is taken at constant *acceleration* of the body over the two frame
+      intervals (the previous fit's rates and this one's), not at constant velocity. A point read
+      ``d`` after its frame's time moved, between its sightings, by the interval's step plus the
+      rates' change times about ``d``: rows read early (the top of the image, the far floor, which
+      sets the turn) see the motion of a moment earlier, rows read late (the near floor) of a
+      moment later. Under constant velocity the fit cannot tell, and the torso's twist at the
+      gait's half frequency (2.5-5 deg at ~1 Hz: 15-30 deg/s, swinging by ~200 deg/s^2) came out
+      as a turn read ~15 ms late: on ``benchmarks/field_sensor.py``'s rolling-shutter walks with a
+      walker swinging twice as much as the default (``--conditions rolling-gait-x2``), the
+      odometry's turn summed over 15 steps was 1.1 deg off against 0.46 with a global shutter, and
+      the track's heading 1-2 deg off at 0.7-0.9 deg stated. The previous fit is used only when
+      this frame pair follows it directly and both intervals are at most
+      ``rs_acceleration_max_dt`` (one frame at 30 fps and its jitter: over a dropped frame the
+      gait's rates are no longer near linear); otherwise, and for the first fit, constant
+      velocity. All six rates are so treated, as the physics has it: the difference of two
+      consecutive fits is noisy for the forward surge, the sway, the nod and the bob (their
+      change from one frame to the next is about their fits' error), and the odometry alone
+      summed its forward steps over 15 frames 25 % worse on the field walks f00 and f02, but
+      through the localiser the fifteen field walks (seeds 1-3) came out better than with the
+      turn alone accelerated or with none (see the README's field-physics section).
     - ``tilt_sigma``: the fitted tilt change's standard deviation, which the torso's tilt filter
       weighs it by (:class:`tagloc.vision.torso_tilt.TorsoTilt`): measured 0.08-0.15 degrees per
       frame on the standard and field walks s00 and f00, against 0.29 for the patch's homography.
@@ -174,6 +195,8 @@ class FloorFlowConfig:
     max_disagreement_m: float = 0.03
     max_disagreement_rad: float = math.radians(1.0)
     tilt_sigma: float = math.radians(0.12)
+    rs_acceleration: bool = True
+    rs_acceleration_max_dt: float = 0.05
     max_turn_rate: float = math.radians(45.0)
     fast_turn_max_residual_px: float = 1.25
 
@@ -210,7 +233,9 @@ class _Problem:
     :meth:`FloorFlow.refine`): the grid points' guessed pixels ``p_guess`` (N, 2) in the later
     frame and their floor points ``X`` (N, 3); ``down`` (G,) bool, which grid points those are;
     the lean's ``lever`` (3,) from the vest point to the camera and camera axes ``M0`` (3, 3) in
-    the level body frame; the starting parameters ``x0`` (6,); the interval ``dt`` (s)."""
+    the level body frame; the starting parameters ``x0`` (6,); the interval ``dt`` (s); the
+    previous interval's fitted parameters (6,) and length (s), for the rolling shutter's
+    acceleration (``FloorFlowConfig.rs_acceleration``), or None."""
 
     p_guess: np.ndarray
     X: np.ndarray
@@ -219,6 +244,7 @@ class _Problem:
     M0: np.ndarray
     x0: np.ndarray
     dt: float
+    previous: tuple[np.ndarray, float] | None = None
 
 
 class FloorFlow:
@@ -277,6 +303,9 @@ class FloorFlow:
         # model: the odometry's step error grows with it (benchmarks/odometry_accuracy.py
         # --by-residual).
         self.last_residual: float | None = None
+        # The last kept fit as (its later frame, parameters (6,), interval s), for the next pair's
+        # rolling-shutter acceleration (``rs_acceleration``); None after a refused one.
+        self._last_fit: tuple[np.ndarray, np.ndarray, float] | None = None
 
     def refine(
         self,
@@ -310,7 +339,17 @@ class FloorFlow:
         p_guess = cv2.projectPoints(
             np.column_stack([start, np.ones(len(start))]), np.zeros(3), np.zeros(3), cam.K, cam.dist
         )[0].reshape(-1, 2)
-        problem = _Problem(p_guess, X, down, lever, M0, x, dt)
+        last, self._last_fit = self._last_fit, None
+        previous = None
+        if (
+            cfg.rs_acceleration
+            and self._readout > 0.0
+            and last is not None
+            and last[0] is gray0
+            and max(dt, last[2]) <= cfg.rs_acceleration_max_dt
+        ):
+            previous = (last[1], last[2])
+        problem = _Problem(p_guess, X, down, lever, M0, x, dt, previous)
         fit = self._fit(gray0, gray1, problem, bool(self._box))
         if self._box and (fit is None or fit[1] > cfg.flatten_retry_px):
             # Flattened, the coarse levels' reach is shorter (see ``flatten_retry_px``).
@@ -329,6 +368,7 @@ class FloorFlow:
             or abs(x[2] - g[2]) > cfg.max_disagreement_rad
         ):
             return None
+        self._last_fit = (gray1, x.copy(), dt)
         return FlowStep(x[:3].copy(), float(x[3]), float(x[4]), float(x[5]), med, n)
 
     def _fit(
@@ -349,13 +389,24 @@ class FloorFlow:
         model = _Model(pb.X[ok], pb.lever, self._vp, pb.M0)
         # Each point's interval, in frame intervals (rolling shutter; 1 for a global shutter).
         delay1 = np.asarray(row_delay_s(p1[:, 1], cam.height, self._readout))
-        scale = 1.0 + (delay1 - self._delay0[pb.down][ok]) / pb.dt
-        if (scale == scale[0]).all():
+        delay0 = self._delay0[pb.down][ok]
+        scale = 1.0 + (delay1 - delay0) / pb.dt
+        offset = None
+        if pb.previous is not None:
+            # Rates linear in time through both intervals (``rs_acceleration``): the motion from
+            # t0 + d0 to t1 + d1 is the interval's step times scale plus a/2 [dt (d0 + d1) + d1^2 -
+            # d0^2], with the acceleration a from this interval's rates and the previous one's.
+            x_prev, dt_prev = pb.previous
+            span = 0.5 * (pb.dt + dt_prev)
+            q = 0.5 * (pb.dt * (delay0 + delay1) + delay1**2 - delay0**2)
+            scale = scale + q / (pb.dt * span)
+            offset = -(q / (dt_prev * span))[:, None] * x_prev[None, :]
+        elif (scale == scale[0]).all():
             scale = scale[:1]  # a global shutter's: see _Model.project
 
         def errors(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             """Normalised errors (k, N, 2) of parameter rows (k, 6), and the first row's in px (N,)."""
-            P = model.project(rows, scale) - seen[None]
+            P = model.project(rows, scale, offset) - seen[None]
             return P, cam.fx * np.hypot(P[0, :, 0], P[0, :, 1])
 
         x = pb.x0.copy()
@@ -478,15 +529,17 @@ class _Model:
         self.vp = vest_point
         self.M0t = M0.T  # level body -> camera axes of the earlier tilt
 
-    def project(self, params: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    def project(self, params: np.ndarray, scale: np.ndarray, offset: np.ndarray | None = None) -> np.ndarray:
         """(k, N, 2) normalised coordinates for k parameter rows ``params`` (k, 6): (dx, dy, dyaw,
         d_pitch, d_roll, dz), each point's motion times its ``scale`` (N,), or all points' by one
-        ``scale`` (1,).
+        ``scale`` (1,); plus each point's ``offset`` (N, 6) if given.
 
         One scale for all (a global shutter's, 1) gives the same numbers, with the rows' sines,
         cosines and lever worked out once per row rather than once per point: the fit's 7-row
         projection took 44 us instead of 70 (the Speed walk)."""
         P = params[:, None, :] * scale[None, :, None]
+        if offset is not None:
+            P = P + offset[None]
         dx, dy, dyaw, dp, dr, dz = (P[..., i] for i in range(6))
         cp, sp, cr, sr = np.cos(dp), np.sin(dp), np.cos(dr), np.sin(dr)
         # The tilt change dR = Ry(dp) Rx(dr) on the lever: the later camera centre about the vest point.
