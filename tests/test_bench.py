@@ -199,6 +199,42 @@ def test_field_sensor_refuses_an_unknown_name_before_simulating_any_walk(monkeyp
     assert str(err.value).startswith(named) and made == []
 
 
+def test_field_sensor_states_a_rig_off_as_its_condition_says(monkeypatch, tmp_path):
+    """``rig-fit`` and ``stature`` walks are rendered with the nominal rig and state it off: the
+    camera turned by STATED_RIG_TURN_DEG about the body's z, y and x axes, or raised; its position
+    on the vest unchanged. ``gait-x2`` walks twice the default gait."""
+    import sys
+
+    from scipy.spatial.transform import Rotation
+
+    from tagloc.core.rig import looking_forward
+
+    monkeypatch.syspath_prepend(str(BENCHMARKS[0].parent))
+    sys.modules.pop("field_sensor", None)
+    import field_sensor
+
+    T = looking_forward(1.3, 55.0)
+    configs = []
+
+    def fake(smap, path, cfg, progress):
+        configs.append(cfg)
+        path.mkdir(parents=True)
+        rig = {"vest_height_m": 1.3, "cameras": [{"name": "front", "T_body_camera": T.tolist()}]}
+        (path / "rig.json").write_text(json.dumps(rig))
+
+    monkeypatch.setattr(field_sensor, "simulate_session", fake)
+    monkeypatch.setattr(field_sensor, "walk_map", lambda seed: None)
+    for cond in ("rig-fit", "stature", "gait-x2"):
+        path = field_sensor.make(tmp_path / cond, 100, 1.0, cond)
+        stated = np.array(json.loads((path / "rig.json").read_text())["cameras"][0]["T_body_camera"])
+        turn = field_sensor.STATED_RIG_TURN_DEG.get(cond, (0.0, 0.0, 0.0))
+        R = Rotation.from_euler("ZYX", turn, degrees=True).as_matrix()
+        assert np.allclose(stated[:3, :3], R @ T[:3, :3], atol=1e-12)
+        raise_m = field_sensor.STATED_RIG_RAISE_M.get(cond, 0.0)
+        assert np.allclose(stated[:3, 3], T[:3, 3] + [0.0, 0.0, raise_m])
+    assert configs[2].walk.torso_yaw_deg == pytest.approx(5.0) and configs[0].walk.torso_yaw_deg == pytest.approx(2.5)
+
+
 @pytest.mark.parametrize(
     "script, args, named",
     [

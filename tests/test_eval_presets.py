@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import numpy as np
 import pytest
 
 import tagloc.eval.evaluate as ev
@@ -98,6 +99,32 @@ def test_scale_renders_the_same_walks_with_a_coarser_camera(tmp_path):
         before = (path / "scenario.json").stat().st_mtime_ns
         assert ev.make_session(sc, tmp_path, progress=False) == path
         assert (path / "scenario.json").stat().st_mtime_ns == before  # cached, not made again
+
+
+def test_gait_scale_renders_the_same_walks_with_a_walker_who_swings_more(tmp_path, capsys):
+    """--gait-scale keeps each walk's conditions and seed and changes only the walker's gait; the
+    reference walks keep their cache stamps (no 'gait_scale' entry); out of range is refused."""
+    import json
+
+    ref = scenarios(EvalConfig(preset="field"))
+    swung = scenarios(EvalConfig(preset="field", gait_scale=2.0))
+    assert [replace(w, gait_scale=1.0) for w in swung] == ref and {w.gait_scale for w in swung} == {2.0}
+    assert "gait x2" in swung[0].conditions() and "gait" not in ref[0].conditions()
+    for bad in (-0.5, 3.5):
+        with pytest.raises(InputError, match="gait's scale"):
+            scenarios(EvalConfig(preset="standard", gait_scale=bad))
+    assert main(["eval", "--gait-scale", "4", "-o", str(tmp_path / "x")]) != 0
+    assert "--gait-scale" in capsys.readouterr().err
+    tiny = replace(FIELD_WALKS[0], seconds=1.0)
+    heights = {}
+    for sc in (tiny, replace(tiny, name="f00-gait2", gait_scale=2.0)):
+        path = ev.make_session(sc, tmp_path, progress=False)
+        stamp = json.loads((path / "scenario.json").read_text())
+        assert ("gait_scale" in stamp) == (sc.gait_scale != 1)
+        cams = [json.loads(line)["T_world_camera"] for line in (path / "groundtruth_frames.jsonl").open()]
+        heights[sc.gait_scale] = np.array([T[2][3] for T in cams])
+    # The same walk, bobbing twice as far from the rig's height.
+    assert np.ptp(heights[2.0]) == pytest.approx(2.0 * np.ptp(heights[1.0]), rel=0.2)
 
 
 def test_the_reachable_share_leaves_out_the_frames_before_a_sticker_is_wholly_in_view(tmp_path):

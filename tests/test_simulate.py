@@ -294,6 +294,37 @@ def test_walk_vest_bobbing_at_step_frequency():
     assert 0.2 < pitch.std() < 1.5
 
 
+def test_gait_scale_scales_the_torso_motion_and_keeps_the_path(long_walk):
+    """with_gait_scale(k) keeps the path and the lean and multiplies every gait motion of the torso
+    about it by k: bobbing, sway, twist and tilt (their deviations from the path and the lean)."""
+    smap, walk = long_walk
+    cfg = walk.config
+    t = np.arange(0.0, 60.0, 0.01)
+    vp = np.array([0.0, 0.0, 1.3])
+    still = plan_walk(smap, cfg.with_gait_scale(0.0))
+
+    def torso(w):
+        """The vest point's offsets from the path (m, path axes) and the vest's rotation from the
+        lean alone (rotation vectors, rad)."""
+        from scipy.spatial.transform import Rotation
+
+        T = w.T_body_vest(t)
+        lean = still.T_body_vest(t)[:, :3, :3]
+        rel = Rotation.from_matrix(np.einsum("nji,njk->nik", lean, T[:, :3, :3])).as_rotvec()
+        return T[:, :3, :3] @ vp + T[:, :3, 3] - vp, rel
+
+    double = plan_walk(smap, cfg.with_gait_scale(2.0))
+    assert np.allclose(double.planar(t), walk.planar(t)) and np.allclose(double.lean(t), walk.lean(t))
+    (p1, r1), (p2, r2) = torso(walk), torso(double)
+    p0 = torso(still)[0]
+    # Offsets about the lean's own displacement of the vest point: twice as large (small angles).
+    assert np.std(p2 - p0, axis=0) == pytest.approx(2.0 * np.std(p1 - p0, axis=0), rel=0.05)
+    assert np.std(r2, axis=0) == pytest.approx(2.0 * np.std(r1, axis=0), rel=0.05)
+    assert np.allclose(torso(still)[1], 0.0, atol=1e-9)
+    with pytest.raises(InputError, match="gait's scale"):
+        cfg.with_gait_scale(-1.0)
+
+
 def test_vest_drifts_in_roll_while_standing(long_walk):
     """Standing people shift their weight sideways: the vest's roll drifts (0.35 deg RMS) with no gait."""
     smap, walk = long_walk
@@ -672,6 +703,24 @@ def test_session_notes_name_every_condition_that_is_not_the_default():
         "lens wide.yaml",
     ):
         assert part in field, (part, field)
+
+
+def test_cli_simulate_takes_the_gait_scale(tmp_path, capsys):
+    """--gait-scale reaches the walk (stated in session.json's simulator settings) and is checked
+    against its range before anything is written."""
+    import json
+
+    save_map(aisle_map(rows=1), tmp_path / "m.csv")
+    args = ["simulate", "--map", str(tmp_path / "m.csv"), "--scale", "0.25", "--seconds", "0.2", "--quiet"]
+    assert main(args + ["--gait-scale", "2", "-o", str(tmp_path / "g2")]) == 0
+    walk = json.loads((tmp_path / "g2" / "session.json").read_text())["simulation"]["config"]["walk"]
+    default = WalkConfig()
+    assert walk["bob_m"] == pytest.approx(2 * default.bob_m) and walk["torso_yaw_deg"] == pytest.approx(5.0)
+    assert walk["step_hz"] == default.step_hz and walk["lean"] is True
+    capsys.readouterr()
+    assert main(args + ["--gait-scale", "4", "-o", str(tmp_path / "g4")]) == 2
+    err = capsys.readouterr().err
+    assert "--gait-scale" in err and err.count("\n") == 1 and not (tmp_path / "g4").exists()
 
 
 def test_cli_simulate_refuses_a_session_without_a_frame(tmp_path, capsys):

@@ -24,6 +24,7 @@ examples:
   tagloc eval --sessions 6 --seconds 20 -o out/eval
   tagloc eval --preset all --modes full -o out/eval
   tagloc eval --preset field --scale 0.5 --modes full -o out/eval-half
+  tagloc eval --preset field --gait-scale 2 --modes full -o out/eval-gait2
   tagloc eval --preset two-camera -o out/eval/two_camera
   tagloc eval --walks site/walks --modes full -o out/eval-site"""
 
@@ -36,6 +37,7 @@ PRESET_OPTIONS = {
     "--seconds": 20.0,
     "--seed": 1,
     "--scale": 1.0,
+    "--gait-scale": 1.0,
     "--no-hard": False,
 }
 
@@ -80,6 +82,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="standard, field: every walk's camera at this resolution factor (default 1: 1296x972; 0.5: 648x486)",
     )
     p.add_argument(
+        "--gait-scale",
+        type=float,
+        default=PRESET_OPTIONS["--gait-scale"],
+        help="standard, field: every walker's gait motions (bobbing, sway, torso twist and roll, pitch wobble) "
+        "times this (default 1: the simulator's walker; 2: a walker who swings twice as much)",
+    )
+    p.add_argument(
         "--walks",
         type=Path,
         nargs="+",
@@ -101,10 +110,12 @@ def run(args: argparse.Namespace) -> int:
     from tagloc.core.errors import InputError
     from tagloc.eval.baselines import EVAL_MODES
     from tagloc.eval.evaluate import SCALE_RANGE, EvalConfig, run_presets
+    from tagloc.sim.walk import GAIT_SCALE_RANGE
 
     checks.number(args.sessions, "--sessions", 1, 1000)
     checks.number(args.seconds, "--seconds", 0, 3600, lo_open=True)
     checks.number(args.scale, "--scale", *SCALE_RANGE)
+    checks.number(args.gait_scale, "--gait-scale", *GAIT_SCALE_RANGE)
     checks.seed(args.seed)
     modes = checks.names(args.modes, "--modes", EVAL_MODES)
     checks.output_dir(args.out, "-o")
@@ -127,6 +138,7 @@ def run(args: argparse.Namespace) -> int:
         hard=not args.no_hard,
         progress=not args.quiet,
         scale=args.scale,
+        gait_scale=args.gait_scale,
     )
     print(run_presets(cfg, args.preset))
     return 0

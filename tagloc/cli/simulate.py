@@ -89,6 +89,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="the wearer's legs and feet, stepping with the gait, where the camera sees them (default: none)",
     )
+    p.add_argument(
+        "--gait-scale",
+        type=float,
+        default=1.0,
+        help="the walker's gait motions (bobbing, sway, torso twist and roll, pitch wobble) times this "
+        "(default 1; 2: a walker who swings twice as much)",
+    )
     p.add_argument("--jpeg-quality", type=int, default=85, help="JPEG quality of the frames (default 85)")
     p.add_argument("--scale", type=float, default=1.0, help="image resolution factor (default 1: 1296x972)")
     p.add_argument("--calibration", type=Path, help="true camera calibration (OpenCV or ROS YAML); default Pi v1")
@@ -115,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
     from tagloc.sim.simulate import SimConfig, simulate_session
     from tagloc.sim.survey import SurveyConfig
     from tagloc.sim.timing import TimingConfig
+    from tagloc.sim.walk import GAIT_SCALE_RANGE, WalkConfig
 
     for option, value in (
         ("--seconds", args.seconds),
@@ -140,6 +148,7 @@ def run(args: argparse.Namespace) -> int:
     checks.number(args.survey_sigma_cm, "--survey-sigma-cm", 0, 100)
     checks.number(args.survey_sigma_deg, "--survey-sigma-deg", 0, 180)
     checks.number(args.missing_fraction, "--missing-fraction", 0, 1)
+    checks.number(args.gait_scale, "--gait-scale", *GAIT_SCALE_RANGE)
     checks.output_dir(args.out, "-o")
     _out_apart_from_inputs(args)
 
@@ -174,6 +183,7 @@ def run(args: argparse.Namespace) -> int:
             mains_hz=args.mains_hz,
             shadow=args.shadow,
             legs=args.legs,
+            walk=WalkConfig().with_gait_scale(args.gait_scale),
         ),
         progress=not args.quiet,
     )

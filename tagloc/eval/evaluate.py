@@ -61,6 +61,7 @@ class Scenario:
     stop_every_s: float = 12.0
     turn_probability: float = 0.2
     scale: float = 1.0  # the camera's resolution factor (1: 1296 x 972)
+    gait_scale: float = 1.0  # the walker's gait motions times this (1: the simulator's walker)
 
     def conditions(self) -> str:
         """The walk's conditions, short, for the table."""
@@ -79,6 +80,8 @@ class Scenario:
             parts.append(f"sensor {self.sensor}")
         if self.scale != 1:
             parts.append(f"resolution x{self.scale:g}")
+        if self.gait_scale != 1:
+            parts.append(f"gait x{self.gait_scale:g}")
         return ", ".join(parts)
 
 
@@ -144,6 +147,10 @@ class EvalConfig:
             moved by :data:`FIELD_SEED_STEP` times ``seed - 1``).
         scale: every walk's camera at this resolution factor (0.5: 648 x 486), the walks otherwise
             as the preset has them.
+        gait_scale: every walker's gait motions (bobbing, sway, torso twist and roll, pitch wobble;
+            :meth:`tagloc.sim.walk.WalkConfig.with_gait_scale`) times this, the walks otherwise as
+            the preset has them: the same figures for a walker who swings more or less than the
+            simulator's (:data:`GAIT_SCALE_RANGE`).
     """
 
     sessions: int = 6
@@ -155,6 +162,7 @@ class EvalConfig:
     progress: bool = True
     preset: str = "standard"
     scale: float = 1.0
+    gait_scale: float = 1.0
 
 
 def scenarios(cfg: EvalConfig) -> list[Scenario]:
@@ -162,8 +170,13 @@ def scenarios(cfg: EvalConfig) -> list[Scenario]:
     lo, hi = SCALE_RANGE
     if not lo <= cfg.scale <= hi:
         raise InputError(f"the resolution factor must be {lo:g}-{hi:g}, got {cfg.scale:g}")
+    from tagloc.sim.walk import GAIT_SCALE_RANGE
+
+    glo, ghi = GAIT_SCALE_RANGE
+    if not glo <= cfg.gait_scale <= ghi:
+        raise InputError(f"the gait's scale must be {glo:g}-{ghi:g}, got {cfg.gait_scale:g}")
     out = _preset_scenarios(cfg)
-    return out if cfg.scale == 1 else [replace(sc, scale=cfg.scale) for sc in out]
+    return [replace(sc, scale=cfg.scale, gait_scale=cfg.gait_scale) for sc in out]
 
 
 def _preset_scenarios(cfg: EvalConfig) -> list[Scenario]:
@@ -213,8 +226,9 @@ def make_session(sc: Scenario, root: Path, progress: bool) -> Path:
     path = root / "sessions" / sc.name
     stamp = path / "scenario.json"
     made = {**asdict(sc), "simulator": SIM_REVISION}
-    if sc.scale == 1:
-        del made["scale"]  # as stamped before the factor existed: those walks stay cached
+    for key in ("scale", "gait_scale"):
+        if made[key] == 1:
+            del made[key]  # as stamped before the factor existed: those walks stay cached
     if stamp.exists() and json.loads(stamp.read_text()) == made and (path / FRAMES_CSV).exists():
         return path
     if path.exists():
@@ -243,7 +257,9 @@ def make_session(sc: Scenario, root: Path, progress: bool) -> Path:
             unmapped=sc.unmapped,
             rolling_shutter=sc.rolling_shutter,
             scale=sc.scale,
-            walk=WalkConfig(stop_every_s=sc.stop_every_s, turn_probability=sc.turn_probability),
+            walk=WalkConfig(stop_every_s=sc.stop_every_s, turn_probability=sc.turn_probability).with_gait_scale(
+                sc.gait_scale
+            ),
             **_sensor_conditions(sc),
         ),
         progress=progress,

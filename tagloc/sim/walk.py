@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.interpolate import CubicSpline
@@ -106,11 +106,30 @@ class WalkConfig:
         if not self.com_height_m > 0:
             raise InputError(f"walk needs a positive centre-of-mass height (got {self.com_height_m})")
 
+    def with_gait_scale(self, factor: float) -> WalkConfig:
+        """A copy whose gait motions (:data:`GAIT_AMPLITUDES`: bobbing, sway, torso twist and roll,
+        pitch wobble, slow roll drift) are ``factor`` times this one's; the path and the lean, which
+        follow from the walk's own speed and turns, are unchanged. Gait studies report the trunk's
+        motion differing between people by a factor of two or more, so a localiser's figures on
+        one walker say little about another's (``tagloc eval --gait-scale``)."""
+        if not (math.isfinite(factor) and factor >= 0):
+            raise InputError(f"the gait's scale must be a finite number >= 0, got {factor}")
+        return replace(self, **{name: factor * getattr(self, name) for name in GAIT_AMPLITUDES})
+
     @property
     def lean_tau_s(self) -> float:
         """Time constant of the lean (s): the inverted pendulum's sqrt(h_com / g)."""
         return math.sqrt(self.com_height_m / G)
 
+
+#: The gait scales the commands take (``tagloc simulate --gait-scale``, ``tagloc eval --gait-scale``;
+#: 0: a torso carried along the path without any gait motion; 3: three times the default walker,
+#: beyond the spread between people).
+GAIT_SCALE_RANGE = (0.0, 3.0)
+
+#: The WalkConfig fields that size the gait's own motions of the torso (see
+#: :meth:`WalkConfig.with_gait_scale`).
+GAIT_AMPLITUDES = ("bob_m", "sway_m", "torso_yaw_deg", "roll_deg", "pitch_jitter_deg", "roll_drift_deg")
 
 # Columns of the walk's state spline (the lean is in PITCH and ROLL).
 _X, _Y, _YAW, _V, _BOB, _SWAY, _TYAW, _PITCH, _ROLL, _LPITCH, _LROLL, _PHASE = range(12)
