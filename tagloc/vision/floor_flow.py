@@ -320,6 +320,7 @@ class FloorFlow:
         level) in the earlier frame; None when refused (see the module docstring)."""
         cfg = self.config
         self.last_residual = None
+        last, self._last_fit = self._last_fit, None
         if not dt > 0.0:
             return None
         g = np.asarray(guess, float)[:3]
@@ -339,7 +340,6 @@ class FloorFlow:
         p_guess = cv2.projectPoints(
             np.column_stack([start, np.ones(len(start))]), np.zeros(3), np.zeros(3), cam.K, cam.dist
         )[0].reshape(-1, 2)
-        last, self._last_fit = self._last_fit, None
         previous = None
         if (
             cfg.rs_acceleration
