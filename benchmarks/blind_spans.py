@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 from eval_variants import variant_configs  # (benchmarks/ is on the path of a script run from it)
 
+from tagloc.cli import checks
 from tagloc.core.types import Frame
 from tagloc.eval.metrics import trajectory_errors
 from tagloc.io.session import SessionReader
@@ -139,9 +140,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stall", action="store_true", help="leave the span's frames out instead of darkening them")
     ap.add_argument("--json", type=Path, help="write every span's row here")
     a = ap.parse_args(argv)
-    durations = [float(x) for x in a.durations.split(",")]
-    if a.every <= 0 or a.tail < 0 or min(durations) <= 0:
-        ap.error("--every and the durations must be positive, --tail not negative")
+    durations = list(checks.numbers(a.durations, "--durations", 0.0, math.inf, lo_open=True))
+    if a.every <= 0 or a.tail < 0:
+        ap.error("--every must be positive, --tail not negative")
     variants = variant_configs(a.variant)
     for s in a.sessions:
         if not (Path(s) / "groundtruth.tum").is_file():

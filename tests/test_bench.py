@@ -366,6 +366,8 @@ def test_the_soak_runs_the_localiser_tagloc_live_runs(monkeypatch, tmp_path):
         ("eval_variants", ["--variant", 'x={"nosuch": 1}'], "--variant x: no setting 'nosuch'"),
         ("eval_variants", ["--variant", "x=[1]"], "--variant x: want a JSON object"),
         ("blind_spans", ["--variant", "x=[1]"], "--variant x: want a JSON object"),
+        ("blind_spans", ["--durations", "1,x"], "--durations: 'x' is not a number"),
+        ("blind_spans", ["--durations", "1,0"], "--durations must be a number > 0"),
         ("bridges", ["--variant", "x=[1]"], "--variant x: want a JSON object"),
     ],
 )
