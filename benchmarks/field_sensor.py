@@ -62,8 +62,9 @@ CONDITIONS = {
     # the simulator's default walker in every gait motion (see GAIT_X2).
     "gait-x2": {"walk": GAIT_X2},
     "rolling-gait-x2": {"rolling_shutter": True, "walk": GAIT_X2},
-    # The field preset's conditions together (``tagloc eval --preset field``: rolling shutter,
-    # timing, a 1.5 cm / 1.5 deg survey), with the default walker and with GAIT_X2.
+    # The field preset's conditions together (as ``tagloc eval --preset field``: rolling shutter,
+    # timing, a 1.5 cm / 1.5 deg survey; the timing is the ``timing`` condition's, 3 bursts a
+    # minute against the preset's 2), with the default walker and with GAIT_X2.
     "field": FIELD,
     "field-gait-x2": {**FIELD, "walk": GAIT_X2},
     # The camera's mount as a rig fit states it, a little off (see STATED_RIG_TURN_DEG).
