@@ -167,6 +167,88 @@ def test_deferred_odometry_fuses_every_step_after_its_frame(blurred_walk, blurre
     assert lv["nees_mean"] < 6.0
 
 
+def test_held_fixes_are_judged_after_their_frames_step_as_a_replay_judges_them(blurred_walk, blurred_replay):
+    """``tilt_gate_hold_chi2``: in live's order the tilt gate's filter lacks the frame's own
+    odometry step. A fix it cannot vouch for is held, judged once the step is fused, and fused at
+    its frame's time; held fixes reach the run log once, with their outcome. Holding every fix
+    (0), live's tilt gate refuses what the replay's refuses; holding none, it let one through here."""
+    from tagloc.pipeline.localiser import HELD_REASON
+
+    replay, rlog = blurred_replay
+    live, llog = _run(blurred_walk, LocaliserConfig(defer_odometry=True, tilt_gate_hold_chi2=0.0), as_live=True)
+    loose, _ = _run(blurred_walk, LocaliserConfig(defer_odometry=True, tilt_gate_hold_chi2=13.8), as_live=True)
+
+    def gated(log):
+        return {(r["frame"], r["id"]) for r in log.rejected if r["reason"].startswith("tilt gated")}
+
+    assert gated(rlog) and gated(llog) == gated(rlog)
+    assert loose.counts["tilt_gated"] < replay.counts["tilt_gated"] and loose.counts["tilt_held"] == 0
+    fused = sum(v for k, v in live.tracker.stats.items() if k.startswith("accepted_"))
+    # Every fix waited for its step (none was deferred for decoding here): the log has each once.
+    assert live.counts["tilt_held"] >= 80 and live.counts["held_fixes"] == fused == len(llog.fixes)
+    assert not any(r["reason"] == HELD_REASON for r in llog.rejected)
+    assert all(f["t"] == llog.stamps[f["frame"]] for f in llog.fixes)  # at their own frames' times
+    assert fused >= len(rlog.fixes) - 3 and wrong_id_fixes(blurred_walk, llog)[0] == 0
+    assert _metrics(blurred_walk, llog)["rmse_m"] <= _metrics(blurred_walk, rlog)["rmse_m"] + 0.005
+
+
+@pytest.fixture(scope="module")
+def rolling_walk(tmp_path_factory) -> Path:
+    """A 4 s walk with a rolling shutter (its fixes are corrected for the body's motion)."""
+    path = tmp_path_factory.mktemp("defer_rs") / "walk"
+    smap = grid_map(GridMapConfig(width_m=12, depth_m=10, spacing_min_m=1.2, spacing_max_m=1.6, seed=5))
+    simulate_session(
+        smap, path, SimConfig(seconds=4, lux=150, speed_mps=1.4, seed=4, rolling_shutter=True), progress=False
+    )
+    return path
+
+
+def test_a_rolling_shutter_fix_without_corner_motion_waits_for_its_frames_step(rolling_walk):
+    """``rs_hold_for_step``: a sticker first seen in a frame has no image velocity yet, so its
+    rolling-shutter correction takes the body's motion, which the frame's own odometry step
+    measures. Held until that step (and every fix held for the tilt gate), live's order solves
+    and fuses exactly the fixes a replay does; solved before the step, one differed here by 6 mm."""
+    _, rlog = _run(rolling_walk, LocaliserConfig(), as_live=False)
+
+    def bodies(log):
+        return {(f["frame"], f["id"]): np.asarray(f["bodies"][0]) for f in log.fixes}
+
+    replayed = bodies(rlog)
+    held, hlog = _run(rolling_walk, LocaliserConfig(defer_odometry=True, tilt_gate_hold_chi2=0.0), as_live=True)
+    unheld, ulog = _run(
+        rolling_walk,
+        LocaliserConfig(defer_odometry=True, tilt_gate_hold_chi2=0.0, rs_hold_for_step=False),
+        as_live=True,
+    )
+    assert len(replayed) >= 40 and held.counts["rs_held"] >= 1 and unheld.counts["rs_held"] == 0
+    live = bodies(hlog)
+    assert live.keys() == replayed.keys()
+    assert all(np.array_equal(live[k], replayed[k]) for k in replayed)
+    early = bodies(ulog)
+    assert max(np.abs(early[k] - replayed[k]).max() for k in replayed.keys() & early.keys()) > 1e-3
+
+
+def test_a_held_fix_is_in_its_frames_result_as_held_and_late_with_its_outcome():
+    """One frame in live's order with every fix held: the published result names the sticker with its
+    fix held (not accepted, not refused), the deferred work fuses it and reports it in ``late``
+    under the frame's index; the tracker then tracks the decoded sticker into the next frame."""
+    from tagloc.pipeline.localiser import HELD_REASON
+
+    smap, rig, img = _blurred_scene()
+    cfg = LocaliserConfig(defer_odometry=True, tilt_gate_hold_chi2=0.0)
+    loc = Localiser(smap, rig, cfg)
+    res = loc.process(Frame(0, 0.0, img))
+    (obs,) = res.observations
+    assert obs.identity.sticker_id == STICKER and obs.fix.poses
+    assert obs.fix.accepted is None and obs.gate_reason == HELD_REASON and loc.counts["tilt_held"] == 1
+    assert loc.tracker.stats["accepted_decoded"] == 0 and not loc._tracked
+    loc.deferred_work()
+    ((index, late),) = loc.late
+    assert index == 0 and late.detection is obs.detection and late.accepted is True
+    assert loc.tracker.stats["accepted_decoded"] == 1 and loc.counts["held_fixes"] == 1
+    assert [tr.identity.sticker_id for tr in loc._tracked] == [STICKER]
+
+
 def test_eval_mode_full_live_runs_tagloc_in_live_order(blurred_walk, blurred_replay):
     """``tagloc eval --modes full-live``: live's config (both stages deferred), each frame's deferred
     work done before the next; as accurate as the replay, no wrong sticker accepted."""

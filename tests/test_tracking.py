@@ -154,33 +154,55 @@ def test_tracking_saves_decodes_without_changing_fixes_or_taking_a_wrong_id(tmp_
     assert m_on["rmse_m"] <= m_off["rmse_m"] + 0.01
 
 
-def test_a_blank_square_that_failed_decoding_skips_least_squares_until_its_retry():
-    # A framed square with nothing printed in it (a label on the floor) is detected as a sticker
-    # and fails every decoding stage; in the frames right after, the costly least-squares stage is
-    # left out for it until its retry is due, and it never gives an identity.
-    from tagloc.core.rig import default_rig
+def _blank_square_frames(with_sticker: bool, n: int):
+    """``n`` frames of a camera 1.3 m up, pitched 55 deg down, over a framed square with nothing
+    printed in it (a label on the floor: detected as a sticker, fails every decoding stage), with
+    mapped sticker 77 in view as well (``with_sticker``: the tracker then has a fix from the first
+    frame); each frame a pixel's noise apart (see Localiser._check_repeat). (map, rig, frames)."""
+    from synth import floor_view, synth_frame
+
+    from tagloc.core.camera import default_camera
+    from tagloc.core.geometry import make_T
+    from tagloc.core.rig import Rig, RigCamera
     from tagloc.core.stickermap import StickerMap
     from tagloc.core.types import Frame
+
+    cam = default_camera()
+    T_wc = floor_view(cam)
+    smap = StickerMap(np.array([77]), np.array([[1.2, 0.0]]), np.zeros(1))
+    stickers = [(77, make_T(np.eye(3), (1.2, 0.0, 0.0)))] if with_sticker else []
+    img = synth_frame(stickers, cam, T_wc, seed=3).image
+    cv2.rectangle(img, (250, 600), (330, 680), 30, cv2.FILLED)
+    cv2.rectangle(img, (257, 607), (323, 673), 210, cv2.FILLED)
+    frames = []
+    for i in range(n):
+        frame = img.copy()
+        frame[0, i] ^= 1
+        frames.append(Frame(i, i / 30, frame))
+    return smap, Rig([RigCamera("front", cam, T_wc)]), frames
+
+
+@pytest.mark.parametrize("with_sticker", [True, False])
+def test_a_blank_square_that_failed_decoding_skips_least_squares_until_its_retry(with_sticker):
+    # In the frames after it failed, the costly least-squares stage is left out for the blank square
+    # until its retry is due, while the tracker is tracking; before the first fix (no sticker in
+    # view) nothing else can place the operator, and the stage runs every frame. It never gives an
+    # identity.
     from tagloc.pipeline.localiser import Localiser
 
-    rng = np.random.default_rng(0)
-    img = np.clip(rng.normal(120, 3, (972, 1296)), 0, 255).astype(np.uint8)
-    cv2.rectangle(img, (600, 400), (680, 480), 30, cv2.FILLED)
-    cv2.rectangle(img, (607, 407), (673, 473), 210, cv2.FILLED)
-    img = cv2.GaussianBlur(img, (0, 0), 0.8)
-    smap = StickerMap(np.array([1]), np.array([[0.0, 0.0]]), np.array([0.0]))
-    loc = Localiser(smap, default_rig(), LocaliserConfig(odometry=False))
+    smap, rig, frames = _blank_square_frames(with_sticker, 2 * TrackingConfig().lsq_retry_every)
+    loc = Localiser(smap, rig, LocaliserConfig(odometry=False))
     every = loc.config.tracking.lsq_retry_every
     skipped = []
-    for i in range(2 * every):
-        frame = img.copy()
-        frame[0, i] ^= 1  # a sensor's noise: never the same image twice (see Localiser._check_repeat)
-        res = loc.process(Frame(i, i / 30, frame))
-        assert len(res.observations) == 1 and res.observations[0].identity is None
+    for frame in frames:
+        res = loc.process(frame)
+        blanks = [o for o in res.observations if o.identity is None]
+        assert len(blanks) == 1 and len(res.observations) == 1 + with_sticker
         skipped.append(loc.counts["lsq_skipped"])
-    # Frame 0 runs it; then it is left out every frame but each ``every``-th.
+    assert (loc.tracker.state.value == "tracking") == with_sticker
+    # Frame 0 runs it; then, tracking, it is left out every frame but each ``every``-th.
     steps = np.diff([0, *skipped])
-    assert steps.tolist() == ([0] + [1] * (every - 1)) * 2
+    assert steps.tolist() == (([0] + [1] * (every - 1)) * 2 if with_sticker else [0] * 2 * every)
 
 
 def test_the_tracker_predicts_a_stickers_image_motion_from_its_pose():

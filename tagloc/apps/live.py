@@ -423,9 +423,9 @@ class _LiveRun:
                 # Published: the work the frame put off runs now, while no next frame is waiting
                 # (its fixes count with the run's, though its frame went out without them).
                 counts = getattr(self.localiser, "counts", {})
-                before = counts.get("deferred_fixes", 0)
+                before = counts.get("deferred_fixes", 0) + counts.get("held_fixes", 0)
                 deferred(self._no_frame_waiting)
-                self.fixes += counts.get("deferred_fixes", 0) - before
+                self.fixes += counts.get("deferred_fixes", 0) + counts.get("held_fixes", 0) - before
                 # (all of this frame's: deferred work only finishes the frame just published)
                 late = [obs for index, obs in getattr(self.localiser, "late", []) if index == frame.index]
                 outputs.emit_late(frame.index, frame.timestamp, late)

@@ -20,7 +20,7 @@ import numpy as np
 from tagloc.core.errors import SessionError
 from tagloc.core.types import FrameResult
 from tagloc.io.session import CLOCK_JUMP_S, SessionReader
-from tagloc.pipeline.localiser import TRACKER_STAGES, FrameProcessor, Localiser, LocaliserConfig
+from tagloc.pipeline.localiser import HELD_REASON, TRACKER_STAGES, FrameProcessor, Localiser, LocaliserConfig
 
 if TYPE_CHECKING:
     from tagloc.vision.refs import ReferenceBank
@@ -164,7 +164,8 @@ def run_session(
         odometry_ms.append(res.times_ms.get("odometry", 0.0))
         # A frame's own observations, then those of earlier frames finished since (live's order).
         for index, obs in [(res.index, o) for o in res.observations] + res.late:
-            if obs.poses and obs.sticker_id is not None:
+            # A held fix (live's order) is recorded with its outcome, when its frame's late ones come.
+            if obs.poses and obs.sticker_id is not None and obs.gate_reason != HELD_REASON:
                 rec = {
                     "frame": index,
                     "t": frame_t.get(index, res.timestamp),
