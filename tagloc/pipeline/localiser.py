@@ -1057,6 +1057,7 @@ class Localiser:
         self._tracked = []
         self._failed = []
         self._pending = []
+        self._held, self._pending_anchors = [], []  # (resolved at the frame's start already: kept empty)
         self._searched = {}
         self._read_fixed = {}
         self._sticker_corners = {}
