@@ -249,6 +249,21 @@ def test_a_held_fix_is_in_its_frames_result_as_held_and_late_with_its_outcome():
     assert [tr.identity.sticker_id for tr in loc._tracked] == [STICKER]
 
 
+@pytest.mark.parametrize("t1", [1 / 30, 0.0])
+def test_a_held_fix_the_next_frame_resolves_is_in_that_frames_late_results(t1):
+    """Driven without its deferred work (a replay of ``defer_odometry``), a frame's held fix is
+    judged and fused when the next frame starts, also one refused for its time: that frame's
+    result carries it in ``late`` under its own frame's index, so that the run log records it."""
+    smap, rig, img = _blurred_scene()
+    loc = Localiser(smap, rig, LocaliserConfig(defer_odometry=True, tilt_gate_hold_chi2=0.0))
+    (held,) = loc.process(Frame(0, 0.0, img)).observations
+    assert held.accepted is None and loc.counts["tilt_held"] == 1
+    res = loc.process(Frame(1, t1, _again(img)))
+    assert (res.skipped is not None) == (t1 == 0.0)
+    assert [(i, o.detection is held.detection, o.accepted) for i, o in res.late] == [(0, True, True)]
+    assert loc.tracker.stats["accepted_decoded"] == loc.counts["held_fixes"] == 1
+
+
 def test_eval_mode_full_live_runs_tagloc_in_live_order(blurred_walk, blurred_replay):
     """``tagloc eval --modes full-live``: live's config (both stages deferred), each frame's deferred
     work done before the next; as accurate as the replay, no wrong sticker accepted."""

@@ -777,7 +777,9 @@ class Localiser:
         self._index, self.late = frame.index, []
         if self._pending_odo is not None:
             # The last frame's deferred odometry step, not run in the wait (defer_odometry): it ends
-            # at the filter's time, so it is fused before the filter moves on.
+            # at the filter's time, so it is fused before the filter moves on. The fixes that frame
+            # held for it are fused now too: they go out as this frame's late ones (a copy, as
+            # deferred work after this frame adds to :attr:`late`), or no run log records them.
             with timer("odometry"):
                 self._run_pending_odometry()
         refused = self._check_size(frame) or self._check_time(frame)
@@ -786,7 +788,7 @@ class Localiser:
             self.counts["skipped"] += 1
             with timer("output"):
                 out = self.tracker.output()
-            return FrameResult(frame.index, t, [], out, timer.finish(), refused, frame)
+            return FrameResult(frame.index, t, [], out, timer.finish(), refused, frame, list(self.late))
         # Whether this camera's odometry measures this frame (it may skip one while walking
         # straight, see OdometryConfig.max_stride; it cannot read an unreadable one): its next step
         # then starts from its frame before, and the tracker keeps its clone there.
@@ -806,7 +808,7 @@ class Localiser:
             with timer("output"):
                 out = self.tracker.output(t)
             why = repeated or frame.error or "unreadable"
-            return FrameResult(frame.index, t, [], out, timer.finish(), why, frame)
+            return FrameResult(frame.index, t, [], out, timer.finish(), why, frame, list(self.late))
         gray = as_gray(frame.image)
         rig_cam = self.rig[frame.camera]
         if self.config.deflicker is not None:
@@ -893,7 +895,7 @@ class Localiser:
 
         with timer("output"):
             out = self.tracker.output(t)
-        return FrameResult(frame.index, t, observations, out, timer.finish(), None, frame)
+        return FrameResult(frame.index, t, observations, out, timer.finish(), None, frame, list(self.late))
 
     def _search_plan(
         self, camera: int, rig_cam: RigCamera, t: float
