@@ -41,12 +41,13 @@ class _AsLive:
         self.frame_cpu_ms: list[float] = []
 
     def process(self, frame):
-        late = self.loc.late  # what the previous frame's deferred work finished (see run_session)
         c0 = time.thread_time()
         res = self.loc.process(frame)
         self.frame_cpu_ms.append((time.thread_time() - c0) * 1e3)
         self.loc.deferred_work()
-        return dataclasses.replace(res, late=late)
+        # What the frame's deferred work finished, with it (see run_session), as the live loop logs
+        # it: handed out with the next frame, the last frame's fused fixes were in no run log.
+        return dataclasses.replace(res, late=list(self.loc.late))
 
     def stats(self) -> dict[str, int]:
         return self.loc.stats()

@@ -264,6 +264,19 @@ def test_a_held_fix_the_next_frame_resolves_is_in_that_frames_late_results(t1):
     assert loc.tracker.stats["accepted_decoded"] == loc.counts["held_fixes"] == 1
 
 
+def test_the_live_defer_benchmark_logs_a_frames_deferred_work_with_that_frame(monkeypatch):
+    """benchmarks/live_defer.py runs each frame's deferred work right after it: what that work fused
+    (here a held fix) comes with the frame's own result, so that a walk's last frame's is logged too."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    import live_defer
+
+    smap, rig, img = _blurred_scene()
+    loc = Localiser(smap, rig, LocaliserConfig(defer_odometry=True, tilt_gate_hold_chi2=0.0))
+    res = live_defer._AsLive(loc).process(Frame(0, 0.0, img))
+    assert loc.counts["held_fixes"] == 1
+    assert [(i, o.detection is res.observations[0].detection, o.accepted) for i, o in res.late] == [(0, True, True)]
+
+
 def test_eval_mode_full_live_runs_tagloc_in_live_order(blurred_walk, blurred_replay):
     """``tagloc eval --modes full-live``: live's config (both stages deferred), each frame's deferred
     work done before the next; as accurate as the replay, no wrong sticker accepted."""
