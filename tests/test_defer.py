@@ -228,6 +228,31 @@ def test_a_rolling_shutter_fix_without_corner_motion_waits_for_its_frames_step(r
     assert max(np.abs(early[k] - replayed[k]).max() for k in replayed.keys() & early.keys()) > 1e-3
 
 
+def test_the_last_frames_held_fix_is_fused_and_logged_at_the_end_of_a_run(tmp_path):
+    """``run_session`` in live's order finishes the last frame's deferred work (``finish``): nothing
+    after it would run it, so a fix that frame held was neither fused nor logged. Two frames, every
+    fix held: both fixes fused and logged, as a replay fuses both."""
+    from tagloc.io.session import SessionInfo, SessionWriter
+
+    smap, rig, img = _blurred_scene()
+    walk = tmp_path / "walk"
+    with SessionWriter(walk, smap, rig, SessionInfo(source="test", fps=30.0), image_ext=".png") as w:
+        w.write(0, 0.0, img)
+        w.write(1, 1 / 30, _again(img))
+
+    def fused(loc):
+        return sum(v for k, v in loc.tracker.stats.items() if k.startswith("accepted_"))
+
+    replay, rlog = _run(walk, LocaliserConfig(odometry=False), as_live=False)
+    cfg = LocaliserConfig(defer_odometry=True, tilt_gate_hold_chi2=0.0)
+    for as_live in (True, False):  # driven as the live loop drives it, and without the wait
+        live, llog = _run(walk, cfg, as_live=as_live)
+        assert live.counts["tilt_held"] == 2 and fused(live) == fused(replay) == 2
+        assert [f["frame"] for f in llog.fixes] == [f["frame"] for f in rlog.fixes] == [0, 1]
+        assert llog.fixes[1]["t"] == rlog.fixes[1]["t"]
+    assert replay.finish() == []  # a replay defers nothing
+
+
 def test_a_held_fix_is_in_its_frames_result_as_held_and_late_with_its_outcome():
     """One frame in live's order with every fix held: the published result names the sticker with its
     fix held (not accepted, not refused), the deferred work fuses it and reports it in ``late``

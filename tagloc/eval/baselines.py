@@ -178,6 +178,10 @@ class LiveOrderLocaliser:
         late = self.localiser.late
         return dataclasses.replace(self.localiser.process(frame), late=late)
 
+    def finish(self) -> list[tuple[int, Observation]]:
+        """The last frame's deferred work (see :meth:`~tagloc.pipeline.localiser.Localiser.finish`)."""
+        return self.localiser.finish()
+
     def stats(self) -> dict[str, int]:
         """The localiser's counters with the tracker's (see :meth:`~tagloc.pipeline.localiser.Localiser.stats`)."""
         return self.localiser.stats()

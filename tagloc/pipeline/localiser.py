@@ -1310,6 +1310,14 @@ class Localiser:
         self.counts["lsq_deferred"] += ran
         return ran
 
+    def finish(self) -> list[tuple[int, Observation]]:
+        """At the end of a run: the last frame's deferred work (:meth:`deferred_work`, all of it),
+        which no next frame would run, and the observations it finished, each with its frame's
+        index (:attr:`late`). Nothing when nothing was deferred (a replay)."""
+        self.late = []  # (what the last frame began with went out in its result)
+        self.deferred_work()
+        return list(self.late)
+
     def _decode(
         self,
         gray: np.ndarray,

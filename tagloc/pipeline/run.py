@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from tagloc.core.errors import SessionError
-from tagloc.core.types import FrameResult
+from tagloc.core.types import FrameResult, Observation
 from tagloc.io.session import CLOCK_JUMP_S, SessionReader
 from tagloc.pipeline.localiser import HELD_REASON, TRACKER_STAGES, FrameProcessor, Localiser, LocaliserConfig
 
@@ -127,6 +127,23 @@ def _results(
         yield localiser.process(frame)
 
 
+def _record_fix(index: int, obs: Observation, t: float, fixes: list[dict], rejected: list[dict]) -> None:
+    """Add an observation's fix, if it has one, to the run log's accepted or refused fixes; a held
+    fix (live's order) is recorded with its outcome, when its frame's late observations come."""
+    if not obs.poses or obs.sticker_id is None or obs.gate_reason == HELD_REASON:
+        return
+    rec = {
+        "frame": index,
+        "t": t,
+        "id": obs.sticker_id,
+        "source": obs.source.value,
+        "centre": obs.detection.outer.mean(axis=0).tolist(),
+        "bodies": [p.body.tolist() for p in obs.poses],
+        "reason": obs.gate_reason,
+    }
+    (fixes if obs.accepted else rejected).append(rec)
+
+
 def run_session(
     session: SessionReader,
     config: LocaliserConfig | None = None,
@@ -164,20 +181,14 @@ def run_session(
         odometry_ms.append(res.times_ms.get("odometry", 0.0))
         # A frame's own observations, then those of earlier frames finished since (live's order).
         for index, obs in [(res.index, o) for o in res.observations] + res.late:
-            # A held fix (live's order) is recorded with its outcome, when its frame's late ones come.
-            if obs.poses and obs.sticker_id is not None and obs.gate_reason != HELD_REASON:
-                rec = {
-                    "frame": index,
-                    "t": frame_t.get(index, res.timestamp),
-                    "id": obs.sticker_id,
-                    "source": obs.source.value,
-                    "centre": obs.detection.outer.mean(axis=0).tolist(),
-                    "bodies": [p.body.tolist() for p in obs.poses],
-                    "reason": obs.gate_reason,
-                }
-                (fixes if obs.accepted else rejected).append(rec)
+            _record_fix(index, obs, frame_t.get(index, res.timestamp), fixes, rejected)
         if on_result is not None:
             on_result(res)
+    finish = getattr(loc, "finish", None)
+    if callable(finish):
+        # The last frame's deferred work (live's order): nothing after it would run it.
+        for index, obs in finish():
+            _record_fix(index, obs, frame_t.get(index, math.nan), fixes, rejected)
     counts = loc.stats()
     counts["skipped_frames"] = len(session.skipped)
     return RunLog(
