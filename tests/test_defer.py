@@ -168,15 +168,18 @@ def test_deferred_odometry_fuses_every_step_after_its_frame(blurred_walk, blurre
 
 
 def test_held_fixes_are_judged_after_their_frames_step_as_a_replay_judges_them(blurred_walk, blurred_replay):
-    """``tilt_gate_hold_chi2``: in live's order the tilt gate's filter lacks the frame's own
+    """``tilt_gate_hold``: in live's order the tilt gate's filter lacks the frame's own
     odometry step. A fix it cannot vouch for is held, judged once the step is fused, and fused at
     its frame's time; held fixes reach the run log once, with their outcome. Holding every fix
-    (0), live's tilt gate refuses what the replay's refuses; holding none, it let one through here."""
+    (0), live's tilt gate refuses what the replay's refuses; holding none (the default), it let
+    one through here."""
     from tagloc.pipeline.localiser import HELD_REASON
 
     replay, rlog = blurred_replay
-    live, llog = _run(blurred_walk, LocaliserConfig(defer_odometry=True, tilt_gate_hold_chi2=0.0), as_live=True)
-    loose, _ = _run(blurred_walk, LocaliserConfig(defer_odometry=True, tilt_gate_hold_chi2=13.8), as_live=True)
+    live, llog = _run(
+        blurred_walk, LocaliserConfig(defer_odometry=True, tilt_gate_hold=True, tilt_gate_hold_chi2=0.0), as_live=True
+    )
+    loose, _ = _run(blurred_walk, LocaliserConfig(defer_odometry=True), as_live=True)
 
     def gated(log):
         return {(r["frame"], r["id"]) for r in log.rejected if r["reason"].startswith("tilt gated")}
@@ -214,10 +217,12 @@ def test_a_rolling_shutter_fix_without_corner_motion_waits_for_its_frames_step(r
         return {(f["frame"], f["id"]): np.asarray(f["bodies"][0]) for f in log.fixes}
 
     replayed = bodies(rlog)
-    held, hlog = _run(rolling_walk, LocaliserConfig(defer_odometry=True, tilt_gate_hold_chi2=0.0), as_live=True)
+    held, hlog = _run(
+        rolling_walk, LocaliserConfig(defer_odometry=True, tilt_gate_hold=True, tilt_gate_hold_chi2=0.0), as_live=True
+    )
     unheld, ulog = _run(
         rolling_walk,
-        LocaliserConfig(defer_odometry=True, tilt_gate_hold_chi2=0.0, rs_hold_for_step=False),
+        LocaliserConfig(defer_odometry=True, tilt_gate_hold=True, tilt_gate_hold_chi2=0.0, rs_hold_for_step=False),
         as_live=True,
     )
     assert len(replayed) >= 40 and held.counts["rs_held"] >= 1 and unheld.counts["rs_held"] == 0
@@ -244,7 +249,7 @@ def test_the_last_frames_held_fix_is_fused_and_logged_at_the_end_of_a_run(tmp_pa
         return sum(v for k, v in loc.tracker.stats.items() if k.startswith("accepted_"))
 
     replay, rlog = _run(walk, LocaliserConfig(odometry=False), as_live=False)
-    cfg = LocaliserConfig(defer_odometry=True, tilt_gate_hold_chi2=0.0)
+    cfg = LocaliserConfig(defer_odometry=True, tilt_gate_hold=True, tilt_gate_hold_chi2=0.0)
     for as_live in (True, False):  # driven as the live loop drives it, and without the wait
         live, llog = _run(walk, cfg, as_live=as_live)
         assert live.counts["tilt_held"] == 2 and fused(live) == fused(replay) == 2
@@ -260,7 +265,7 @@ def test_a_held_fix_is_in_its_frames_result_as_held_and_late_with_its_outcome():
     from tagloc.pipeline.localiser import HELD_REASON
 
     smap, rig, img = _blurred_scene()
-    cfg = LocaliserConfig(defer_odometry=True, tilt_gate_hold_chi2=0.0)
+    cfg = LocaliserConfig(defer_odometry=True, tilt_gate_hold=True, tilt_gate_hold_chi2=0.0)
     loc = Localiser(smap, rig, cfg)
     res = loc.process(Frame(0, 0.0, img))
     (obs,) = res.observations
@@ -280,7 +285,7 @@ def test_a_held_fix_the_next_frame_resolves_is_in_that_frames_late_results(t1):
     judged and fused when the next frame starts, also one refused for its time: that frame's
     result carries it in ``late`` under its own frame's index, so that the run log records it."""
     smap, rig, img = _blurred_scene()
-    loc = Localiser(smap, rig, LocaliserConfig(defer_odometry=True, tilt_gate_hold_chi2=0.0))
+    loc = Localiser(smap, rig, LocaliserConfig(defer_odometry=True, tilt_gate_hold=True, tilt_gate_hold_chi2=0.0))
     (held,) = loc.process(Frame(0, 0.0, img)).observations
     assert held.accepted is None and loc.counts["tilt_held"] == 1
     res = loc.process(Frame(1, t1, _again(img)))
@@ -296,7 +301,7 @@ def test_the_live_defer_benchmark_logs_a_frames_deferred_work_with_that_frame(mo
     import live_defer
 
     smap, rig, img = _blurred_scene()
-    loc = Localiser(smap, rig, LocaliserConfig(defer_odometry=True, tilt_gate_hold_chi2=0.0))
+    loc = Localiser(smap, rig, LocaliserConfig(defer_odometry=True, tilt_gate_hold=True, tilt_gate_hold_chi2=0.0))
     res = live_defer._AsLive(loc).process(Frame(0, 0.0, img))
     assert loc.counts["held_fixes"] == 1
     assert [(i, o.detection is res.observations[0].detection, o.accepted) for i, o in res.late] == [(0, True, True)]
@@ -325,7 +330,9 @@ def test_the_live_loops_frame_log_holds_the_fixes_deferred_work_made(blurred_wal
 
     session = SessionReader(blurred_walk)
     # Every fix held for its frame's odometry step as well (tilt_gate_hold_chi2 0): those come late too.
-    cfg = LocaliserConfig(defer_lsq=True, defer_odometry=True, check_expected=False, tilt_gate_hold_chi2=0.0)
+    cfg = LocaliserConfig(
+        defer_lsq=True, defer_odometry=True, check_expected=False, tilt_gate_hold=True, tilt_gate_hold_chi2=0.0
+    )
     loc = Localiser(session.map, session.rig, cfg, map_path=session.map_path)
     log = tmp_path / "frames.jsonl"
     run = run_live(LiveConfig(source=str(blurred_walk), log=log), localiser=loc)

@@ -173,19 +173,21 @@ class LocaliserConfig:
             tracker's own gate level. A tilt filter that refuses ``odometry_config.tilt_gate_reset``
             fixes in a row is forgotten (it may itself have been anchored by a bad fix), and the
             fix is judged against the upright prior alone.
-        tilt_gate_hold_chi2: (``defer_odometry``) the tilt filter the gate judges against lacks the
-            frame's own odometry step, so its prediction is wider than a replay's (0.5-0.8 deg
-            against 0.2 deg on simulated field walks) and the gate lets through fixes a replay
-            refuses. A fix no solution of which lies within this squared distance of that wider
-            prediction is held: judged once the step is fused (:meth:`Localiser.deferred_work`), as
-            a replay judges it, and fused at its frame's time then; only that frame's published
-            pose lacks it. Nearer fixes are fused within the frame as before. 4.61: chi^2 with 2
-            DoF at 90 %, the wider prediction's own 90 % region. On the 33 preset and held-out
-            walks in live's order (``benchmarks/eval_variants.py``), against holding none: field
-            2.40 -> 2.34 cm, held-out field 2.72 -> 2.65 and 2.59 -> 2.57, standard unchanged.
-            Holding every fix (0; live's gate then decides exactly as a replay's) published poses
-            that lack every fix a frame (standard 1.46 -> 1.50 cm); ``tilt_gate_chi2`` or more
-            holds none.
+        tilt_gate_hold, tilt_gate_hold_chi2: (``defer_odometry``) the tilt filter the gate judges
+            against lacks the frame's own odometry step, so its prediction is wider than a
+            replay's (0.5-0.8 deg against 0.2 deg on simulated field walks) and the gate lets
+            through fixes a replay refuses. With ``tilt_gate_hold``, a fix no solution of which
+            lies within ``tilt_gate_hold_chi2`` of that wider prediction is held: judged once the
+            step is fused (:meth:`Localiser.deferred_work`), as a replay judges it, and fused at
+            its frame's time then; only that frame's published pose lacks it (4.61: chi^2 with 2
+            DoF at 90 %, the wider prediction's own 90 % region; 0 holds every fix, and live's
+            filter is then the replay's). Off: it helps the walker the localiser was tuned on and
+            hurts the one with twice its gait (``--gait-scale 2``), whose replay gate is the one
+            too strict (a twentieth of the fixes within 1 deg of the true tilt refused, a
+            thousandth if the filter's variance were honest). In live's order
+            (``benchmarks/eval_variants.py``), on the field preset / held-out field / gait x2
+            field / gait x2 standard walks: 2.40 / 2.72 and 2.59 / 2.82 / 2.25 cm without it,
+            2.34 / 2.65 and 2.57 / 2.92 / 2.32 at 4.61, 2.37 / 2.52 and 2.59 / 2.87 / 2.36 at 0.
         rs_hold_for_step: (``defer_odometry``) a fix from a rolling-shutter camera whose corners'
             image velocity is not known (the sticker not solved in the camera's previous frame) is
             corrected with the body's motion over the frame interval. A replay takes that from the
@@ -273,6 +275,7 @@ class LocaliserConfig:
     defer_lsq: bool = False
     defer_odometry: bool = False
     tilt_gate_chi2: float = 13.8
+    tilt_gate_hold: bool = False
     tilt_gate_hold_chi2: float = 4.61
     rs_hold_for_step: bool = True
     check_expected: bool = True
@@ -1450,11 +1453,11 @@ class Localiser:
 
     def _hold(self, poses: list[PoseFix], rig_cam: RigCamera, t: float) -> bool:
         """Whether a fix waits for its frame's deferred odometry step before the tilt gate judges it:
-        none of its solutions is within ``tilt_gate_hold_chi2`` of the tilt filter as it stands
-        without that step (see the config)."""
+        with ``tilt_gate_hold``, none of its solutions is within ``tilt_gate_hold_chi2`` of the
+        tilt filter as it stands without that step (see the config)."""
         chi2, hold = self.config.tilt_gate_chi2, self.config.tilt_gate_hold_chi2
         odo = self._tilt_odometry(rig_cam)
-        if chi2 <= 0 or hold >= chi2 or odo is None:
+        if not self.config.tilt_gate_hold or chi2 <= 0 or hold >= chi2 or odo is None:
             return False
         return not any(odo.tilt_consistent(t, p.T_world_camera, hold)[0] for p in poses)
 
