@@ -423,9 +423,10 @@ class _LiveRun:
                 # Published: the work the frame put off runs now, while no next frame is waiting
                 # (its fixes count with the run's, though its frame went out without them).
                 counts = getattr(self.localiser, "counts", {})
-                before = counts.get("deferred_fixes", 0) + counts.get("held_fixes", 0)
+                late_fixes = ("deferred_fixes", "held_fixes")  # (a deferred decode's, a held fix's)
+                before = sum(counts.get(k, 0) for k in late_fixes)
                 deferred(self._no_frame_waiting)
-                self.fixes += counts.get("deferred_fixes", 0) + counts.get("held_fixes", 0) - before
+                self.fixes += sum(counts.get(k, 0) for k in late_fixes) - before
                 # (all of this frame's: deferred work only finishes the frame just published)
                 late = [obs for index, obs in getattr(self.localiser, "late", []) if index == frame.index]
                 outputs.emit_late(frame.index, frame.timestamp, late)

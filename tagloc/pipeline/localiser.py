@@ -82,12 +82,13 @@ class StageTimer:
         return self.ms
 
 
-# Stickers whose last sights are kept for their corners' image velocity before old ones are dropped
-# (LocaliserConfig.rs_corner_forget_s), and the sights kept per sticker: only the latest before a
-# frame is used; two more cover the same sticker detected twice in one frame.
 # Fix.gate_reason of a fix held for its frame's deferred odometry step (tilt_gate_hold_chi2,
 # rs_hold_for_step); the frame's deferred work judges it and reports it in Localiser.late.
 HELD_REASON = "held for the frame's odometry step"
+
+# Stickers whose last sights are kept for their corners' image velocity before old ones are dropped
+# (LocaliserConfig.rs_corner_forget_s), and the sights kept per sticker: only the latest before a
+# frame is used; two more cover the same sticker detected twice in one frame.
 _CORNER_MEMORY = 64
 _CORNER_SIGHTS = 3
 
@@ -385,8 +386,7 @@ class Tracked:
 class HeldFix:
     """A fix that waits for its frame's deferred odometry step (``tilt_gate_hold_chi2``,
     ``rs_hold_for_step``): the detection, its identity, the camera, the frame's time ``t`` (s) and
-    index, the pose solution's ``poses`` (None: not solved yet), ``ambiguous`` and ``row_time_s``;
-    ``track_age``: set when the frame named it by reading (decode, expected-ID check or a carried
+    index, the pose solution ``sol`` (None: not solved yet); ``track_age``: set when the frame named it by reading (decode, expected-ID check or a carried
     track), the age its track takes if the fix is accepted (see :meth:`Localiser._track`)."""
 
     det: Detection
@@ -395,9 +395,7 @@ class HeldFix:
     camera: int
     t: float
     index: int
-    poses: list[PoseFix] | None = None  # None: solved once the step is fused (rs_hold_for_step)
-    ambiguous: bool = False
-    row_time_s: float = 0.0
+    sol: PoseSolution | None = None  # None: solved once the step is fused (rs_hold_for_step)
     track_age: int | None = None
 
 
@@ -1200,7 +1198,7 @@ class Localiser:
     def _body_twist(self, rig_cam: RigCamera, t: float) -> tuple[np.ndarray | None, np.ndarray | None]:
         """The body's motion (vx, vy, yaw rate; body frame) for the rolling-shutter correction, or
         None, and its standard deviations when it is the tracker's estimate (None: measured)."""
-        if not (self.config.rolling_shutter and rig_cam.readout_s > 0):
+        if not self._rolling_shutter(rig_cam):
             return None, None
         s = self._step
         if s is not None and s.t1 == t and s.t1 > s.t0:
@@ -1368,7 +1366,12 @@ class Localiser:
     ) -> Fix:
         with timer("pose"):
             velocity = self._corner_velocity(det, identity, rig_cam, camera, t)
-            if self._pending_odo is not None and velocity is None and self._corrects_rolling_shutter(rig_cam):
+            if (
+                self._pending_odo is not None
+                and velocity is None
+                and self.config.rs_hold_for_step
+                and self._rolling_shutter(rig_cam)
+            ):
                 # Corrected with the body's motion, which the frame's own step measures (see
                 # rs_hold_for_step): solved once that step is fused.
                 self._held.append(HeldFix(det, identity, rig_cam, camera, t, self._index))
@@ -1378,12 +1381,10 @@ class Localiser:
         if not sol.poses:
             return Fix([], sol.ambiguous, row_time_s=sol.row_time_s)
         if self._pending_odo is not None and self._hold(sol.poses, rig_cam, t):
-            self._held.append(
-                HeldFix(det, identity, rig_cam, camera, t, self._index, sol.poses, sol.ambiguous, sol.row_time_s)
-            )
+            self._held.append(HeldFix(det, identity, rig_cam, camera, t, self._index, sol))
             self.counts["tilt_held"] += 1
             return Fix(sol.poses, sol.ambiguous, None, HELD_REASON, row_time_s=sol.row_time_s)
-        return self._gate_and_fuse(sol.poses, sol.ambiguous, identity, rig_cam, t, sol.row_time_s, timer)
+        return self._gate_and_fuse(sol, identity, rig_cam, t, timer)
 
     def _solve(
         self, det: Detection, identity: Identity, rig_cam: RigCamera, t: float, velocity: np.ndarray | None
@@ -1404,32 +1405,25 @@ class Localiser:
             body_twist_sigma=twist_sigma,
         )
 
-    def _corrects_rolling_shutter(self, rig_cam: RigCamera) -> bool:
-        """Whether fixes of ``rig_cam`` with no corner velocity take the body's motion, and that is
-        worth waiting for (``rs_hold_for_step``)."""
-        return self.config.rs_hold_for_step and self.config.rolling_shutter and rig_cam.readout_s > 0
+    def _rolling_shutter(self, rig_cam: RigCamera) -> bool:
+        """Whether fixes of ``rig_cam`` are corrected for its rolling shutter (by their corners'
+        image velocity, or else the body's motion)."""
+        return self.config.rolling_shutter and rig_cam.readout_s > 0
 
     def _gate_and_fuse(
-        self,
-        solutions: list[PoseFix],
-        ambiguous: bool,
-        identity: Identity,
-        rig_cam: RigCamera,
-        t: float,
-        row_time_s: float,
-        timer: StageTimer,
+        self, sol: PoseSolution, identity: Identity, rig_cam: RigCamera, t: float, timer: StageTimer
     ) -> Fix:
-        """A sticker's pose ``solutions`` through the tilt gate and the tracker; an accepted fix anchors
-        the odometry's tilt (after the frame's step when that is deferred)."""
-        poses = self._tilt_gate(solutions, rig_cam, t)
+        """A sticker's pose solution (at least one pose) through the tilt gate and the tracker; an
+        accepted fix anchors the odometry's tilt (after the frame's step when that is deferred)."""
+        poses = self._tilt_gate(sol.poses, rig_cam, t)
         if not poses:
             self.counts["tilt_gated"] += 1
             return Fix(
-                solutions,
-                ambiguous,
+                sol.poses,
+                sol.ambiguous,
                 False,
                 "tilt gated: the camera's tilt disagrees with the torso's",
-                row_time_s=row_time_s,
+                row_time_s=sol.row_time_s,
             )
         with timer("update"):
             res = self.tracker.update(
@@ -1438,7 +1432,7 @@ class Localiser:
                 identity.source,
                 t,
                 self.survey_prior(identity.sticker_id),
-                row_time_s=row_time_s,
+                row_time_s=sol.row_time_s,
             )
         if res.accepted and res.chosen is not None:
             # The sticker's plane gives the torso's tilt whatever the map says of the sticker's
@@ -1449,7 +1443,7 @@ class Localiser:
                 self._pending_anchors.append((t, *tilt))
             else:
                 self._anchor_tilt(t, *tilt)
-        return Fix(poses, len(poses) > 1, res.accepted, res.reason, row_time_s=row_time_s)
+        return Fix(poses, len(poses) > 1, res.accepted, res.reason, row_time_s=sol.row_time_s)
 
     def _hold(self, poses: list[PoseFix], rig_cam: RigCamera, t: float) -> bool:
         """Whether a fix waits for its frame's deferred odometry step before the tilt gate judges it:
@@ -1463,17 +1457,16 @@ class Localiser:
 
     def _resolve_held(self) -> None:
         """The held fixes, now that their frame's step is fused: solved if they were held unsolved
-        (``rs_hold_for_step``), gated and fused at their frame's time, each added to :attr:`late` with its frame's index; one named by
-        reading and accepted is tracked into the next frame, as the frame would have tracked it."""
+        (``rs_hold_for_step``), gated and fused at their frame's time, each added to :attr:`late`
+        with its frame's index; one named by reading and accepted is tracked into the next frame,
+        as the frame would have tracked it."""
         held, self._held = self._held, []
         for h in held:
-            if h.poses is None:
-                sol = self._solve(h.det, h.identity, h.rig_cam, h.t, None)
-                h.poses, h.ambiguous, h.row_time_s = sol.poses, sol.ambiguous, sol.row_time_s
-            if h.poses:
-                fix = self._gate_and_fuse(h.poses, h.ambiguous, h.identity, h.rig_cam, h.t, h.row_time_s, StageTimer())
+            sol = h.sol if h.sol is not None else self._solve(h.det, h.identity, h.rig_cam, h.t, None)
+            if sol.poses:
+                fix = self._gate_and_fuse(sol, h.identity, h.rig_cam, h.t, StageTimer())
             else:
-                fix = Fix([], h.ambiguous, row_time_s=h.row_time_s)
+                fix = Fix([], sol.ambiguous, row_time_s=sol.row_time_s)
             self.counts["held_fixes"] += fix.accepted is True
             self.late.append((h.index, Observation(h.det, h.camera, h.identity, fix)))
             if fix.accepted is not True or h.track_age is None:
@@ -1490,7 +1483,7 @@ class Localiser:
         """The sticker's corners' image velocity (N, 2) px/s, canonical order, from its sight in this
         camera's previous frame (``rs_image_velocity_max_dt``); None without a rolling shutter or
         such a sight. Records this sight for the next frame."""
-        if not (self.config.rolling_shutter and rig_cam.readout_s > 0):
+        if not self._rolling_shutter(rig_cam):
             return None
         pts = rotate_corners(np.asarray(det.points, float), identity.rotation)
         key = (camera, identity.sticker_id)
