@@ -489,3 +489,21 @@ def test_shadow_fixed_to_the_body_does_not_shorten_the_step(floor):
         assert fit is not None
         err[fp] = 1000.0 * (fit.delta[0] - step[0])
     assert err[0] < -1.5 and abs(err[FloorFlowConfig().flatten_px]) < 0.5, err
+
+
+@pytest.mark.parametrize("readout_s, rel", [(0.0, 0.1), (0.03, 0.4)])
+def test_the_flow_fits_actual_sigma_grows_with_the_change_and_the_read_out(readout_s, rel):
+    """What the tilt filter's stated variance takes a flow fit's error to be: the floor sigma for
+    no change, growing by the change times 0.1 (global shutter) or 0.4 (30 ms read-out)."""
+    from tagloc.vision.floor_flow import FlowStep
+
+    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0), readout_s=readout_s, legs_in_view=False)
+    odo = FloorOdometry(rc, OdometryConfig())
+    floor = FloorFlowConfig().tilt_sigma
+    still = FlowStep(np.zeros(3), 0.0, 0.0, 0.0, 1.0, 80)
+    assert odo._flow_tilt_sigmas(still) == pytest.approx((floor, floor))
+    d = math.radians(0.6)
+    moving = FlowStep(np.zeros(3), d, -d / 2, 0.0, 1.0, 80)
+    sp, sr = odo._flow_tilt_sigmas(moving)
+    assert sp == pytest.approx(math.hypot(floor, rel * d))
+    assert sr == pytest.approx(math.hypot(floor, rel * d / 2))

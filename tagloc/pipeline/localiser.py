@@ -183,12 +183,14 @@ class LocaliserConfig:
             its frame's time then; only that frame's published pose lacks it (4.61: chi^2 with 2
             DoF at 90 %, the wider prediction's own 90 % region; 0 holds every fix, and live's
             filter is then the replay's). Off: it helps the walker the localiser was tuned on and
-            hurts the one with twice its gait (``--gait-scale 2``), whose replay gate is the one
-            too strict (a twentieth of the fixes within 1 deg of the true tilt refused, a
-            thousandth if the filter's variance were honest). In live's order
+            hurts the one with twice its gait (``--gait-scale 2``). In live's order
             (``benchmarks/eval_variants.py``), on the field preset / held-out field / gait x2
             field / gait x2 standard walks: 2.40 / 2.72 and 2.59 / 2.82 / 2.25 cm without it,
-            2.34 / 2.65 and 2.57 / 2.92 / 2.32 at 4.61, 2.37 / 2.52 and 2.59 / 2.87 / 2.36 at 0.
+            2.34 / 2.65 and 2.57 / 2.92 / 2.32 at 4.61, 2.37 / 2.52 and 2.59 / 2.87 / 2.36 at 0
+            (2026-11-30, when the gate was too strict: a twentieth of the fixes within 1 deg of
+            the true tilt refused with that walker). With the gate judging by the tilt's actual
+            error variance (``TiltAxis.var_true``; a hundredth refused), 2.44 / 2.72 and 2.58 /
+            2.81 / 2.24 without it and 2.34 / 2.67 and 2.60 / 2.85 / 2.31 at 4.61.
         rs_hold_for_step: (``defer_odometry``) a fix from a rolling-shutter camera whose corners'
             image velocity is not known (the sticker not solved in the camera's previous frame) is
             corrected with the body's motion over the frame interval. A replay takes that from the

@@ -173,6 +173,22 @@ class FloorFlowConfig:
     - ``tilt_sigma``: the fitted tilt change's standard deviation, which the torso's tilt filter
       weighs it by (:class:`tagloc.vision.torso_tilt.TorsoTilt`): measured 0.08-0.15 degrees per
       frame on the standard and field walks s00 and f00, against 0.29 for the patch's homography.
+    - ``tilt_sigma_rel``, ``tilt_sigma_rel_per_readout_s``: the fit's *actual* error also grows with
+      the change it reports, by ``tilt_sigma_rel + tilt_sigma_rel_per_readout_s * readout_s`` of it
+      (added in quadrature to ``tilt_sigma``): 0.1 with a global shutter, 0.4 with the field
+      preset's 30 ms read-out, where the row times stretch each frame's motion over the read-out
+      and an error in the rates the rolling shutter's model assumes lands in the fitted change.
+      Measured against the true vest tilt (2026-11-30, four walks each, binned by the fitted
+      pitch change <0.1 / 0.1-0.2 / 0.2-0.4 / 0.4-0.8 deg): the field walks f00, f01, f02,
+      f04-dim 0.10 / 0.13 / 0.19 / 0.27 deg RMS (0.16 / 0.16 / 0.19 / 0.31 with the walker
+      swinging twice as much, ``tagloc eval --gait-scale 2``); the global-shutter standard walks
+      s00, s02-s04 0.05 / 0.05 / 0.06 / 0.07 (0.07 / 0.08 / 0.10 / 0.11). Rarer changes above
+      0.8 deg were 0.7-1.1 deg off, more than this model says. These set only the tilt
+      estimate's *stated* variance, which the tilt gate judges fixes by, not the weight the filter
+      gives the fit (``tilt_sigma``): weighed by them, the estimate lagged the large changes and
+      the field preset's walks came out 2.32 -> 2.52 cm (held-out field 2.54 -> 3.17, gait x2
+      field 2.76 -> 3.06; ``benchmarks/eval_variants.py``). See
+      :class:`tagloc.vision.torso_tilt.TiltAxis`.
     """
 
     grid: tuple[int, int] = (10, 8)
@@ -195,6 +211,8 @@ class FloorFlowConfig:
     max_disagreement_m: float = 0.03
     max_disagreement_rad: float = math.radians(1.0)
     tilt_sigma: float = math.radians(0.12)
+    tilt_sigma_rel: float = 0.1
+    tilt_sigma_rel_per_readout_s: float = 10.0
     rs_acceleration: bool = True
     rs_acceleration_max_dt: float = 0.05
     max_turn_rate: float = math.radians(45.0)

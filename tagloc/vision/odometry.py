@@ -345,6 +345,16 @@ class OdometryConfig:
     tilt, as a fix does), the forward error summed over 5 s fell from 14.9 / 7.0 cm (raw fits) to
     7.1 / 7.1 cm, and over 1-2 s stayed at 4.8-6.6 / 3.5-4.7 cm.
 
+    ``tilt_fit_sigma_rel``: where the floor flow's fit was refused (a fast turn with blur) and the
+    patch's homography fit stands, its actual error grows with the change it reports, by this
+    share of it in quadrature with ``tilt_fit_sigma``: measured against the true vest tilt on the
+    field walks f00, f01, f02, f04-dim (2026-11-30), 0.21 / 0.39 / 0.33 deg RMS for fitted pitch
+    changes below 0.2 / 0.2-0.5 / 0.5-1 deg (it followed 75 % of the true change), and 0.37 / 0.53
+    / 0.72 / 1.57 deg (above 1 deg) with the walker swinging twice as much, whose fits there carried
+    no information (their regression on the true change: -0.04). As for the flow's
+    (``FloorFlowConfig.tilt_sigma_rel``), this sets the tilt estimate's stated variance, which the
+    tilt gate judges by, not the fit's weight.
+
     These angular sigmas (``tilt_fit_sigma``, ``tilt_anchor_sigma`` and the flow's
     ``FloorFlowConfig.tilt_sigma``) were measured with the reference camera (the Pi camera v1 at
     1296 x 972). An angle read from image positions is as sure as a pixel is small, so for a camera
@@ -488,6 +498,7 @@ class OdometryConfig:
     tilt_sigma_roll: float = math.radians(2.0)
     tilt_tau_s: float = 1.0
     tilt_fit_sigma: float = math.radians(0.3)
+    tilt_fit_sigma_rel: float = 1.0
     tilt_fit_max: float = math.radians(5.0)
     tilt_anchor_sigma: float = math.radians(0.3)
     tilt_posture_fixes: int = 300
@@ -1307,14 +1318,18 @@ class FloorOdometry:
         if flow is not None:
             fit: tuple[float, float | None] | None = (flow.d_pitch, flow.d_roll)
             fit_sigma = self.config.flow_config.tilt_sigma * self._pixel_scale
+            fit_sigma_true = self._flow_tilt_sigmas(flow)
         elif not refine:
-            fit, fit_sigma = None, None
+            fit, fit_sigma, fit_sigma_true = None, None, None
         else:
             fit = self._tilt_fit(small, psmall, W, delta, t1 - t0, R_tilt)
-            fit_sigma = None
+            fit_sigma, fit_sigma_true = None, None
             if fit is not None and max(abs(fit[0]), abs(fit[1] or 0.0)) > self.config.tilt_fit_max:
                 self.tilt_fits_refused += 1
                 fit = None
+            if fit is not None:
+                base, rel = self.config.tilt_fit_sigma * self._pixel_scale, self.config.tilt_fit_sigma_rel
+                fit_sigma_true = (math.hypot(base, rel * fit[0]), math.hypot(base, rel * (fit[1] or 0.0)))
         torso = self._torso
         if torso is None:
             if fit is None:
@@ -1332,10 +1347,21 @@ class FloorOdometry:
             if torso.pitch.t is None or torso.pitch.t < t0:
                 # First step, or steps were missed: start from the prior, or carry the estimate, to t0.
                 torso.step(t0, lean, None, None)
-            d_pitch, d_roll = torso.step(t1, lean, *(fit or (None, None)), fit_sigma=fit_sigma)
+            d_pitch, d_roll = torso.step(
+                t1, lean, *(fit or (None, None)), fit_sigma=fit_sigma, fit_sigma_true=fit_sigma_true
+            )
         if flow is not None:
             return self._tilt_corrected(flow.delta, R_tilt, d_pitch - flow.d_pitch, d_roll - flow.d_roll)
         return self._tilt_corrected(delta, R_tilt, d_pitch, d_roll)
+
+    def _flow_tilt_sigmas(self, flow: FlowStep) -> tuple[float, float]:
+        """Actual standard deviations (rad) of the flow's fitted (pitch, roll) change: a floor that
+        scales with the camera's pixels, and a share of the change itself that grows with the
+        read-out (see ``FloorFlowConfig.tilt_sigma_rel``)."""
+        fc = self.config.flow_config
+        floor = fc.tilt_sigma * self._pixel_scale
+        rel = fc.tilt_sigma_rel + fc.tilt_sigma_rel_per_readout_s * self.rig_camera.readout_s
+        return math.hypot(floor, rel * flow.d_pitch), math.hypot(floor, rel * flow.d_roll)
 
     def _tilt_geometry(self, R_tilt: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """The camera centre (3,) and the tilt grid's rays (N, 3) in the level body frame under the

@@ -23,6 +23,18 @@ This module keeps the absolute pitch and roll as two independent scalar Kalman f
 The odometry then corrects each step by the *filtered* change, so the corrections over a gap add
 up to (estimate - truth) at its end minus the same at its start: bounded by the filter's error
 instead of growing with the square root of the number of frames.
+
+Two variances. The filter weighs each fitted change by a constant *design* standard deviation
+(the flow's ``tilt_sigma``), which is what keeps the odometry best: weighed by their actual,
+change-dependent errors, the estimate leaned on the prior through large changes and lagged them
+(see ``FloorFlowConfig.tilt_sigma_rel``). But the variance that design implies is not the
+estimate's error: a fit's actual error grows with the change it reports, so the filter's stated
+spread between fixes was too narrow, and the tilt gate, which judges each fix's tilt against it,
+refused 4.2 % of the fixes within 1 deg of the true tilt with a walker swinging twice as much
+(0.8 % with the default walker; 0.1 % if honest). So each axis also carries ``var_true``: the
+variance of its actual error, the filter's own gains applied to errors of the measurements'
+actual variances (the sensitivity analysis of a filter whose gains are set apart from its
+measurements' statistics). The gate judges by it (:meth:`TorsoTilt.predict`).
 """
 
 from __future__ import annotations
@@ -36,13 +48,18 @@ __all__ = ["TiltAxis", "TorsoTilt"]
 @dataclass
 class TiltAxis:
     """One tilt angle's estimate (rad) and variance (rad^2) at time ``t`` (s), about the prior mean
-    ``mean`` (rad) in force then; ``posture``: the operator's own offset, learned from the fixes."""
+    ``mean`` (rad) in force then; ``posture``: the operator's own offset, learned from the fixes.
+
+    ``var`` is the variance the filter weighs by, from the measurements' *design* variances;
+    ``var_true`` that of its actual error, the same gains applied to errors of the measurements'
+    *actual* variances where the caller states them (see the module: the two differ on purpose)."""
 
     sigma: float
     tau: float
     t: float | None = None
     value: float = 0.0
     var: float = 0.0
+    var_true: float = 0.0
     mean: float = 0.0
     posture: float = 0.0
     posture_fixes: int = 0
@@ -56,12 +73,22 @@ class TiltAxis:
         m0, m1 = self.mean + self.posture, mean + self.posture
         return m1 + phi * (self.value - m0), phi * phi * self.var + q, phi, q
 
-    def step(self, t: float, mean: float, change: float | None, change_var: float) -> float:
+    def _predicted_true(self, t: float) -> float:
+        """``var_true`` carried from ``self.t`` to ``t``."""
+        if self.t is None:
+            return self.sigma**2
+        phi = math.exp(-max(t - self.t, 0.0) / self.tau)
+        return phi * phi * self.var_true + self.sigma**2 * (1.0 - phi * phi)
+
+    def step(
+        self, t: float, mean: float, change: float | None, change_var: float, change_var_true: float | None = None
+    ) -> float:
         """Move to time ``t`` (s) with prior ``mean`` (rad); fuse the measured ``change`` (rad) since
-        the last time (None: none measured) of variance ``change_var``. Returns the estimated
-        change (rad)."""
+        the last time (None: none measured) of design variance ``change_var`` and actual variance
+        ``change_var_true`` (None: the design's). Returns the estimated change (rad)."""
         before = self.value if self.t is not None else mean + self.posture
         v1, p1, phi, _ = self._predicted(t, mean)
+        pt = self._predicted_true(t)
         if change is not None and self.t is not None:
             # Joint Gaussian of (theta_t, theta_before): cov(theta_t, theta_before) = phi var.
             c = phi * self.var
@@ -69,7 +96,15 @@ class TiltAxis:
             gain = (p1 - c) / s
             v1 += gain * (change - (v1 - before))
             p1 -= gain * (p1 - c)
-        self.t, self.value, self.var, self.mean = t, v1, max(p1, 0.0), mean
+            # The new error is (1 - gain) e_t + gain e_before + gain v (e: estimate - truth before
+            # the fit, v: the fit's error), with cov(e_t, e_before) = phi var_true.
+            r = change_var if change_var_true is None else change_var_true
+            pt = (
+                (1.0 - gain) ** 2 * pt
+                + gain * gain * (self.var_true + r)
+                + 2.0 * gain * (1.0 - gain) * phi * self.var_true
+            )
+        self.t, self.value, self.var, self.var_true, self.mean = t, v1, max(p1, 0.0), max(pt, 0.0), mean
         return v1 - before
 
     def rebase(self, mean: float) -> None:
@@ -85,7 +120,9 @@ class TiltAxis:
         as if ``posture_prior`` upright fixes came first, over the last ``posture_count`` or so
         (0: no posture offset)."""
         v1, p1, _, _ = self._predicted(t, mean)
+        pt = self._predicted_true(t)
         gain = p1 / (p1 + measured_var)
+        self.var_true = (1.0 - gain) ** 2 * pt + gain * gain * measured_var
         self.t, self.value, self.var, self.mean = t, v1 + gain * (measured - v1), (1.0 - gain) * p1, mean
         if posture_count > 0:
             self.posture_fixes = min(self.posture_fixes + 1, posture_count)
@@ -117,20 +154,30 @@ class TorsoTilt:
         self.roll = TiltAxis(self.sigma_roll, self.tau)
 
     def step(
-        self, t: float, lean_roll: float, d_pitch: float | None, d_roll: float | None, fit_sigma: float | None = None
+        self,
+        t: float,
+        lean_roll: float,
+        d_pitch: float | None,
+        d_roll: float | None,
+        fit_sigma: float | None = None,
+        fit_sigma_true: tuple[float, float] | None = None,
     ) -> tuple[float, float]:
         """Advance to ``t`` with the lean's roll ``lean_roll`` (rad) as the roll's prior and the
-        fitted changes (rad; None: not fitted), each of standard deviation ``fit_sigma`` (rad; None:
-        the configured ``fit_sigma``). Returns the estimated (pitch, roll) changes."""
+        fitted changes (rad; None: not fitted), weighed by the design standard deviation
+        ``fit_sigma`` (rad; None: the configured ``fit_sigma``); ``fit_sigma_true``: the fits'
+        actual (pitch, roll) standard deviations (rad; None: the design's), which only the stated
+        variance (``var_true``) follows. Returns the estimated (pitch, roll) changes."""
         r = (self.fit_sigma if fit_sigma is None else fit_sigma) ** 2
-        return self.pitch.step(t, 0.0, d_pitch, r), self.roll.step(t, lean_roll, d_roll, r)
+        rp, rr = (None, None) if fit_sigma_true is None else (fit_sigma_true[0] ** 2, fit_sigma_true[1] ** 2)
+        return self.pitch.step(t, 0.0, d_pitch, r, rp), self.roll.step(t, lean_roll, d_roll, r, rr)
 
     def predict(self, t: float, lean_roll: float) -> tuple[float, float, float, float]:
-        """The expected (pitch, roll) (rad) at time ``t`` and their variances (rad^2), without
-        changing the estimate (before the first step or anchor: the prior)."""
-        p, vp, _, _ = self.pitch._predicted(t, 0.0)
-        r, vr, _, _ = self.roll._predicted(t, lean_roll)
-        return p, r, vp, vr
+        """The expected (pitch, roll) (rad) at time ``t`` and the variances (rad^2) of their actual
+        errors (``var_true``), without changing the estimate (before the first step or anchor: the
+        prior)."""
+        p, _, _, _ = self.pitch._predicted(t, 0.0)
+        r, _, _, _ = self.roll._predicted(t, lean_roll)
+        return p, r, self.pitch._predicted_true(t), self.roll._predicted_true(t)
 
     def consistent(
         self, t: float, lean_roll: float, pitch: float, roll: float, chi2: float, prior_sigma: float
@@ -159,4 +206,4 @@ class TorsoTilt:
     def reset(self) -> None:
         """Forget the estimate (the posture learned so far is kept)."""
         for axis in (self.pitch, self.roll):
-            axis.t, axis.value, axis.var, axis.mean = None, 0.0, 0.0, 0.0
+            axis.t, axis.value, axis.var, axis.var_true, axis.mean = None, 0.0, 0.0, 0.0, 0.0
