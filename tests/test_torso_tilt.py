@@ -4,6 +4,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from tagloc.core.geometry import planar_T
@@ -157,3 +159,34 @@ def test_the_actual_variance_follows_the_fits_actual_errors_without_moving_the_e
     assert rms_design > 2.0, (rms_true, rms_design)
     # The gate's prediction uses the actual variance.
     assert f.predict(120 * dt, 0.0)[2] == pytest.approx(f.pitch._predicted_true(120 * dt))
+
+
+_angle = st.floats(-math.radians(3.0), math.radians(3.0), allow_nan=False)
+_sigma = st.floats(math.radians(0.01), math.radians(2.0), allow_nan=False)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    events=st.lists(
+        st.tuples(st.booleans(), st.floats(0.005, 0.2), st.one_of(st.none(), _angle), _sigma, _sigma),
+        min_size=1,
+        max_size=40,
+    )
+)
+def test_the_actual_variance_is_finite_and_never_below_the_design_when_the_fits_are_worse(events):
+    """Whatever sequence of fits and fixes: ``var_true`` stays finite and non-negative, and with every
+    fit's actual sigma at least its design sigma it is at least ``var`` (the filter's error can
+    only be larger than its design says when its measurements are worse)."""
+    design = math.radians(0.12)
+    f = TorsoTilt(math.radians(3.0), math.radians(2.0), 1.0, design, math.radians(0.3), 0)
+    t = 0.0
+    for is_fix, dt, value, extra_p, extra_r in events:
+        t += dt
+        if is_fix:
+            f.anchor(t, 0.0, value or 0.0, value or 0.0)
+        else:
+            actual = (math.hypot(design, extra_p), math.hypot(design, extra_r))
+            f.step(t, 0.0, value, value, fit_sigma_true=actual)
+        for axis in (f.pitch, f.roll):
+            assert math.isfinite(axis.var_true) and axis.var_true >= 0.0
+            assert axis.var_true >= axis.var * (1 - 1e-9) - 1e-15
