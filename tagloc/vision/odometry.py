@@ -355,6 +355,17 @@ class OdometryConfig:
     (``FloorFlowConfig.tilt_sigma_rel``), this sets the tilt estimate's stated variance, which the
     tilt gate judges by, not the fit's weight.
 
+    ``tilt_rate_sigma``: the trunk's tilt rate (standard deviation), which bounds how much the tilt
+    estimate's stated spread grows over a short time (:class:`tagloc.vision.torso_tilt.TorsoTilt`'s
+    ``rate_sigma``): the vest's true pitch changed by 0.17-0.23 deg per frame RMS on the field
+    walks f00, f01, f02, f04-dim (5-7 deg/s) and 0.26-0.32 deg with the walker swinging twice as
+    much (8-10 deg/s; 0.19 and 0.28 deg on the standard walks; roll 0.24 at twice the gait), so
+    10 deg/s. Without it, the spread a frame ahead (the tilt gate's in live's order, before the
+    frame's odometry step) was the Ornstein-Uhlenbeck increment's, 0.78 deg for an error of 0.3
+    (0.47 of the stated sigma RMS, on those four field walks in live's order); with it 0.38 deg,
+    0.80 of the stated sigma with the default walker and 1.19 with the other (near-true fixes
+    refused: 0.59 % and 1.25 %, against 0.34 % and 1.07 % in a replay; 2026-11-30).
+
     These angular sigmas (``tilt_fit_sigma``, ``tilt_anchor_sigma`` and the flow's
     ``FloorFlowConfig.tilt_sigma``) were measured with the reference camera (the Pi camera v1 at
     1296 x 972). An angle read from image positions is as sure as a pixel is small, so for a camera
@@ -502,6 +513,7 @@ class OdometryConfig:
     tilt_fit_max: float = math.radians(5.0)
     tilt_anchor_sigma: float = math.radians(0.3)
     tilt_posture_fixes: int = 300
+    tilt_rate_sigma: float = math.radians(10.0)
     tilt_gate_reset: int = 3
     tilt_gate_prior_sigma: float = math.radians(2.0)
     tilt_iterations: int = 2
@@ -891,6 +903,7 @@ class FloorOdometry:
                 cfg.tilt_fit_sigma * self._pixel_scale,
                 cfg.tilt_anchor_sigma * self._pixel_scale,
                 cfg.tilt_posture_fixes,
+                rate_sigma=cfg.tilt_rate_sigma,
             )
             if cfg.tilt_correction and cfg.tilt_filter
             else None
