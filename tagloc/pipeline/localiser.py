@@ -190,7 +190,10 @@ class LocaliserConfig:
             (2026-11-30, when the gate was too strict: a twentieth of the fixes within 1 deg of
             the true tilt refused with that walker). With the gate judging by the tilt's actual
             error variance (``TiltAxis.var_true``; a hundredth refused), 2.44 / 2.72 and 2.58 /
-            2.81 / 2.24 without it and 2.34 / 2.67 and 2.60 / 2.85 / 2.31 at 4.61.
+            2.81 / 2.24 without it and 2.34 / 2.67 and 2.60 / 2.85 / 2.31 at 4.61; with that
+            variance grown a frame ahead by the tilt's rate (``OdometryConfig.tilt_rate_sigma``),
+            2.31 / 2.66 and 2.56 / 2.79 / 2.24 without it and 2.37 / 2.47 and 2.58 / 2.84 / 2.32
+            at 4.61.
         rs_hold_for_step: (``defer_odometry``) a fix from a rolling-shutter camera whose corners'
             image velocity is not known (the sticker not solved in the camera's previous frame) is
             corrected with the body's motion over the frame interval. A replay takes that from the
