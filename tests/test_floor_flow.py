@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import cv2
@@ -507,3 +508,26 @@ def test_the_flow_fits_actual_sigma_grows_with_the_change_and_the_read_out(reado
     sp, sr = odo._flow_tilt_sigmas(moving)
     assert sp == pytest.approx(math.hypot(floor, rel * d))
     assert sr == pytest.approx(math.hypot(floor, rel * d / 2))
+
+
+def test_the_patch_fits_tilt_change_is_stated_by_its_actual_error_and_weighed_by_its_design(monkeypatch):
+    """Where the flow is refused, the patch's homography fit of the tilt change goes to the tilt
+    filter weighed by ``tilt_fit_sigma`` (the design) while the stated variance takes its actual
+    error, which grows with the change (``tilt_fit_sigma_rel``): a fitted 1 deg change leaves the
+    estimate where the design puts it and the stated spread wider than the design's."""
+    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0), legs_in_view=False)
+    # (No rate bound: the stated variance's process increment is then the filter's own.)
+    cfg = OdometryConfig(flow=False, lean_correction=False, tilt_rate_sigma=math.inf)
+    odo = FloorOdometry(rc, cfg)
+    ref = FloorOdometry(rc, dataclasses.replace(cfg, tilt_fit_sigma_rel=0.0))
+    fit = (math.radians(1.0), math.radians(-0.5))
+    for o in (odo, ref):
+        monkeypatch.setattr(o, "_tilt_fit", lambda *a, **k: fit)
+        o.anchor_tilt_angles(0.0, 0.0, 0.0)
+        o._untilted_step(None, None, None, np.zeros(3), 0.0, 1 / 30)
+    a, b = odo._torso.pitch, ref._torso.pitch
+    assert a.value == b.value and a.var == b.var  # the same weights
+    assert b.var_true == pytest.approx(b.var)  # stated as the design: the design's variance
+    # Actual sigma hypot(0.3 deg, 1 x 1 deg) = 1.04 deg, against the design's 0.3.
+    assert a.var_true > 2.0 * b.var_true
+    assert odo._torso.roll.var_true > ref._torso.roll.var_true
