@@ -182,8 +182,8 @@ class LocaliserConfig:
             step is fused (:meth:`Localiser.deferred_work`), as a replay judges it, and fused at
             its frame's time then; only that frame's published pose lacks it (4.61: chi^2 with 2
             DoF at 90 %, the wider prediction's own 90 % region; 0 holds every fix, and live's
-            filter is then the replay's). Off: it helps the walker the localiser was tuned on and
-            hurts the one with twice its gait (``--gait-scale 2``). In live's order
+            filter is then the replay's). Off: its effect is mixed, and it costs the walker with
+            twice the default gait (``--gait-scale 2``). In live's order
             (``benchmarks/eval_variants.py``), on the field preset / held-out field / gait x2
             field / gait x2 standard walks: 2.40 / 2.72 and 2.59 / 2.82 / 2.25 cm without it,
             2.34 / 2.65 and 2.57 / 2.92 / 2.32 at 4.61, 2.37 / 2.52 and 2.59 / 2.87 / 2.36 at 0
