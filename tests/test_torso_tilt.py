@@ -158,7 +158,8 @@ def test_the_actual_variance_follows_the_fits_actual_errors_without_moving_the_e
     assert 0.8 < rms_true < 1.25, (rms_true, rms_design)
     assert rms_design > 2.0, (rms_true, rms_design)
     # The gate's prediction uses the actual variance.
-    assert f.predict(120 * dt, 0.0)[2] == pytest.approx(f.pitch._predicted_true(120 * dt))
+    assert f.predict(120 * dt, 0.0)[2] == pytest.approx(f.pitch._predicted(120 * dt, 0.0)[2])
+    assert f.predict(120 * dt, 0.0)[2] != pytest.approx(f.pitch._predicted(120 * dt, 0.0)[1])
 
 
 _angle = st.floats(-math.radians(3.0), math.radians(3.0), allow_nan=False)

@@ -66,24 +66,18 @@ class TiltAxis:
     posture_fixes: int = 0
 
     def _predicted(self, t: float, mean: float) -> tuple[float, float, float, float]:
-        """(value, var, phi, q) carried from ``self.t`` to ``t`` about the new prior ``mean``."""
+        """(value, var, var_true, phi) carried from ``self.t`` to ``t`` about the new prior ``mean``.
+        ``var_true``'s process increment is no larger than ``rate_sigma`` times the time (the tilt's
+        actual change, which is smooth, where the process's own increment grows with the square root
+        of the time; see :class:`TorsoTilt`)."""
         if self.t is None:
-            return mean + self.posture, self.sigma**2, 0.0, self.sigma**2
-        phi = math.exp(-max(t - self.t, 0.0) / self.tau)
-        q = self.sigma**2 * (1.0 - phi * phi)
-        m0, m1 = self.mean + self.posture, mean + self.posture
-        return m1 + phi * (self.value - m0), phi * phi * self.var + q, phi, q
-
-    def _predicted_true(self, t: float) -> float:
-        """``var_true`` carried from ``self.t`` to ``t``: the process's increment no larger than
-        ``rate_sigma`` times the time (the tilt's actual change, which is smooth: the process's own
-        increment grows with the square root of the time, see :class:`TorsoTilt`)."""
-        if self.t is None:
-            return self.sigma**2
+            return mean + self.posture, self.sigma**2, self.sigma**2, 0.0
         dt = max(t - self.t, 0.0)
         phi = math.exp(-dt / self.tau)
-        q = min(self.sigma**2 * (1.0 - phi * phi), (self.rate_sigma * dt) ** 2)
-        return phi * phi * self.var_true + q
+        q = self.sigma**2 * (1.0 - phi * phi)
+        q_true = min(q, (self.rate_sigma * dt) ** 2)
+        m0, m1 = self.mean + self.posture, mean + self.posture
+        return m1 + phi * (self.value - m0), phi * phi * self.var + q, phi * phi * self.var_true + q_true, phi
 
     def step(
         self, t: float, mean: float, change: float | None, change_var: float, change_var_true: float | None = None
@@ -92,8 +86,7 @@ class TiltAxis:
         the last time (None: none measured) of design variance ``change_var`` and actual variance
         ``change_var_true`` (None: the design's). Returns the estimated change (rad)."""
         before = self.value if self.t is not None else mean + self.posture
-        v1, p1, phi, _ = self._predicted(t, mean)
-        pt = self._predicted_true(t)
+        v1, p1, pt, phi = self._predicted(t, mean)
         if change is not None and self.t is not None:
             # Joint Gaussian of (theta_t, theta_before): cov(theta_t, theta_before) = phi var.
             c = phi * self.var
@@ -124,8 +117,7 @@ class TiltAxis:
         the posture offset averages the fixes' departures from the prior mean, shrunk towards 0
         as if ``posture_prior`` upright fixes came first, over the last ``posture_count`` or so
         (0: no posture offset)."""
-        v1, p1, _, _ = self._predicted(t, mean)
-        pt = self._predicted_true(t)
+        v1, p1, pt, _ = self._predicted(t, mean)
         gain = p1 / (p1 + measured_var)
         self.var_true = (1.0 - gain) ** 2 * pt + gain * gain * measured_var
         self.t, self.value, self.var, self.mean = t, v1 + gain * (measured - v1), (1.0 - gain) * p1, mean
@@ -188,9 +180,9 @@ class TorsoTilt:
         """The expected (pitch, roll) (rad) at time ``t`` and the variances (rad^2) of their actual
         errors (``var_true``), without changing the estimate (before the first step or anchor: the
         prior)."""
-        p, _, _, _ = self.pitch._predicted(t, 0.0)
-        r, _, _, _ = self.roll._predicted(t, lean_roll)
-        return p, r, self.pitch._predicted_true(t), self.roll._predicted_true(t)
+        p, _, vp, _ = self.pitch._predicted(t, 0.0)
+        r, _, vr, _ = self.roll._predicted(t, lean_roll)
+        return p, r, vp, vr
 
     def consistent(
         self, t: float, lean_roll: float, pitch: float, roll: float, chi2: float, prior_sigma: float
