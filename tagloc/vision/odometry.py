@@ -806,6 +806,12 @@ def floor_patch(rig_camera: RigCamera, config: OdometryConfig | None = None) -> 
     return FloorPatch(x0, x0 + side, yc + side / 2, side, res, origin, A)
 
 
+def _grown_sigmas(floor: float, rel: float, d_pitch: float, d_roll: float) -> tuple[float, float]:
+    """A fitted tilt change's actual (pitch, roll) standard deviations (rad): ``floor`` in quadrature
+    with the share ``rel`` of the change (rad) itself."""
+    return math.hypot(floor, rel * d_pitch), math.hypot(floor, rel * d_roll)
+
+
 class FloorOdometry:
     """Planar body motion between consecutive frames of one rig camera, from the floor texture."""
 
@@ -1341,8 +1347,8 @@ class FloorOdometry:
                 self.tilt_fits_refused += 1
                 fit = None
             if fit is not None:
-                base, rel = self.config.tilt_fit_sigma * self._pixel_scale, self.config.tilt_fit_sigma_rel
-                fit_sigma_true = (math.hypot(base, rel * fit[0]), math.hypot(base, rel * (fit[1] or 0.0)))
+                base = self.config.tilt_fit_sigma * self._pixel_scale
+                fit_sigma_true = _grown_sigmas(base, self.config.tilt_fit_sigma_rel, fit[0], fit[1] or 0.0)
         torso = self._torso
         if torso is None:
             if fit is None:
@@ -1372,9 +1378,8 @@ class FloorOdometry:
         scales with the camera's pixels, and a share of the change itself that grows with the
         read-out (see ``FloorFlowConfig.tilt_sigma_rel``)."""
         fc = self.config.flow_config
-        floor = fc.tilt_sigma * self._pixel_scale
         rel = fc.tilt_sigma_rel + fc.tilt_sigma_rel_per_readout_s * self.rig_camera.readout_s
-        return math.hypot(floor, rel * flow.d_pitch), math.hypot(floor, rel * flow.d_roll)
+        return _grown_sigmas(fc.tilt_sigma * self._pixel_scale, rel, flow.d_pitch, flow.d_roll)
 
     def _tilt_geometry(self, R_tilt: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """The camera centre (3,) and the tilt grid's rays (N, 3) in the level body frame under the
