@@ -589,6 +589,7 @@ def new_counts() -> dict[str, int]:
             "odometry_steps",
             "odometry_bridged",
             "odometry_bridge_forgotten",
+            "odometry_bridge_unverified",
             "odometry_strided",
             "odometry_unavailable",
             "flow_skipped",
@@ -1151,8 +1152,11 @@ class Localiser:
         twist = velocity if self.rig[camera].readout_s > 0 else None
         speed = None if velocity is None else float(velocity[0])
         self.counts["flow_skipped"] += odo is not None and not refine
+        unverified = odo.bridges_unverified if odo is not None else 0
         step = odo.measure(gray, t, twist, speed, refine) if odo is not None else None
         self._step = step
+        if odo is not None:
+            self.counts["odometry_bridge_unverified"] += odo.bridges_unverified - unverified
         if step is not None:
             # Only a step over dropped frames spans more than max_dt (see OdometryConfig.bridge_max_dt).
             self.counts["odometry_bridged"] += int(step.t1 - step.t0 > odo.config.max_dt)

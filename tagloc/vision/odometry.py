@@ -179,6 +179,22 @@ class OdometryConfig:
       away, a third of it overlaps, and the lean into the turn changes its perspective: no
       correlation is left even at the true motion), two were standing turns of 6-12 degrees and
       one reached 0.27 (below ``min_ecc``).
+      ``bridge_max_flow_residual_px``: a bridged match is verified by the floor flow (run for a
+      bridge even where the localiser skips it, ``refine``): tracked from the match's step, the
+      floor's points must fit one rigid motion to this median reprojection error (px), else the
+      bridge is refused (counted in ``bridges_unverified``) and the gap left to the walking model.
+      ECC correlates one patch; the flow's points cover the whole floor in view, so a match slid
+      along a painted line leaves them unexplained. Measured with ``benchmarks/bridges.py`` (4 s
+      walks, ``tagloc simulate --seconds 4 --seed S``, 3, 6 and 9 frames dropped after every
+      frame): on seed 1, whose fast turn crosses a lane line, the 60 bridges whose match was more
+      than 8 cm off all left 3.9 px or more; on seed 2, where none was wrong, 55 % of the bridges
+      left under 2.5 px (the ordinary step's ``FloorFlowConfig.max_residual_px``) and 17 % over 5
+      (up to 8.7, in its fast turns). Over seeds 1-18 at 5 px, 2 of 3,178 bridges kept were wrong
+      against 44 of 4,613 without the check, and no published pose after a gap was beyond the
+      99.9 % bound (8 before), for 22.5 mm RMS after every gap against 21.7. At 4 px the same
+      walks kept 1 wrong, but the held-out field walk f03-long (seed 3) lost right bridges in its
+      turns, 2.66 -> 3.02 cm; at 5 px every field walk (presets, held-out, gait x2) is within
+      0.1 cm of before.
     - ``min_response``: phase-correlation peak. Independent sensor noise on a blank floor gives
       0.04 (median; up to 0.1 in 40 trials); consecutive frames of simulated concrete 0.3-0.6
       (median per session, lux 50-300), down to ~0.05 only under the heaviest blur.
@@ -473,6 +489,7 @@ class OdometryConfig:
     bridge_max_dt: float = 0.35
     bridge_yaw_accel: float = 8.0
     bridge_overlap_mask: bool = True
+    bridge_max_flow_residual_px: float = 5.0
     min_response: float = 0.1
     min_ecc: float = 0.3
     weak_ecc: float = 0.25
@@ -894,6 +911,7 @@ class FloorOdometry:
         self._prev_gray: np.ndarray | None = None  # the frame of _prev, for the flow
         self.flow_steps = 0  # steps the flow refined
         self.bridged = 0  # steps that bridged dropped frames (see bridge_max_dt)
+        self.bridges_unverified = 0  # bridges the floor flow did not verify (see bridge_max_flow_residual_px)
         self.flow_refused = 0  # steps whose flow fit was refused (the patch's step stands)
         self.tilt_fits_refused = 0  # fitted tilt changes beyond tilt_fit_max, dropped
         self.dark_frames = 0  # frames whose patch was too little lit to measure (see min_lit_fraction)
@@ -1143,6 +1161,9 @@ class FloorOdometry:
         grays = (prev_gray, gray) if prev_gray is not None and refine else None
         if dt > self.config.max_dt:
             # Frames were dropped: bridge the gap from the walk predicted through it.
+            # A bridge is verified by the floor flow (``bridge_max_flow_residual_px``) even where
+            # ``refine`` would skip the flow: nothing else checks a match across a gap.
+            grays = (prev_gray, gray) if prev_gray is not None else None
             step = self._bridge(prev, (t, small), body_twist, grays, refine)
             if step is not None:
                 self.bridged += 1
@@ -1653,6 +1674,17 @@ class FloorOdometry:
         rho, W, response, start = found
         step = self._step(prev, cur, (rho, W, response, False), grays, predicted_shift=start[:, 2], refine=refine)
         if step is None:
+            return None
+        residual = self.last_flow_residual
+        if (
+            grays is not None
+            and self._flow is not None
+            and (residual is None or residual > cfg.bridge_max_flow_residual_px)
+        ):
+            # The floor's points fit no rigid motion near the match: it may have slid along a line.
+            # What the step taught the odometry (turn guess, lean, tilt) goes with it.
+            self.forget_motion()
+            self.bridges_unverified += 1
             return None
         # Too few bursts to calibrate a bridged step's error, so its covariance is deliberately
         # generous: the ordinary one for the distance moved (as if one long step) plus that of the n
