@@ -270,11 +270,10 @@ def test_a_turn_that_slowed_in_a_smeared_patch_is_not_locked_to_the_last_one():
     assert abs(measured_turn(OdometryConfig().turn_check_rate) - turn) < math.radians(0.3)
 
 
-@pytest.mark.parametrize("gap_turn_deg", [0.0, 6.0])
-def test_a_burst_of_dropped_frames_is_bridged(gap_turn_deg):
-    """Eight frames dropped (0.3 s) while walking at 1.3 m/s: the step over the gap is matched from
-    the walk predicted through it (``bridge_max_dt``), also when the walker turned 6 degrees in it
-    (from walking straight); without the bridge the gap is not measured at all."""
+def _burst_walk(gap_turn_deg: float) -> tuple[RigCamera, list[np.ndarray], list[float], np.ndarray]:
+    """Two frames walking straight at 1.3 m/s, then eight dropped (0.3 s) while turning
+    ``gap_turn_deg`` at a steady rate, then the frame after the gap: (rig camera, the three
+    images, their times s, the true step over the gap T (4, 4))."""
     from tagloc.core.geometry import planar_T
     from tagloc.sim.floor import Floor, FloorConfig
     from tagloc.sim.simulate import render_view
@@ -293,6 +292,15 @@ def test_a_burst_of_dropped_frames_is_bridged(gap_turn_deg):
     poses.append(poses[1] @ gap)
     times = [0.0, 1 / FPS, 10 / FPS]
     imgs = [render_view(floor, rc.camera, T @ rc.T_body_camera, lux=150, seed=k).image for k, T in enumerate(poses)]
+    return rc, imgs, times, gap
+
+
+@pytest.mark.parametrize("gap_turn_deg", [0.0, 6.0])
+def test_a_burst_of_dropped_frames_is_bridged(gap_turn_deg):
+    """Eight frames dropped (0.3 s) while walking at 1.3 m/s: the step over the gap is matched from
+    the walk predicted through it (``bridge_max_dt``), also when the walker turned 6 degrees in it
+    (from walking straight); without the bridge the gap is not measured at all."""
+    rc, imgs, times, gap = _burst_walk(gap_turn_deg)
 
     def bridged(config: OdometryConfig):
         odo = FloorOdometry(rc, config)
@@ -322,22 +330,7 @@ def test_a_bridge_the_floor_flow_cannot_verify_is_refused(slid_cm):
     3.4 px, measured), and the same match slid 10 or 20 cm forward (as ECC slid along a lane line
     on benchmarks/bridges.py's walk) leaves them at 6-7 px: refused, counted, and what it taught
     the odometry forgotten. Without the check the slid match is kept, that far off."""
-    from tagloc.core.geometry import planar_T
-    from tagloc.sim.floor import Floor, FloorConfig
-    from tagloc.sim.simulate import render_view
-
-    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0), legs_in_view=False)
-    smap = grid_map(GridMapConfig(width_m=8, depth_m=8, spacing_min_m=1.6, spacing_max_m=2.0, seed=4))
-    floor = Floor(smap, FloorConfig(), seed=4)
-    step = 1.3 / FPS
-    gap = planar_T(0.0, 0.0, 0.0)
-    for _ in range(9):
-        gap = gap @ planar_T(step, 0.0, math.radians(6.0) / 9)
-    poses = [planar_T(2.0, 2.3, 0.2)]
-    poses.append(poses[0] @ planar_T(step, 0.0, 0.0))
-    poses.append(poses[1] @ gap)
-    times = [0.0, 1 / FPS, 10 / FPS]
-    imgs = [render_view(floor, rc.camera, T @ rc.T_body_camera, lux=150, seed=k).image for k, T in enumerate(poses)]
+    rc, imgs, times, gap = _burst_walk(6.0)
 
     def bridged(limit: float) -> tuple[OdometryStep | None, FloorOdometry]:
         # Upright renders: no lean; the flow on (it verifies the bridge).
