@@ -182,8 +182,8 @@ class OdometryConfig:
       ``bridge_max_flow_residual_px``: a bridged match is verified by the floor flow (run for a
       bridge even where the localiser skips it, ``refine``): tracked from the match's step, the
       floor's points must fit one rigid motion to this median reprojection error (px), else the
-      bridge is refused (counted in ``bridges_unverified``) and the gap left to the walking model.
-      ECC correlates one patch; the flow's points cover the whole floor in view, so a match slid
+      bridge is refused (counted in ``bridges_unverified``) and the gap left to the walking model
+      (with ``flow`` off, nothing verifies a bridge). ECC correlates one patch; the flow's points cover the whole floor in view, so a match slid
       along a painted line leaves them unexplained. Measured with ``benchmarks/bridges.py`` (4 s
       walks, ``tagloc simulate --seconds 4 --seed S``, 3, 6 and 9 frames dropped after every
       frame): on seed 1, whose fast turn crosses a lane line, the 60 bridges whose match was more
