@@ -183,8 +183,9 @@ class OdometryConfig:
       bridge even where the localiser skips it, ``refine``): tracked from the match's step, the
       floor's points must fit one rigid motion to this median reprojection error (px), else the
       bridge is refused (counted in ``bridges_unverified``) and the gap left to the walking model
-      (with ``flow`` off, nothing verifies a bridge). ECC correlates one patch; the flow's points cover the whole floor in view, so a match slid
-      along a painted line leaves them unexplained. Measured with ``benchmarks/bridges.py`` (4 s
+      (with ``flow`` off, nothing verifies a bridge). ECC correlates one patch; the flow's points
+      cover the whole floor in view, so a match slid along a painted line leaves them
+      unexplained. Measured with ``benchmarks/bridges.py`` (4 s
       walks, ``tagloc simulate --seconds 4 --seed S``, 3, 6 and 9 frames dropped after every
       frame): on seed 1, whose fast turn crosses a lane line, the 60 bridges whose match was more
       than 8 cm off all left 3.9 px or more; on seed 2, where none was wrong, 55 % of the bridges
@@ -1158,13 +1159,12 @@ class FloorOdometry:
         dt = t - prev[0]
         if not (0.0 < dt <= max(self.config.max_dt, self.config.bridge_max_dt)):
             return None
-        grays = (prev_gray, gray) if prev_gray is not None and refine else None
+        pair = (prev_gray, gray) if prev_gray is not None else None
         if dt > self.config.max_dt:
-            # Frames were dropped: bridge the gap from the walk predicted through it.
-            # A bridge is verified by the floor flow (``bridge_max_flow_residual_px``) even where
-            # ``refine`` would skip the flow: nothing else checks a match across a gap.
-            grays = (prev_gray, gray) if prev_gray is not None else None
-            step = self._bridge(prev, (t, small), body_twist, grays, refine)
+            # Frames were dropped: bridge the gap from the walk predicted through it. The floor flow
+            # verifies the bridge (``bridge_max_flow_residual_px``) even where ``refine`` would
+            # skip it: nothing else checks a match across a gap.
+            step = self._bridge(prev, (t, small), body_twist, pair, refine)
             if step is not None:
                 self.bridged += 1
                 self._update_pitch(t, walk_speed)
@@ -1180,7 +1180,7 @@ class FloorOdometry:
                 return None
             step = _compose_steps(first, second)
         else:
-            step = self._step(prev, (t, small), match, grays, refine=refine)
+            step = self._step(prev, (t, small), match, pair if refine else None, refine=refine)
             if step is None:
                 return None
             self._last_sure = match[3]
