@@ -136,7 +136,8 @@ def test_every_benchmark_script_answers_help_with_its_usage(script):
 
 
 @pytest.mark.parametrize(
-    "name", ["fix_error.py", "covariance_growth.py", "odometry_accuracy.py", "survey_sensitivity.py"]
+    "name",
+    ["fix_error.py", "covariance_growth.py", "odometry_accuracy.py", "survey_sensitivity.py", "coverage_misses.py"],
 )
 def test_a_benchmark_given_no_session_says_so_in_one_line(name, tmp_path):
     import subprocess
@@ -575,3 +576,20 @@ def test_bridges_counts_the_bridged_bursts_of_a_walk(monkeypatch, tmp_path):
         # the 51 bridges start a frame before the one the burst follows (scored over that frame's
         # interval instead, the forward RMS was 26 mm against 9 mm; 11 mm now).
         assert row["right_rms"][0] < 0.015, row
+
+
+def test_coverage_misses_accounts_for_every_frame_of_the_bundled_walk():
+    """Every frame the ground truth covers falls in exactly one column; the bundled walk starts on a
+    sticker, so nothing comes before one, and its poses are all within the bar."""
+    import sys
+
+    sys.path.insert(0, str(BENCHMARKS[0].parent))
+    from coverage_misses import COLUMNS, misses
+
+    from tagloc.io.session import SessionReader
+
+    walk = BENCHMARKS[0].parent.parent / "logs" / "walk2s"
+    row = misses(walk)
+    assert set(row) == set(COLUMNS)
+    assert sum(row.values()) == len(SessionReader(walk))
+    assert row["before sticker"] == 0 and row["over 10 cm"] == 0 and row["within"] >= 0.95 * sum(row.values())

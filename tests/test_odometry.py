@@ -1129,3 +1129,151 @@ def test_a_bridge_the_tracker_refuses_takes_back_what_the_odometry_learnt_from_i
     assert not fused and loc.counts["odometry_bridge_forgotten"] == 0 and odo._lean_state is not None
     loc, odo, fused = offer(True, 0.0)
     assert fused and loc.counts["odometry_bridge_forgotten"] == 0 and odo._lean_state is not None
+
+
+# -- plain floors: the flow without the patch, residual limits that follow the floor ---------------
+
+
+def test_the_flow_measures_a_step_the_patch_cannot_match(monkeypatch):
+    """Where ECC finds no match (below ``weak_ecc``: a plain floor, heavy blur) the floor flow is
+    tracked from the walk's predicted step alone (``flow_without_patch``): on a rendered 4 cm step it
+    comes out within millimetres; without a prediction, or switched off, there is no step."""
+    rc, imgs = _rendered_pair()
+    real = cv2.findTransformECC
+
+    def no_match(*args):
+        _, W = real(*args)
+        return 0.05, W
+
+    monkeypatch.setattr(cv2, "findTransformECC", no_match)
+    predicted = np.array([0.035 * FPS, 0.003 * FPS, math.radians(0.3) * FPS])  # 5 mm, 0.3 deg off
+
+    def step(twist, **cfg):
+        odo = FloorOdometry(rc, OdometryConfig(**cfg))
+        odo.measure(imgs[0], 0.0, twist)
+        return odo, odo.measure(imgs[1], 1 / FPS, twist)
+
+    odo, s = step(predicted)
+    assert s is not None and odo.flow_only_steps == 1
+    assert abs(s.delta[0] - 0.04) < 2e-3 and abs(s.delta[1]) < 2e-3 and abs(s.delta[2]) < math.radians(0.1)
+    assert np.allclose(s.cov, odo.covariance(s.delta) * flow_cov_scale(odo.last_flow_residual, odo.config))
+    assert step(None)[1] is None  # nothing to start the flow from
+    assert step(predicted, flow_without_patch=False)[1] is None
+
+
+def test_a_patch_step_the_flow_cannot_verify_on_a_plain_floor_is_refused(monkeypatch):
+    """On a floor whose right fits leave ``plain_floor_residual_px`` or more, a patch step whose
+    floor-flow fit left more than ``max_flow_residual_px`` (median) is refused and counted; below
+    the limit, or on a textured floor (a frame smeared in a fast turn), the patch's step stands.
+    What the refused step taught the odometry is kept unless ``forget_unverified``."""
+    from tagloc.vision.floor_flow import FloorFlow
+
+    rc, imgs = _rendered_pair()
+
+    def step(residual_px: float, floor_px: float | None, **cfg):
+        def refused(self, *args, **kwargs):
+            self.last_residual = residual_px
+            return None
+
+        monkeypatch.setattr(FloorFlow, "refine", refused)
+        monkeypatch.setattr(FloorFlow, "residual_floor", lambda self: floor_px)
+        odo = FloorOdometry(rc, OdometryConfig(**cfg))
+        odo.measure(imgs[0], 0.0)
+        return odo, odo.measure(imgs[1], 1 / FPS)
+
+    odo, s = step(4.0, 2.5)
+    assert s is not None and odo.steps_unverified == 0 and odo.flow_refused == 1
+    assert abs(s.delta[0] - 0.04) < 3e-3
+    for floor_px in (None, 1.0):  # not known yet, or a textured floor
+        odo, s = step(6.0, floor_px)
+        assert s is not None and odo.steps_unverified == 0
+    odo, s = step(6.0, 2.5)
+    assert s is None and odo.steps_unverified == 1
+    assert odo._last_twist is not None
+    odo, s = step(6.0, 2.5, forget_unverified=True)
+    assert s is None and odo._last_turn is None and odo._last_twist is None
+
+
+def test_the_flows_residual_limits_follow_the_floor():
+    """A right fit leaves a larger residual on a plainer floor (the camera's noise against less
+    texture): the limits rise with the median of the recent fits' outside fast turns, by
+    ``max_residual_ratio`` and ``fast_turn_residual_ratio``, from the fixed ones up to the cap."""
+    from tagloc.vision.floor_flow import FloorFlow, FloorFlowConfig
+
+    cfg = FloorFlowConfig()
+    flow = FloorFlow(rig_camera(55.0), cfg)
+    assert flow.residual_limits() == (cfg.max_residual_px, cfg.fast_turn_max_residual_px)
+    flow._floor_residuals.extend([0.9] * cfg.residual_floor_fits)  # a textured floor
+    assert flow.residual_limits() == pytest.approx((cfg.max_residual_px, cfg.fast_turn_residual_ratio * 0.9))
+    flow._floor_residuals.extend([2.2] * cfg.residual_floor_fits)  # half its contrast
+    assert flow.residual_limits() == pytest.approx((cfg.max_residual_ratio * 2.2, cfg.fast_turn_residual_ratio * 2.2))
+    flow._floor_residuals.extend([4.5] * cfg.residual_floor_fits)  # too plain for the flow
+    assert flow.residual_limits() == pytest.approx((cfg.max_residual_cap_px, cfg.max_residual_cap_px))
+
+
+@pytest.fixture(scope="module")
+def plain_floor_walk(tmp_path_factory) -> Path:
+    """A 4 s walk with turns over concrete of half the texture contrast, at 150 lux."""
+    from tagloc.sim.floor import FloorConfig
+
+    path = tmp_path_factory.mktemp("odo") / "plain"
+    smap = grid_map(GridMapConfig(width_m=12, depth_m=10, spacing_min_m=1.6, spacing_max_m=2.0, seed=8))
+    cfg = SimConfig(
+        seconds=4,
+        lux=150,
+        seed=21,
+        walk=WalkConfig(turn_probability=1.0),
+        floor=FloorConfig(texture_contrast=0.5),
+    )
+    simulate_session(smap, path, cfg, progress=False)
+    return path
+
+
+def _steps_on(path: Path, config: OdometryConfig) -> tuple[np.ndarray, np.ndarray, FloorOdometry]:
+    """(errors (N, 3), NaN rows where refused; NEES (N,)) of ``config``'s odometry on the session,
+    the tracker's prediction played by the true motion."""
+    cv2.setNumThreads(1)
+    session = SessionReader(path)
+    gt = [json.loads(line) for line in (path / "groundtruth_frames.jsonl").read_text().splitlines()]
+    odo = FloorOdometry(session.rig[0], config)
+    T_camera_body = np.linalg.inv(session.rig[0].T_body_camera)
+    errs, nees = [], []
+    for fr in session.frames():
+        if fr.index == 0:
+            odo.measure(fr.image, fr.timestamp)
+            continue
+        T0, T1 = (np.array(gt[k]["T_world_camera"]) @ T_camera_body for k in (fr.index - 1, fr.index))
+        truth = np.array(planar_from_T(np.linalg.inv(T0) @ T1))
+        step = odo.measure(fr.image, fr.timestamp, truth * FPS)
+        if step is None:
+            errs.append(np.full(3, np.nan))
+            nees.append(np.nan)
+            continue
+        e = step.delta - truth
+        e[2] = (e[2] + np.pi) % (2 * np.pi) - np.pi
+        errs.append(e)
+        nees.append(float(e @ np.linalg.solve(step.cov, e)))
+    return np.array(errs), np.array(nees), odo
+
+
+def test_a_plainer_floor_keeps_its_steps_and_their_honesty(plain_floor_walk):
+    """On half the texture contrast the flow's right fits leave ~2.2 px (0.9 on the reference floor),
+    so the fixed limits refused the flow in every turn and the patch's steps stood (yaw 0.15 deg a
+    step, NEES up to 7). With the limits following the floor and the flow measuring what the patch
+    cannot match, nine steps in ten are measured, and within their stated covariance."""
+    from tagloc.vision.floor_flow import FloorFlowConfig
+
+    errs, nees, odo = _steps_on(plain_floor_walk, OdometryConfig())
+    ok = np.isfinite(nees)
+    assert ok.mean() > 0.85 and odo.flow_only_steps > 0
+    assert np.sqrt(np.mean(errs[ok, 2] ** 2)) < math.radians(0.12)
+    assert np.sqrt(np.mean(errs[ok, :2] ** 2)) < 0.005
+    assert nees[ok].max() < 4.0
+    fixed = OdometryConfig(
+        flow_without_patch=False,
+        max_flow_residual_px=math.inf,
+        flow_config=FloorFlowConfig(max_residual_ratio=0.0, fast_turn_residual_ratio=0.0),
+    )
+    errs_f, nees_f, odo_f = _steps_on(plain_floor_walk, fixed)
+    ok_f = np.isfinite(nees_f)
+    assert ok_f.mean() < ok.mean() - 0.1 and odo_f.flow_refused > 20

@@ -390,6 +390,23 @@ def test_floor_tiles_are_seamless_and_order_independent():
     assert 0.3 < img.mean() / 255 < 0.5
 
 
+def test_floor_texture_contrast_scales_the_concrete_only():
+    smap = aisle_map(rows=1, length_m=3.0)
+    plain = {"distractors_per_m2": 0.0, "stains_per_m2": 0.0, "line_spacing_m": 0.0}
+    full = Floor(smap, FloorConfig(**plain), seed=5).tile(1, 0).astype(float)
+    assert np.array_equal(Floor(smap, FloorConfig(texture_contrast=1.0, **plain), seed=5).tile(1, 0), full)
+    # The texture's spread about the concrete's mean reflectance scales with the factor; the mean
+    # stays (a sealed floor is as light as a worn one, only more even).
+    for c in (0.5, 0.25):
+        tile = Floor(smap, FloorConfig(texture_contrast=c, **plain), seed=5).tile(1, 0).astype(float)
+        assert tile.std() / full.std() == pytest.approx(c, rel=0.08)
+        assert tile.mean() == pytest.approx(full.mean(), rel=0.02)
+    flat = Floor(smap, FloorConfig(texture_contrast=0.0, **plain), seed=5).tile(1, 0)
+    assert np.ptp(flat) == 0
+    with pytest.raises(InputError, match="texture contrast"):
+        FloorConfig(texture_contrast=-0.1)
+
+
 def test_floor_missing_and_unmapped():
     smap = aisle_map()
     floor = Floor(smap, FloorConfig(missing_fraction=0.25, unmapped=6), seed=1)

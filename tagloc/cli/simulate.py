@@ -96,6 +96,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="the walker's gait motions (bobbing, sway, torso twist and roll, pitch wobble) times this "
         "(default 1; 2: a walker who swings twice as much)",
     )
+    p.add_argument(
+        "--floor-contrast",
+        type=float,
+        default=1.0,
+        help="the concrete's texture contrast times this (default 1: worn, unsealed concrete; 0.5, 0.25:"
+        " sealed, polished or epoxy-coated floors), what the floor odometry tracks",
+    )
     p.add_argument("--jpeg-quality", type=int, default=85, help="JPEG quality of the frames (default 85)")
     p.add_argument("--scale", type=float, default=1.0, help="image resolution factor (default 1: 1296x972)")
     p.add_argument("--calibration", type=Path, help="true camera calibration (OpenCV or ROS YAML); default Pi v1")
@@ -118,6 +125,7 @@ def _out_apart_from_inputs(args: argparse.Namespace) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from tagloc.cli import checks
+    from tagloc.sim.floor import FloorConfig
     from tagloc.sim.render import ExposureConfig
     from tagloc.sim.simulate import SimConfig, simulate_session
     from tagloc.sim.survey import SurveyConfig
@@ -149,6 +157,7 @@ def run(args: argparse.Namespace) -> int:
     checks.number(args.survey_sigma_deg, "--survey-sigma-deg", 0, 180)
     checks.number(args.missing_fraction, "--missing-fraction", 0, 1)
     checks.number(args.gait_scale, "--gait-scale", *GAIT_SCALE_RANGE)
+    checks.number(args.floor_contrast, "--floor-contrast", 0, 2)
     checks.output_dir(args.out, "-o")
     _out_apart_from_inputs(args)
 
@@ -184,6 +193,7 @@ def run(args: argparse.Namespace) -> int:
             shadow=args.shadow,
             legs=args.legs,
             walk=WalkConfig().with_gait_scale(args.gait_scale),
+            floor=FloorConfig(texture_contrast=args.floor_contrast),
         ),
         progress=not args.quiet,
     )

@@ -590,6 +590,8 @@ def new_counts() -> dict[str, int]:
             "odometry_bridged",
             "odometry_bridge_forgotten",
             "odometry_bridge_unverified",
+            "odometry_flow_only",
+            "odometry_unverified",
             "odometry_strided",
             "odometry_unavailable",
             "flow_skipped",
@@ -1149,14 +1151,19 @@ class Localiser:
         ``skip_flow_after_fix``)."""
         odo = self.floor_odometry(camera)
         velocity = self.tracker.velocity()
-        twist = velocity if self.rig[camera].readout_s > 0 else None
+        # The walk's predicted motion: a rolling-shutter patch's remap, and where the patch finds no
+        # match, the floor flow's start (OdometryConfig.flow_without_patch).
+        wants_twist = self.rig[camera].readout_s > 0 or (odo is not None and odo.config.flow_without_patch)
+        twist = velocity if wants_twist else None
         speed = None if velocity is None else float(velocity[0])
         self.counts["flow_skipped"] += odo is not None and not refine
-        unverified = odo.bridges_unverified if odo is not None else 0
+        before = (odo.bridges_unverified, odo.steps_unverified, odo.flow_only_steps) if odo is not None else None
         step = odo.measure(gray, t, twist, speed, refine) if odo is not None else None
         self._step = step
         if odo is not None:
-            self.counts["odometry_bridge_unverified"] += odo.bridges_unverified - unverified
+            self.counts["odometry_bridge_unverified"] += odo.bridges_unverified - before[0]
+            self.counts["odometry_unverified"] += odo.steps_unverified - before[1]
+            self.counts["odometry_flow_only"] += odo.flow_only_steps - before[2]
         if step is not None:
             # Only a step over dropped frames spans more than max_dt (see OdometryConfig.bridge_max_dt).
             self.counts["odometry_bridged"] += int(step.t1 - step.t0 > odo.config.max_dt)

@@ -44,6 +44,10 @@ class FloorConfig:
         base_reflectance: mean concrete reflectance.
         mottle: relative amplitude of the low-frequency mottling.
         grain: standard deviation of the per-texel grain (reflectance units).
+        texture_contrast: the concrete's texture (mottling, grain, speckle and pits) times this:
+            1 for the worn, unsealed concrete above; a sealed, polished or epoxy-coated floor shows
+            less (0.5, 0.25; the painted lines, stains and distractors are unchanged). The floor
+            odometry tracks this texture, so it sets how well it can.
         line_spacing_m: mean distance between painted lines (0: none).
         distractors_per_m2: dark squares (8-15 cm) per square metre.
         stains_per_m2: soft dark stains per square metre.
@@ -62,6 +66,7 @@ class FloorConfig:
     base_reflectance: float = 0.38
     mottle: float = 0.18
     grain: float = 0.025
+    texture_contrast: float = 1.0
     line_spacing_m: float = 6.0
     distractors_per_m2: float = 0.05
     stains_per_m2: float = 0.2
@@ -76,6 +81,8 @@ class FloorConfig:
     def __post_init__(self) -> None:
         if not 0.0 <= self.missing_fraction <= 1.0:
             raise InputError(f"missing fraction {self.missing_fraction} is not in 0-1")
+        if not 0.0 <= self.texture_contrast <= 2.0:
+            raise InputError(f"floor texture contrast {self.texture_contrast} is not in 0-2")
         if self.unmapped < 0 or self.distractors_per_m2 < 0 or self.stains_per_m2 < 0:
             raise InputError("unmapped stickers, distractor and stain densities must be >= 0")
         if self.res_m <= 0 or self.tile_m <= 0 or self.tile_m / self.res_m < 8:
@@ -281,11 +288,12 @@ class Floor:
             + 0.3 * self._noise(tx, ty, 0.45, 1)
             + 0.15 * self._noise(tx, ty, 0.12, 2)
         )
-        refl = cfg.base_reflectance * (1.0 + cfg.mottle * mottle)
+        c = cfg.texture_contrast
+        refl = cfg.base_reflectance * (1.0 + c * cfg.mottle * mottle)
         speckle = cv2.GaussianBlur(rng.standard_normal((n, n), np.float32), (0, 0), 1.2)
-        refl += cfg.grain * (rng.standard_normal((n, n), np.float32) + 2.0 * speckle)
+        refl += c * cfg.grain * (rng.standard_normal((n, n), np.float32) + 2.0 * speckle)
         pits = rng.random((n, n), np.float32) < 0.002
-        refl[pits] *= 0.55
+        refl[pits] *= 1.0 - 0.45 * min(c, 1.0 / 0.45)
         x0, y0 = tx * cfg.tile_m, ty * cfg.tile_m
         self._draw_features(refl, x0, y0)
         return np.clip(refl * 255.0 + 0.5, 0, 255).astype(np.uint8)

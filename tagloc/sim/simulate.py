@@ -214,6 +214,7 @@ class SimConfig:
             ),
             (self.sensor_preset not in (None, "standard"), f"sensor {self.sensor_preset}"),
             (self.flicker, f"flicker {100 * self.flicker:g}% at {self.mains_hz:g} Hz mains"),
+            (self.floor.texture_contrast != 1.0, f"floor texture x{self.floor.texture_contrast:g}"),
             (self.shadow, "shadow"),
             (self.legs, "legs"),
         ]

@@ -32,6 +32,7 @@ mistracking).
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import cv2
@@ -149,6 +150,23 @@ class FloorFlowConfig:
       mostly stay under 1.5 px, the flow is the better one there). Through the localiser a limit
       of 1.25 px was better than refusing every fast turn or 1.5 px (see the README's
       field-physics section).
+    - ``residual_floor_fits``, ``residual_floor_min_fits``, ``max_residual_ratio``,
+      ``fast_turn_residual_ratio``, ``max_residual_cap_px``: the two limits above were measured on
+      one floor, whose right fits leave about 0.9 px (median). A plainer floor leaves more: the
+      camera's noise is the same and the texture it tracks fainter. On concrete of half the texture
+      contrast (``tagloc simulate --floor-contrast 0.5``, three 20 s walks at 150 lux) right fits
+      left 2.2-2.5 px, so the 1.25 px limit refused the flow in every fast turn and the patch's
+      steps stood there (their yaw 0.2-0.26 deg a step against the flow's 0.04-0.06). So once
+      ``residual_floor_min_fits`` fits are known, the limits are raised to ``max_residual_ratio``
+      and ``fast_turn_residual_ratio`` times the median of the last ``residual_floor_fits`` fits'
+      outside fast turns (kept or refused: the floor's noise, not the verdicts). 1.4 keeps the
+      reference floor's fast-turn limit where it was (1.25 / 0.9); 1.5 leaves its ordinary limit
+      at 2.5 and lifts it to 3.3 px on the half-contrast floor, whose fits at 2-2.5 px were 2.7 mm
+      off a step (NEES 0.24). Neither rises above ``max_residual_cap_px``: at a quarter of the
+      contrast right fits leave 4.3-5 px and the fits were 13-45 mm off a step (NEES 9-230), so
+      no floor whose fits leave more than 3.5 px is trusted. On the eval presets the median stays
+      near 0.9-1.1 px and the limits move little (field preset 2.31 -> 2.25 cm, standard 1.41 ->
+      1.38, 2026-11-30, ``benchmarks/eval_variants.py``).
     - ``rs_acceleration``, ``rs_acceleration_max_dt``: with a rolling shutter, each point's motion
       between its two sightings is taken at constant *acceleration* of the body over the two frame
       intervals (the previous fit's rates and this one's), not at constant velocity. A point read
@@ -217,6 +235,11 @@ class FloorFlowConfig:
     rs_acceleration_max_dt: float = 0.05
     max_turn_rate: float = math.radians(45.0)
     fast_turn_max_residual_px: float = 1.25
+    residual_floor_fits: int = 30
+    residual_floor_min_fits: int = 10
+    max_residual_ratio: float = 1.5
+    fast_turn_residual_ratio: float = 1.4
+    max_residual_cap_px: float = 3.5
 
 
 @dataclass(frozen=True)
@@ -324,6 +347,32 @@ class FloorFlow:
         # The last kept fit as (its later frame, parameters (6,), interval s), for the next pair's
         # rolling-shutter acceleration (``rs_acceleration``); None after a refused one.
         self._last_fit: tuple[np.ndarray, np.ndarray, float] | None = None
+        # Median reprojection errors of the last fits outside fast turns, kept or refused: the
+        # residual a right fit leaves on this floor with this camera (``residual_floor_fits``).
+        self._floor_residuals: deque[float] = deque(maxlen=max(1, cfg.residual_floor_fits))
+
+    def residual_floor(self) -> float | None:
+        """The median reprojection error (px) of the last ``residual_floor_fits`` fits outside fast
+        turns, kept or refused: what a right fit leaves on this floor with this camera; None before
+        ``residual_floor_min_fits`` of them."""
+        if len(self._floor_residuals) < self.config.residual_floor_min_fits:
+            return None
+        return float(np.median(self._floor_residuals))
+
+    def residual_limits(self) -> tuple[float, float]:
+        """The median reprojection errors (px) above which a fit is refused, outside and in a fast
+        turn: ``max_residual_px`` and ``fast_turn_max_residual_px``, raised in proportion to the
+        residual this floor leaves (``max_residual_ratio``, ``fast_turn_residual_ratio`` times the
+        median of the recent fits'), never above ``max_residual_cap_px``."""
+        cfg = self.config
+        floor = self.residual_floor()
+        if floor is None:
+            return cfg.max_residual_px, cfg.fast_turn_max_residual_px
+        cap = max(cfg.max_residual_cap_px, cfg.max_residual_px)
+        return (
+            min(cap, max(cfg.max_residual_px, cfg.max_residual_ratio * floor)),
+            min(cap, max(cfg.fast_turn_max_residual_px, cfg.fast_turn_residual_ratio * floor)),
+        )
 
     def refine(
         self,
@@ -379,9 +428,12 @@ class FloorFlow:
         x, med, n = fit
         self.last_residual = med
         fast = abs(g[2]) > cfg.max_turn_rate * dt
+        limit, fast_limit = self.residual_limits()
+        if not fast and math.isfinite(med):
+            self._floor_residuals.append(med)
         if (
             not np.all(np.isfinite(x))
-            or med > (cfg.fast_turn_max_residual_px if fast else cfg.max_residual_px)
+            or med > (fast_limit if fast else limit)
             or math.hypot(x[0] - g[0], x[1] - g[1]) > cfg.max_disagreement_m
             or abs(x[2] - g[2]) > cfg.max_disagreement_rad
         ):

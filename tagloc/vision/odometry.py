@@ -196,6 +196,31 @@ class OdometryConfig:
       walks kept 1 wrong, but the held-out field walk f03-long (seed 3) lost right bridges in its
       turns, 2.66 -> 3.02 cm; at 5 px every field walk (presets, held-out, gait x2) is within
       0.1 cm of before.
+    - ``max_flow_residual_px``, ``plain_floor_residual_px``, ``forget_unverified``: the same check
+      on an ordinary step, on a plain floor. Where the floor's right fits already leave
+      ``plain_floor_residual_px`` or more (the median of the flow's recent fits,
+      :meth:`tagloc.vision.floor_flow.FloorFlow.residual_floor`: ~0.9-1.3 px on the reference
+      floor, 2.2-2.5 at half its texture contrast, 4.3-5 at a quarter) and the floor flow, tracked
+      from the patch's step, leaves more than ``max_flow_residual_px`` (median), the patch is as
+      noise-bound as the flow and neither is trusted: the step is refused (counted in
+      ``steps_unverified``). On a textured floor such a residual comes from a frame smeared in a
+      fast turn, where the patch's coarse pixels are the better measurement, and its step stands
+      (refused there too, the held-out field walk f00 of seed 3 went 2.25 -> 2.57 cm). On the
+      tenth-contrast floor (``tagloc simulate --floor-contrast 0.1``) these patch steps put a walk's
+      heading 20-40 deg off in its turns at NEES 14-72 (the walk's 5.2); refused, that walk is
+      4.2 cm off at NEES 0.58 instead of 13.6. At 6 px it was overconfident again. What a refused
+      step taught the odometry (turn guess, lean, torso tilt) is kept unless ``forget_unverified``:
+      forgetting it, as for a refused bridge, cost the field walks f04-dim and f00 of seed 3
+      2.6 -> 9.7 and 2.2 -> 8.1 cm (every refusal restarted the torso's tilt filter mid-turn).
+    - ``flow_without_patch``: where ECC finds no match (below ``weak_ecc`` or no phase-correlation
+      peak: a plain floor, heavy blur), the floor flow is tracked from the walk's predicted step
+      instead (the odometry's last step while recent, else ``measure``'s ``body_twist``, the
+      tracker's prediction), and its fit, judged by the same residual limits and within
+      ``FloorFlowConfig.max_disagreement_m`` / ``_rad`` of that prediction, is the step
+      (counted in ``flow_only_steps``). On the reference floor the patch almost always matches;
+      on concrete of half the texture contrast it failed in a third of the frames, and with this
+      (and the flow's limits that follow the floor) the three walks came out 3.4 cm RMS against
+      10.0 (``benchmarks/eval_variants.py``, 2026-11-30).
     - ``min_response``: phase-correlation peak. Independent sensor noise on a blank floor gives
       0.04 (median; up to 0.1 in 40 trials); consecutive frames of simulated concrete 0.3-0.6
       (median per session, lux 50-300), down to ~0.05 only under the heaviest blur.
@@ -491,6 +516,9 @@ class OdometryConfig:
     bridge_yaw_accel: float = 8.0
     bridge_overlap_mask: bool = True
     bridge_max_flow_residual_px: float = 5.0
+    max_flow_residual_px: float = 5.0
+    forget_unverified: bool = False
+    plain_floor_residual_px: float = 2.0
     min_response: float = 0.1
     min_ecc: float = 0.3
     weak_ecc: float = 0.25
@@ -547,6 +575,7 @@ class OdometryConfig:
     max_stride: int = 2
     stride_max_turn_rate: float = math.radians(10.0)
     flow: bool = True
+    flow_without_patch: bool = True
     flow_config: FloorFlowConfig = field(default_factory=FloorFlowConfig)
 
 
@@ -914,6 +943,8 @@ class FloorOdometry:
         self.bridged = 0  # steps that bridged dropped frames (see bridge_max_dt)
         self.bridges_unverified = 0  # bridges the floor flow did not verify (see bridge_max_flow_residual_px)
         self.flow_refused = 0  # steps whose flow fit was refused (the patch's step stands)
+        self.flow_only_steps = 0  # steps the patch could not match, measured by the flow alone
+        self.steps_unverified = 0  # patch steps refused: the flow left more than max_flow_residual_px
         self.tilt_fits_refused = 0  # fitted tilt changes beyond tilt_fit_max, dropped
         self.dark_frames = 0  # frames whose patch was too little lit to measure (see min_lit_fraction)
         # The flow fit's median reprojection error (px) in the last measure, kept or refused; None
@@ -1181,12 +1212,70 @@ class FloorOdometry:
             step = _compose_steps(first, second)
         else:
             step = self._step(prev, (t, small), match, pair if refine else None, refine=refine)
-            if step is None:
+            cfg, residual = self.config, self.last_flow_residual
+            floor_px = self._flow.residual_floor() if self._flow is not None else None
+            if (
+                step is not None
+                and residual is not None
+                and residual > cfg.max_flow_residual_px
+                and (floor_px or 0.0) >= cfg.plain_floor_residual_px
+            ):
+                # On a floor this plain the patch is as noise-bound as the flow, so a step whose
+                # floor points fit no rigid motion near it is trusted by neither (see
+                # max_flow_residual_px; on a textured floor the residual means a smeared frame).
+                if cfg.forget_unverified:
+                    self.forget_motion()
+                self.steps_unverified += 1
                 return None
-            self._last_sure = match[3]
+            if step is None:
+                step = self._flow_only(prev, (t, small), pair, body_twist, refine)
+                if step is None:
+                    return None
+            else:
+                self._last_sure = match[3]
         self._intervals.append(dt / stride)
         self._update_pitch(t, walk_speed)
         return step
+
+    def _flow_only(
+        self,
+        prev: tuple[float, np.ndarray],
+        cur: tuple[float, np.ndarray],
+        grays: tuple[np.ndarray, np.ndarray] | None,
+        body_twist: np.ndarray | None,
+        refine: bool,
+    ) -> OdometryStep | None:
+        """The step the patch could not match, measured by the floor flow alone from the walk's
+        predicted step (``flow_without_patch``), or None; its ``quality`` is 0 (no phase-correlation
+        peak stands behind it)."""
+        cfg = self.config
+        if not (cfg.flow_without_patch and refine and grays is not None and self._flow is not None):
+            return None
+        (t0, psmall), (t, small) = prev, cur
+        dt = t - t0
+        if self._last_twist is not None and 0.0 < t0 - self._last_twist[0] + 1e-9 <= cfg.turn_memory * cfg.max_dt:
+            guess = self._last_twist[1] * dt
+        elif body_twist is not None:
+            guess = np.asarray(body_twist, float)[:3] * dt
+        else:
+            return None
+        R_tilt = self._tilt(t0)
+        lean_known = self._lean(t0) is not None
+        flow = self._flow.refine(grays[0], grays[1], guess, dt, R_tilt)
+        self.last_flow_residual = self._flow.last_residual
+        if flow is None:
+            return None
+        self.flow_only_steps += 1
+        self._update_lean(t, flow.delta, dt)
+        self._last_turn = (t, float(flow.delta[2]) / dt)
+        self._last_twist = (t, flow.delta / dt)
+        if cfg.tilt_correction:
+            # (No patch match W: with the flow's fit, the tilt change is the flow's own.)
+            delta = self._untilted_step(small, psmall, None, flow.delta, t0, t, R_tilt, flow, refine, lean_known)
+        else:
+            delta = flow.delta
+        cov = self.covariance(delta) * flow_cov_scale(flow.residual_px, cfg)
+        return OdometryStep(t0, t, delta, cov, 0.0)
 
     def _twist(self, t: float, body_twist: np.ndarray | None) -> np.ndarray | None:
         """The body twist for a rolling-shutter patch at ``t``: ``body_twist`` (the tracker's
@@ -1338,7 +1427,7 @@ class FloorOdometry:
         self,
         small: np.ndarray,
         psmall: np.ndarray,
-        W: np.ndarray,
+        W: np.ndarray | None,
         delta: np.ndarray,
         t0: float,
         t1: float,
