@@ -115,22 +115,26 @@ def stop_walk(tmp_path_factory) -> Path:
     return path
 
 
-def _deltas(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(errors (N, 3) or NaN rows where refused, NEES (N,)) of the odometry against the true motion of
-    the vest (the camera carried to the body origin through the nominal rig), which it measures."""
+def _steps_on(
+    path: Path, config: OdometryConfig | None = None, predicted: bool = False
+) -> tuple[np.ndarray, np.ndarray, FloorOdometry]:
+    """(errors (N, 3) or NaN rows where refused, NEES (N,), the odometry) of ``config``'s odometry
+    against the true motion of the vest (the camera carried to the body origin through the nominal
+    rig), which it measures. ``predicted``: the tracker's prediction (``measure``'s ``body_twist``)
+    played by the true motion."""
     cv2.setNumThreads(1)
     session = SessionReader(path)
     gt = [json.loads(line) for line in (path / "groundtruth_frames.jsonl").read_text().splitlines()]
-    odo = FloorOdometry(session.rig[0])
+    odo = FloorOdometry(session.rig[0], config)
     T_camera_body = np.linalg.inv(session.rig[0].T_body_camera)
     errs, nees = [], []
     for fr in session.frames():
-        step = odo.measure(fr.image, fr.timestamp)
         if fr.index == 0:
-            assert step is None
+            assert odo.measure(fr.image, fr.timestamp) is None
             continue
         T0, T1 = (np.array(gt[k]["T_world_camera"]) @ T_camera_body for k in (fr.index - 1, fr.index))
         truth = np.array(planar_from_T(np.linalg.inv(T0) @ T1))
+        step = odo.measure(fr.image, fr.timestamp, truth * FPS if predicted else None)
         if step is None:
             errs.append(np.full(3, np.nan))
             nees.append(np.nan)
@@ -140,7 +144,12 @@ def _deltas(path: Path) -> tuple[np.ndarray, np.ndarray]:
         errs.append(e)
         nees.append(float(e @ np.linalg.solve(step.cov, e)))
         assert step.t1 - step.t0 == pytest.approx(1 / FPS, abs=1e-6)
-    return np.array(errs), np.array(nees)
+    return np.array(errs), np.array(nees), odo
+
+
+def _deltas(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_steps_on` with the default odometry: (errors, NEES)."""
+    return _steps_on(path)[:2]
 
 
 def test_deltas_match_groundtruth(stop_walk):
@@ -1229,33 +1238,6 @@ def plain_floor_walk(tmp_path_factory) -> Path:
     return path
 
 
-def _steps_on(path: Path, config: OdometryConfig) -> tuple[np.ndarray, np.ndarray, FloorOdometry]:
-    """(errors (N, 3), NaN rows where refused; NEES (N,)) of ``config``'s odometry on the session,
-    the tracker's prediction played by the true motion."""
-    cv2.setNumThreads(1)
-    session = SessionReader(path)
-    gt = [json.loads(line) for line in (path / "groundtruth_frames.jsonl").read_text().splitlines()]
-    odo = FloorOdometry(session.rig[0], config)
-    T_camera_body = np.linalg.inv(session.rig[0].T_body_camera)
-    errs, nees = [], []
-    for fr in session.frames():
-        if fr.index == 0:
-            odo.measure(fr.image, fr.timestamp)
-            continue
-        T0, T1 = (np.array(gt[k]["T_world_camera"]) @ T_camera_body for k in (fr.index - 1, fr.index))
-        truth = np.array(planar_from_T(np.linalg.inv(T0) @ T1))
-        step = odo.measure(fr.image, fr.timestamp, truth * FPS)
-        if step is None:
-            errs.append(np.full(3, np.nan))
-            nees.append(np.nan)
-            continue
-        e = step.delta - truth
-        e[2] = (e[2] + np.pi) % (2 * np.pi) - np.pi
-        errs.append(e)
-        nees.append(float(e @ np.linalg.solve(step.cov, e)))
-    return np.array(errs), np.array(nees), odo
-
-
 def test_a_plainer_floor_keeps_its_steps_and_their_honesty(plain_floor_walk):
     """On half the texture contrast the flow's right fits leave ~2.2 px (0.9 on the reference floor),
     so the fixed limits refused the flow in every turn and the patch's steps stood (yaw 0.15 deg a
@@ -1263,7 +1245,7 @@ def test_a_plainer_floor_keeps_its_steps_and_their_honesty(plain_floor_walk):
     cannot match, nine steps in ten are measured, and within their stated covariance."""
     from tagloc.vision.floor_flow import FloorFlowConfig
 
-    errs, nees, odo = _steps_on(plain_floor_walk, OdometryConfig())
+    errs, nees, odo = _steps_on(plain_floor_walk, OdometryConfig(), predicted=True)
     ok = np.isfinite(nees)
     assert ok.mean() > 0.85 and odo.flow_only_steps > 0
     assert np.sqrt(np.mean(errs[ok, 2] ** 2)) < math.radians(0.12)
@@ -1274,6 +1256,6 @@ def test_a_plainer_floor_keeps_its_steps_and_their_honesty(plain_floor_walk):
         max_flow_residual_px=math.inf,
         flow_config=FloorFlowConfig(max_residual_ratio=0.0, fast_turn_residual_ratio=0.0),
     )
-    errs_f, nees_f, odo_f = _steps_on(plain_floor_walk, fixed)
+    errs_f, nees_f, odo_f = _steps_on(plain_floor_walk, fixed, predicted=True)
     ok_f = np.isfinite(nees_f)
     assert ok_f.mean() < ok.mean() - 0.1 and odo_f.flow_refused > 20
