@@ -24,11 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from tagloc.core.errors import InputError
-from tagloc.eval.baselines import make_localiser
-from tagloc.eval.evaluate import frames_before_sticker, read_frame_truth
+from tagloc.eval.evaluate import score_session
 from tagloc.eval.metrics import gt_covers, trajectory_errors
-from tagloc.io.session import SessionReader
-from tagloc.pipeline.run import run_session
 
 #: The bar ``tagloc eval``'s "<10 cm of all frames" counts against (m).
 BAR_M = 0.10
@@ -38,19 +35,15 @@ COLUMNS = ("before sticker", "to first pose", "no pose later", "over 10 cm", "wi
 def misses(path: Path) -> dict[str, int]:
     """The frames of the session at ``path`` that its ground truth covers, counted by
     :data:`COLUMNS` (see the module)."""
-    session = SessionReader(path)
-    gt = session.groundtruth()
-    truth = read_frame_truth(path)
-    if gt is None or truth is None:
-        raise InputError(f"{path}: wants groundtruth.tum and groundtruth_frames.jsonl (a simulated session)")
-    loc = make_localiser("full", session.map, session.rig, map_path=session.map_path)
-    log = run_session(session, localiser=loc, progress=False)
+    row, _, log, gt = score_session(path, "full", progress=False)
+    if row["frames_before_sticker"] is None:
+        raise InputError(f"{path}: wants groundtruth_frames.jsonl (a simulated session)")
     covered = gt_covers(log.stamps, gt[0])
     k = np.arange(len(log.stamps))
     posed = np.flatnonzero(log.valid & covered)
     first_pose = int(posed[0]) if len(posed) else len(k)
     first_covered = int(np.flatnonzero(covered)[0]) if covered.any() else len(k)
-    sticker_at = first_covered + (frames_before_sticker(truth) or 0)
+    sticker_at = first_covered + row["frames_before_sticker"]
     err = np.full(len(k), np.nan)
     e = trajectory_errors(log.stamps[posed], log.poses[posed], log.covs[posed], *gt)
     err[posed[e.inside]] = e.position

@@ -1060,6 +1060,14 @@ class FloorOdometry:
         self._last_sure = False
         self.forget_motion()
 
+    def _learn_motion(self, t: float, level: np.ndarray, dt: float) -> None:
+        """Note what a step ``level`` (3,) (dx, dy, dyaw, level body frame) over ``dt`` s ending at
+        ``t`` says of the walk for the next ones: the lean into the turn, the turn guess and the
+        twist (what :meth:`forget_motion` forgets)."""
+        self._update_lean(t, level, dt)
+        self._last_turn = (t, float(level[2]) / dt)
+        self._last_twist = (t, level / dt)
+
     def forget_motion(self) -> None:
         """Forget what the last steps said of the walk (the turn guess, the last twist, the lean into
         the turn, the pitch with speed changes, the torso's filtered tilt), keeping the last frame:
@@ -1213,12 +1221,11 @@ class FloorOdometry:
         else:
             step = self._step(prev, (t, small), match, pair if refine else None, refine=refine)
             cfg, residual = self.config, self.last_flow_residual
-            floor_px = self._flow.residual_floor() if self._flow is not None else None
             if (
                 step is not None
                 and residual is not None
                 and residual > cfg.max_flow_residual_px
-                and (floor_px or 0.0) >= cfg.plain_floor_residual_px
+                and (self._flow.residual_floor() or 0.0) >= cfg.plain_floor_residual_px
             ):
                 # On a floor this plain the patch is as noise-bound as the flow, so a step whose
                 # floor points fit no rigid motion near it is trusted by neither (see
@@ -1253,7 +1260,7 @@ class FloorOdometry:
             return None
         (t0, psmall), (t, small) = prev, cur
         dt = t - t0
-        if self._last_twist is not None and 0.0 < t0 - self._last_twist[0] + 1e-9 <= cfg.turn_memory * cfg.max_dt:
+        if self._last_twist is not None and 0.0 <= t0 - self._last_twist[0] <= cfg.turn_memory * cfg.max_dt:
             guess = self._last_twist[1] * dt
         elif body_twist is not None:
             guess = np.asarray(body_twist, float)[:3] * dt
@@ -1266,9 +1273,7 @@ class FloorOdometry:
         if flow is None:
             return None
         self.flow_only_steps += 1
-        self._update_lean(t, flow.delta, dt)
-        self._last_turn = (t, float(flow.delta[2]) / dt)
-        self._last_twist = (t, flow.delta / dt)
+        self._learn_motion(t, flow.delta, dt)
         if cfg.tilt_correction:
             # (No patch match W: with the flow's fit, the tilt change is the flow's own.)
             delta = self._untilted_step(small, psmall, None, flow.delta, t0, t, R_tilt, flow, refine, lean_known)
@@ -1401,11 +1406,9 @@ class FloorOdometry:
             level = self.body_motion(W[:, :2], W[:, 2])
         else:
             level = self.level_motion(W[:, :2], W[:, 2], R_tilt, small)
-        self._update_lean(t, level, dt)
         # The rigid match guides the next frame (turn guess, rolling-shutter remap); the step
         # reported also has the tilt's change between the two frames taken out.
-        self._last_turn = (t, float(level[2]) / dt)
-        self._last_twist = (t, level / dt)
+        self._learn_motion(t, level, dt)
         flow = None
         if grays is not None and self._flow is not None:
             flow = self._flow.refine(grays[0], grays[1], level, dt, R_tilt)
