@@ -810,15 +810,15 @@ def test_pitch_lean_of_braking_keeps_the_step_length():
     assert odo._pitch(5 / FPS) == 0.0
 
 
-def _rendered_pair() -> tuple[RigCamera, list[np.ndarray]]:
-    """A 55-degree rig camera and two rendered frames of plain floor 4 cm of forward walking apart
-    (200 lux)."""
+def _rendered_pair(scale: float = 1.0) -> tuple[RigCamera, list[np.ndarray]]:
+    """A 55-degree rig camera (the reference camera's resolution times ``scale``) and two rendered
+    frames of plain floor 4 cm of forward walking apart (200 lux)."""
     from tagloc.core.geometry import planar_T
     from tagloc.core.stickermap import StickerMap
     from tagloc.sim.floor import Floor, FloorConfig
     from tagloc.sim.simulate import render_view
 
-    rc = rig_camera(55.0)
+    rc = rig_camera(55.0, scale)
     floor = Floor(StickerMap(np.array([1]), np.array([[50.0, 50.0]]), np.array([0.0])), FloorConfig(), seed=4)
     poses = [planar_T(2.0, 1.0, 0.4), planar_T(2.0, 1.0, 0.4) @ planar_T(0.04, 0.0, 0.0)]
     return rc, [render_view(floor, rc.camera, T @ rc.T_body_camera, lux=200, seed=k).image for k, T in enumerate(poses)]
@@ -1168,6 +1168,34 @@ def test_the_flow_measures_a_step_the_patch_cannot_match(monkeypatch):
     assert np.allclose(s.cov, odo.covariance(s.delta) * flow_cov_scale(odo.last_flow_residual, odo.config))
     assert step(None)[1] is None  # nothing to start the flow from
     assert step(predicted, flow_without_patch=False)[1] is None
+
+
+def test_a_coarser_camera_measures_no_step_by_the_flow_alone(monkeypatch):
+    """With pixels twice the reference camera's, the flow's fit follows its start where the floor is
+    smeared, and runs of such steps drifted overconfidently, so a step the patch cannot match is
+    not measured by the flow alone there (``flow_without_patch_max_scale``); allowed, the same
+    rendered pair gives the step."""
+    rc, imgs = _rendered_pair(0.5)
+    real = cv2.findTransformECC
+
+    def no_match(*args):
+        _, W = real(*args)
+        return 0.05, W
+
+    monkeypatch.setattr(cv2, "findTransformECC", no_match)
+    predicted = np.array([0.035 * FPS, 0.003 * FPS, math.radians(0.3) * FPS])
+
+    def step(**cfg):
+        odo = FloorOdometry(rc, OdometryConfig(**cfg))
+        odo.measure(imgs[0], 0.0, predicted)
+        return odo, odo.measure(imgs[1], 1 / FPS, predicted)
+
+    odo, s = step()
+    assert not odo.flow_without_patch and s is None and odo.flow_only_steps == 0
+    odo, s = step(flow_without_patch_max_scale=2.0)
+    assert odo.flow_without_patch and s is not None and odo.flow_only_steps == 1
+    assert abs(s.delta[0] - 0.04) < 4e-3
+    assert FloorOdometry(rig_camera(55.0), OdometryConfig()).flow_without_patch  # the reference camera
 
 
 def test_a_patch_step_the_flow_cannot_verify_on_a_plain_floor_is_refused(monkeypatch):

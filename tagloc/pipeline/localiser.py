@@ -1153,7 +1153,7 @@ class Localiser:
         velocity = self.tracker.velocity()
         # The walk's predicted motion: a rolling-shutter patch's remap, and where the patch finds no
         # match, the floor flow's start (OdometryConfig.flow_without_patch).
-        wants_twist = self.rig[camera].readout_s > 0 or (odo is not None and odo.config.flow_without_patch)
+        wants_twist = self.rig[camera].readout_s > 0 or (odo is not None and odo.flow_without_patch)
         twist = velocity if wants_twist else None
         speed = None if velocity is None else float(velocity[0])
         self.counts["flow_skipped"] += odo is not None and not refine

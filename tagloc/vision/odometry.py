@@ -221,6 +221,26 @@ class OdometryConfig:
       on concrete of half the texture contrast it failed in a third of the frames, and with this
       (and the flow's limits that follow the floor) the three walks came out 3.4 cm RMS against
       10.0 (``benchmarks/eval_variants.py``, 2026-11-30).
+      ``flow_without_patch_max_scale``: only cameras whose pixels are at most this many times the
+      reference camera's (:func:`tagloc.core.camera.pixel_scale`) do so. Without the patch's
+      match, nothing independent starts the fit or checks it: each flow-only step is fitted from
+      the last one (or the tracker's prediction, which those steps feed), so where the fit cannot
+      pull away from its start, it measures its start and the error is carried on from step to
+      step. At 648 x 486 (pixels twice the reference's), on the field walk f01 (60 lux, 1.6 m/s,
+      the floor 1.8 m away and smeared along the walk), 21 flow-only steps in 0.74 s each
+      ended within a few millimetres of its start while the truth stayed at 61 mm a step: the
+      fitted forward step shrank from 60 to 16 mm and the sideways one grew to 55 mm, each step
+      2-6 sigmas off, and the track ran 88 cm off at a NEES of 107 (the walk's NEES 10.2,
+      overconfident; ``tagloc eval --preset all --scale 0.5``, 2026-11-30). Without flow-only
+      steps there, no half-resolution preset walk is overconfident (field 21.3 cm RMS, NEES 0.95;
+      standard 266 cm, 0.75, s01 lost either way and s03 for seconds) against 16.7 cm at NEES
+      2.80 with them (standard 190 cm). Guessing the steps from the tracker, not letting them teach
+      the odometry the walk, fitting each a second time from a start 5 mm / 0.2 deg away and
+      refusing those that did not come back, or keeping their residuals out of the floor's took
+      that walk to 7-21 cm, but each made a half-contrast floor group of the reference camera
+      (the floors ``flow_without_patch`` is for) 2.5-4.6 cm worse (``benchmarks/eval_variants.py``,
+      2026-11-30). So it stays off there, as flattening does (``FloorFlowConfig.flatten_max_scale``),
+      until the fit can say how well it measured.
     - ``min_response``: phase-correlation peak. Independent sensor noise on a blank floor gives
       0.04 (median; up to 0.1 in 40 trials); consecutive frames of simulated concrete 0.3-0.6
       (median per session, lux 50-300), down to ~0.05 only under the heaviest blur.
@@ -576,6 +596,7 @@ class OdometryConfig:
     stride_max_turn_rate: float = math.radians(10.0)
     flow: bool = True
     flow_without_patch: bool = True
+    flow_without_patch_max_scale: float = 1.0
     flow_config: FloorFlowConfig = field(default_factory=FloorFlowConfig)
 
 
@@ -951,6 +972,13 @@ class FloorOdometry:
         # when it made none (see FloorFlow.last_residual).
         self.last_flow_residual: float | None = None
         self._pixel_scale = pixel_scale(rig_camera.camera)
+        #: Whether a step the patch cannot match is measured by the floor flow alone (see
+        #: ``flow_without_patch`` and ``flow_without_patch_max_scale``).
+        self.flow_without_patch = (
+            cfg.flow_without_patch
+            and self._flow is not None
+            and self._pixel_scale <= cfg.flow_without_patch_max_scale * (1 + 1e-6)
+        )
         self._torso = (
             TorsoTilt(
                 cfg.tilt_sigma_pitch,
@@ -1256,7 +1284,7 @@ class FloorOdometry:
         predicted step (``flow_without_patch``), or None; its ``quality`` is 0 (no phase-correlation
         peak stands behind it)."""
         cfg = self.config
-        if not (cfg.flow_without_patch and refine and grays is not None and self._flow is not None):
+        if not (self.flow_without_patch and refine and grays is not None):
             return None
         (t0, psmall), (t, small) = prev, cur
         dt = t - t0
