@@ -428,12 +428,15 @@ class FloorFlow:
         x, med, n = fit
         self.last_residual = med
         fast = abs(g[2]) > cfg.max_turn_rate * dt
-        limit, fast_limit = self.residual_limits()
+        # The floor's limits are never below the fixed ones, so the recent fits' median is only
+        # needed for a fit over those (taken before this fit joins them).
+        fixed = cfg.fast_turn_max_residual_px if fast else cfg.max_residual_px
+        too_far = med > fixed and med > self.residual_limits()[1 if fast else 0]
         if not fast and math.isfinite(med):
             self._floor_residuals.append(med)
         if (
             not np.all(np.isfinite(x))
-            or med > (fast_limit if fast else limit)
+            or too_far
             or math.hypot(x[0] - g[0], x[1] - g[1]) > cfg.max_disagreement_m
             or abs(x[2] - g[2]) > cfg.max_disagreement_rad
         ):
