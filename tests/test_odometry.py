@@ -1198,25 +1198,33 @@ def test_a_coarser_camera_measures_no_step_by_the_flow_alone(monkeypatch):
     assert FloorOdometry(rig_camera(55.0), OdometryConfig()).flow_without_patch  # the reference camera
 
 
+def _step_with_flow_refused(monkeypatch, pair, residual_px: float | None, floor_px: float | None, **cfg):
+    """The odometry (``OdometryConfig(**cfg)``) and its step between the rendered ``pair``'s two
+    frames with the floor flow's fit refused at median residual ``residual_px`` on a floor whose
+    right fits leave ``floor_px`` (None: not known yet)."""
+    from tagloc.vision.floor_flow import FloorFlow
+
+    def refused(self, *args, **kwargs):
+        self.last_residual = residual_px
+        return None
+
+    monkeypatch.setattr(FloorFlow, "refine", refused)
+    monkeypatch.setattr(FloorFlow, "residual_floor", lambda self: floor_px)
+    rc, imgs = pair
+    odo = FloorOdometry(rc, OdometryConfig(**cfg))
+    odo.measure(imgs[0], 0.0)
+    return odo, odo.measure(imgs[1], 1 / FPS)
+
+
 def test_a_patch_step_the_flow_cannot_verify_on_a_plain_floor_is_refused(monkeypatch):
     """On a floor whose right fits leave ``plain_floor_residual_px`` or more, a patch step whose
     floor-flow fit left more than ``max_flow_residual_px`` (median) is refused and counted; below
     the limit, or on a textured floor (a frame smeared in a fast turn), the patch's step stands.
     What the refused step taught the odometry is kept unless ``forget_unverified``."""
-    from tagloc.vision.floor_flow import FloorFlow
-
-    rc, imgs = _rendered_pair()
+    pair = _rendered_pair()
 
     def step(residual_px: float, floor_px: float | None, **cfg):
-        def refused(self, *args, **kwargs):
-            self.last_residual = residual_px
-            return None
-
-        monkeypatch.setattr(FloorFlow, "refine", refused)
-        monkeypatch.setattr(FloorFlow, "residual_floor", lambda self: floor_px)
-        odo = FloorOdometry(rc, OdometryConfig(**cfg))
-        odo.measure(imgs[0], 0.0)
-        return odo, odo.measure(imgs[1], 1 / FPS)
+        return _step_with_flow_refused(monkeypatch, pair, residual_px, floor_px, **cfg)
 
     odo, s = step(4.0, 2.5)
     assert s is not None and odo.steps_unverified == 0 and odo.flow_refused == 1
@@ -1229,6 +1237,35 @@ def test_a_patch_step_the_flow_cannot_verify_on_a_plain_floor_is_refused(monkeyp
     assert odo._last_twist is not None
     odo, s = step(6.0, 2.5, forget_unverified=True)
     assert s is None and odo._last_turn is None and odo._last_twist is None
+
+
+def test_a_patch_step_the_flow_refused_states_its_covariance_by_the_residual(monkeypatch):
+    """Where the floor flow refused its fit for a residual ``r`` above its limit on this floor
+    (:meth:`FloorFlow.residual_limits`) and the patch's step stands, the step's covariance is
+    ``(r / limit) ** refused_flow_cov_power`` times the patch's; a fit refused within the limit (a
+    fast turn), or with no residual at all, leaves it as it is; power 0 turns it off. On a plainer
+    floor, whose right fits leave more, the limit and so the knee rise with it."""
+    from tagloc.vision.odometry import refused_flow_cov_scale
+
+    pair = _rendered_pair()
+
+    def step(residual_px: float | None, floor_px: float | None = None, **cfg) -> np.ndarray:
+        s = _step_with_flow_refused(monkeypatch, pair, residual_px, floor_px, **cfg)[1]
+        assert s is not None and abs(s.delta[0] - 0.04) < 3e-3
+        return s.cov
+
+    flow_cfg = OdometryConfig().flow_config
+    limit = flow_cfg.max_residual_px
+    base = step(None)
+    np.testing.assert_allclose(step(0.5 * limit), base)
+    np.testing.assert_allclose(step(2.0 * limit), 4.0 * base, rtol=1e-9)
+    np.testing.assert_allclose(step(2.0 * limit, refused_flow_cov_power=0.0), base)
+    plain = 2.2  # px left by the right fits on a floor of half the texture contrast
+    raised = min(flow_cfg.max_residual_cap_px, flow_cfg.max_residual_ratio * plain)
+    assert raised > limit
+    np.testing.assert_allclose(step(2.0 * limit, plain), (2.0 * limit / raised) ** 2 * base, rtol=1e-9)
+    assert refused_flow_cov_scale(float("nan"), limit, OdometryConfig()) == 1.0
+    assert refused_flow_cov_scale(3.0 * limit, limit, OdometryConfig(refused_flow_cov_power=1.0)) == pytest.approx(3.0)
 
 
 def test_the_flows_residual_limits_follow_the_floor():

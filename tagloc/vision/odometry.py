@@ -273,6 +273,22 @@ class OdometryConfig:
       patch's) keeps one very clean step from being taken as exact. 0: the sigmas above for every
       step, as before 2026-11-28 (see "Field physics" in the README for what the scaling does
       through the localiser).
+    - ``refused_flow_cov_power``: where the floor flow refused its fit of a step and the patch's
+      step stands (a frame smeared in a fast turn, see ``max_flow_residual_px``), the fit's median
+      reprojection error ``r`` (px) still says how far the frames are from any rigid floor motion,
+      and the patch was matched in the same frames. Beyond the flow's limit for a fit on this
+      floor (:meth:`tagloc.vision.floor_flow.FloorFlow.residual_limits`: 2.5 px on a textured
+      floor, rising on a plainer one whose right fits leave more) the step's covariance is
+      multiplied by ``(r / limit) ** refused_flow_cov_power``: power 2, an error proportional to
+      the motion no rigid fit explains (against the fixed 2.5 px, a half-contrast floor's ordinary
+      refused steps were inflated too). Measured against the true vest motion (every step the
+      localiser fuses, 2026-12-01; README, "Combined conditions"): such steps' mean 3-DoF NEES,
+      3 if honest, was 0.6-2.2 at any residual under 2.5 px, and above it 7.9 on the field
+      preset's walks (54 steps, median 1.7), 2.0 on the standard preset's (13) and 7.3 on ten
+      walks outside both presets (199; 4.6 at 3-4 px, 10.6 at 4-5 px, 10.9 at 5-7 px); with the
+      factor 2.6, 0.8 and 2.5 (``benchmarks/odometry_accuracy.py --in-localiser --by-residual``,
+      its ``patch`` rows). Whole walks move by 0.1 cm or less (mostly down) against a control
+      at power 0.01 (README, "Combined conditions"). 0: the patch's covariance as it is.
     - ``max_shift_frac``: shifts beyond this fraction of the patch leave too little overlap.
     - ``rotation_step``, ``max_rotation``: the grid of turn guesses tried when the match from the
       turn under way fails (a person turns at up to ~4 rad/s, 7.6 degrees between frames at
@@ -546,6 +562,7 @@ class OdometryConfig:
     flow_cov_ref_px: float = 1.33
     flow_cov_power: float = 4.0
     flow_cov_min_scale: float = 0.1
+    refused_flow_cov_power: float = 2.0
     max_shift_frac: float = 0.3
     rotation_step: float = math.radians(3.0)
     max_rotation: float = math.radians(9.0)
@@ -654,6 +671,17 @@ def flow_cov_scale(residual_px: float, config: OdometryConfig) -> float:
     if not (ref > 0.0 and math.isfinite(residual_px)):
         return 1.0
     return min(1.0, max(config.flow_cov_min_scale, (residual_px / ref) ** config.flow_cov_power))
+
+
+def refused_flow_cov_scale(residual_px: float | None, limit_px: float, config: OdometryConfig) -> float:
+    """Factor on the covariance of a patch step whose floor-flow fit was refused with median
+    reprojection error ``residual_px``, the flow's limit for a fit on this floor being ``limit_px``
+    (see ``OdometryConfig.refused_flow_cov_power``; 1 when off, the residual unknown or within the
+    limit)."""
+    power = config.refused_flow_cov_power
+    if not (power > 0.0 and limit_px > 0.0 and residual_px is not None and math.isfinite(residual_px)):
+        return 1.0
+    return max(1.0, (residual_px / limit_px) ** power)
 
 
 def overlap_mask(W: np.ndarray, m: int) -> np.ndarray:
@@ -897,6 +925,8 @@ class FloorOdometry:
                 "odometry flow_cov_ref_px must be >= 0, flow_cov_power > 0 and flow_cov_min_scale in (0, 1], got "
                 f"{cfg.flow_cov_ref_px}, {cfg.flow_cov_power}, {cfg.flow_cov_min_scale}"
             )
+        if not cfg.refused_flow_cov_power >= 0.0:
+            raise InputError(f"odometry refused_flow_cov_power must be >= 0, got {cfg.refused_flow_cov_power}")
         # Sampled from the half-resolution level (see ``patch_from_half``): half the samples per side.
         self._from_half = cfg.patch_from_half and pixel_scale(rig_camera.camera) <= 1.0 + 1e-6
         if self._from_half:
@@ -1452,6 +1482,11 @@ class FloorOdometry:
         cov = self.covariance(delta) * (1.0 if rho >= cfg.min_ecc else cfg.weak_ecc_cov_scale)
         if flow is not None:
             cov = cov * flow_cov_scale(flow.residual_px, cfg)
+        elif grays is not None and self._flow is not None:
+            r = self._flow.last_residual
+            # (The limits in force are never below the fixed one: below it nothing is scaled.)
+            if r is not None and r > cfg.flow_config.max_residual_px:
+                cov = cov * refused_flow_cov_scale(r, self._flow.residual_limits()[0], cfg)
         return OdometryStep(t0, t, delta, cov, float(response))
 
     def _untilted_step(
