@@ -1283,6 +1283,11 @@ def test_the_flows_residual_limits_follow_the_floor():
     assert flow.residual_limits() == pytest.approx((cfg.max_residual_ratio * 2.2, cfg.fast_turn_residual_ratio * 2.2))
     flow._floor_residuals.extend([4.5] * cfg.residual_floor_fits)  # too plain for the flow
     assert flow.residual_limits() == pytest.approx((cfg.max_residual_cap_px, cfg.max_residual_cap_px))
+    # A fit is judged by the fixed limit while within it, else by the floor's.
+    assert flow.limit_for(0.9 * cfg.max_residual_px) == cfg.max_residual_px
+    assert flow.limit_for(1.1 * cfg.max_residual_px) == pytest.approx(cfg.max_residual_cap_px)
+    assert flow.limit_for(1.1 * cfg.fast_turn_max_residual_px, fast=True) == pytest.approx(cfg.max_residual_cap_px)
+    assert flow.limit_for(float("nan")) == cfg.max_residual_px
 
 
 @pytest.fixture(scope="module")

@@ -374,6 +374,17 @@ class FloorFlow:
             min(cap, max(cfg.fast_turn_max_residual_px, cfg.fast_turn_residual_ratio * floor)),
         )
 
+    def limit_for(self, residual_px: float, fast: bool = False) -> float:
+        """The limit (px) a fit leaving median reprojection error ``residual_px`` is judged by,
+        outside a fast turn or in one (``fast``): the fixed one when the residual is within it (the
+        floor's limits are never below the fixed ones, so the recent fits' median is not needed),
+        else this floor's (:meth:`residual_limits`)."""
+        cfg = self.config
+        fixed = cfg.fast_turn_max_residual_px if fast else cfg.max_residual_px
+        if not residual_px > fixed:
+            return fixed
+        return self.residual_limits()[1 if fast else 0]
+
     def refine(
         self,
         gray0: np.ndarray,
@@ -428,10 +439,7 @@ class FloorFlow:
         x, med, n = fit
         self.last_residual = med
         fast = abs(g[2]) > cfg.max_turn_rate * dt
-        # The floor's limits are never below the fixed ones, so the recent fits' median is only
-        # needed for a fit over those (taken before this fit joins them).
-        fixed = cfg.fast_turn_max_residual_px if fast else cfg.max_residual_px
-        too_far = med > fixed and med > self.residual_limits()[1 if fast else 0]
+        too_far = med > self.limit_for(med, fast)  # (judged before this fit joins the floor's)
         if not fast and math.isfinite(med):
             self._floor_residuals.append(med)
         if (

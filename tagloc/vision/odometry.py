@@ -1482,11 +1482,9 @@ class FloorOdometry:
         cov = self.covariance(delta) * (1.0 if rho >= cfg.min_ecc else cfg.weak_ecc_cov_scale)
         if flow is not None:
             cov = cov * flow_cov_scale(flow.residual_px, cfg)
-        elif grays is not None and self._flow is not None:
+        elif grays is not None and self._flow is not None and self._flow.last_residual is not None:
             r = self._flow.last_residual
-            # (The limits in force are never below the fixed one: below it nothing is scaled.)
-            if r is not None and r > cfg.flow_config.max_residual_px:
-                cov = cov * refused_flow_cov_scale(r, self._flow.residual_limits()[0], cfg)
+            cov = cov * refused_flow_cov_scale(r, self._flow.limit_for(r), cfg)
         return OdometryStep(t0, t, delta, cov, float(response))
 
     def _untilted_step(
