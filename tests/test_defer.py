@@ -15,7 +15,7 @@ from tagloc.core.camera import default_camera
 from tagloc.core.geometry import make_T
 from tagloc.core.rig import Rig, RigCamera
 from tagloc.core.stickermap import StickerMap
-from tagloc.core.types import Frame, IdSource
+from tagloc.core.types import Frame, IdSource, TrackState
 from tagloc.eval.baselines import LiveOrderLocaliser, make_localiser
 from tagloc.eval.evaluate import wrong_id_fixes
 from tagloc.eval.metrics import trajectory_metrics
@@ -41,6 +41,12 @@ def _blurred_scene():
     return smap, rig, frame.image
 
 
+def _deferring() -> LocaliserConfig:
+    """A live configuration that defers the least-squares stage also while the tracker has no track
+    (``lsq_in_frame_untracked`` off): the one-sticker scene's first frame finds the tracker initialising."""
+    return LocaliserConfig(odometry=False, defer_lsq=True, lsq_in_frame_untracked=False)
+
+
 def _again(img: np.ndarray) -> np.ndarray:
     """The same view a frame later: one pixel's noise apart (a camera never gives the same image twice,
     and the localiser refuses a repeated one)."""
@@ -52,7 +58,7 @@ def _again(img: np.ndarray) -> np.ndarray:
 def test_deferred_work_leaves_the_tracker_where_the_frame_would_have():
     smap, rig, img = _blurred_scene()
     replay = Localiser(smap, rig, LocaliserConfig(odometry=False))
-    live = Localiser(smap, rig, LocaliserConfig(odometry=False, defer_lsq=True))
+    live = Localiser(smap, rig, _deferring())
     r0 = replay.process(Frame(0, 0.0, img))
     l0 = live.process(Frame(0, 0.0, img))
     assert r0.observations[0].identity.sticker_id == STICKER  # read by least squares in the frame
@@ -71,7 +77,7 @@ def test_deferred_work_leaves_the_tracker_where_the_frame_would_have():
 
 def test_undone_deferred_work_is_dropped_and_a_replay_defers_nothing():
     smap, rig, img = _blurred_scene()
-    live = Localiser(smap, rig, LocaliserConfig(odometry=False, defer_lsq=True))
+    live = Localiser(smap, rig, _deferring())
     live.process(Frame(0, 0.0, img))
     assert live.deferred_work(lambda: False) == 0  # a frame is waiting: nothing runs
     res = live.process(Frame(1, 1 / 30, _again(img)))
@@ -80,6 +86,28 @@ def test_undone_deferred_work_is_dropped_and_a_replay_defers_nothing():
     replay = Localiser(smap, rig, LocaliserConfig(odometry=False))
     replay.process(Frame(0, 0.0, img))
     assert replay.deferred_work() == 0
+
+
+def test_without_a_track_the_least_squares_stage_runs_in_the_frame():
+    """Initialising or lost, a read is the only way to a pose, and deferred work is dropped whenever a
+    frame waits (a core too slow for its camera): so ``defer_lsq`` puts nothing off then."""
+    smap, rig, img = _blurred_scene()
+    live = Localiser(smap, rig, LocaliserConfig(odometry=False, defer_lsq=True))
+    first = live.process(Frame(0, 0.0, img))
+    assert first.observations[0].identity.sticker_id == STICKER  # read in the frame, not put off
+    assert first.output.state is TrackState.TRACKING and live.counts["decoded"] == 1
+    assert live.deferred_work(lambda: False) == 0 and live.counts["lsq_deferred"] == 0
+    blank = np.full_like(img, 128)
+    for k, t in enumerate((1.0, 2.0)):  # nothing in view for two seconds: the track is lost
+        lost = live.process(Frame(1 + k, t, blank if k == 0 else _again(blank)))
+    assert lost.output.state is TrackState.LOST
+    back = live.process(Frame(3, 2.5, _again(img)))
+    assert back.observations[0].identity.sticker_id == STICKER and back.observations[0].accepted is True
+    assert back.output.state is TrackState.TRACKING and live.counts["lsq_deferred"] == 0
+    # Deferred while initialising when asked (lsq_in_frame_untracked off): the frame goes out unread.
+    asked = Localiser(smap, rig, _deferring())
+    assert asked.process(Frame(0, 0.0, img)).observations[0].identity is None
+    assert asked.deferred_work() == 1 and asked.counts["deferred_named"] == 1
 
 
 @pytest.fixture(scope="module")
@@ -348,7 +376,7 @@ def test_the_live_loops_frame_log_holds_the_fixes_deferred_work_made(blurred_wal
             assert d["index"] in seen  # after its own frame's line, with its time
         seen.add(d["index"])
     # The line's form, on a frame whose deferred decode named its sticker.
-    frame_loc = Localiser(*_blurred_scene()[:2], LocaliserConfig(odometry=False, defer_lsq=True))
+    frame_loc = Localiser(*_blurred_scene()[:2], _deferring())
     frame_loc.process(Frame(7, 0.25, _blurred_scene()[2]))
     frame_loc.deferred_work()
     doc = late_observations_json(7, 0.25, [o for _, o in frame_loc.late])
@@ -370,7 +398,7 @@ def test_the_live_loops_bag_holds_the_fixes_deferred_work_made(tmp_path):
     with SessionWriter(walk, smap, rig, SessionInfo(source="test", fps=2.0), image_ext=".png") as w:
         w.write(0, 0.0, img)
         w.write(1, 0.5, _again(img))  # half a second later: the first frame's deferred work has time
-    loc = Localiser(smap, rig, LocaliserConfig(odometry=False, defer_lsq=True))
+    loc = Localiser(smap, rig, _deferring())
     bag = tmp_path / "live.bag2"
     run_live(LiveConfig(source=str(walk), record_bag=bag), localiser=loc)
     assert loc.counts["deferred_fixes"] >= 1  # frame 0's sticker at least, named after the frame went out

@@ -155,6 +155,15 @@ class LocaliserConfig:
             next frame. Only the published pose of that one frame lacks the fix; the slowest stage
             leaves the frame's latency. Off for a replay (no wait between frames): results as
             before. Only with the "zxing" decoder (the stage belongs to it).
+        lsq_in_frame_untracked: with ``defer_lsq``, the least-squares stage still runs within the
+            frame while the tracker has no track (initialising, or lost): a read is then the only
+            way to a pose, and deferred work runs only while no frame waits, so on a core too
+            slow for the camera it never ran. On the field walk f01 (60 lux, where only that
+            stage reads the first stickers) with the camera five times faster than the core
+            (``benchmarks/load_shedding.py``), ``tagloc live`` stayed initialising for 2.5-7.1 s
+            (four runs); with this, 0.33 s, as at the camera's own rate. Those
+            frames publish no pose, so their latency costs nothing; a lost track's frames pay it
+            until a read places the operator again.
         defer_odometry: (``tagloc live``) the frame's floor-odometry step (2-4 ms) is measured and
             fused after its pose is published (first thing in :meth:`Localiser.deferred_work`, or
             at the start of the next frame if none ran), at its own frame's time, and the tilt
@@ -279,6 +288,7 @@ class LocaliserConfig:
     rs_image_velocity_max_dt: float = 0.05
     rs_corner_forget_s: float = 1.0
     defer_lsq: bool = False
+    lsq_in_frame_untracked: bool = True
     defer_odometry: bool = False
     tilt_gate_chi2: float = 13.8
     tilt_gate_hold: bool = False
@@ -1279,7 +1289,12 @@ class Localiser:
             and not (cfg.lsq_while_initialising and self.tracker.state is TrackState.INITIALISING)
         )
         self.counts["lsq_skipped"] += skip_lsq
-        defer = self.config.defer_lsq and self.config.decoder == "zxing" and not skip_lsq
+        defer = (
+            self.config.defer_lsq
+            and self.config.decoder == "zxing"
+            and not skip_lsq
+            and not (self.config.lsq_in_frame_untracked and self.tracker.state is not TrackState.TRACKING)
+        )
         read = self._decode(gray, det, rig_cam, timer, DecodeConfig(lsq=False) if skip_lsq or defer else None)
         if defer and read.identity is None and read.unmapped_id is None:
             self._pending.append((gray, det, rig_cam, camera, t, self._index))
