@@ -41,12 +41,6 @@ def _blurred_scene():
     return smap, rig, frame.image
 
 
-def _deferring() -> LocaliserConfig:
-    """A live configuration that defers the least-squares stage also while the tracker has no track
-    (``lsq_in_frame_untracked`` off): the one-sticker scene's first frame finds the tracker initialising."""
-    return LocaliserConfig(odometry=False, defer_lsq=True, lsq_in_frame_untracked=False)
-
-
 def _again(img: np.ndarray) -> np.ndarray:
     """The same view a frame later: one pixel's noise apart (a camera never gives the same image twice,
     and the localiser refuses a repeated one)."""
@@ -58,7 +52,7 @@ def _again(img: np.ndarray) -> np.ndarray:
 def test_deferred_work_leaves_the_tracker_where_the_frame_would_have():
     smap, rig, img = _blurred_scene()
     replay = Localiser(smap, rig, LocaliserConfig(odometry=False))
-    live = Localiser(smap, rig, _deferring())
+    live = Localiser(smap, rig, LocaliserConfig(odometry=False, defer_lsq=True))
     r0 = replay.process(Frame(0, 0.0, img))
     l0 = live.process(Frame(0, 0.0, img))
     assert r0.observations[0].identity.sticker_id == STICKER  # read by least squares in the frame
@@ -77,7 +71,8 @@ def test_deferred_work_leaves_the_tracker_where_the_frame_would_have():
 
 def test_undone_deferred_work_is_dropped_and_a_replay_defers_nothing():
     smap, rig, img = _blurred_scene()
-    live = Localiser(smap, rig, _deferring())
+    # (The scene's tracker is initialising: not finished regardless of time only when asked.)
+    live = Localiser(smap, rig, LocaliserConfig(odometry=False, defer_lsq=True, finish_lsq_untracked=False))
     live.process(Frame(0, 0.0, img))
     assert live.deferred_work(lambda: False) == 0  # a frame is waiting: nothing runs
     res = live.process(Frame(1, 1 / 30, _again(img)))
@@ -88,26 +83,23 @@ def test_undone_deferred_work_is_dropped_and_a_replay_defers_nothing():
     assert replay.deferred_work() == 0
 
 
-def test_without_a_track_the_least_squares_stage_runs_in_the_frame():
-    """Initialising or lost, a read is the only way to a pose, and deferred work is dropped whenever a
-    frame waits (a core too slow for its camera): so ``defer_lsq`` puts nothing off then."""
+def test_without_a_track_deferred_decodes_run_even_when_a_frame_waits():
+    """Initialising or lost, a read is the only way to a pose; on a core too slow for its camera a frame
+    always waits, so the deferred least-squares decodes run regardless (``finish_lsq_untracked``)."""
     smap, rig, img = _blurred_scene()
     live = Localiser(smap, rig, LocaliserConfig(odometry=False, defer_lsq=True))
     first = live.process(Frame(0, 0.0, img))
-    assert first.observations[0].identity.sticker_id == STICKER  # read in the frame, not put off
-    assert first.output.state is TrackState.TRACKING and live.counts["decoded"] == 1
-    assert live.deferred_work(lambda: False) == 0 and live.counts["lsq_deferred"] == 0
+    assert first.observations[0].identity is None and first.output.state is TrackState.INITIALISING  # put off
+    assert live.deferred_work(lambda: False) == 1  # a frame waits, and it runs all the same
+    assert live.counts["deferred_fixes"] == 1 and live.tracker.state is TrackState.TRACKING
     blank = np.full_like(img, 128)
     for k, t in enumerate((1.0, 2.0)):  # nothing in view for two seconds: the track is lost
         lost = live.process(Frame(1 + k, t, blank if k == 0 else _again(blank)))
     assert lost.output.state is TrackState.LOST
     back = live.process(Frame(3, 2.5, _again(img)))
-    assert back.observations[0].identity.sticker_id == STICKER and back.observations[0].accepted is True
-    assert back.output.state is TrackState.TRACKING and live.counts["lsq_deferred"] == 0
-    # Deferred while initialising when asked (lsq_in_frame_untracked off): the frame goes out unread.
-    asked = Localiser(smap, rig, _deferring())
-    assert asked.process(Frame(0, 0.0, img)).observations[0].identity is None
-    assert asked.deferred_work() == 1 and asked.counts["deferred_named"] == 1
+    assert back.observations[0].identity is None and back.output.state is TrackState.LOST
+    assert live.deferred_work(lambda: False) == 1 and live.counts["deferred_fixes"] == 2
+    assert live.tracker.state is TrackState.TRACKING and [o.identity.sticker_id for _, o in live.late] == [STICKER]
 
 
 @pytest.fixture(scope="module")
@@ -376,7 +368,7 @@ def test_the_live_loops_frame_log_holds_the_fixes_deferred_work_made(blurred_wal
             assert d["index"] in seen  # after its own frame's line, with its time
         seen.add(d["index"])
     # The line's form, on a frame whose deferred decode named its sticker.
-    frame_loc = Localiser(*_blurred_scene()[:2], _deferring())
+    frame_loc = Localiser(*_blurred_scene()[:2], LocaliserConfig(odometry=False, defer_lsq=True))
     frame_loc.process(Frame(7, 0.25, _blurred_scene()[2]))
     frame_loc.deferred_work()
     doc = late_observations_json(7, 0.25, [o for _, o in frame_loc.late])
@@ -398,7 +390,7 @@ def test_the_live_loops_bag_holds_the_fixes_deferred_work_made(tmp_path):
     with SessionWriter(walk, smap, rig, SessionInfo(source="test", fps=2.0), image_ext=".png") as w:
         w.write(0, 0.0, img)
         w.write(1, 0.5, _again(img))  # half a second later: the first frame's deferred work has time
-    loc = Localiser(smap, rig, _deferring())
+    loc = Localiser(smap, rig, LocaliserConfig(odometry=False, defer_lsq=True))
     bag = tmp_path / "live.bag2"
     run_live(LiveConfig(source=str(walk), record_bag=bag), localiser=loc)
     assert loc.counts["deferred_fixes"] >= 1  # frame 0's sticker at least, named after the frame went out
