@@ -429,12 +429,15 @@ def test_picamera2_without_sensor_timestamps_falls_back_to_grab_time(monkeypatch
     frames = []
     for _ in range(3):
         before = _time.time()
-        frames.append((before, src.read()))
+        f = src.read()
+        frames.append((before, f, _time.time()))
         _time.sleep(0.02)
     assert src.clock.startswith("grab") and src.stamp_at == capture.STAMP_GRAB
-    for before, f in frames:  # grab time - 10 ms (half the read-out) - 2 ms (half the exposure)
-        assert f.timestamp - before == pytest.approx(-0.012, abs=5e-3)
-    assert np.diff([f.timestamp for _, f in frames]).min() > 0.015
+    # Grab time - 10 ms (half the read-out) - 2 ms (half the exposure); the grab lies within the
+    # read, however long a loaded machine makes it (a fixed tolerance on the delay failed under load).
+    for before, f, after in frames:
+        assert before - 0.012 - 1e-4 <= f.timestamp <= after - 0.012 + 1e-4
+    assert np.diff([f.timestamp for _, f, _ in frames]).min() > 0.015
     src.close()
 
 
