@@ -396,9 +396,11 @@ def test_picamera2_sensor_timestamps_become_frame_times(monkeypatch):
     src.set_timing(0.024)
     before = _time.time()
     f = src.read()
+    after = _time.time()
     assert src.stamp_at == capture.STAMP_FRAME_START
-    # 40 ms before the read, then + 12 ms (half the read-out) - 3 ms (half the exposure).
-    assert f.timestamp - before == pytest.approx(-0.040 + 0.012 - 0.003, abs=3e-3)
+    # 40 ms before the read, then + 12 ms (half the read-out) - 3 ms (half the exposure): bounded by
+    # the times before and after the read, however long a loaded machine makes it.
+    assert before - 0.031 - 1e-4 <= f.timestamp <= after - 0.031 + 1e-4
     src.close()
 
 
