@@ -500,6 +500,19 @@ def test_load_shedding_shows_the_true_median_of_an_even_count_of_runs(monkeypatc
     assert _spread([7.0, 5.0, 6.0]) == "6.00 (5.00-7.00)"
 
 
+def test_load_shedding_counts_the_runs_that_went_wrong(monkeypatch):
+    """A run over 10 cm RMS, or with no pose at all, is counted: the median over runs hid them."""
+    import sys
+
+    monkeypatch.syspath_prepend(str(BENCHMARKS[0].parent))
+    sys.modules.pop("load_shedding", None)
+    from load_shedding import _over
+
+    runs = [{"rmse_cm": v} for v in (3.7, 31.4, 10.0, float("nan"), 4.1)]
+    assert _over(runs) == "2/5"
+    assert _over(runs[:1]) == "0/1"
+
+
 @pytest.mark.parametrize("script", BENCHMARKS, ids=lambda p: p.name)
 def test_every_benchmark_says_to_run_it_with_an_interpreter_that_exists(script):
     """bench_candidates.py said to run it with /opt/venv/bin/python, which is nowhere; a script names
