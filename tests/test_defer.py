@@ -71,7 +71,7 @@ def test_deferred_work_leaves_the_tracker_where_the_frame_would_have():
 
 def test_undone_deferred_work_is_dropped_and_a_replay_defers_nothing():
     smap, rig, img = _blurred_scene()
-    # (The scene's tracker is initialising: not finished regardless of time only when asked.)
+    # (The scene's tracker is initialising: with finish_lsq_untracked on, the decode would run anyway.)
     live = Localiser(smap, rig, LocaliserConfig(odometry=False, defer_lsq=True, finish_lsq_untracked=False))
     live.process(Frame(0, 0.0, img))
     assert live.deferred_work(lambda: False) == 0  # a frame is waiting: nothing runs
