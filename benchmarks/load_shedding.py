@@ -15,7 +15,11 @@ the published poses against the session's ground truth: RMSE over the frames wit
 share of *all* the session's frames published within 10 cm (a dropped frame publishes nothing).
 Per setting, ``over 10 cm`` counts the runs whose RMSE is over 10 cm (or that published no pose):
 a run whose track went wrong, which a median over runs hides (on the field walk f01 at 5x, 1-2 of
-6 runs, 2026-12-01; see the README's Speed section).
+6 runs, 2026-12-01; see the README's Speed section). ``NEES``: the runs' mean position NEES (2 DoF),
+and ``overconfident`` counts the runs above their own effective-sample bound (``tagloc eval``'s
+verdict; over one 20 s walk that bound is wide), and ``beyond 99.9 %`` is the share of frames
+whose NEES is past chi^2's 99.9 % point (13.8), 0.1 % for a consistent filter: a track that went
+wrong while it stated itself sure, which a robot manager cannot see.
 
 Run (from the repository root)::
 
@@ -36,11 +40,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+#: chi^2 with 2 DoF at 99.9 %: a consistent filter's position NEES passes it on 0.1 % of frames.
+NEES_999 = 13.82
+
 
 def run_once(session: Path, slowdown: float, shed: bool) -> dict:
     """One live run of ``session`` delivered ``slowdown`` times faster than its rate, with or without
     load shedding: counts, latency and the published poses' errors."""
     import tagloc.apps.live as live
+    from tagloc.eval.consistency import nees_blocks, nees_test
     from tagloc.eval.metrics import trajectory_errors
     from tagloc.io.capture import FrameSource
     from tagloc.io.session import SessionReader
@@ -85,6 +93,8 @@ def run_once(session: Path, slowdown: float, shed: bool) -> dict:
     covs = np.array([o["cov"] for o in outs]).reshape(-1, 3, 3)
     e = trajectory_errors(stamps, poses, covs, *reader.groundtruth())
     counts = loc.stats()
+    # The run judged by its own effective-sample bounds, as tagloc eval judges a walk.
+    test = nees_test(nees_blocks(e.stamps, e.nees))
     return {
         "slowdown": slowdown,
         "shed": shed,
@@ -98,6 +108,9 @@ def run_once(session: Path, slowdown: float, shed: bool) -> dict:
         "p99_ms": summary.latency(99),
         "rmse_cm": float(np.sqrt(np.mean(e.position**2)) * 100) if len(e.position) else float("nan"),
         "within_10cm_of_all": float(np.sum(e.position < 0.10) / len(frames)),
+        "nees": test.mean,
+        "nees_verdict": test.verdict,
+        "beyond_999": float(np.mean(e.nees > NEES_999)) if len(e.nees) else float("nan"),
     }
 
 
@@ -111,6 +124,12 @@ def _over(runs: list[dict], limit_cm: float = 10.0) -> str:
     """``n/N``: how many of the ``runs`` came out over ``limit_cm`` RMS, or with no pose at all (NaN)."""
     bad = sum(not r["rmse_cm"] <= limit_cm for r in runs)
     return f"{bad}/{len(runs)}"
+
+
+def _overconfident(runs: list[dict]) -> str:
+    """``n/N``: how many of the ``runs`` stated their position as surer than it was (mean position
+    NEES above the run's own effective-sample bound, ``tagloc eval``'s verdict)."""
+    return f"{sum(r['nees_verdict'] == 'overconfident' for r in runs)}/{len(runs)}"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -135,7 +154,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"tagloc live on {args.session}, the camera k times faster (a core k times slower), {args.repeat} runs each")
     print(
         f"{'k':>4} {'shedding':>8} {'processed':>10} {'dropped':>8} {'strided':>8} {'flow skip':>9} "
-        f"{'p99 ms':>20} {'RMSE cm':>20} {'<10 cm of all':>22} {'over 10 cm':>10}"
+        f"{'p99 ms':>20} {'RMSE cm':>20} {'<10 cm of all':>22} {'over 10 cm':>10} {'NEES':>20} {'overconfident':>13} "
+        f"{'beyond 99.9 %':>14}"
     )
     for k in slowdowns:
         for shed in (True, False):
@@ -146,7 +166,9 @@ def main(argv: list[str] | None = None) -> int:
                 f"{_spread([r['dropped'] for r in rs], '{:g}'):>8} {_spread([r['strided'] for r in rs], '{:g}'):>8} "
                 f"{_spread([r['flow_skipped'] for r in rs], '{:g}'):>9} {_spread([r['p99_ms'] for r in rs]):>20} "
                 f"{_spread([r['rmse_cm'] for r in rs]):>20} "
-                f"{_spread([100 * r['within_10cm_of_all'] for r in rs], '{:.1f}'):>22} {_over(rs):>10}",
+                f"{_spread([100 * r['within_10cm_of_all'] for r in rs], '{:.1f}'):>22} {_over(rs):>10} "
+                f"{_spread([r['nees'] for r in rs]):>20} {_overconfident(rs):>13} "
+                f"{_spread([100 * r['beyond_999'] for r in rs], '{:.1f}'):>14}",
                 flush=True,
             )
     if args.json is not None:

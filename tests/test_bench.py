@@ -606,3 +606,40 @@ def test_coverage_misses_accounts_for_every_frame_of_the_bundled_walk():
     assert set(row) == set(COLUMNS)
     assert sum(row.values()) == len(SessionReader(walk))
     assert row["before sticker"] == 0 and row["over 10 cm"] == 0 and row["within"] >= 0.95 * sum(row.values())
+
+
+def test_load_shedding_counts_the_runs_stated_surer_than_they_were(monkeypatch):
+    """A run whose NEES is above its own bound is counted: a track gone wrong while stating itself
+    sure, which the RMSE column cannot tell from one that says it is lost."""
+    import sys
+
+    monkeypatch.syspath_prepend(str(BENCHMARKS[0].parent))
+    sys.modules.pop("load_shedding", None)
+    from load_shedding import _overconfident
+
+    runs = [{"nees_verdict": v} for v in ("consistent", "overconfident", "conservative", "too short", "overconfident")]
+    assert _overconfident(runs) == "2/5"
+    assert _overconfident(runs[:1]) == "0/1"
+
+
+def test_load_shedding_judges_each_run_by_its_own_nees_bound(monkeypatch, tmp_path):
+    """One live run of a bright 11 s walk (three of eval's 5 s NEES blocks) at the camera's own rate:
+    its published poses are scored against the walk's truth, NEES included, and judged as tagloc
+    eval judges a walk."""
+    import sys
+
+    from tagloc.sim.mapgen import GridMapConfig, grid_map
+    from tagloc.sim.simulate import SimConfig, simulate_session
+
+    monkeypatch.syspath_prepend(str(BENCHMARKS[0].parent))
+    sys.modules.pop("load_shedding", None)
+    from load_shedding import run_once
+
+    smap = grid_map(GridMapConfig(width_m=12, depth_m=10, spacing_min_m=1.2, spacing_max_m=1.6, seed=2))
+    simulate_session(smap, tmp_path / "walk", SimConfig(seconds=11, lux=300, speed_mps=1.2, seed=2), progress=False)
+    r = run_once(tmp_path / "walk", 1.0, True)
+    assert r["rmse_cm"] < 5.0
+    # A bright walk the tracker follows: no wilder than the bound a consistent filter would keep.
+    assert 0.0 < r["nees"] < 5.0
+    assert r["nees_verdict"] in ("consistent", "conservative")
+    assert r["beyond_999"] < 0.02  # a consistent filter's share is 0.1 %

@@ -1329,3 +1329,31 @@ def test_a_plainer_floor_keeps_its_steps_and_their_honesty(plain_floor_walk):
     errs_f, nees_f, odo_f = _steps_on(plain_floor_walk, fixed, predicted=True)
     ok_f = np.isfinite(nees_f)
     assert ok_f.mean() < ok.mean() - 0.1 and odo_f.flow_refused > 20
+
+
+@pytest.mark.parametrize("turn_deg", [16.0, -16.0])
+def test_a_turn_over_a_longer_interval_is_searched_as_far_as_a_person_turns(turn_deg):
+    """A step over 0.1 s (two frames lost, or a core three times too slow) of a walker turning at
+    160 deg/s turns 16 deg, beyond the fixed 9 deg of the turn guesses: the search reaches as far
+    as ``max_turn_rate`` allows over the interval."""
+    from tagloc.core.geometry import planar_T
+    from tagloc.sim.floor import Floor, FloorConfig
+    from tagloc.sim.simulate import render_view
+
+    rc = RigCamera("front", default_camera(), looking_forward(1.3, 55.0), legs_in_view=False)
+    smap = grid_map(GridMapConfig(width_m=8, depth_m=8, spacing_min_m=1.6, spacing_max_m=2.0, seed=4))
+    floor = Floor(smap, FloorConfig(), seed=4)
+    turn = math.radians(turn_deg)
+    poses = [planar_T(3.1, 2.3, 0.4)]
+    poses.append(poses[0] @ planar_T(0.03, 0.0, turn))
+    imgs = [render_view(floor, rc.camera, T @ rc.T_body_camera, lux=150, seed=k).image for k, T in enumerate(poses)]
+
+    def measured(**cfg):
+        odo = FloorOdometry(rc, OdometryConfig(lean_correction=False, **cfg))
+        odo.measure(imgs[0], 0.0)
+        return odo.measure(imgs[1], 0.1)
+
+    step = measured()
+    assert step is not None and abs(step.delta[2] - turn) < math.radians(0.4)
+    fixed = measured(max_turn_rate=0.0)
+    assert fixed is None or abs(fixed.delta[2] - turn) > math.radians(2.0)

@@ -290,9 +290,12 @@ class OdometryConfig:
       its ``patch`` rows). Whole walks move by 0.1 cm or less (mostly down) against a control
       at power 0.01 (README, "Combined conditions"). 0: the patch's covariance as it is.
     - ``max_shift_frac``: shifts beyond this fraction of the patch leave too little overlap.
-    - ``rotation_step``, ``max_rotation``: the grid of turn guesses tried when the match from the
-      turn under way fails (a person turns at up to ~4 rad/s, 7.6 degrees between frames at
-      30 Hz); 0 turns the search off.
+    - ``rotation_step``, ``max_rotation``, ``max_turn_rate``: the grid of turn guesses tried when
+      the match from the turn under way fails, up to ``max_rotation`` either way or, for a step
+      over a longer interval (dropped or skipped frames, a slower camera or core), as far as a
+      person turns at ``max_turn_rate`` (up to ~4 rad/s: 7.6 deg between frames at 30 Hz, 23 deg
+      at 10 Hz, which a fixed 9 deg bound could not find); 0 ``max_rotation`` turns the search
+      off.
     - ``turn_memory``: the last step's turn rate is the first guess while that step is at most
       this many ``max_dt`` old (two frame gaps: a person's yaw acceleration keeps it close).
     - ``ecc_turn_tolerance``: ECC ending further than this fraction of ``rotation_step`` from the
@@ -566,6 +569,7 @@ class OdometryConfig:
     max_shift_frac: float = 0.3
     rotation_step: float = math.radians(3.0)
     max_rotation: float = math.radians(9.0)
+    max_turn_rate: float = 4.0
     turn_memory: float = 2.0
     ecc_turn_tolerance: float = 0.5
     turn_check_rate: float = math.radians(45.0)
@@ -1368,14 +1372,15 @@ class FloorOdometry:
         # limited, so it is usually within a degree of this frame's turn); if phase correlation or
         # ECC fails from there, or ECC ends far from it, also from the best of a grid of guesses.
         if self._last_turn is not None and 0.0 <= t0 - self._last_turn[0] <= cfg.turn_memory * cfg.max_dt:
-            g0 = float(np.clip(self._last_turn[1] * dt, -cfg.max_rotation, cfg.max_rotation))
-            rounds = ([g0], self._turn_grid(g0))
+            bound = self._turn_bound(dt)
+            g0 = float(np.clip(self._last_turn[1] * dt, -bound, bound))
+            rounds = ([g0], self._turn_grid(g0, dt))
         else:
             # No turn under way is known (first step, or after a gap): nothing says the turn is
             # near zero, and ECC from a wrong turn can settle on a plausible wrong optimum, so the
             # whole grid competes at once.
             g0 = 0.0
-            rounds = ([g0] + self._turn_grid(g0),)
+            rounds = ([g0] + self._turn_grid(g0, dt),)
         best: tuple[float, np.ndarray, float, bool] | None = None
         for guesses in rounds:
             found = self._ecc_from(psmall, small, guesses)
@@ -1711,12 +1716,18 @@ class FloorOdometry:
             st[2] += (1.0 - math.exp(-dt / self._lean_tau)) * (demand - st[2])
         st[0], st[1] = t, demand
 
-    def _turn_grid(self, skip: float) -> list[float]:
-        """Turn guesses (rad) every ``rotation_step`` up to ``max_rotation`` either way, less ``skip``."""
+    def _turn_bound(self, dt: float) -> float:
+        """The largest turn (rad) a step over ``dt`` s is searched for (see ``max_turn_rate``)."""
+        cfg = self.config
+        return max(cfg.max_rotation, cfg.max_turn_rate * dt)
+
+    def _turn_grid(self, skip: float, dt: float = 0.0) -> list[float]:
+        """Turn guesses (rad) every ``rotation_step`` up to the turn a step over ``dt`` s can hold
+        (:meth:`_turn_bound`) either way, less ``skip``."""
         cfg = self.config
         if not (cfg.max_rotation > 0 and cfg.rotation_step > 0):
             return []
-        k = int(round(cfg.max_rotation / cfg.rotation_step))
+        k = int(round(self._turn_bound(dt) / cfg.rotation_step))
         return [j * cfg.rotation_step for j in range(-k, k + 1) if abs(j * cfg.rotation_step - skip) > _SAME_TURN_RAD]
 
     def _initial_alignment(
