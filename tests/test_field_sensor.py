@@ -605,15 +605,17 @@ def test_odometry_steps_gated_in_a_row_widen_the_heading():
     """The same spin with its steps refused, and the first step after it a mistracking that saw no
     turn, fused: the filter now holds a heading 17 degrees short with a yaw rate near zero, and gates
     the right steps that follow. Two of them in a row turning the same way show that the turn went
-    missing (``disagreement_noise``): the heading sigma grows by the turn they report. Without it
-    the heading is over 4 sigma off four frames on (at frame 99, before any evidence, both are 3.1)."""
+    missing (``disagreement_noise``): the heading sigma grows by the turn they report. Without it,
+    and without the turn noise of measured intervals (``turn_peak_accel``), the heading is over 4
+    sigma off four frames on (at frame 99, before any evidence, both are 3.1); the turn noise alone
+    leaves it 3.0 sigma off (measured)."""
     from dataclasses import replace
 
     from tracker.config import TrackerConfig
 
     stats, z = _spin_after_burst(TrackerConfig(), refused=True, wrong_first=True, at=103)
     narrow, z_narrow = _spin_after_burst(
-        replace(TrackerConfig(), disagreement_noise=False), refused=True, wrong_first=True, at=103
+        replace(TrackerConfig(), disagreement_noise=False, turn_peak_accel=0.0), refused=True, wrong_first=True, at=103
     )
     assert stats["odometry_disagreements"] >= 1 and narrow["odometry_disagreements"] == 0
     assert narrow["odometry_rejected"] >= 3

@@ -48,6 +48,27 @@ class TrackerConfig:
       purpose: a model wide enough for spins would leave the heading +-0.5 rad half a second after
       every fix (position +-0.5 m at walking speed) and the prior useless for candidates. Fixes
       after such a spin fail the gate and the track recovers by re-initialisation (below).
+    - ``turn_peak_accel``, ``turn_peak_sigmas``: over the interval of an odometry step (up to
+      ``gap_s``), the yaw acceleration noise is raised so that the peak yaw acceleration of a brisk
+      walking turn is a ``turn_peak_sigmas`` change of the yaw rate across the step: PSD
+      ``(turn_peak_accel / turn_peak_sigmas)^2 dt`` where that exceeds ``yaw_accel_psd``. A 90 deg
+      turn made in 1 s along a minimum-jerk profile peaks at 5.77 (pi/2) / 1^2 = 9.06 rad/s^2; over
+      a step of ``dt`` s the yaw rate then changes by 9.06 ``dt``, and white noise of PSD q spreads
+      it by sqrt(q ``dt``), so 2 sigma needs q = 20.5 ``dt``: 0.68 rad^2/s^3 over a 30 Hz interval
+      (about the walking model's 0.5: little changes there), 1.4 over two intervals, 2.0 over
+      three (a core too slow for its camera, whose steps span two or three intervals). The turn is
+      the model's blind spot exactly there: at the camera's rate the steps follow a turn's onset
+      closely enough, but over two intervals the walking model's yaw rate lagged a 140 deg/s turn
+      at 60 lux so far that two wrong steps (2.8 and 3.4 deg read for 9.7 and 9.5, the smeared
+      patches' best correlation) passed the gate, the right one after them did not, and the
+      heading went 25-28 deg off at a stated 4 (field walk f01 at every other frame, README
+      "Speed"). The walking model stays as it is where no step measures the walk (the candidates'
+      prior, blind spans), and the noise is added when a step arrives, for its interval, so a blind
+      second does not spread the heading past ``odometry_max_yaw_sd`` (a constant 2 everywhere did,
+      at half resolution). Replays of 43 walks at every other frame: field 5.61 -> 3.46 cm,
+      g2field 7.00 -> 5.31, standard 2.02 -> 1.79; at the camera's rate the 28 walks within 0.15
+      cm each and the 15 held-out field walks 2.72 / 2.39 / 2.47 -> 2.63 / 2.39 / 2.45 cm (README,
+      "Speed"). 0: off.
     - ``lateral_psd`` (m^2/s), white lateral velocity: people sidestep without turning. 0.05 gives
       0.16 m of sideways spread in 0.5 s, the size of one sidestep.
 
@@ -352,6 +373,8 @@ class TrackerConfig:
     forget_turn_heading_lost: bool = True
     gap_s: float = 0.12
     gap_yaw_accel_psd: float = 2.5
+    turn_peak_accel: float = 9.06
+    turn_peak_sigmas: float = 2.0
     gate_bridge_narrow: bool = True
     missed_step_noise: bool = True
     disagreement_noise: bool = True
@@ -405,6 +428,7 @@ class TrackerConfig:
                 self.max_steps >= 1 and self.reinit_fixes >= 1 and self.reinit_min_ids >= 1,
                 "max_steps, reinit_fixes and reinit_min_ids must be >= 1",
             ),
+            (self.turn_peak_sigmas > 0, "turn_peak_sigmas must be > 0"),
         )
         bad = [why for ok, why in checks if not ok]
         if bad:

@@ -547,6 +547,23 @@ class Tracker:
         self._stats["missed_steps"] += 1
         return self._guarded(lambda: self._ekf.set(self._ekf.x[:, 0], P))
 
+    def _turn_noise(self, dt: float) -> None:
+        """Widen yaw and yaw rate for an interval of ``dt`` s that an odometry step measures, by the yaw
+        acceleration the walking model leaves out there (see ``turn_peak_accel``). The noise is
+        independent of the state at the interval's start, so the step's clone keeps its
+        cross-covariance."""
+        cfg = self.config
+        q = (cfg.turn_peak_accel / cfg.turn_peak_sigmas) ** 2 * dt - cfg.yaw_accel_psd
+        if q <= 0.0:
+            return
+        P = self._ekf.P.copy()
+        yaw, w = motion.YAW, motion.W
+        P[yaw, yaw] += q * dt**3 / 3.0
+        P[yaw, w] += q * dt**2 / 2.0
+        P[w, yaw] += q * dt**2 / 2.0
+        P[w, w] += q * dt
+        self._guarded(lambda: self._ekf.set(self._ekf.x[:, 0], P))
+
     def _disagreement(self, camera: Hashable, t0: float, t1: float, e_yaw: float) -> None:
         """A gated odometry step of ``camera`` over ``t0``-``t1`` whose turn differs by ``e_yaw`` (rad)
         from the filter's (see ``disagreement_noise``)."""
@@ -928,6 +945,8 @@ class Tracker:
         if t_clone is None or abs(t_clone - t0) > tol or abs(self._t - t1) > tol:
             self._stats["odometry_unmatched"] += 1
             return UpdateResult(False, "odometry interval does not match the camera's last frame")
+        if t1 - t0 <= cfg.gap_s:
+            self._turn_noise(t1 - t0)
         x8 = self._ekf.x[:, 0]
         n = DIM
         # Joint state [x (DIM), clones (3 each)]; the measurement is the odometry pose (the vest's,
