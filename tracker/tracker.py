@@ -538,13 +538,19 @@ class Tracker:
         # Beyond lost_after_s the track is lost and its motion forgotten (_check_lost), and the
         # variances are capped anyway: a longer gap (a clock that jumped) adds nothing but overflow.
         dt = min(dt, self.config.lost_after_s)
+        self._stats["missed_steps"] += 1
+        return self._add_yaw_noise(q, dt)
+
+    def _add_yaw_noise(self, q: float, dt: float) -> bool:
+        """Add ``dt`` s of white yaw acceleration of PSD ``q`` (rad^2/s^3) to the yaw and yaw rate (the
+        walking model's blocks, :func:`tracker.motion.process_noise`); False when the filter refused
+        it."""
         P = self._ekf.P.copy()
         yaw, w = motion.YAW, motion.W
         P[yaw, yaw] += q * dt**3 / 3.0
         P[yaw, w] += q * dt**2 / 2.0
         P[w, yaw] += q * dt**2 / 2.0
         P[w, w] += q * dt
-        self._stats["missed_steps"] += 1
         return self._guarded(lambda: self._ekf.set(self._ekf.x[:, 0], P))
 
     def _turn_noise(self, dt: float) -> None:
@@ -554,15 +560,8 @@ class Tracker:
         cross-covariance."""
         cfg = self.config
         q = (cfg.turn_peak_accel / cfg.turn_peak_sigmas) ** 2 * dt - cfg.yaw_accel_psd
-        if q <= 0.0:
-            return
-        P = self._ekf.P.copy()
-        yaw, w = motion.YAW, motion.W
-        P[yaw, yaw] += q * dt**3 / 3.0
-        P[yaw, w] += q * dt**2 / 2.0
-        P[w, yaw] += q * dt**2 / 2.0
-        P[w, w] += q * dt
-        self._guarded(lambda: self._ekf.set(self._ekf.x[:, 0], P))
+        if q > 0.0:
+            self._add_yaw_noise(q, dt)
 
     def _disagreement(self, camera: Hashable, t0: float, t1: float, e_yaw: float) -> None:
         """A gated odometry step of ``camera`` over ``t0``-``t1`` whose turn differs by ``e_yaw`` (rad)
