@@ -66,7 +66,8 @@ class TrackerConfig:
       prior, blind spans), and the noise is added when a step arrives, for its interval, so a blind
       second does not spread the heading past ``odometry_max_yaw_sd`` (a constant 2 everywhere did,
       at half resolution). Replays of 43 walks at every other frame: field 5.61 -> 3.46 cm,
-      g2field 7.00 -> 5.31, standard 2.02 -> 1.79; at the camera's rate the 28 walks within 0.15
+      g2field 7.00 -> 5.31, standard 2.02 -> 1.79 (mostly the f01 walks, which are chaotic there;
+      walk by walk 13 better and 9 worse by over 0.15 cm); at the camera's rate the 28 walks within 0.15
       cm each and the 15 held-out field walks 2.72 / 2.39 / 2.47 -> 2.63 / 2.39 / 2.45 cm (README,
       "Speed"). 0: off.
     - ``lateral_psd`` (m^2/s), white lateral velocity: people sidestep without turning. 0.05 gives

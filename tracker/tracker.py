@@ -547,6 +547,8 @@ class Tracker:
         it."""
         P = self._ekf.P.copy()
         yaw, w = motion.YAW, motion.W
+        # The blocks of motion.process_noise, written out: the same sums in another order round
+        # differently in the last bit, and that alone moved f01 at 15 fps from 5.5 to 12.9 cm.
         P[yaw, yaw] += q * dt**3 / 3.0
         P[yaw, w] += q * dt**2 / 2.0
         P[w, yaw] += q * dt**2 / 2.0

@@ -1717,11 +1717,12 @@ class FloorOdometry:
         st[0], st[1] = t, demand
 
     def _turn_bound(self, dt: float) -> float:
-        """The largest turn (rad) a step over ``dt`` s is searched for (see ``max_turn_rate``)."""
+        """The largest turn (rad) a step over ``dt`` s is searched for (see ``max_turn_rate``); 0 with
+        the search off (``max_rotation`` 0)."""
         cfg = self.config
-        return max(cfg.max_rotation, cfg.max_turn_rate * dt)
+        return max(cfg.max_rotation, cfg.max_turn_rate * dt) if cfg.max_rotation > 0 else 0.0
 
-    def _turn_grid(self, skip: float, dt: float = 0.0) -> list[float]:
+    def _turn_grid(self, skip: float, dt: float) -> list[float]:
         """Turn guesses (rad) every ``rotation_step`` up to the turn a step over ``dt`` s can hold
         (:meth:`_turn_bound`) either way, less ``skip``."""
         cfg = self.config
