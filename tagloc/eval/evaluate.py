@@ -24,6 +24,7 @@ import math
 import textwrap
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -35,6 +36,9 @@ from tagloc.eval.consistency import NEES_BLOCK_S, bounds_text, nees_blocks, nees
 from tagloc.eval.metrics import TrajectoryErrors, error_metrics, frames_in_span, gt_covers, trajectory_errors
 from tagloc.io.session import FRAMES_CSV, SessionReader
 from tagloc.pipeline.run import RunLog, run_session
+
+if TYPE_CHECKING:  # the simulator is imported only by the commands that render walks
+    from tagloc.sim.simulate import SimConfig
 
 
 @dataclass
@@ -219,9 +223,7 @@ def _preset_scenarios(cfg: EvalConfig) -> list[Scenario]:
 
 def make_session(sc: Scenario, root: Path, progress: bool) -> Path:
     """Simulate a scenario's session (reused when already made with the same conditions)."""
-    from tagloc.sim.mapgen import GridMapConfig, grid_map
-    from tagloc.sim.simulate import SIM_REVISION, SimConfig, simulate_session
-    from tagloc.sim.walk import WalkConfig
+    from tagloc.sim.simulate import SIM_REVISION, simulate_session
 
     path = root / "sessions" / sc.name
     stamp = path / "scenario.json"
@@ -235,6 +237,19 @@ def make_session(sc: Scenario, root: Path, progress: bool) -> Path:
         import shutil
 
         shutil.rmtree(path)
+    smap, config = scenario_map_and_config(sc)
+    simulate_session(smap, path, config, progress=progress)
+    stamp.write_text(json.dumps(made))
+    return path
+
+
+def scenario_map_and_config(sc: Scenario) -> tuple[StickerMap, SimConfig]:
+    """The map and simulator configuration a scenario's session is rendered from (see
+    :func:`make_session`; :class:`tagloc.sim.simulate.SimScene` re-renders single frames of it)."""
+    from tagloc.sim.mapgen import GridMapConfig, grid_map
+    from tagloc.sim.simulate import SimConfig
+    from tagloc.sim.walk import WalkConfig
+
     smap = grid_map(
         GridMapConfig(
             width_m=sc.map_width_m,
@@ -244,28 +259,22 @@ def make_session(sc: Scenario, root: Path, progress: bool) -> Path:
             seed=sc.seed,
         )
     )
-    simulate_session(
-        smap,
-        path,
-        SimConfig(
-            seconds=sc.seconds,
-            lux=sc.lux,
-            speed_mps=sc.speed,
-            seed=sc.seed,
-            pitch_deg=sc.pitch_deg,
-            missing_fraction=sc.missing_fraction,
-            unmapped=sc.unmapped,
-            rolling_shutter=sc.rolling_shutter,
-            scale=sc.scale,
-            walk=WalkConfig(stop_every_s=sc.stop_every_s, turn_probability=sc.turn_probability).with_gait_scale(
-                sc.gait_scale
-            ),
-            **_sensor_conditions(sc),
+    config = SimConfig(
+        seconds=sc.seconds,
+        lux=sc.lux,
+        speed_mps=sc.speed,
+        seed=sc.seed,
+        pitch_deg=sc.pitch_deg,
+        missing_fraction=sc.missing_fraction,
+        unmapped=sc.unmapped,
+        rolling_shutter=sc.rolling_shutter,
+        scale=sc.scale,
+        walk=WalkConfig(stop_every_s=sc.stop_every_s, turn_probability=sc.turn_probability).with_gait_scale(
+            sc.gait_scale
         ),
-        progress=progress,
+        **_sensor_conditions(sc),
     )
-    stamp.write_text(json.dumps(made))
-    return path
+    return smap, config
 
 
 def _sensor_conditions(sc: Scenario) -> dict:

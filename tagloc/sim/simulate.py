@@ -377,6 +377,92 @@ def _resolve_map(smap: StickerMap | str | Path) -> StickerMap:
     return smap if isinstance(smap, StickerMap) else load_map(smap)
 
 
+@dataclass
+class SimScene:
+    """What a simulated session is rendered from: the rig, the walk, the floor, one renderer per rig
+    camera (its own sensor and auto exposure) and each camera's frame schedule (jitter, drops)."""
+
+    config: SimConfig
+    rig: Rig
+    walk: Walk
+    floor: Floor
+    renderers: list[Renderer]
+    schedules: list
+
+    @classmethod
+    def build(cls, smap: StickerMap, config: SimConfig) -> SimScene:
+        """The scene :func:`simulate_session` renders ``smap`` under ``config`` from (no frame rendered)."""
+        rig = config.build_rig()
+        # The session's rig says what its cameras see: the simulated vest's legs or none (an
+        # installer looks at the frames too).
+        for rc in rig.cameras:
+            rc.legs_in_view = bool(config.legs and float(rc.T_body_camera[0, 2]) > 0.0)
+        walk = simulate_walk(smap, config)
+        floor = Floor(smap, config.floor_config(), seed=config.seed)
+        lamps = config.lamp_grid()
+        legs = Legs(walk, rig.vest_point, config.legs_config) if config.legs else None
+        # Each camera has its own sensor (fixed-pattern noise seed) and its own auto exposure.
+        renderers = [
+            Renderer(
+                floor,
+                rc.camera,
+                config.optics,
+                config.sensor_config(),
+                config.exposure_config(),
+                seed=config.seed + CAMERA_SEED_STEP * c,
+                flicker=config.light_flicker(),
+                lamps=lamps,
+                legs=legs,
+            )
+            for c, rc in enumerate(rig.cameras)
+        ]
+        # Free-running cameras have their own drivers and queues: each its own jitter, drops and bursts.
+        schedules = [
+            frame_schedule(config.frame_count, config.fps, config.timing, config.seed, camera=c)
+            for c in range(len(rig))
+        ]
+        return cls(config, rig, walk, floor, renderers, schedules)
+
+    def render_frame(self, k: int, camera: int = 0) -> tuple[float, np.ndarray, np.ndarray]:
+        """Frame ``k`` of rig camera ``camera`` as :func:`simulate_session` renders it (before JPEG),
+        without rendering the frames before it: (true mid-exposure time s, (H, W) uint8 image,
+        T_world_body (4, 4)). The same walk, light, noise draws and seeds; the renderer cuts its floor
+        mosaic afresh, which can move a few pixels by a few grey levels from a session's frame drawn
+        on a mosaic cut for earlier frames (frames 504 and 506 of the field walk f01 come out
+        identical). Raises InputError for a frame the camera's driver dropped or that the session
+        does not hold."""
+        sc = self.schedules[camera]
+        rows = np.flatnonzero(sc.index == k)
+        if not len(rows):
+            raise InputError(f"simulate: camera {camera} delivers no frame {k}")
+        stagger = 1.0 / (len(self.rig) * self.config.fps)
+        t = float(sc.true_t[rows[0]]) + camera * stagger
+        shot = _Shot(float(sc.stamp[rows[0]]) + camera * stagger, t, camera, int(k))
+        res, T_world_body = _render_shot(self, shot)
+        return t, res.image, T_world_body
+
+
+def _render_shot(scene: SimScene, shot: _Shot) -> tuple[RenderResult, np.ndarray]:
+    """Render ``shot`` with its camera's renderer: the result and the body pose T_world_body (4, 4)."""
+    config, rig = scene.config, scene.rig
+    renderer = scene.renderers[shot.camera]
+    k, t, camera = shot.k, shot.t, shot.camera
+    seed = [config.seed, 23, k] if camera == 0 else [config.seed, 23, k, camera]
+    vest_point = rig.vest_point
+    T_world_body = scene.walk.T_world_body(t, vest_point)
+    body = renderer.lamps.axis(T_world_body, vest_point) if renderer.lamps is not None else None
+    T_body_camera = rig.cameras[camera].T_body_camera
+    res = renderer.render(
+        lambda ts: scene.walk.T_world_camera(np.asarray(ts, float), T_body_camera),
+        t,
+        config.lux,
+        np.random.default_rng(seed),
+        frame_interval_s=1.0 / config.fps,
+        body=body,
+    )
+    return res, T_world_body
+
+
 def simulate_session(
     smap: StickerMap | str | Path, out_dir: str | Path, config: SimConfig | None = None, progress: bool = True
 ) -> SimSummary:
@@ -385,35 +471,10 @@ def simulate_session(
 
     config = config or SimConfig()
     smap = _resolve_map(smap)
-    rig = config.build_rig()
-    # The session's rig says what its cameras see: the simulated vest's legs or none (an
-    # installer looks at the frames too).
-    for rc in rig.cameras:
-        rc.legs_in_view = bool(config.legs and float(rc.T_body_camera[0, 2]) > 0.0)
+    scene = SimScene.build(smap, config)
+    rig, walk, floor, schedules = scene.rig, scene.walk, scene.floor, scene.schedules
     n_cams = len(rig)
-    walk = simulate_walk(smap, config)
-    floor = Floor(smap, config.floor_config(), seed=config.seed)
     exp_cfg = config.exposure_config()
-    lamps = config.lamp_grid()
-    legs = Legs(walk, rig.vest_point, config.legs_config) if config.legs else None
-    # Each camera has its own sensor (fixed-pattern noise seed) and its own auto exposure.
-    renderers = [
-        Renderer(
-            floor,
-            rc.camera,
-            config.optics,
-            config.sensor_config(),
-            exp_cfg,
-            seed=config.seed + CAMERA_SEED_STEP * c,
-            flicker=config.light_flicker(),
-            lamps=lamps,
-            legs=legs,
-        )
-        for c, rc in enumerate(rig.cameras)
-    ]
-    n_all = config.frame_count
-    # Free-running cameras have their own drivers and queues: each its own jitter, drops and bursts.
-    schedules = [frame_schedule(n_all, config.fps, config.timing, config.seed, camera=c) for c in range(n_cams)]
     # Free-running cameras are never simultaneous: camera c is exposed c / (n_cams * fps) after camera 0.
     stagger = 1.0 / (n_cams * config.fps)
     shots = _delivered(schedules, stagger)
@@ -465,18 +526,7 @@ def simulate_session(
         write_tum(out / GROUNDTRUTH_FILE, gt_stamps, walk.T_world_body(gt_stamps, rig.vest_point))
         with (out / "groundtruth_frames.jsonl").open("w", encoding="utf-8") as gt:
             for shot in tqdm(shots, desc="simulate", unit="frame", disable=not progress):
-                rec, stat = _simulate_frame(
-                    writer,
-                    renderers[shot.camera],
-                    poses[shot.camera],
-                    walk,
-                    floor,
-                    config,
-                    shot,
-                    n_cams,
-                    readout,
-                    rig.vest_point,
-                )
+                rec, stat = _simulate_frame(writer, scene, poses[shot.camera], shot, readout)
                 gt.write(json.dumps(rec) + "\n")
                 gt.flush()
                 stats.append(stat)
@@ -529,31 +579,17 @@ def _delivered(schedules: list, stagger: float) -> list[_Shot]:
     return out
 
 
-def _simulate_frame(
-    writer: SessionWriter,
-    renderer: Renderer,
-    pose_at,
-    walk: Walk,
-    floor: Floor,
-    config: SimConfig,
-    shot: _Shot,
-    n_cams: int,
-    readout: float,
-    vest_point: np.ndarray,
-) -> tuple[dict, tuple]:
-    """Render and write the delivered frame ``shot`` with ``renderer`` (its camera's); its ground-truth record.
+def _simulate_frame(writer: SessionWriter, scene: SimScene, pose_at, shot: _Shot, readout: float) -> tuple[dict, tuple]:
+    """Render and write the delivered frame ``shot`` of ``scene`` (``pose_at``: its camera's pose at
+    any time); its ground-truth record.
 
     One camera: index = the schedule's frame number (sessions as before). Several: index = frame
     number * cameras + camera, unique over the session, and each record names its camera.
     """
     k, t, camera = shot.k, shot.t, shot.camera
+    n_cams = len(scene.rig)
     index = k if n_cams == 1 else k * n_cams + camera
-    seed = [config.seed, 23, k] if camera == 0 else [config.seed, 23, k, camera]
-    T_world_body = walk.T_world_body(t, vest_point)
-    body = renderer.lamps.axis(T_world_body, vest_point) if renderer.lamps is not None else None
-    res = renderer.render(
-        pose_at, t, config.lux, np.random.default_rng(seed), frame_interval_s=1.0 / config.fps, body=body
-    )
+    res, T_world_body = _render_shot(scene, shot)
     stamp = shot.stamp
     writer.write(index, stamp, res.image, camera)
     rec = {"index": index} | ({"camera": camera} if n_cams > 1 else {})
@@ -567,7 +603,7 @@ def _simulate_frame(
         "blur_px": round(res.blur_px, 3),
         "subframes": res.subframes,
         "mean_signal_e": round(res.mean_signal_e, 2),
-        "visible": visible_stickers(floor, renderer, pose_at, t, readout),
+        "visible": visible_stickers(scene.floor, scene.renderers[camera], pose_at, t, readout),
     }
     return rec, (res.exposure_s, res.gain, res.blur_px, res.subframes)
 
