@@ -135,8 +135,9 @@ class OdometryConfig:
       2026-12-01) came out better per step sideways on 28 of the 43 walks (worse on 1), in the
       turn on 33 (worse on 2), forward on 15 (worse on 2; and on the flicker walk, whose frames
       the localiser deflickers first), RMS over the walks 3.31 -> 2.77 mm sideways and 0.129 ->
-      0.075 deg of turn a step; f01 5.30 -> 3.07 mm and 0.148 -> 0.069 deg. Its cost: a median
-      of 6400 values, 0.05 ms a frame. 2 sigma lost the field walk f01 at 15 fps (82 cm).
+      0.075 deg of turn a step; f01 5.30 -> 3.07 mm and 0.148 -> 0.069 deg. Its cost: 9 us a
+      patch (a median by partition); the replay's odometry stage within the machine's noise. At 2
+      sigma the field walk f01 at 15 fps was lost (82 cm RMS): grain clipped too.
     - ``dark_level``, ``min_lit_fraction``: patch pixels at or below ``dark_level`` grey levels (the
       patch's pixels average many of the frame's, so it is the mean of a dark area, not a noisy
       pixel) see no lit floor: a lens cap or a flap partly over the lens, an unlit corner. Such a
