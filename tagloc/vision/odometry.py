@@ -137,7 +137,9 @@ class OdometryConfig:
       the localiser deflickers first), RMS over the walks 3.31 -> 2.77 mm sideways and 0.129 ->
       0.075 deg of turn a step; f01 5.30 -> 3.07 mm and 0.148 -> 0.069 deg. Its cost: 9 us a
       patch (a median by partition); the replay's odometry stage within the machine's noise. At 2
-      sigma the field walk f01 at 15 fps was lost (82 cm RMS): grain clipped too.
+      sigma the gait x2 walk f01 replayed at 15 fps was lost (82 cm RMS): grain clipped too. At
+      648 x 486 fewer steps are measured (f01 74.7 -> 71.5 %): where a line or a sticker carried
+      a coarse camera's match, the clipped correlation falls under ``weak_ecc``.
     - ``dark_level``, ``min_lit_fraction``: patch pixels at or below ``dark_level`` grey levels (the
       patch's pixels average many of the frame's, so it is the mean of a dark area, not a noisy
       pixel) see no lit floor: a lens cap or a flap partly over the lens, an unlit corner. Such a
