@@ -26,6 +26,7 @@ from tagloc.vision.odometry import (
     FloorOdometry,
     OdometryConfig,
     OdometryStep,
+    clip_to_grain,
     floor_patch,
     flow_cov_scale,
     overlap_mask,
@@ -1477,3 +1478,33 @@ def test_a_painted_line_cut_by_the_patch_border_does_not_decide_the_match(line_a
     assert len(found) >= 2
     for _rho, step in found:
         assert abs(step[1] - true[1]) < 0.07 and abs(step[2] - true[2]) < math.radians(1.0)
+
+
+def test_clip_to_grain_cuts_a_bright_line_at_the_grains_level_and_leaves_the_grain():
+    """The patch's grain (here Gaussian, sigma 1) is left as it is but for its 0.3 % beyond 3
+    sigma; a line 12 times brighter is cut to 3 sigma. Measured over the lit part only: a patch half
+    cut out (zeros) keeps the same level, where the zeros would halve it."""
+    rng = np.random.default_rng(5)
+    grain = rng.standard_normal((80, 80)).astype(np.float32)
+    patch = grain.copy()
+    patch[30:34, :] += 12.0
+    clipped = clip_to_grain(patch, 3.0)
+    limit = float(np.abs(clipped).max())
+    assert limit == pytest.approx(3.0, rel=0.1)
+    rest = np.ones_like(patch, bool)
+    rest[30:34, :] = False
+    assert np.mean(clipped[rest] == patch[rest]) > 0.99
+    assert np.all(clipped[30:34, :][patch[30:34, :] > limit] == pytest.approx(limit))
+    assert patch.max() > 10.0  # the input is left as it was
+    # Half the patch cut out: the level from the other half.
+    cut = patch.copy()
+    cut[:, :40] = 0.0
+    lit = np.zeros_like(patch, bool)
+    lit[:, 40:] = True
+    assert float(np.abs(clip_to_grain(cut, 3.0, lit)).max()) == pytest.approx(limit, rel=0.1)
+    assert float(np.abs(clip_to_grain(cut, 3.0)).max()) < 0.8 * limit
+    # Off, a flat patch, or nothing measured: the same array back.
+    assert clip_to_grain(patch, 0.0) is patch
+    flat = np.zeros((8, 8), np.float32)
+    assert clip_to_grain(flat, 3.0) is flat
+    assert clip_to_grain(patch, 3.0, np.zeros_like(patch, bool)) is patch

@@ -846,16 +846,18 @@ def nearest_floor_ahead(rig_camera: RigCamera, config: OdometryConfig | None = N
     return float(ahead.min()) if len(ahead) else None
 
 
-def clip_to_grain(high: np.ndarray, sigmas: float) -> np.ndarray:
+def clip_to_grain(high: np.ndarray, sigmas: float, where: np.ndarray | None = None) -> np.ndarray:
     """A copy of ``high`` (a high-passed patch (m, m) float32, about zero mean) clipped at ``sigmas``
     times its robust standard deviation (the median absolute value / 0.6745: the floor's grain and
-    the noise, which fill most of it); ``high`` itself when ``sigmas`` <= 0 or nothing is beyond."""
+    the noise, which fill most of it), that measured over the pixels ``where`` (m, m) bool is True
+    (None: all); ``high`` itself when ``sigmas`` <= 0, nothing is beyond or nothing is measured."""
     if not sigmas > 0.0:
         return high
-    a = np.abs(high)
-    flat = a.ravel()
+    flat = np.abs(high).ravel() if where is None else np.abs(high[where])
+    if not flat.size:
+        return high
     limit = sigmas * float(np.partition(flat, flat.size // 2)[flat.size // 2]) / 0.6745
-    if not (limit > 0.0 and float(flat.max()) > limit):
+    if not (limit > 0.0 and float(np.abs(high).max()) > limit):
         return high
     return np.clip(high, -limit, limit)
 
@@ -1136,17 +1138,19 @@ class FloorOdometry:
             f = cv2.pyrDown(f)
         s = self.config.highpass_sigma_px
         high = f - cv2.GaussianBlur(f, (0, 0), s) if s > 0 else f - float(f.mean())
-        high = clip_to_grain(high, self.config.grain_clip_sigmas)
         dark = f <= self.config.dark_level
         if not dark.any():
-            return high, 1.0
+            return clip_to_grain(high, self.config.grain_clip_sigmas), 1.0
         # Unlit floor is fixed in the image, not on the floor: its edge, high-passed, would match
         # itself and say that the camera did not move. It is cut out with the band the high-pass
         # spreads the edge over (3 sigma), which leaves no structure fixed in the image.
         r = max(1, math.ceil(3.0 * s))
         cut = cv2.dilate(dark.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
-        high[cut > 0] = 0.0
-        return high, 1.0 - float(np.count_nonzero(cut)) / cut.size
+        lit = cut == 0
+        # The grain's level from the lit floor alone: the cut's zeros would lower it.
+        high = clip_to_grain(high, self.config.grain_clip_sigmas, lit)
+        high[~lit] = 0.0
+        return high, float(np.count_nonzero(lit)) / lit.size
 
     def reset(self) -> None:
         """Forget the previous frame (the next :meth:`measure` returns None)."""
