@@ -16,7 +16,8 @@ rendered) through :class:`tagloc.pipeline.localiser.Localiser` with the default
 its deferred decodes were dropped, never run). Per walk: horizontal RMSE, heading RMSE, mean
 position NEES, share of all frames within 10 cm (a frame without a pose is a miss), fixes
 fused and wrong-ID fixes (as ``tagloc eval`` counts them). Per preset, pooled by frame like
-``tagloc eval``'s summary: RMSE, heading, NEES and its verdict against the effective-sample bound.
+``tagloc eval``'s summary: RMSE, heading, NEES and its verdict against the effective-sample bound, and
+the share of frames whose NEES is beyond chi-square's 99.9 % point (``>99.9 %``: 0.1 % if consistent).
 """
 
 from __future__ import annotations
@@ -121,6 +122,7 @@ def run_walk(job: tuple[str, dict, str]) -> dict:
         "rmse_cm": 100 * m["rmse_m"],
         "heading_deg": m["heading_rmse_deg"],
         "nees": m["nees_mean"],
+        "beyond_999": m["beyond_999"],
         # A frame without a pose is a miss: the share of all frames with a pose within 10 cm.
         "within_10cm_all": float(np.sum(position <= 0.10)) / max(m["frames_in_gt"], 1),
         "fixes": m["fixes"],
@@ -142,6 +144,7 @@ def pooled(rows: list[dict]) -> dict:
         "rmse_cm": 100 * math.sqrt(sum(r["sq_position"] for r in rows) / n) if n else math.nan,
         "heading_deg": math.sqrt(sum(r["sq_heading"] for r in rows) / n) if n else math.nan,
         "nees": sum(r["nees"] * r["frames"] for r in scored) / n if n else math.nan,
+        "beyond_999": sum(r["beyond_999"] * r["frames"] for r in scored) / n if n else math.nan,
         "nees_verdict": test.verdict,
         "wrong_ids": sum(r["wrong_ids"] for r in rows),
     }
@@ -166,7 +169,7 @@ def main(argv: list[str] | None = None) -> None:
         rows = list(ex.map(run_walk, jobs))
     print(
         f"{'variant':24s} {'walk':10s} {'RMSE cm':>8s} {'hdg deg':>8s} {'NEES':>6s} {'verdict (95 % bounds)':>28s}"
-        f" {'<10 cm':>7s} {'fixes':>6s} {'wrong':>6s}"
+        f" {'>99.9 %':>8s} {'<10 cm':>7s} {'fixes':>6s} {'wrong':>6s}"
     )
     for r in rows:
         # The walk's own verdict, by its effective-sample bounds (as tagloc eval judges each walk).
@@ -174,11 +177,13 @@ def main(argv: list[str] | None = None) -> None:
         verdict = f"{t.verdict} {bounds_text(t.bounds_effective)}"
         print(
             f"{r['variant']:24s} {r['walk']:10s} {r['rmse_cm']:8.2f} {r['heading_deg']:8.2f} {r['nees']:6.2f}"
-            f" {verdict:>28s} {100 * r['within_10cm_all']:6.1f}% {r['fixes']:6d} {r['wrong_ids']:6d}"
+            f" {verdict:>28s} {100 * r['beyond_999']:7.2f}% {100 * r['within_10cm_all']:6.1f}% {r['fixes']:6d}"
+            f" {r['wrong_ids']:6d}"
         )
     summary = {}
     print(
-        f"\n{'variant':24s} {'preset':10s} {'RMSE cm':>8s} {'hdg deg':>8s} {'NEES':>6s} {'verdict':>14s} {'wrong':>6s}"
+        f"\n{'variant':24s} {'preset':10s} {'RMSE cm':>8s} {'hdg deg':>8s} {'NEES':>6s} {'verdict':>14s}"
+        f" {'>99.9 %':>8s} {'wrong':>6s}"
     )
     for name in variants:
         for preset in dict.fromkeys(r["preset"] for r in rows):
@@ -186,7 +191,7 @@ def main(argv: list[str] | None = None) -> None:
             summary[f"{name}/{preset}"] = p
             print(
                 f"{name:24s} {preset:10s} {p['rmse_cm']:8.2f} {p['heading_deg']:8.2f} {p['nees']:6.2f}"
-                f" {p['nees_verdict']:>14s} {p['wrong_ids']:6d}"
+                f" {p['nees_verdict']:>14s} {100 * p['beyond_999']:7.2f}% {p['wrong_ids']:6d}"
             )
     if args.json:
         args.json.write_text(json.dumps({"variants": variants, "rows": rows, "summary": summary}, indent=1))

@@ -331,9 +331,11 @@ def test_each_walks_row_gives_its_nees_bounds_and_verdict(tmp_path, capsys):
         "nees_mean": 4.0,
         "nees_bounds_95_effective": [1.5, 2.6],
         "nees_verdict": "overconfident",
+        "beyond_999": 0.05,
     }
     table = format_table([row], summarise([row]))
-    assert "| 4.00 [1.50, 2.60] overconfident |" in table, table
+    # With the share of its frames beyond chi-square's 99.9 % point (0.1 % if consistent).
+    assert "| 4.00 [1.50, 2.60] overconfident, 5.0% beyond 99.9% |" in table, table
 
 
 def test_results_json_is_standard_json_with_null_for_figures_it_cannot_give(tmp_path):

@@ -63,6 +63,30 @@ def test_metrics_against_numpy_on_random_errors():
     )
     nees = err[:, 0] ** 2 / sig**2 + err[:, 1] ** 2 / (2 * sig) ** 2
     assert m["nees_mean"] == pytest.approx(nees.mean(), rel=1e-9)
+    assert m["beyond_999"] == pytest.approx(np.mean(nees > 13.8155), abs=1e-12)
+
+
+def test_frames_stated_surer_than_they_were_are_counted_beyond_chi_squares_999_point():
+    """The mean NEES over a walk can be fine while a stretch of it is stated far too sure: each
+    frame's NEES is also held against chi-square's 99.9 % point for 2 DoF (13.8), which a
+    consistent filter's exceeds on 0.1 % of its frames."""
+    from tagloc.eval.metrics import NEES_999_2DOF
+
+    assert NEES_999_2DOF == pytest.approx(13.8155, abs=1e-4)
+    rng = np.random.default_rng(3)
+    gt_t, gt_T = straight_gt(201)
+    t = np.arange(20000) * 0.001
+    truth = np.c_[t, np.zeros_like(t), np.zeros_like(t)]
+    sd = 0.02
+    err = rng.normal(0.0, sd, (len(t), 2))
+    cov = np.repeat(np.diag([sd**2, sd**2, 1e-4])[None], len(t), axis=0)
+    honest = trajectory_metrics(t, truth + np.c_[err, np.zeros_like(t)], cov, gt_t, gt_T)
+    assert honest["beyond_999"] == pytest.approx(0.001, abs=0.0008)
+    # A tenth of the walk stated five times too sure (its errors as before): beyond on most of it.
+    surer = cov.copy()
+    surer[:2000, :2, :2] /= 25.0
+    m = trajectory_metrics(t, truth + np.c_[err, np.zeros_like(t)], surer, gt_t, gt_T)
+    assert 0.05 < m["beyond_999"] < 0.1
 
 
 def test_heading_interpolation_wraps_around_pi():

@@ -33,7 +33,14 @@ from tagloc.core.jsonfile import write_json
 from tagloc.core.stickermap import StickerMap
 from tagloc.eval.baselines import MODES, make_localiser
 from tagloc.eval.consistency import NEES_BLOCK_S, bounds_text, nees_blocks, nees_test
-from tagloc.eval.metrics import TrajectoryErrors, error_metrics, frames_in_span, gt_covers, trajectory_errors
+from tagloc.eval.metrics import (
+    NEES_999_2DOF,
+    TrajectoryErrors,
+    error_metrics,
+    frames_in_span,
+    gt_covers,
+    trajectory_errors,
+)
 from tagloc.io.session import FRAMES_CSV, SessionReader
 from tagloc.pipeline.run import RunLog, run_session
 
@@ -567,6 +574,8 @@ def summarise(rows: list[dict]) -> dict:
             "within_25cm": _pooled(rs, "within_25cm"),
             "heading_rmse_deg": _pooled(rs, "heading_rmse_deg", squared=True),
             "nees_mean": _pooled(rs, "nees_mean"),
+            # (rows scored before the figure existed have none: then neither has the pool)
+            "beyond_999": _pooled(rs, "beyond_999") if all("beyond_999" in r for r in rs) else math.nan,
             **_nees_summary(rs),
             "wrong_id_fixes": int(sum(r["wrong_id_fixes"] for r in rs)),
             "fixes": int(sum(r["fixes"] for r in rs)),
@@ -672,7 +681,19 @@ def _nees_cell(r: dict) -> str:
         return f"{r['nees_mean']:.2f}"
     if verdict == "too short":
         return f"{r['nees_mean']:.2f} (one {NEES_BLOCK_S:g} s block: too short)"
-    return f"{r['nees_mean']:.2f} {bounds_text(r['nees_bounds_95_effective'])} {verdict}"
+    return f"{r['nees_mean']:.2f} {bounds_text(r['nees_bounds_95_effective'])} {verdict}{_beyond_text(r)}"
+
+
+def _beyond_text(r: dict) -> str:
+    """ ", x.x% beyond 99.9%": the share of frames whose NEES exceeds chi-square's 99.9 % point (0.1 %
+    for a consistent filter); empty for a row without the figure."""
+    share = r.get("beyond_999", math.nan)
+    return "" if math.isnan(share) else f", {100 * share:.1f}% beyond 99.9%"
+
+
+def _share(share: float) -> str:
+    """A share with one decimal of a percent, "-" for NaN."""
+    return "-" if math.isnan(share) else f"{100 * share:.1f}%"
 
 
 def _percent(share: float) -> str:
@@ -696,8 +717,8 @@ def format_summary(preset: str, summary: dict) -> str:
         f"### {preset}",
         "",
         "| mode | RMSE cm | worst walk cm | <10 cm of all frames | (reachable) | heading deg | NEES |"
-        " 95% bounds (effective) | verdict | wrong IDs |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        " 95% bounds (effective) | verdict | frames beyond 99.9% | wrong IDs |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for mode, s in summary.items():
         # Two decimals: a bound of 98.97 % must not print as the 99 % goal.
@@ -709,6 +730,7 @@ def format_summary(preset: str, summary: dict) -> str:
             f" {'-' if math.isnan(reach) else f'{100 * reach:.2f}%'} |"
             f" {s['heading_rmse_deg']:.2f} | {s['nees_mean']:.2f} | {bounds} |"
             f" {s['nees_verdict']} |"
+            f" {_share(s.get('beyond_999', math.nan))} |"
             f" {s['wrong_id_fixes']} |"
         )
     return "\n".join(lines)
@@ -733,6 +755,13 @@ def format_notes(summary: dict) -> str:
             f" [{lo:.2f}, {hi:.2f}] if every frame were independent, which they are"
             f" not (below the bounds: conservative; above: overconfident)"
         )
+        share = s.get("beyond_999", math.nan)
+        if not math.isnan(share):
+            # The mean over a walk can hide a stretch stated surer than it was: frame by frame too.
+            parts.append(
+                f"  - frames whose NEES is beyond chi-square's 99.9% point ({NEES_999_2DOF:.1f}):"
+                f" {100 * share:.2f}% (0.1% for a consistent filter)"
+            )
     full = summary.get("full")
     if full is not None and full.get("by_time_since_fix"):
         parts += [

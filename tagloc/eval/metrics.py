@@ -104,10 +104,17 @@ def trajectory_metrics(
         ``frames`` (estimates scored), ``outside_gt`` (estimates outside the GT span), ``rmse_m``,
         ``median_m``, ``p95_m``, ``max_m`` (horizontal error), ``heading_rmse_deg``,
         ``within_10cm`` and ``within_25cm`` (fractions of scored estimates), ``nees_mean`` (2-DoF
-        position NEES; about 2 for a consistent filter). Figures are NaN (fractions 0) when nothing
-        was scored.
+        position NEES; about 2 for a consistent filter), ``beyond_999`` (fraction of scored
+        estimates whose NEES exceeds :data:`NEES_999_2DOF`; 0.001 for a consistent filter). Figures
+        are NaN (fractions 0) when nothing was scored.
     """
     return error_metrics(trajectory_errors(est_stamps, est_poses, est_covs, gt_stamps, gt_T))
+
+
+#: Chi-square's 99.9 % point for 2 DoF, -2 ln(0.001): a consistent filter's position NEES exceeds it
+#: on 0.1 % of frames (Gaussian errors). A run with many more frames beyond it was stated surer than
+#: it was somewhere, which its mean NEES over the whole walk can hide.
+NEES_999_2DOF = -2.0 * math.log(0.001)
 
 
 def error_metrics(e: TrajectoryErrors) -> dict:
@@ -125,6 +132,7 @@ def error_metrics(e: TrajectoryErrors) -> dict:
             within_10cm=0.0,
             within_25cm=0.0,
             nees_mean=nan,
+            beyond_999=nan,
         )
         return out
     p = e.position
@@ -137,6 +145,7 @@ def error_metrics(e: TrajectoryErrors) -> dict:
         within_10cm=float(np.mean(p <= 0.10)),
         within_25cm=float(np.mean(p <= 0.25)),
         nees_mean=float(np.mean(e.nees)),
+        beyond_999=float(np.mean(e.nees > NEES_999_2DOF)),
     )
     return out
 

@@ -132,6 +132,7 @@ def score_run(session: SessionReader, log: RunLog) -> dict:
         "max_m": m["max_m"],
         "heading_rmse_deg": m["heading_rmse_deg"],
         "nees_mean": m["nees_mean"],
+        "beyond_999": m["beyond_999"],
         "nees_blocks": nees_blocks(e.stamps, e.nees).tolist(),
         "odometry_fused": int(log.counts.get("tracker_odometry_accepted", 0)),
         "odometry_unmatched": int(log.counts.get("tracker_odometry_unmatched", 0)),
