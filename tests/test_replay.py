@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 import subprocess
 import sys
@@ -132,6 +133,9 @@ def test_replay_is_deterministic_and_scores_against_ground_truth(session, tmp_pa
     assert runs[0][0] == runs[1][0] and runs[0][1] == runs[1][1]
     stdout = runs[0][2]
     assert f"frames: {N} (1 skipped" in stdout and "error vs ground truth" in stdout
+    # The frames stated surer than they were, beside the mean NEES: a share, 0.0-100.0 %.
+    beyond = re.search(r", ([0-9.]+)% of frames beyond its 99.9% point", stdout)
+    assert beyond is not None and 0.0 <= float(beyond.group(1)) <= 100.0, stdout
 
     stamps, T = read_tum(tmp_path / "est0.tum")
     assert len(stamps) >= N - 4  # a pose per frame once tracking, the unreadable frame 5 aside

@@ -132,7 +132,8 @@ class ReplayResult:
                     f"error vs ground truth over {m['frames']} frames: RMSE {100 * m['rmse_m']:.1f} cm, median "
                     f"{100 * m['median_m']:.1f} cm, p95 {100 * m['p95_m']:.1f} cm, max {100 * m['max_m']:.1f} cm; "
                     f"heading RMSE {m['heading_rmse_deg']:.2f} deg; within 10 cm {100 * m['within_10cm']:.0f}%, "
-                    f"25 cm {100 * m['within_25cm']:.0f}%; NEES {m['nees_mean']:.2f} (2 if consistent)"
+                    f"25 cm {100 * m['within_25cm']:.0f}%; NEES {m['nees_mean']:.2f} (2 if consistent), "
+                    f"{100 * m['beyond_999']:.1f}% of frames beyond its 99.9% point (0.1% if consistent)"
                 )
         return "\n".join(lines)
 
