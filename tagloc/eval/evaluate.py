@@ -688,7 +688,7 @@ def _beyond_text(r: dict) -> str:
     """ ", x.x% beyond 99.9%": the share of frames whose NEES exceeds chi-square's 99.9 % point (0.1 %
     for a consistent filter); empty for a row without the figure."""
     share = r.get("beyond_999", math.nan)
-    return "" if math.isnan(share) else f", {100 * share:.1f}% beyond 99.9%"
+    return "" if math.isnan(share) else f", {_share(share)} beyond 99.9%"
 
 
 def _share(share: float) -> str:

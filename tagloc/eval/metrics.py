@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tagloc.core.geometry import interpolate_groundtruth, wrap_angle
+from tracker.config import chi2_bound
 
 #: A gap between consecutive ground-truth poses is a dropout, not scored across, when longer than
 #: both this and :data:`GT_GAP_INTERVALS` of the ground truth's median interval (a simulated walk's
@@ -111,10 +112,10 @@ def trajectory_metrics(
     return error_metrics(trajectory_errors(est_stamps, est_poses, est_covs, gt_stamps, gt_T))
 
 
-#: Chi-square's 99.9 % point for 2 DoF, -2 ln(0.001): a consistent filter's position NEES exceeds it
-#: on 0.1 % of frames (Gaussian errors). A run with many more frames beyond it was stated surer than
-#: it was somewhere, which its mean NEES over the whole walk can hide.
-NEES_999_2DOF = -2.0 * math.log(0.001)
+#: Chi-square's 99.9 % point for 2 DoF (13.8): a consistent filter's position NEES exceeds it on 0.1 %
+#: of frames (Gaussian errors). A run with many more frames beyond it was stated surer than it was
+#: somewhere, which its mean NEES over the whole walk can hide.
+NEES_999_2DOF = chi2_bound(0.999, 2)
 
 
 def error_metrics(e: TrajectoryErrors) -> dict:

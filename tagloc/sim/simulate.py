@@ -33,6 +33,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
@@ -423,6 +424,17 @@ class SimScene:
         ]
         return cls(config, rig, walk, floor, renderers, schedules)
 
+    @property
+    def stagger(self) -> float:
+        """Seconds between the rig cameras' exposures: free-running cameras are never simultaneous,
+        camera c is exposed c / (cameras * fps) after camera 0."""
+        return 1.0 / (len(self.rig) * self.config.fps)
+
+    def pose_at(self, camera: int) -> Callable[[np.ndarray], np.ndarray]:
+        """Rig camera ``camera``'s true pose T_world_camera ((N, 4, 4)) at times (N,) s."""
+        T_body_camera = self.rig.cameras[camera].T_body_camera
+        return lambda ts: self.walk.T_world_camera(np.asarray(ts, float), T_body_camera)
+
     def render_frame(self, k: int, camera: int = 0) -> tuple[float, np.ndarray, np.ndarray]:
         """Frame ``k`` of rig camera ``camera`` as :func:`simulate_session` renders it (before JPEG),
         without rendering the frames before it: (true mid-exposure time s, (H, W) uint8 image,
@@ -435,9 +447,8 @@ class SimScene:
         rows = np.flatnonzero(sc.index == k)
         if not len(rows):
             raise InputError(f"simulate: camera {camera} delivers no frame {k}")
-        stagger = 1.0 / (len(self.rig) * self.config.fps)
-        t = float(sc.true_t[rows[0]]) + camera * stagger
-        shot = _Shot(float(sc.stamp[rows[0]]) + camera * stagger, t, camera, int(k))
+        t = float(sc.true_t[rows[0]]) + camera * self.stagger
+        shot = _Shot(float(sc.stamp[rows[0]]) + camera * self.stagger, t, camera, int(k))
         res, T_world_body = _render_shot(self, shot)
         return t, res.image, T_world_body
 
@@ -451,9 +462,8 @@ def _render_shot(scene: SimScene, shot: _Shot) -> tuple[RenderResult, np.ndarray
     vest_point = rig.vest_point
     T_world_body = scene.walk.T_world_body(t, vest_point)
     body = renderer.lamps.axis(T_world_body, vest_point) if renderer.lamps is not None else None
-    T_body_camera = rig.cameras[camera].T_body_camera
     res = renderer.render(
-        lambda ts: scene.walk.T_world_camera(np.asarray(ts, float), T_body_camera),
+        scene.pose_at(camera),
         t,
         config.lux,
         np.random.default_rng(seed),
@@ -475,9 +485,7 @@ def simulate_session(
     rig, walk, floor, schedules = scene.rig, scene.walk, scene.floor, scene.schedules
     n_cams = len(rig)
     exp_cfg = config.exposure_config()
-    # Free-running cameras are never simultaneous: camera c is exposed c / (n_cams * fps) after camera 0.
-    stagger = 1.0 / (n_cams * config.fps)
-    shots = _delivered(schedules, stagger)
+    shots = _delivered(schedules, scene.stagger)
     # Ground truth at the frames' true times; frames.csv gets the drivers' jittered stamps.
     gt_stamps = np.sort(np.array([shot.t for shot in shots], float))
     given_map = surveyed_map(smap, config.survey, config.seed)
@@ -513,11 +521,7 @@ def simulate_session(
         extra=sim_info,
     )
     readout = exp_cfg.readout_s if exp_cfg.rolling_shutter else 0.0
-
-    def pose_fn(T_body_camera: np.ndarray):
-        return lambda ts: walk.T_world_camera(np.asarray(ts, float), T_body_camera)
-
-    poses = [pose_fn(rc.T_body_camera) for rc in rig.cameras]
+    poses = [scene.pose_at(c) for c in range(n_cams)]
     t_wall = time.perf_counter()
     stats = []
     with SessionWriter(out, given_map, rig, info, jpeg_quality=config.jpeg_quality) as writer:

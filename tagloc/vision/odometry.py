@@ -853,11 +853,12 @@ def clip_to_grain(high: np.ndarray, sigmas: float, where: np.ndarray | None = No
     (None: all); ``high`` itself when ``sigmas`` <= 0, nothing is beyond or nothing is measured."""
     if not sigmas > 0.0:
         return high
-    flat = np.abs(high).ravel() if where is None else np.abs(high[where])
+    a = np.abs(high)
+    flat = a.ravel() if where is None else a[where]
     if not flat.size:
         return high
     limit = sigmas * float(np.partition(flat, flat.size // 2)[flat.size // 2]) / 0.6745
-    if not (limit > 0.0 and float(np.abs(high).max()) > limit):
+    if not (limit > 0.0 and float(a.max()) > limit):
         return high
     return np.clip(high, -limit, limit)
 
