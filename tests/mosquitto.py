@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import random
 import shutil
 import socket
 import subprocess
@@ -14,7 +15,24 @@ MOSQUITTO = shutil.which("mosquitto") or ("/usr/sbin/mosquitto" if Path("/usr/sb
 
 
 def free_port() -> int:
-    """A TCP port free on 127.0.0.1 right now."""
+    """A TCP port free on 127.0.0.1 right now, below the kernel's ephemeral range. A port the kernel
+    hands out (bind to port 0) comes from that range, and until a server listens on it any outgoing
+    connection of the parallel test run can take it as its own local port: a CI run once saw
+    mosquitto fail with "Address already in use" on such a port (test_mqtt_sink_starts_without_a_
+    broker_and_connects_later, 2026-12-01). Ports below the range are only ever taken by bind."""
+    try:
+        low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        low = 32768  # Linux's default; elsewhere the kernel's own choice below
+    rng = random.Random()  # not the tests' seeded generators: two workers must not draw alike
+    for _ in range(100):
+        port = rng.randrange(max(1024, low - 12000), low)
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from mosquitto import free_port
 
 import tagloc.io.rerun_view as rv
 from tagloc.core.geometry import planar_T
@@ -136,15 +137,6 @@ def test_trajectory_pieces_join(recording):
     assert len(p0) == 4 and len(p1) == 5
     assert np.allclose(p1[0], p0[-1])
     assert np.allclose(p0[:, 0], [0.2, 0.3, 0.4, 0.5])
-
-
-def free_port() -> int:
-    """A local TCP port nothing listens on (bound, then released)."""
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def test_missing_viewer_is_a_clear_error(monkeypatch, tmp_path):
