@@ -62,7 +62,7 @@ from tagloc.core.errors import CalibrationError, InputError
 from tagloc.core.rig import RigCamera, floor_under_pixels, row_delay_s, torso_tilt
 from tagloc.vision.floor_flow import FloorFlow, FloorFlowConfig, FlowStep
 from tagloc.vision.image import require_gray
-from tagloc.vision.torso_tilt import TorsoTilt
+from tagloc.vision.torso_tilt import TRUNK_TILT_RATE_SIGMA, TorsoTilt
 
 __all__ = ["OdometryConfig", "OdometryStep", "FloorOdometry", "floor_patch"]
 
@@ -621,7 +621,7 @@ class OdometryConfig:
     tilt_fit_max: float = math.radians(5.0)
     tilt_anchor_sigma: float = math.radians(0.3)
     tilt_posture_fixes: int = 300
-    tilt_rate_sigma: float = math.radians(10.0)
+    tilt_rate_sigma: float = TRUNK_TILT_RATE_SIGMA
     tilt_gate_reset: int = 3
     tilt_gate_prior_sigma: float = math.radians(2.0)
     tilt_iterations: int = 2

@@ -42,7 +42,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-__all__ = ["TiltAxis", "TorsoTilt"]
+__all__ = ["TRUNK_TILT_RATE_SIGMA", "TiltAxis", "TorsoTilt"]
+
+# The trunk's pitch and roll rate while walking (rad/s, standard deviation of each). From the gait:
+# the trunk nods and sways by 1-2 deg at the step frequency (about 2 Hz), an RMS rate of
+# 2 pi f A / sqrt(2) = 8-18 deg/s, and leans into a turn's start and with braking at similar rates
+# for a fraction of a second. The simulator's walker: 5-7 deg/s on the field walks, 8-10 deg/s
+# swinging twice as much (see ``OdometryConfig.tilt_rate_sigma``). 10 deg/s.
+TRUNK_TILT_RATE_SIGMA = math.radians(10.0)
 
 
 @dataclass
