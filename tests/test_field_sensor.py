@@ -295,6 +295,63 @@ def test_map_error_slots_are_reused_and_the_filter_stays_finite():
 # -- rolling-shutter correction of a fix -----------------------------------------------------------
 
 
+class _MovingSticker:
+    """One sticker 0.62 m ahead of a camera 1.3 m up, pitched 55 deg, read out in 30 ms while the
+    camera moves at ``v`` m/s along world x and turns at ``w`` (3,) rad/s about world axes
+    (render_view's uniform motion)."""
+
+    def __init__(self, v: float, w: np.ndarray):
+        from tagloc.core.camera import default_camera
+        from tagloc.core.rig import RigCamera, looking_forward
+        from tagloc.sim.simulate import camera_pose_looking_at
+
+        self.v, self.w = v, np.asarray(w, float)
+        self.cam = default_camera()
+        self.rc = RigCamera("front", self.cam, looking_forward(1.3, 55.0), readout_s=0.030, legs_in_view=False)
+        self.T_wc = camera_pose_looking_at((1.0, 0.0), 1.3, 55.0, 0.0)
+        self.smap = StickerMap(np.array([4242]), np.array([[0.62, 0.05]]), np.array([0.5]))
+        self.T_ws = self.smap.T_world_sticker(4242)
+
+    def pose_at(self, t: float) -> np.ndarray:
+        """The camera's pose t s after the frame's time."""
+        from scipy.spatial.transform import Rotation
+
+        T = self.T_wc.copy()
+        T[:3, 3] += t * np.array([self.v, 0.0, 0.0])
+        T[:3, :3] = Rotation.from_rotvec(t * self.w).as_matrix() @ self.T_wc[:3, :3]
+        return T
+
+    def sticker_at(self, t: float):
+        """The sticker's detection in a frame whose middle row is read t s after the frame's time,
+        and the rotation that puts its canonical top-left first."""
+        from tagloc.core.geometry import invert, transform_points
+        from tagloc.core.sticker import OUTER_CORNERS
+        from tagloc.sim.simulate import render_view
+        from tagloc.vision.detect import detect
+
+        res = render_view(
+            self.smap,
+            self.cam,
+            self.pose_at(t),
+            300.0,
+            velocity=np.array([self.v, 0.0, 0.0]),
+            angular_velocity=self.w,
+            exposure=ExposureConfig(rolling_shutter=True, readout_s=0.030),
+            seed=2,
+        )
+        dets = detect(res.image, self.cam)
+        assert len(dets) == 1
+        tl = self.cam.project(transform_points(invert(self.pose_at(t)) @ self.T_ws, OUTER_CORNERS[:1]))[0]
+        return dets[0], int(np.argmin(np.hypot(*(dets[0].outer - tl).T)))
+
+    def truth(self, row_time_s: float) -> np.ndarray:
+        """The body's true (x, y, yaw) at ``row_time_s`` after the frame's time."""
+        from tagloc.core.geometry import invert
+        from tagloc.core.rig import vest_planar
+
+        return vest_planar(self.pose_at(row_time_s) @ invert(self.rc.T_body_camera), self.rc.vest_point)
+
+
 @pytest.mark.parametrize("turn", [0.0, 1.5])
 def test_rolling_shutter_frame_gives_the_right_pose(turn):
     """A rendered rolling-shutter frame (30 ms read-out) of a camera walking at 1.5 m/s, turning at
@@ -303,47 +360,13 @@ def test_rolling_shutter_frame_gives_the_right_pose(turn):
     corners' own motion since the previous frame (rendered 1/30 s earlier), it is that instant's
     pose within three of its sigmas; without, the sticker's shear puts it over 1 cm off, and the
     fix says so (``PoseConfig.unknown_twist_sigma``)."""
-    from scipy.spatial.transform import Rotation
-
-    from tagloc.core.camera import default_camera
-    from tagloc.core.geometry import invert, transform_points, wrap_angle
-    from tagloc.core.rig import RigCamera, looking_forward, row_delay_s, vest_planar
-    from tagloc.core.sticker import OUTER_CORNERS, rotate_corners
-    from tagloc.sim.simulate import camera_pose_looking_at, render_view
-    from tagloc.vision.detect import detect
+    from tagloc.core.geometry import wrap_angle
+    from tagloc.core.rig import row_delay_s
+    from tagloc.core.sticker import rotate_corners
     from tagloc.vision.pose import PoseConfig, solve_pose
 
-    cam = default_camera()
-    rc = RigCamera("front", cam, looking_forward(1.3, 55.0), readout_s=0.030, legs_in_view=False)
-    T_wc = camera_pose_looking_at((1.0, 0.0), 1.3, 55.0, 0.0)
-    smap = StickerMap(np.array([4242]), np.array([[0.62, 0.05]]), np.array([0.5]))
-    T_ws = smap.T_world_sticker(4242)
-    v = 1.5
-
-    def pose_at(t: float) -> np.ndarray:
-        """The camera's pose t s after the frame's time (render_view's uniform motion)."""
-        T = T_wc.copy()
-        T[:3, 3] += t * np.array([v, 0.0, 0.0])
-        T[:3, :3] = Rotation.from_rotvec([0.0, 0.0, t * turn]).as_matrix() @ T_wc[:3, :3]
-        return T
-
-    def sticker_at(t: float):
-        """The sticker's detection in a frame whose middle row is read t s after the frame's time,
-        and the rotation that puts its canonical top-left first."""
-        res = render_view(
-            smap,
-            cam,
-            pose_at(t),
-            300.0,
-            velocity=np.array([v, 0.0, 0.0]),
-            angular_velocity=np.array([0.0, 0.0, turn]),
-            exposure=ExposureConfig(rolling_shutter=True, readout_s=0.030),
-            seed=2,
-        )
-        dets = detect(res.image, cam)
-        assert len(dets) == 1
-        tl = cam.project(transform_points(invert(pose_at(t)) @ T_ws, OUTER_CORNERS[:1]))[0]
-        return dets[0], int(np.argmin(np.hypot(*(dets[0].outer - tl).T)))
+    scene = _MovingSticker(1.5, np.array([0.0, 0.0, turn]))
+    cam, rc, T_ws, v, sticker_at = scene.cam, scene.rc, scene.T_ws, scene.v, scene.sticker_at
 
     det, rot = sticker_at(0.0)
     prev, prev_rot = sticker_at(-1 / 30)
@@ -351,7 +374,7 @@ def test_rolling_shutter_frame_gives_the_right_pose(turn):
 
     def err(sol):
         fix = sol.poses[0]
-        truth = vest_planar(pose_at(sol.row_time_s) @ invert(rc.T_body_camera), rc.vest_point)
+        truth = scene.truth(sol.row_time_s)
         e_mm = 1000 * float(np.hypot(*(fix.body[:2] - truth[:2])))
         sig_mm = 1000 * math.sqrt(np.linalg.eigvalsh(fix.cov[:2, :2])[-1])
         return (
@@ -417,51 +440,18 @@ def test_a_fix_straightened_by_the_planar_twist_states_the_torsos_pitch_it_canno
     6 cm off. Its covariance carries the torso's pitch and roll rates, so that error is within
     three of its sigmas; without that term it is four sigmas out. Straightened by the corners' own
     motion since the previous frame (which holds the pitch), the fix is 2 mm off."""
-    from scipy.spatial.transform import Rotation
-
-    from tagloc.core.camera import default_camera
-    from tagloc.core.geometry import invert, transform_points
-    from tagloc.core.rig import RigCamera, looking_forward, vest_planar
-    from tagloc.core.sticker import OUTER_CORNERS, rotate_corners
-    from tagloc.sim.simulate import camera_pose_looking_at, render_view
-    from tagloc.vision.detect import detect
+    from tagloc.core.sticker import rotate_corners
     from tagloc.vision.pose import PoseConfig, solve_pose
     from tagloc.vision.torso_tilt import TRUNK_TILT_RATE_SIGMA
 
-    cam = default_camera()
-    rc = RigCamera("front", cam, looking_forward(1.3, 55.0), readout_s=0.030, legs_in_view=False)
-    T_wc = camera_pose_looking_at((1.0, 0.0), 1.3, 55.0, 0.0)
-    smap = StickerMap(np.array([4242]), np.array([[0.62, 0.05]]), np.array([0.5]))
-    T_ws = smap.T_world_sticker(4242)
-    v, w = 1.3, np.array([0.0, 2 * TRUNK_TILT_RATE_SIGMA, 0.0])  # pitch: about the body's left axis
-
-    def pose_at(t: float) -> np.ndarray:
-        T = T_wc.copy()
-        T[:3, 3] += t * np.array([v, 0.0, 0.0])
-        T[:3, :3] = Rotation.from_rotvec(t * w).as_matrix() @ T_wc[:3, :3]
-        return T
-
-    def sticker_at(t: float):
-        res = render_view(
-            smap,
-            cam,
-            pose_at(t),
-            300.0,
-            velocity=np.array([v, 0.0, 0.0]),
-            angular_velocity=w,
-            exposure=ExposureConfig(rolling_shutter=True, readout_s=0.030),
-            seed=2,
-        )
-        dets = detect(res.image, cam)
-        assert len(dets) == 1
-        tl = cam.project(transform_points(invert(pose_at(t)) @ T_ws, OUTER_CORNERS[:1]))[0]
-        return dets[0], int(np.argmin(np.hypot(*(dets[0].outer - tl).T)))
+    # Pitch: about the body's left axis (world y, heading along world x).
+    scene = _MovingSticker(1.3, np.array([0.0, 2 * TRUNK_TILT_RATE_SIGMA, 0.0]))
+    rc, T_ws, v, sticker_at = scene.rc, scene.T_ws, scene.v, scene.sticker_at
 
     def err(sol) -> tuple[float, float]:
         """(position error, its largest stated sigma) in mm."""
         fix = sol.poses[0]
-        truth = vest_planar(pose_at(sol.row_time_s) @ invert(rc.T_body_camera), rc.vest_point)
-        e = 1000 * float(np.hypot(*(fix.body[:2] - truth[:2])))
+        e = 1000 * float(np.hypot(*(fix.body[:2] - scene.truth(sol.row_time_s)[:2])))
         return e, 1000 * math.sqrt(np.linalg.eigvalsh(fix.cov[:2, :2])[-1])
 
     det, rot = sticker_at(0.0)
