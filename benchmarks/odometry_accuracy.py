@@ -5,6 +5,7 @@ Run (from the repository root, on sessions made by ``tagloc eval --preset all`` 
     PYTHONPATH=$PWD python benchmarks/odometry_accuracy.py SESSION [SESSION ...] [--config '{"lean_correction": false}']
     PYTHONPATH=$PWD python benchmarks/odometry_accuracy.py SESSION ... --calibrate
     PYTHONPATH=$PWD python benchmarks/odometry_accuracy.py SESSION ... --by-residual
+    PYTHONPATH=$PWD python benchmarks/odometry_accuracy.py SESSION ... --by-rho
     PYTHONPATH=$PWD python benchmarks/odometry_accuracy.py SESSION ... --in-localiser --windows
     PYTHONPATH=$PWD python benchmarks/odometry_accuracy.py SESSION ... --in-localiser --bridged
 
@@ -24,6 +25,10 @@ walked, and the mean CPU time per ``measure`` call (process time: robust to othe
 :class:`tagloc.vision.floor_flow.FloorFlow`), for the steps the flow measured and the patch's steps
 where its fit was refused: RMS error, RMS stated sigma, and the 3-DoF NEES against each step's
 covariance (3 if consistent).
+
+``--by-rho`` adds the steps binned by the ECC correlation of the patch's match
+(:attr:`tagloc.vision.odometry.OdometryStep.rho`; the bins straddle ``weak_ecc`` and ``min_ecc``):
+RMS error, RMS error over the stated sigma per axis (1 if the sigmas hold), and the largest.
 
 ``--in-localiser`` measures the steps the localiser itself fuses (the whole pipeline runs: the
 odometry's lean and pitch then come from the tracker's prediction, as in a replay) instead of the
@@ -128,7 +133,7 @@ def run_session(path: Path, config: OdometryConfig, reference: str = "vest") -> 
     odo = FloorOdometry(rc, config)
     T_camera_body = np.linalg.inv(rc.T_body_camera)
     gt = _groundtruth(path)
-    true, meas, t1, covs, flow = [], [], [], [], []
+    true, meas, t1, covs, flow, rho = [], [], [], [], [], []
     prev = None
     cost = 0.0
     n = 0
@@ -149,6 +154,7 @@ def run_session(path: Path, config: OdometryConfig, reference: str = "vest") -> 
                 true.append(_relative(prev[1], vest))
                 meas.append(step.delta if step is not None else np.full(3, np.nan))
                 covs.append(step.cov if step is not None else np.full((3, 3), np.nan))
+                rho.append(step.rho if step is not None else np.nan)
                 residual = odo.last_flow_residual
                 flow.append((np.nan if residual is None else residual, odo.flow_steps > flow_steps))
                 t1.append(fr.timestamp)
@@ -160,6 +166,7 @@ def run_session(path: Path, config: OdometryConfig, reference: str = "vest") -> 
         "cov": np.array(covs).reshape(-1, 3, 3),
         "flow_residual": np.array([f[0] for f in flow], float),
         "flow_used": np.array([f[1] for f in flow], bool),
+        "rho": np.array(rho, float),
         "t": np.array(t1),
         "odo": odo,
         "cost_s": cost / max(n, 1),
@@ -211,7 +218,7 @@ def run_session_in_localiser(path: Path, config: OdometryConfig) -> dict:
     frame_of = {}
     for res in iterate_results(session, loc):
         frame_of[round(res.timestamp, 9)] = res.index
-    true, meas, covs, residual, used, t1, dt = [], [], [], [], [], [], []
+    true, meas, covs, residual, used, t1, dt, rho = [], [], [], [], [], [], [], []
     flow_before = 0
     for step, res_px, flow_steps in steps:
         i0, i1 = frame_of.get(round(step.t0, 9)), frame_of.get(round(step.t1, 9))
@@ -223,6 +230,7 @@ def run_session_in_localiser(path: Path, config: OdometryConfig) -> dict:
         covs.append(np.asarray(step.cov, float))
         residual.append(np.nan if res_px is None else res_px)
         used.append(flowed)
+        rho.append(step.rho)
         t1.append(step.t1)
         dt.append(step.t1 - step.t0)
     return {
@@ -231,6 +239,7 @@ def run_session_in_localiser(path: Path, config: OdometryConfig) -> dict:
         "cov": np.array(covs).reshape(-1, 3, 3),
         "flow_residual": np.array(residual, float),
         "flow_used": np.array(used, bool),
+        "rho": np.array(rho, float),
         "t": np.array(t1),
         "dt": np.array(dt),
         "odo": loc.floor_odometry(0),
@@ -320,6 +329,34 @@ def residual_table(results: list[dict]) -> str:
                 f" {math.degrees(rms[2]):6.2f}   {1e3 * s[0]:6.1f} {1e3 * s[1]:6.1f} {math.degrees(s[2]):5.2f}"
                 f"  {np.mean(nees[m]):8.2f} / {np.median(nees[m]):5.2f}"
             )
+    return "\n".join(lines)
+
+
+RHO_BINS = (0.0, 0.2, 0.25, 0.3, 0.4, 0.6, 1.0)  # ECC correlation; weak_ecc 0.2, min_ecc 0.3
+
+
+def rho_table(results: list[dict]) -> str:
+    """The patch-matched steps of all ``results`` binned by their ECC correlation: count, RMS error
+    (forward, sideways mm, turn deg), RMS of error / stated sigma per axis (1 if the sigmas hold,
+    below it they are stated on the safe side) and the largest |error / sigma|."""
+    keep = [np.all(np.isfinite(r["meas"]), axis=1) & np.isfinite(r["rho"]) for r in results]
+    e = np.vstack([_errors(r)[k] for r, k in zip(results, keep)])
+    sig = np.sqrt(np.concatenate([np.diagonal(r["cov"][k], axis1=1, axis2=2) for r, k in zip(results, keep)]))
+    rho = np.concatenate([r["rho"][k] for r, k in zip(results, keep)])
+    lines = [
+        f"{'ECC rho':>9s} {'steps':>6s}  {'rms fwd/lat mm, yaw deg':>24s}  {'rms err/sigma':>18s}  {'max |err/sigma|':>18s}"
+    ]
+    for lo, hi in zip(RHO_BINS[:-1], RHO_BINS[1:]):
+        m = (rho >= lo) & ((rho < hi) if hi < 1.0 else (rho <= hi))
+        if not m.any():
+            continue
+        rms = np.sqrt(np.mean(e[m] ** 2, axis=0))
+        z = np.abs(e[m] / sig[m])
+        zr, zm = np.sqrt(np.mean(z**2, axis=0)), z.max(axis=0)
+        lines.append(
+            f"{f'{lo:g}-{hi:g}':>9s} {int(m.sum()):6d}  {1e3 * rms[0]:7.2f} {1e3 * rms[1]:6.2f} {math.degrees(rms[2]):7.3f}"
+            f"   {zr[0]:5.2f} {zr[1]:5.2f} {zr[2]:5.2f}   {zm[0]:5.1f} {zm[1]:5.1f} {zm[2]:5.1f}"
+        )
     return "\n".join(lines)
 
 
@@ -418,6 +455,11 @@ def main(argv: list[str] | None = None) -> None:
         help="also bin the steps by the floor flow's median reprojection error (error and NEES)",
     )
     ap.add_argument(
+        "--by-rho",
+        action="store_true",
+        help="also bin the patch-matched steps by ECC correlation (error against the stated sigma)",
+    )
+    ap.add_argument(
         "--reference",
         choices=("vest", "apparent"),
         default="vest",
@@ -454,6 +496,8 @@ def main(argv: list[str] | None = None) -> None:
         tqdm.write(summary_row(path.name, r))
     if args.by_residual:
         print(residual_table(results))
+    if args.by_rho:
+        print(rho_table(results))
     if args.windows:
         print(window_table(results))
     if args.bridged:

@@ -455,6 +455,34 @@ def test_odometry_accuracy_in_the_localiser_times_the_measure_calls_alone(monkey
     assert r["cost_s"] == pytest.approx(0.003, abs=1e-9)
 
 
+def test_odometry_accuracy_bins_the_steps_by_ecc_correlation_against_their_stated_sigmas(monkeypatch):
+    """``--by-rho``: each patch-matched step lands in its correlation's bin with its RMS error and its
+    error over the stated sigma; refused steps (NaN) and flow-only steps (rho NaN) are left out."""
+    import math
+    import sys
+
+    import numpy as np
+
+    monkeypatch.syspath_prepend(str(BENCHMARKS[0].parent))
+    sys.modules.pop("odometry_accuracy", None)
+    from odometry_accuracy import rho_table
+
+    true = np.zeros((5, 3))
+    meas = np.array([[0.001, 0.0, 0.0], [-0.001, 0.0, 0.0], [0.0, 0.004, 0.0], [0.5, 0.5, 0.5], [np.nan] * 3])
+    cov = np.tile(np.diag([0.002**2, 0.002**2, 0.01**2]), (5, 1, 1))
+    rho = np.array([0.22, 0.24, 0.35, np.nan, 0.5])
+    rows = {
+        ln.split()[0]: ln.split()
+        for ln in rho_table([{"true": true, "meas": meas, "cov": cov, "rho": rho}]).splitlines()[1:]
+    }
+    assert set(rows) == {"0.2-0.25", "0.3-0.4"}
+    low, mid = rows["0.2-0.25"], rows["0.3-0.4"]
+    assert int(low[1]) == 2 and float(low[2]) == pytest.approx(1.0) and float(low[5]) == pytest.approx(0.5)
+    assert float(low[8]) == pytest.approx(0.5)
+    assert int(mid[1]) == 1 and float(mid[3]) == pytest.approx(4.0) and float(mid[6]) == pytest.approx(2.0)
+    assert float(mid[4]) == pytest.approx(0.0) and math.isfinite(float(mid[7]))
+
+
 @pytest.mark.parametrize(
     "speeds, fitted, said",
     [

@@ -858,8 +858,9 @@ def test_a_weak_match_is_kept_with_a_larger_covariance(monkeypatch):
     assert np.allclose(weak.delta, strong.delta)
     assert np.allclose(weak.cov, 4.0 * odo.covariance(weak.delta) * _flow_factor(odo_weak))
     assert np.allclose(strong.cov, odo.covariance(strong.delta) * _flow_factor(odo))
+    assert weak.rho == pytest.approx(0.27) and strong.rho == pytest.approx(0.9)
     assert steps(0.27, weak_ecc=0.3)[1] is None
-    assert steps(0.2)[1] is None
+    assert steps(0.19)[1] is None
 
 
 def _flow_factor(odo: FloorOdometry) -> float:

@@ -138,8 +138,8 @@ class OdometryConfig:
       0.075 deg of turn a step; f01 5.30 -> 3.07 mm and 0.148 -> 0.069 deg. Its cost: 9 us a
       patch (a median by partition); the replay's odometry stage within the machine's noise. At 2
       sigma the gait x2 walk f01 replayed at 15 fps was lost (82 cm RMS): grain clipped too. At
-      648 x 486 fewer steps are measured (f01 74.7 -> 71.5 %): where a line or a sticker carried
-      a coarse camera's match, the clipped correlation falls under ``weak_ecc``.
+      648 x 486 fewer steps were measured (f01 74.7 -> 71.5 %): where a line or a sticker carried
+      a coarse camera's match, the clipped correlation fell under ``weak_ecc`` at 0.25, now 0.2.
     - ``dark_level``, ``min_lit_fraction``: patch pixels at or below ``dark_level`` grey levels (the
       patch's pixels average many of the frame's, so it is the mean of a dark area, not a noisy
       pixel) see no lit floor: a lens cap or a flap partly over the lens, an unlit corner. Such a
@@ -266,14 +266,20 @@ class OdometryConfig:
       (median per session, lux 50-300), down to ~0.05 only under the heaviest blur.
     - ``min_ecc``: ECC correlation after alignment: < 0.1 on noise, >= 0.3 on matching frames.
     - ``weak_ecc``: a match between this and ``min_ecc`` (heavy blur: a fast turn in dim light
-      smears the two patches differently) is kept with its covariance times ``weak_ecc_cov_scale``.
-      Measured against the true motion (odometry alone, every step): on the six standard eval
-      walks, the 70 of 3,590 steps at 0.25-0.3 were 5.6 mm / 5.3 mm / 0.16 deg off (forward,
-      sideways, turn RMS) against 4.8 / 4.0 / 0.11 at 0.3-0.4, and the 3 at 0.2-0.25 up to 2.5 deg;
-      on four field walks (rolling shutter), the 69 at 0.25-0.3 were 1.27 / 0.56 / 1.34 times their
-      stated sigmas against 0.77 / 0.48 / 0.91 at 0.3-0.4, hence 0.25 and 4 (twice the sigma). On
-      the standard walk s01 (56 lux), six such frames in one fast turn had been refused and the
-      turn's 19 degrees left to the walking model: heading RMSE 3.1 -> 1.0 deg.
+      smears the two patches differently; a coarse camera's patch with little grain left after the
+      clip, ``grain_clip_sigmas``) is kept with its covariance times ``weak_ecc_cov_scale`` (twice
+      the sigma). Noise alone correlates under 0.1 (``min_ecc``), so 0.2 is still twice noise's
+      worst. Measured against the true motion (odometry alone, every step, the patch clipped;
+      ``benchmarks/odometry_accuracy.py`` binned by rho, 2026-12-02): at 648 x 486 the six
+      standard walks' 479 steps at 0.2-0.25 were 4.5 / 3.9 mm / 0.11 deg off (forward, sideways,
+      turn RMS) against 3.4 / 3.0 / 0.062 at 0.3-0.4, which is 0.24 / 0.21 / 0.37 of their stated
+      (scaled) sigmas, at most 2.0 on one step; the five field walks' 555 (rolling shutter) 5.1 /
+      5.2 / 0.15 against 4.2 / 3.4 / 0.081, 0.26 / 0.25 / 0.41 of their sigmas. At 1296 x 972 no
+      step of the eleven eval walks fell there. At 0.25 (derived before the clip, on unclipped correlations) the half-resolution
+      walks f01 and s01 lost most such steps and with them the walk (field 277 -> 4.5 cm RMS at
+      0.2, standard 281 -> 5.7; ``benchmarks/eval_variants.py``). On the standard walk s01 (56
+      lux), six weak frames in one fast turn had been refused and the turn's 19 degrees left to
+      the walking model: heading RMSE 3.1 -> 1.0 deg.
     - ``flow_cov_ref_px``, ``flow_cov_power``, ``flow_cov_min_scale``: a step the floor flow
       measured has its covariance (the sigmas above, fitted to the patch's steps) times
       ``clip((r / flow_cov_ref_px) ** flow_cov_power, flow_cov_min_scale, 1)`` for the flow's
@@ -581,7 +587,7 @@ class OdometryConfig:
     plain_floor_residual_px: float = 2.0
     min_response: float = 0.1
     min_ecc: float = 0.3
-    weak_ecc: float = 0.25
+    weak_ecc: float = 0.2
     weak_ecc_cov_scale: float = 4.0
     flow_cov_ref_px: float = 1.33
     flow_cov_power: float = 4.0
@@ -651,6 +657,9 @@ class OdometryStep:
         delta: (3,) ``(dx, dy, dyaw)``: the body pose at ``t1`` in the body frame at ``t0`` (m, m, rad).
         cov: (3, 3) covariance of ``delta``.
         quality: phase-correlation response (0-1, higher is better).
+        rho: ECC correlation of the patch's match (0-1; below ``OdometryConfig.min_ecc`` a weak
+            match, see ``weak_ecc``); NaN for a step the floor flow measured without a patch
+            match. For diagnostics: the covariance already carries what it says.
     """
 
     t0: float
@@ -658,6 +667,7 @@ class OdometryStep:
     delta: np.ndarray
     cov: np.ndarray
     quality: float
+    rho: float = float("nan")
 
 
 @dataclass
@@ -766,7 +776,9 @@ def _compose_steps(a: OdometryStep, b: OdometryStep) -> OdometryStep:
     Ja = np.array([[1.0, 0.0, -s * bx - c * by], [0.0, 1.0, c * bx - s * by], [0.0, 0.0, 1.0]])
     Jb = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     cov = Ja @ a.cov @ Ja.T + Jb @ b.cov @ Jb.T
-    return OdometryStep(a.t0, b.t1, _compose(a.delta, b.delta), cov, min(a.quality, b.quality))
+    return OdometryStep(
+        a.t0, b.t1, _compose(a.delta, b.delta), cov, min(a.quality, b.quality), float(np.fmin(a.rho, b.rho))
+    )
 
 
 def _invert2(a: np.ndarray) -> np.ndarray:
@@ -1531,7 +1543,7 @@ class FloorOdometry:
         elif grays is not None and self._flow is not None and self._flow.last_residual is not None:
             r = self._flow.last_residual
             cov = cov * refused_flow_cov_scale(r, self._flow.limit_for(r), cfg)
-        return OdometryStep(t0, t, delta, cov, float(response))
+        return OdometryStep(t0, t, delta, cov, float(response), float(rho))
 
     def _untilted_step(
         self,
