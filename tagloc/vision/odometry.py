@@ -270,16 +270,17 @@ class OdometryConfig:
       clip, ``grain_clip_sigmas``) is kept with its covariance times ``weak_ecc_cov_scale`` (twice
       the sigma). Noise alone correlates under 0.1 (``min_ecc``), so 0.2 is still twice noise's
       worst. Measured against the true motion (odometry alone, every step, the patch clipped;
-      ``benchmarks/odometry_accuracy.py`` binned by rho, 2026-12-02): at 648 x 486 the six
-      standard walks' 479 steps at 0.2-0.25 were 4.5 / 3.9 mm / 0.11 deg off (forward, sideways,
-      turn RMS) against 3.4 / 3.0 / 0.062 at 0.3-0.4, which is 0.24 / 0.21 / 0.37 of their stated
-      (scaled) sigmas, at most 2.0 on one step; the five field walks' 555 (rolling shutter) 5.1 /
-      5.2 / 0.15 against 4.2 / 3.4 / 0.081, 0.26 / 0.25 / 0.41 of their sigmas. At 1296 x 972 no
-      step of the eleven eval walks fell there. At 0.25 (derived before the clip, on unclipped correlations) the half-resolution
-      walks f01 and s01 lost most such steps and with them the walk (field 277 -> 4.5 cm RMS at
-      0.2, standard 281 -> 5.7; ``benchmarks/eval_variants.py``). On the standard walk s01 (56
-      lux), six weak frames in one fast turn had been refused and the turn's 19 degrees left to
-      the walking model: heading RMSE 3.1 -> 1.0 deg.
+      ``benchmarks/odometry_accuracy.py --by-rho``, 2026-12-02): at 648 x 486 the six standard
+      walks' 479 steps at 0.2-0.25 were 4.5 / 3.9 mm / 0.11 deg off (forward, sideways, turn RMS)
+      against 3.4 / 3.0 / 0.062 at 0.3-0.4, which is 0.24 / 0.21 / 0.37 of their stated (scaled)
+      sigmas, the largest 2.0; the five field walks' 555 (rolling shutter) 5.1 / 5.2 / 0.15 against
+      4.2 / 3.4 / 0.081, 0.26 / 0.25 / 0.41 of their sigmas. At 1296 x 972 no step of the eleven
+      eval walks fell there. At 0.25 (derived before the clip, on unclipped correlations) the
+      half-resolution walks f01 and s01 lost most such steps and with them the walk (field 277 ->
+      4.5 cm RMS at 0.2, standard 281 -> 5.7; held out, seed 2: 35.8 -> 25.2 and 35.2 -> 3.7, its
+      f01 lost either way; ``benchmarks/eval_variants.py``). On the standard walk s01 (56 lux), six
+      weak frames in one fast turn had been refused and the turn's 19 degrees left to the walking
+      model: heading RMSE 3.1 -> 1.0 deg.
     - ``flow_cov_ref_px``, ``flow_cov_power``, ``flow_cov_min_scale``: a step the floor flow
       measured has its covariance (the sigmas above, fitted to the patch's steps) times
       ``clip((r / flow_cov_ref_px) ** flow_cov_power, flow_cov_min_scale, 1)`` for the flow's
