@@ -273,6 +273,7 @@ class Tracker:
                     "frame_gaps",
                     "missed_steps",
                     "odometry_disagreements",
+                    "blind_turn_noise",
                     "odometry_heading_unknown",
                     "odometry_bridge_rejected",
                 ),
@@ -554,6 +555,27 @@ class Tracker:
         P[w, yaw] += q * dt**2 / 2.0
         P[w, w] += q * dt
         return self._guarded(lambda: self._ekf.set(self._ekf.x[:, 0], P))
+
+    def _blind_turn_noise(self, camera: Hashable, t0: float) -> None:
+        """Before the first step after a span nothing measured (no step, no fix, longer than
+        ``gap_s``), widen the heading of the state and of ``camera``'s clone at ``t0`` together by
+        the turn a person can make in the span beyond the walking model's (see
+        ``blind_turn_max_rad``)."""
+        cfg = self.config
+        span = t0 - max(self._last_odo_t, self._last_fix_t)
+        if cfg.blind_turn_max_rad <= 0.0 or not span > cfg.gap_s or not math.isfinite(span):
+            return
+        q = (cfg.turn_peak_accel / cfg.turn_peak_sigmas) ** 2 * span
+        var = min(q * span**3 / 12.0, cfg.blind_turn_max_rad**2)
+        x8 = self._ekf.x[:, 0]
+        xj, Pj = self._clones.joint(x8, self._ekf.P)
+        u = np.zeros(len(xj))
+        u[motion.YAW] = 1.0
+        u[DIM + 3 * self._clones.keys.index(camera) + 2] = 1.0
+        Pj = Pj + var * np.outer(u, u)
+        if self._guarded(lambda: self._ekf.set(x8, Pj[:DIM, :DIM])):
+            self._clones.absorb(xj, Pj)
+            self._stats["blind_turn_noise"] += 1
 
     def _turn_noise(self, dt: float) -> None:
         """Widen yaw and yaw rate for an interval of ``dt`` s that an odometry step measures, by the yaw
@@ -946,6 +968,7 @@ class Tracker:
         if t_clone is None or abs(t_clone - t0) > tol or abs(self._t - t1) > tol:
             self._stats["odometry_unmatched"] += 1
             return UpdateResult(False, "odometry interval does not match the camera's last frame")
+        self._blind_turn_noise(camera, t0)
         if t1 - t0 <= cfg.gap_s:
             self._turn_noise(t1 - t0)
         x8 = self._ekf.x[:, 0]
