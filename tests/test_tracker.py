@@ -1528,3 +1528,25 @@ def test_a_turn_made_while_nothing_measured_leaves_the_heading_honestly_uncertai
     tr_off, worst_off = _turn_in_a_blind_span(TrackerConfig(blind_turn_max_rad=0.0))
     assert worst_off > 4.0, worst_off
     assert tr_off.stats["blind_turn_noise"] == 0
+
+
+def test_a_blind_span_is_widened_once_when_the_step_after_it_is_gated():
+    """The first step after a blind span is gated (it reads a wildly wrong turn): the widening stays,
+    and the next step (a frame later, ``_last_odo_t`` unmoved) must not widen the span again."""
+    from tagloc.vision.odometry import OdometryStep
+
+    tr = Tracker()
+    dt = 1 / 30
+    t = _tracked_at_origin(tr)
+    cov = np.diag([0.002**2, 0.002**2, math.radians(0.2) ** 2])
+    for k in range(1, 10):  # 0.3 s of frames with neither a step nor a fix
+        tr.predict(t + k * dt, "A")
+    t0 = t + 9 * dt
+    tr.predict(t0 + dt, "A")
+    bad = tr.update_odometry(OdometryStep(t0, t0 + dt, np.array([0.0, 0.0, 2.0]), cov, 0.5), "A")
+    assert not bad.accepted and tr.stats["blind_turn_noise"] == 1
+    yaw_var = tr.filter.P[motion.YAW, motion.YAW]
+    tr.predict(t0 + 2 * dt, "A")
+    tr.update_odometry(OdometryStep(t0 + dt, t0 + 2 * dt, np.zeros(3), cov, 0.5), "A")
+    assert tr.stats["blind_turn_noise"] == 1
+    assert tr.filter.P[motion.YAW, motion.YAW] < yaw_var + 0.01

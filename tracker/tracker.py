@@ -223,6 +223,7 @@ class Tracker:
         self._here: set[Hashable] = set()  # cameras whose frames are at the filter's time
         self._clones_dropped_t = -math.inf  # when the clones were last dropped (restart, forgetting)
         self._last_odo_t = -math.inf  # end of the last odometry step fused
+        self._blind_widened_t = -math.inf  # end of the last blind span widened (see blind_turn_max_rad)
         # (camera, end time, yaw innovation, gated steps in a row that disagree the same way) of the
         # last odometry step gated, while no step has been fused since (see disagreement_noise).
         self._gated: tuple[Hashable, float, float, int] | None = None
@@ -562,7 +563,8 @@ class Tracker:
         the turn a person can make in the span beyond the walking model's (see
         ``blind_turn_max_rad``)."""
         cfg = self.config
-        span = t0 - max(self._last_odo_t, self._last_fix_t)
+        # A gated step leaves _last_odo_t where it was: the span it widened must not be widened again.
+        span = t0 - max(self._last_odo_t, self._last_fix_t, self._blind_widened_t)
         if cfg.blind_turn_max_rad <= 0.0 or not span > cfg.gap_s or not math.isfinite(span):
             return
         q = (cfg.turn_peak_accel / cfg.turn_peak_sigmas) ** 2 * span
@@ -576,6 +578,7 @@ class Tracker:
         if self._guarded(lambda: self._ekf.set(x8, Pj[:DIM, :DIM])):
             self._clones.absorb(xj, Pj)
             self._stats["blind_turn_noise"] += 1
+            self._blind_widened_t = t0
 
     def _turn_noise(self, dt: float) -> None:
         """Widen yaw and yaw rate for an interval of ``dt`` s that an odometry step measures, by the yaw
