@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 
 import cv2
 import numpy as np
@@ -671,3 +672,63 @@ def test_load_shedding_judges_each_run_by_its_own_nees_bound(monkeypatch, tmp_pa
     assert 0.0 < r["nees"] < 5.0
     assert r["nees_verdict"] in ("consistent", "conservative")
     assert r["beyond_999"] < 0.02  # a consistent filter's share is 0.1 %
+
+
+def _thin_sessions():
+    import sys
+
+    sys.path.insert(0, str(BENCHMARKS[0].parent))
+    sys.modules.pop("thin_sessions", None)
+    import thin_sessions
+
+    return thin_sessions
+
+
+def test_thinned_sessions_keep_every_other_frame_with_its_own_index_and_time(tmp_path, capsys):
+    """benchmarks/thin_sessions.py: the bundled walk at half its rate replays as a session, each kept
+    frame with its index and timestamp as recorded; an existing destination and a malformed source
+    are refused before anything is written."""
+    from tagloc.io.session import SessionReader
+
+    thin = _thin_sessions()
+    walk = BENCHMARKS[0].parent.parent / "logs" / "walk2s"
+    assert thin.main([str(walk), "-o", str(tmp_path / "t")]) == 0
+    src, out = SessionReader(walk), SessionReader(tmp_path / "t" / "walk2s")
+    assert len(src) == 60 and list(out.index) == list(src.index[::2])
+    assert np.array_equal(out.timestamps, src.timestamps[::2])
+    assert out.info.fps == pytest.approx(src.info.fps / 2)
+    assert out.groundtruth() is not None and len(list(out.frames())) == 30
+    with pytest.raises(InputError, match="already exists"):
+        thin.main([str(walk), "-o", str(tmp_path / "t")])
+    bad = tmp_path / "bad"
+    shutil.copytree(walk, bad)
+    (bad / "frames.csv").write_text("index,timestamp_ms\n0,0\n")
+    with pytest.raises(InputError, match="frames.csv:1: header"):
+        thin.main([str(bad), "-o", str(tmp_path / "t2")])
+    assert not (tmp_path / "t2").exists()
+
+
+def test_thinned_two_camera_sessions_keep_every_other_frame_of_each_camera(tmp_path):
+    """With two cameras, every other frame of each (not every other row, which would keep one camera)."""
+    from tagloc.core.rig import save_rig
+    from tagloc.eval.multicam import front_rear_rig
+    from tagloc.io.session import SessionReader
+
+    thin = _thin_sessions()
+    two = tmp_path / "two"
+    shutil.copytree(BENCHMARKS[0].parent.parent / "logs" / "walk2s", two)
+    save_rig(front_rear_rig(), two / "rig.json", write_calibrations=False)
+    rows = (two / "frames.csv").read_text().splitlines()[1:13]
+    lines = ["index,timestamp_s,camera"]
+    for k, row in enumerate(rows):  # cameras 0, 0, 1, 1, 0, 0, 1, 1, ...: each camera's frames in pairs
+        index, stamp = row.split(",")[:2]
+        camera = (k // 2) % 2
+        if camera:
+            jpg = two / "frames" / f"{int(index):06d}.jpg"
+            jpg.rename(jpg.with_name(f"{int(index):06d}_cam1.jpg"))
+        lines.append(f"{index},{stamp},{camera}")
+    (two / "frames.csv").write_text("\n".join(lines) + "\n")
+    assert thin.thin_session(two, tmp_path / "t" / "two", 2) == 6
+    out = SessionReader(tmp_path / "t" / "two")
+    assert list(out.cameras) == [0, 1, 0, 1, 0, 1]
+    assert list(out.index) == [int(r.split(",")[0]) for r in rows[::2]]
