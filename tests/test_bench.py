@@ -674,23 +674,23 @@ def test_load_shedding_judges_each_run_by_its_own_nees_bound(monkeypatch, tmp_pa
     assert r["beyond_999"] < 0.02  # a consistent filter's share is 0.1 %
 
 
-def _thin_sessions():
+def _thin_sessions(monkeypatch):
     import sys
 
-    sys.path.insert(0, str(BENCHMARKS[0].parent))
+    monkeypatch.syspath_prepend(str(BENCHMARKS[0].parent))
     sys.modules.pop("thin_sessions", None)
     import thin_sessions
 
     return thin_sessions
 
 
-def test_thinned_sessions_keep_every_other_frame_with_its_own_index_and_time(tmp_path, capsys):
+def test_thinned_sessions_keep_every_other_frame_with_its_own_index_and_time(tmp_path, monkeypatch):
     """benchmarks/thin_sessions.py: the bundled walk at half its rate replays as a session, each kept
     frame with its index and timestamp as recorded; an existing destination and a malformed source
     are refused before anything is written."""
     from tagloc.io.session import SessionReader
 
-    thin = _thin_sessions()
+    thin = _thin_sessions(monkeypatch)
     walk = BENCHMARKS[0].parent.parent / "logs" / "walk2s"
     assert thin.main([str(walk), "-o", str(tmp_path / "t")]) == 0
     src, out = SessionReader(walk), SessionReader(tmp_path / "t" / "walk2s")
@@ -708,13 +708,13 @@ def test_thinned_sessions_keep_every_other_frame_with_its_own_index_and_time(tmp
     assert not (tmp_path / "t2").exists()
 
 
-def test_thinned_two_camera_sessions_keep_every_other_frame_of_each_camera(tmp_path):
+def test_thinned_two_camera_sessions_keep_every_other_frame_of_each_camera(tmp_path, monkeypatch):
     """With two cameras, every other frame of each (not every other row, which would keep one camera)."""
     from tagloc.core.rig import save_rig
     from tagloc.eval.multicam import front_rear_rig
     from tagloc.io.session import SessionReader
 
-    thin = _thin_sessions()
+    thin = _thin_sessions(monkeypatch)
     two = tmp_path / "two"
     shutil.copytree(BENCHMARKS[0].parent.parent / "logs" / "walk2s", two)
     save_rig(front_rear_rig(), two / "rig.json", write_calibrations=False)
@@ -732,3 +732,35 @@ def test_thinned_two_camera_sessions_keep_every_other_frame_of_each_camera(tmp_p
     out = SessionReader(tmp_path / "t" / "two")
     assert list(out.cameras) == [0, 1, 0, 1, 0, 1]
     assert list(out.index) == [int(r.split(",")[0]) for r in rows[::2]]
+
+
+def test_trace_walk_follows_the_bundled_walk_frame_by_frame(tmp_path, monkeypatch):
+    """benchmarks/trace_walk.py: per frame the error against the truth, its NEES, the heading's error
+    and stated sd, and the counters that changed; the window selects frames by time; settings are
+    taken as eval_variants takes them; a session without ground truth is refused."""
+    import sys
+
+    monkeypatch.syspath_prepend(str(BENCHMARKS[0].parent))
+    sys.modules.pop("trace_walk", None)
+    import trace_walk
+
+    walk = BENCHMARKS[0].parent.parent / "logs" / "walk2s"
+    rows = trace_walk.trace(walk, {})
+    assert len(rows) == 60
+    placed = [r for r in rows if math.isfinite(r["error_cm"])]
+    assert len(placed) >= 55 and all(r["error_cm"] < 10.0 and r["heading_sd_deg"] > 0.0 for r in placed)
+    assert sum(r["counts"].get("tracker_accepted_decoded", 0) for r in rows) >= 5
+    fixes = sum(sum(v for k, v in r["counts"].items() if k.startswith("tracker_accepted_")) for r in rows)
+    assert fixes >= 40  # most frames of the walk are placed by a fix
+    window = trace_walk.trace(walk, {}, 0.5, 1.0)
+    assert [r["t"] for r in window] == [r["t"] for r in rows if 0.5 <= r["t"] <= 1.0] and len(window) == 16
+    assert [r["error_cm"] for r in window] == [r["error_cm"] for r in rows if 0.5 <= r["t"] <= 1.0]
+    line = trace_walk.format_row(rows[-1])
+    assert "t.odometry_accepted+1" in line or "t.accepted_" in line
+    off = trace_walk.trace(walk, {"odometry": False}, 1.0, 2.0)
+    assert all("tracker_odometry_accepted" not in r["counts"] for r in off)
+    bare = tmp_path / "bare"
+    shutil.copytree(walk, bare)
+    (bare / "groundtruth.tum").unlink()
+    with pytest.raises(InputError, match="no groundtruth.tum"):
+        trace_walk.trace(bare, {})
