@@ -19,13 +19,12 @@ is written, and an existing destination is refused.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 from pathlib import Path
 
 from tagloc.core.errors import InputError
-from tagloc.io.session import FRAMES_CSV, SESSION_JSON, SessionReader
+from tagloc.io.session import FRAMES_CSV, SESSION_JSON, SessionReader, frames_csv_header, frames_csv_line
 
 
 def thin_session(src: Path, dest: Path, every: int) -> int:
@@ -47,13 +46,10 @@ def thin_session(src: Path, dest: Path, every: int) -> int:
     for item in src.iterdir():
         if item.name not in (FRAMES_CSV, SESSION_JSON):
             os.symlink(item.resolve(), dest / item.name)
-    with (dest / FRAMES_CSV).open("w", newline="") as f:
-        w = csv.writer(f, lineterminator="\n")
-        multi = len(seen) > 1 or any(c != 0 for c in seen)
-        w.writerow(["index", "timestamp_s", "camera"] if multi else ["index", "timestamp_s"])
-        for index, stamp, camera in kept:
-            # repr-exact seconds: the thinned frames keep the timestamps the ground truth was sampled at.
-            w.writerow([index, repr(stamp), camera] if multi else [index, repr(stamp)])
+    # As SessionWriter writes it: the kept lines read back to the same microseconds.
+    multi = len(reader.rig) > 1
+    lines = [frames_csv_line(index, stamp, camera, multi) for index, stamp, camera in kept]
+    (dest / FRAMES_CSV).write_text(frames_csv_header(multi) + "".join(lines), encoding="utf-8")
     info = json.loads((src / SESSION_JSON).read_text())
     if isinstance(info.get("fps"), (int, float)):
         info["fps"] = info["fps"] / every

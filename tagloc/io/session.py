@@ -224,6 +224,17 @@ def _check_frames_header(row: list[str], where: str) -> None:
         )
 
 
+def frames_csv_header(multi_camera: bool) -> str:
+    """frames.csv's header line: the camera column only for a rig of several cameras (a one-camera
+    session keeps the original two columns, byte for byte)."""
+    return ",".join(FRAMES_COLUMNS if multi_camera else FRAMES_COLUMNS[:2]) + "\n"
+
+
+def frames_csv_line(index: int, timestamp: float, camera: int, multi_camera: bool) -> str:
+    """One frames.csv line: timestamps to the microsecond, the format's resolution."""
+    return f"{index},{timestamp:.6f},{camera}\n" if multi_camera else f"{index},{timestamp:.6f}\n"
+
+
 def frame_stem(index: int, camera: int = 0) -> str:
     """File name (no extension) of a frame: ``000123`` for camera 0, ``000123_cam1`` for camera 1."""
     return f"{index:06d}" if camera == 0 else f"{index:06d}_cam{camera}"
@@ -433,7 +444,7 @@ class SessionWriter:
         self.image_ext = image_ext
         # One camera: the original two columns, so such sessions stay byte-identical.
         self.multi_camera = len(rig) > 1
-        self._csv.write("index,timestamp_s,camera\n" if self.multi_camera else "index,timestamp_s\n")
+        self._csv.write(frames_csv_header(self.multi_camera))
         self._csv.flush()
         self.count = 0
 
@@ -448,7 +459,7 @@ class SessionWriter:
         if not cv2.imwrite(str(tmp), image, params):
             raise SessionError(f"{tmp}: cannot write frame")
         os.replace(tmp, final)
-        self._csv.write(f"{index},{timestamp:.6f},{camera}\n" if self.multi_camera else f"{index},{timestamp:.6f}\n")
+        self._csv.write(frames_csv_line(index, timestamp, camera, self.multi_camera))
         self._csv.flush()
         self.count += 1
 
@@ -460,7 +471,7 @@ class SessionWriter:
         tmp = final.with_name(final.stem + ".tmp" + ext)
         tmp.write_bytes(data)
         os.replace(tmp, final)
-        self._csv.write(f"{index},{timestamp:.6f},{camera}\n" if self.multi_camera else f"{index},{timestamp:.6f}\n")
+        self._csv.write(frames_csv_line(index, timestamp, camera, self.multi_camera))
         self._csv.flush()
         self.count += 1
 
