@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from tagloc.core.errors import InputError
-from tagloc.core.geometry import interpolate_groundtruth
+from tagloc.eval.metrics import trajectory_errors
 from tagloc.io.session import SessionReader
 from tagloc.pipeline.localiser import Localiser
 
@@ -45,7 +45,7 @@ def trace(session: Path, overrides: dict, start: float = -math.inf, end: float =
         raise InputError(f"{session}: no groundtruth.tum to trace against")
     loc = Localiser(reader.map, reader.rig, cfg, map_path=reader.map_path)
     before = dict(loc.stats())
-    rows = []
+    rows, posed = [], []  # posed: (row, pose (3,), covariance (3, 3)) of the frames with a pose
     for frame in reader.frames():
         res = loc.process(frame)
         now = loc.stats()
@@ -55,17 +55,22 @@ def trace(session: Path, overrides: dict, start: float = -math.inf, end: float =
             continue
         row = {"t": res.timestamp, "error_cm": math.nan, "nees": math.nan}
         row |= {"heading_error_deg": math.nan, "heading_sd_deg": math.nan, "counts": changed}
-        out = res.output
-        gt, inside = interpolate_groundtruth(*truth, np.array([res.timestamp]))
-        if out.pose is not None and res.skipped is None and inside[0]:
-            d = np.asarray(out.pose[:2], float) - gt[0, :2]
-            cov = np.asarray(out.cov, float)
-            row["error_cm"] = 100.0 * float(np.hypot(*d))
-            row["nees"] = float(d @ np.linalg.solve(cov[:2, :2], d))
-            e = (out.pose[2] - gt[0, 2] + math.pi) % (2.0 * math.pi) - math.pi
-            row["heading_error_deg"] = math.degrees(e)
-            row["heading_sd_deg"] = math.degrees(math.sqrt(cov[2, 2]))
         rows.append(row)
+        if res.output.pose is not None and res.skipped is None:
+            posed.append((row, res.output.pose, res.output.cov))
+    if posed:
+        # Scored as tagloc eval scores a run (the same interpolation, coverage and NEES).
+        e = trajectory_errors(
+            np.array([r["t"] for r, _, _ in posed]),
+            np.array([p for _, p, _ in posed], float),
+            np.array([c for _, _, c in posed], float),
+            *truth,
+        )
+        scored = [(row, cov) for (row, _, cov), ok in zip(posed, e.inside) if ok]
+        for (row, cov), pos, nees, yaw in zip(scored, e.position, e.nees, e.yaw):
+            row["error_cm"], row["nees"] = 100.0 * float(pos), float(nees)
+            row["heading_error_deg"] = math.degrees(float(yaw))
+            row["heading_sd_deg"] = math.degrees(math.sqrt(float(cov[2, 2])))
     return rows
 
 
