@@ -99,9 +99,10 @@ def test_1_a_forward_gap_is_reported_and_the_pacing_does_not_wait_it_out(session
     reader = SessionReader(s)
     assert len(reader.warnings) == 1 and "frame 6" in reader.warnings[0] and "forward" in reader.warnings[0]
     cap = CaptureThread(SessionSource(s), buffer=N, pace=True).start()
-    t0 = time.monotonic()
-    cap.join(timeout=20)
-    assert time.monotonic() - t0 < 5.0  # 1.2 s of frames, not 1000 s
+    # 1.2 s of frames, not 1000 s. The bound is wide on purpose: a loaded CI machine once took
+    # 19 s over these 12 frames, and only waiting out the gap could take anywhere near 1000 s.
+    cap.join(timeout=120)
+    assert cap.stats.ended and cap.stats.grabbed == N  # the reader reached the end, not a timeout
     cap.stop()
 
 
@@ -500,7 +501,8 @@ def test_7_out_of_range_arguments_are_refused_up_front(tmp_path, capsys, monkeyp
     t0 = time.monotonic()
     code, _, err = run_cli(capsys, *[a.format(tmp=tmp_path) for a in argv])
     one_line_error(code, err, fragment)
-    assert time.monotonic() - t0 < 10 and not list(tmp_path.iterdir())
+    # Refused at once: the work itself takes minutes; 60 s leaves room for a loaded CI machine.
+    assert time.monotonic() - t0 < 60 and not list(tmp_path.iterdir())
 
 
 @pytest.mark.parametrize(
@@ -527,7 +529,7 @@ def test_12_an_output_that_cannot_be_created_is_refused_before_the_work(session,
     code, _, err = run_cli(capsys, *args)
     one_line_error(code, err)
     assert str(tmp_path) in err
-    assert time.monotonic() - t0 < 10
+    assert time.monotonic() - t0 < 60  # before the work (minutes for eval), with room for a loaded machine
 
 
 @pytest.mark.parametrize(
