@@ -623,6 +623,66 @@ def test_own_anchor_sticker_takes_back_a_track_a_bad_step_moved():
         assert tr.stats["reinitialisations"] == 0, kwargs
 
 
+def test_checked_fixes_take_back_a_track_a_bad_step_moved_but_not_one_other_stickers_support():
+    """As above, a precise wrong step (6 deg, 5 cm) passes the gate and the steps after it follow the
+    standing walker exactly, so the filter stays sure of its wrong pose; now no symbol is read, and
+    sticker 11 is named by the module check (CHECKED). Its third refused fix re-initialises the
+    track on it. With ``reinit_checked`` off every one of 30 frames' fixes is refused and the pose
+    is overconfident at the end. A sticker checked at a place that a track supported by stickers 12
+    and 13 does not agree with, its own last fix not being 11's, cannot take the track over."""
+    import dataclasses
+
+    from tagloc.vision.odometry import OdometryStep
+
+    here = np.array([2.0, 1.0, 0.4])
+    step_cov = np.diag([0.005**2, 0.005**2, math.radians(0.1) ** 2])
+
+    def run(cfg: TrackerConfig, anchor_ids=(11, 11), seen=here):
+        tr = Tracker(cfg)
+        k = 0
+        for sid in (12, 13, 12, 13, *anchor_ids):
+            tr.predict(k / 30, "cam")
+            assert tr.update([make_fix(here)], sid, IdSource.DECODED, k / 30).accepted
+            k += 1
+        k += 8  # a burst of dropped frames, 0.3 s
+        tr.predict(k / 30, "cam")
+        bad = OdometryStep((k - 9) / 30, k / 30, np.array([0.05, 0.0, math.radians(6.0)]), step_cov, 0.5)
+        assert tr.update_odometry(bad, "cam").accepted
+        results = []
+        for _ in range(30):
+            k += 1
+            tr.predict(k / 30, "cam")
+            still = OdometryStep((k - 1) / 30, k / 30, np.zeros(3), step_cov, 0.5)
+            assert tr.update_odometry(still, "cam").accepted
+            results.append(tr.update([make_fix(seen)], 11, IdSource.CHECKED, k / 30))
+        return tr, results
+
+    def nees(tr, truth):
+        out = tr.output()
+        d = out.pose[:2] - truth[:2]
+        return float(d @ np.linalg.solve(out.cov[:2, :2], d))
+
+    cfg = TrackerConfig()
+    tr, results = run(cfg)
+    assert [r.accepted for r in results[:2]] == [False, False]
+    assert results[2].accepted and results[2].reason.startswith("reinitialised")
+    assert all(r.accepted and r.reason == "fused" for r in results[3:])
+    assert tr.stats["reinit_consistent"] == 1 and tr.stats["reinit_checked"] == 1
+    assert tr.stats["accepted_checked"] == 28 and tr.stats["rejected_checked"] == 2
+    assert np.hypot(*(tr.output().pose[:2] - here[:2])) < 0.01
+
+    tr, results = run(dataclasses.replace(cfg, reinit_checked=False))
+    assert not any(r.accepted for r in results)
+    assert tr.stats["reinitialisations"] == 0 and tr.stats["rejected_checked"] == 30
+    assert np.hypot(*(tr.output().pose[:2] - here[:2])) > 0.04 and nees(tr, here) > 3.0
+
+    # Sticker 11 checked 1 m off where the track is (a look-alike passing the module check), the
+    # track's last fix sticker 12's: refused every time, whatever the rule.
+    tr, results = run(cfg, anchor_ids=(11, 12), seen=here + np.array([1.0, 0.0, 0.0]))
+    assert not any(r.accepted for r in results)
+    assert tr.stats["reinitialisations"] == 0
+
+
 def test_inconsistent_rejections_do_not_reinitialise(rng):
     """Three rejected decoded fixes scattered around (not one consistent motion) leave the track alone."""
     cfg = TrackerConfig()

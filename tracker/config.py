@@ -207,6 +207,19 @@ class TrackerConfig:
       take is still refused in favour of another sticker fused since. 1 s: the gap a standing or
       slowly turning operator bridges on odometry alone, which is where one sticker is in view;
       0 turns it off.
+    - ``reinit_checked``: CHECKED fixes (the track's expected sticker, named by its data modules
+      matching by a margin over its rivals, no symbol read) that the gate refuses join the
+      competing hypothesis as decoded ones do, under the same rules (consistent with each other,
+      two stickers or the track's own anchor). Their identity comes from the modules, not from
+      agreeing with the track, so a refusal says the track is off as a decoded one's does. Without
+      them a wrong odometry step that passed the gate (one fast-turn step 6 deg off, then steps
+      that follow the walk well) held the track for as long as no symbol was read: every checked
+      fix of the sticker in view refused, its error and NEES growing (a synthetic second of it,
+      ``tests/test_tracker.py``: 5.6 cm at NEES 3.9 and rising; a replay with a variant of
+      ``blind_turn_max_rad`` that was not kept refused checked and appearance fixes for 2.5 s
+      after such a step, 138 cm off at NEES 17 by the walk's end). A hypothesis with checked
+      fixes in it replaces the track as ``reinit_consistent`` and also counts ``reinit_checked``.
+      Off: only decoded fixes form a hypothesis.
     - ``overrule_odometry``: a decoded fix that the gate refuses just after its frame's odometry
       step was fused, but that passes against the filter as it was before that step, overrules the
       step: the filter goes back to before it and takes the fix instead (counted as
@@ -369,6 +382,7 @@ class TrackerConfig:
     reinit_min_ids: int = 2
     reinit_window_s: float = 5.0
     reinit_own_sticker_s: float = 1.0
+    reinit_checked: bool = True
     overrule_odometry: bool = True
     fix_max_cov: float = 1e12
     fix_max_xy_m: float = 1e9

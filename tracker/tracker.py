@@ -25,7 +25,8 @@ Rules, in one place:
   and so does any while the heading is at its cap (unknown: nothing to linearise a late fix at).
   An accepted fix makes the track TRACKING only if it leaves the position sigma within
   ``lost_sigma_m``: a vaguer one (a far sticker's) starts or keeps it LOST.
-- ``reinit_fixes`` gated-out DECODED fixes that agree with each other re-initialise the track.
+- ``reinit_fixes`` gated-out DECODED (or CHECKED, ``reinit_checked``) fixes that agree with each
+  other re-initialise the track.
 - Floor odometry (:meth:`Tracker.update_odometry`): each step is the vest's relative pose between
   two consecutive frames of one camera. When :meth:`Tracker.predict` advances from a frame of
   camera A, it keeps a clone of the (odometry) pose there, keyed by A, with its cross-covariance to
@@ -102,7 +103,7 @@ class UpdateResult:
 
 @dataclass
 class _Hypothesis:
-    """A fresh filter fed with decoded fixes the track rejected."""
+    """A fresh filter fed with decoded (or checked) fixes the track rejected."""
 
     ekf: WalkingEKF
     t0: float
@@ -111,6 +112,7 @@ class _Hypothesis:
     count: int
     own: bool = False  # its first fix came from the track's own anchor (see reinit_own_sticker_s)
     last: int = 0  # which of the last offered alternatives it fused
+    checked: bool = False  # some of its fixes were CHECKED (see reinit_checked)
 
 
 #: One usable fix as the filter takes it: vest pose (3,) (m, m, rad), its covariance (3, 3) SPD, and
@@ -256,6 +258,7 @@ class Tracker:
                     "initialisations",
                     "reinitialisations",
                     "reinit_consistent",
+                    "reinit_checked",
                     "reinit_lost",
                     "lost",
                     "ignored_initialising",
@@ -735,10 +738,10 @@ class Tracker:
             self._stats["reinitialisations"] += 1
             self._stats["reinit_lost"] += 1
             return UpdateResult(True, f"reinitialised (lost, {reason})", nis, where[0])
-        if source is IdSource.DECODED and self._feed_hypothesis(alts, sticker_id, t):
+        if self._feeds_hypothesis(source) and self._feed_hypothesis(alts, sticker_id, source, t):
             return UpdateResult(
                 True,
-                f"reinitialised: {self.config.reinit_fixes} consistent decoded fixes "
+                f"reinitialised: {self.config.reinit_fixes} consistent decoded or checked fixes "
                 f"disagreed with the track ({reason})",
                 nis,
                 where[self._last_hyp_choice],
@@ -875,8 +878,13 @@ class Tracker:
         ekf.reset_from_fix(*alt, scale=scale)
         return ekf
 
-    def _feed_hypothesis(self, alts: list[Alt], sticker_id: int, t: float) -> bool:
-        """Add a rejected decoded fix to the competing hypothesis; True when it replaced the track."""
+    def _feeds_hypothesis(self, source: IdSource) -> bool:
+        """Whether a gated-out fix of ``source`` joins the competing hypothesis (see ``reinit_checked``)."""
+        return source is IdSource.DECODED or (source is IdSource.CHECKED and self.config.reinit_checked)
+
+    def _feed_hypothesis(self, alts: list[Alt], sticker_id: int, source: IdSource, t: float) -> bool:
+        """Add a rejected decoded (or checked) fix to the competing hypothesis; True when it replaced
+        the track."""
         cfg = self.config
         h = self._hyp
         # A fix a little older than the hypothesis (another camera's frame, within max_lag_s) extends it.
@@ -890,6 +898,7 @@ class Tracker:
         if h is None:
             own = self._last_id == int(sticker_id) and t - self._last_fix_t <= cfg.reinit_own_sticker_s
             h = _Hypothesis(self._new_filter(alts[0]), t, t, {int(sticker_id)}, 1, own)
+        h.checked |= source is IdSource.CHECKED
         self._hyp = h
         # Several stickers are needed to overrule a track that other stickers support; a track that
         # rests only on stickers now disagreeing with it (one just after it started, say, when a
@@ -907,9 +916,10 @@ class Tracker:
         self._P_before_predict = None
         self._drop_clones()
         self._track_ids = set(h.ids)
-        self._accept(sticker_id, IdSource.DECODED, t)
+        self._accept(sticker_id, source, t)
         self._stats["reinitialisations"] += 1
         self._stats["reinit_consistent"] += 1
+        self._stats["reinit_checked"] += h.checked
         return True
 
     def _extend_hypothesis(self, h: _Hypothesis, alts: list[Alt], sticker_id: int, t: float) -> bool:

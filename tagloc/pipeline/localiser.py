@@ -215,7 +215,8 @@ class LocaliserConfig:
             modules, already sampled, correlated in each rotation (``DecodeConfig``'s
             ``expected_min_score``, ``expected_min_margin``). A match names it as a CHECKED
             identity (the tracker gates its fix as a decoded one's, as the check that refuses a
-            wrong pick is a decode's own final one, but never starts a track with it) and saves
+            wrong pick is a decode's own final one, but never starts a track with it; refused,
+            it can join a re-initialisation, ``TrackerConfig.reinit_checked``) and saves
             the least-squares stage (3-5 ms): the first sight of a sticker the track predicts no
             longer costs a frame's budget. Such a sticker is carried to the next frames as a
             decoded one is (sticker tracking, re-checked when due). Only with a track (the
