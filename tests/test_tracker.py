@@ -573,6 +573,28 @@ def test_track_resting_on_one_sticker_yields_to_it():
     assert tr.stats["reinitialisations"] == 0
 
 
+def _moved_by_a_bad_step(cfg: TrackerConfig, here: np.ndarray, anchor_ids=(11, 11)) -> tuple[Tracker, int]:
+    """A track that decoded fixes of stickers 12, 13 and then ``anchor_ids`` built at ``here`` (one
+    frame each at 30 Hz), moved by one precise odometry step 6 deg and 5 cm off that bridges 0.3 s
+    of dropped frames; the tracker and the frame index the step ends at."""
+    from tagloc.vision.odometry import OdometryStep
+
+    tr = Tracker(cfg)
+    k = 0
+    for sid in (12, 13, 12, 13, *anchor_ids):
+        tr.predict(k / 30, "cam")
+        assert tr.update([make_fix(here)], sid, IdSource.DECODED, k / 30).accepted
+        k += 1
+    k += 8  # a burst of dropped frames, 0.3 s
+    tr.predict(k / 30, "cam")
+    bad = OdometryStep((k - 9) / 30, k / 30, np.array([0.05, 0.0, math.radians(6.0)]), _STEP_COV, 0.5)
+    assert tr.update_odometry(bad, "cam").accepted
+    return tr, k
+
+
+_STEP_COV = np.diag([0.005**2, 0.005**2, math.radians(0.1) ** 2])
+
+
 def test_own_anchor_sticker_takes_back_a_track_a_bad_step_moved():
     """Stickers 12 and 13 built the track, sticker 11 was its last fix; then one precise odometry
     step 6 degrees and 5 cm off (a match bridging 0.3 s of dropped frames) moves it, and no fix comes
@@ -583,23 +605,12 @@ def test_own_anchor_sticker_takes_back_a_track_a_bad_step_moved():
     track's last fix (a sticker wrong in the map cannot take over a track anchored elsewhere)."""
     import dataclasses
 
-    from tagloc.vision.odometry import OdometryStep
-
     here = np.array([2.0, 1.0, 0.4])
-    step_cov = np.diag([0.005**2, 0.005**2, math.radians(0.1) ** 2])
 
     def run(own_s=None, anchor_ids=(11, 11), between=None):
         cfg = TrackerConfig()
-        tr = Tracker(cfg if own_s is None else dataclasses.replace(cfg, reinit_own_sticker_s=own_s))
-        k = 0
-        for sid in (12, 13, 12, 13, *anchor_ids):
-            tr.predict(k / 30, "cam")
-            assert tr.update([make_fix(here)], sid, IdSource.DECODED, k / 30).accepted
-            k += 1
-        k += 8  # a burst of dropped frames, 0.3 s
-        tr.predict(k / 30, "cam")
-        bad = OdometryStep((k - 9) / 30, k / 30, np.array([0.05, 0.0, math.radians(6.0)]), step_cov, 0.5)
-        assert tr.update_odometry(bad, "cam").accepted
+        cfg = cfg if own_s is None else dataclasses.replace(cfg, reinit_own_sticker_s=own_s)
+        tr, k = _moved_by_a_bad_step(cfg, here, anchor_ids)
         results = []
         for j in range(5):
             k += 1
@@ -635,24 +646,14 @@ def test_checked_fixes_take_back_a_track_a_bad_step_moved_but_not_one_other_stic
     from tagloc.vision.odometry import OdometryStep
 
     here = np.array([2.0, 1.0, 0.4])
-    step_cov = np.diag([0.005**2, 0.005**2, math.radians(0.1) ** 2])
 
     def run(cfg: TrackerConfig, anchor_ids=(11, 11), seen=here):
-        tr = Tracker(cfg)
-        k = 0
-        for sid in (12, 13, 12, 13, *anchor_ids):
-            tr.predict(k / 30, "cam")
-            assert tr.update([make_fix(here)], sid, IdSource.DECODED, k / 30).accepted
-            k += 1
-        k += 8  # a burst of dropped frames, 0.3 s
-        tr.predict(k / 30, "cam")
-        bad = OdometryStep((k - 9) / 30, k / 30, np.array([0.05, 0.0, math.radians(6.0)]), step_cov, 0.5)
-        assert tr.update_odometry(bad, "cam").accepted
+        tr, k = _moved_by_a_bad_step(cfg, here, anchor_ids)
         results = []
         for _ in range(30):
             k += 1
             tr.predict(k / 30, "cam")
-            still = OdometryStep((k - 1) / 30, k / 30, np.zeros(3), step_cov, 0.5)
+            still = OdometryStep((k - 1) / 30, k / 30, np.zeros(3), _STEP_COV, 0.5)
             assert tr.update_odometry(still, "cam").accepted
             results.append(tr.update([make_fix(seen)], 11, IdSource.CHECKED, k / 30))
         return tr, results
