@@ -573,6 +573,10 @@ def test_track_resting_on_one_sticker_yields_to_it():
     assert tr.stats["reinitialisations"] == 0
 
 
+#: A precise odometry step's covariance (3, 3): forward and side sigma 5 mm, turn 0.1 deg.
+_STEP_COV = np.diag([0.005**2, 0.005**2, math.radians(0.1) ** 2])
+
+
 def _moved_by_a_bad_step(cfg: TrackerConfig, here: np.ndarray, anchor_ids=(11, 11)) -> tuple[Tracker, int]:
     """A track that decoded fixes of stickers 12, 13 and then ``anchor_ids`` built at ``here`` (one
     frame each at 30 Hz), moved by one precise odometry step 6 deg and 5 cm off that bridges 0.3 s
@@ -590,9 +594,6 @@ def _moved_by_a_bad_step(cfg: TrackerConfig, here: np.ndarray, anchor_ids=(11, 1
     bad = OdometryStep((k - 9) / 30, k / 30, np.array([0.05, 0.0, math.radians(6.0)]), _STEP_COV, 0.5)
     assert tr.update_odometry(bad, "cam").accepted
     return tr, k
-
-
-_STEP_COV = np.diag([0.005**2, 0.005**2, math.radians(0.1) ** 2])
 
 
 def test_own_anchor_sticker_takes_back_a_track_a_bad_step_moved():
