@@ -364,7 +364,8 @@ def main(argv: list[str] | None = None) -> int:
 
     print()
     lines, out["aruco_units"] = aruco_units(runs)
-    print("\n".join(lines))
+    # With --live the ratios are printed once, at the end, with the live p99 among them.
+    print("\n".join(lines[:1] if args.live and not args.pipeline_only else lines))
 
     if args.vs_whole_image:
         _vs_whole_image(args, out)

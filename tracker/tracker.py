@@ -155,8 +155,11 @@ MAX_SPREAD_S = 3600.0
 
 def _nis(y: np.ndarray, S: np.ndarray) -> float:
     """Squared Mahalanobis distance of the residual ``y`` (m,) under the innovation covariance ``S``
-    (m, m), symmetrised (raises LinAlgError when singular)."""
-    return float(y @ np.linalg.solve(0.5 * (S + S.T), y))
+    (m, m), symmetrised (raises LinAlgError when singular). A residual too large for floats gives
+    inf or NaN, without numpy's overflow warning: every gate accepts only where ``nis <= gate``, which
+    refuses it."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        return float(y @ np.linalg.solve(0.5 * (S + S.T), y))
 
 
 def _advance_forgetting(

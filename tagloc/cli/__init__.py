@@ -18,6 +18,22 @@ from tagloc import __version__
 from tagloc.core.errors import TaglocError
 
 
+def _quiet_native_logs() -> None:
+    """Keep OpenCV's and its FFmpeg's own log lines off stderr ("[ WARN:0@0.4] global
+    cap_v4l.cpp:915 ... can't open camera by index", "[mov,mp4,... @ 0x...] moov atom not found"):
+    what they report reaches the user as tagloc's one-line message (a camera or video that cannot be
+    opened, a frame that cannot be read). Set before cv2 is imported (OpenCV reads
+    OPENCV_LOG_LEVEL when it loads, OPENCV_FFMPEG_LOGLEVEL when FFmpeg is first used; -8 is
+    FFmpeg's AV_LOG_QUIET). A user's own setting wins, and TAGLOC_DEBUG=1 leaves them all on."""
+    if os.environ.get("TAGLOC_DEBUG"):
+        return
+    os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
+
+
+_quiet_native_logs()
+
+
 def _command_modules(only: str | None = None) -> list:
     """The command modules, by NAME; with ``only``, just the module of that command if there is one
     (a command's module is its name with '-' as '_')."""

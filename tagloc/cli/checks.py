@@ -119,6 +119,18 @@ def output_dir(path: Path | None, option: str) -> None:
     _creatable(path, path, option)
 
 
+def new_dir(path: Path | None, option: str, why: str = "") -> None:
+    """Refuse a directory path that exists already (``why``: what writes a new one, for the message)
+    or that tagloc cannot create: a rosbag2 bag is a new directory, and its writer failed only once
+    the run was under way (after ``tagloc live`` had built its reference bank)."""
+    if path is None:
+        return
+    path = Path(path)
+    if path.exists() or path.is_symlink():
+        raise InputError(f"{path}: {option}: already exists{f'; {why}' if why else ''}")
+    _creatable(path.parent, path, option)
+
+
 def _creatable(directory: Path, target: Path, option: str) -> None:
     """``directory`` exists and is writable, or its nearest existing ancestor is a writable directory."""
     d = Path(os.path.abspath(directory))

@@ -111,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
     for option, path in (("--log", args.log), ("--rerun-save", args.rerun_save)):
         checks.output_file(path, option)
     checks.output_dir(args.record, "--record")
+    checks.new_dir(args.record_bag, "--record-bag", "rosbag2 writes a new directory")
     _outputs_apart_from_inputs(args, checks)
     if args.rerun_connect:
         from tagloc.io.rerun_view import viewer_address

@@ -121,6 +121,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.action == "audit":
         from tagloc.eval.mapaudit import AUDIT_FILES, audit_sessions
+        from tagloc.eval.mapobs import frames_text
 
         checks.output_dir(args.out, "-o")
         _outputs_apart(args, checks, [(f"-o ({name})", args.out / name) for name in AUDIT_FILES])
@@ -144,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
         counts = ", ".join(f"{len(res.of(k))} {k}" for k in ("missing", "unmapped", "misplaced", "hard"))
         if res.unplaced:
             counts += f" ({len(res.unplaced)} unmapped without a position)"
-        print(f"{report}: {counts} (of {len(res.map)} mapped stickers, {res.frames} frames)")
+        print(f"{report}: {counts} (of {len(res.map)} mapped stickers, {frames_text(res.frames, res.skipped)})")
         return 0
     if args.action == "refine":
         from tagloc.eval.maprefine import RefineConfig, default_report, refine_sessions

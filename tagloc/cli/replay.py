@@ -71,6 +71,7 @@ def run(args: argparse.Namespace) -> int:
     for option, path in outputs:
         checks.output_file(path, option)
     checks.output_file(args.png, "--png", suffixes=(".png",))
+    checks.new_dir(args.bag, "--bag", "rosbag2 writes a new directory")
     outputs.append(("--png", args.png))
     outputs += checks.publish_files(args.publish)
     checks.outputs_apart(

@@ -51,6 +51,6 @@ def run(args: argparse.Namespace) -> int:
         progress=not args.quiet,
     )
     print(
-        f"{args.out}: {written} frames written, {skipped} skipped (corrupt, unsupported encoding or not after the previous frame's time)"
+        f"{args.out}: {written} frames written, {skipped} skipped (corrupt, unsupported encoding, wrong size, wild stamp or not after the previous frame's time)"
     )
     return 0

@@ -12,6 +12,7 @@ rational_polynomial (e.g. equidistant, a fisheye) is refused, as is an OpenCV fi
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -197,8 +198,9 @@ def check_calibration(camera: Camera, path: Path | str) -> Camera:
     """``camera`` if tagloc can run with it, else :class:`CalibrationError` naming ``path`` (the file,
     or where a calibration came from, such as a bag's CameraInfo topic) and what is wrong."""
     K = camera.K
-    if not np.all(np.isfinite(K)) or not np.all(np.isfinite(camera.dist)):
-        raise CalibrationError(f"{path}: calibration contains NaN or inf")
+    for name, values in (("camera_matrix", K), ("distortion_coefficients", camera.dist)):
+        if not np.all(np.isfinite(values)):
+            raise CalibrationError(f"{path}: {name} contains NaN or inf")
     if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1 or np.any(K[2, :2] != 0) or K[1, 0] != 0:
         raise CalibrationError(f"{path}: camera_matrix is not a valid intrinsic matrix: {K.tolist()}")
     if not (MIN_FOCAL_PX <= K[0, 0] <= MAX_FOCAL_PX and MIN_FOCAL_PX <= K[1, 1] <= MAX_FOCAL_PX):
@@ -218,7 +220,40 @@ def check_calibration(camera: Camera, path: Path | str) -> Camera:
         )
     if camera.dist.size not in (4, 5, 8, 12, 14):
         raise CalibrationError(f"{path}: {camera.dist.size} distortion coefficients (want 4, 5, 8, 12 or 14)")
+    if why := fold_problem(camera):
+        raise CalibrationError(f"{path}: {why}")
     return camera
+
+
+def fold_problem(camera: Camera) -> str | None:
+    """Why ``camera``'s distortion cannot be a lens's over its image, or None: OpenCV's radial model
+    maps the off-axis radius r to r (1 + k1 r^2 + ...) / (1 + k4 r^2 + ...), which a lens makes grow
+    with r all the way to the image's corners. Where it turns back first (:meth:`Camera.fold_radius`)
+    it reaches a largest radius, and image points beyond that one have no ray at all (undistortion
+    then puts them anywhere: ``D = [50, -900, 0, 0, 0]`` gave a replay without one pose). A fitted
+    lens that folds just outside its image (the default camera's 0.1, -0.2 at 1.08, its corners at
+    0.63) is fine: only the image is measured."""
+    fold = camera.fold_radius()
+    if not math.isfinite(fold):
+        return None
+    k = np.zeros(8)
+    radial = [camera.dist[i] for i in (0, 1, 4, 5, 6, 7) if i < camera.dist.size]
+    k[: len(radial)] = radial
+    r2 = fold * fold
+    peak = fold * (1 + r2 * (k[0] + r2 * (k[1] + r2 * k[2]))) / (1 + r2 * (k[3] + r2 * (k[4] + r2 * k[5])))
+    # The image's farthest corner (pixel edges, not centres), as a distorted normalised radius.
+    cx, cy = camera.K[0, 2], camera.K[1, 2]
+    du = max(cx + 0.5, camera.width - 0.5 - cx) / camera.K[0, 0]
+    dv = max(cy + 0.5, camera.height - 0.5 - cy) / camera.K[1, 1]
+    corner = math.hypot(du, dv)
+    if corner < peak:
+        return None
+    return (
+        f"distortion_coefficients [{', '.join(f'{d:.4g}' for d in camera.dist)}] are no lens over"
+        f" the {camera.width}x{camera.height} image: the model turns back {math.degrees(math.atan(fold)):.0f} deg"
+        f" off the axis, reaching {peak:.3g} of the {corner:.3g} (normalised radius) the image's corners need,"
+        " so part of the image has no ray (recalibrate the camera)"
+    )
 
 
 def _unsupported_model(what: str) -> str:
@@ -253,9 +288,42 @@ def _node_size(fs: cv2.FileStorage, path: Path, name: str) -> int:
     return _size(node.real(), path, name)
 
 
-def _load_opencv(path: Path) -> Camera:
+# A key at the top level of an OpenCV FileStorage YAML file: a name at column 0 followed by ":".
+_TOP_KEY = re.compile(r"^([A-Za-z_][\w-]*)[ \t]*:", re.MULTILINE)
+# NaN or infinity written as Python or numpy prints them (nan, inf, -inf, infinity): OpenCV reads
+# only its own .nan and .inf, and says of these "readRawData can only be used to read plain sequences".
+_PLAIN_NONFINITE = re.compile(r"(?<![\w.])[+-]?(nan|inf(inity)?)(?![\w.])", re.IGNORECASE)
+
+
+def _top_level_blocks(text: str) -> list[tuple[str, int, str]]:
+    """(key, line number, its text up to the next key) for each top-level key of an OpenCV YAML file."""
+    found = list(_TOP_KEY.finditer(text))
+    ends = [m.start() for m in found[1:]] + [len(text)]
+    return [(m.group(1), text.count("\n", 0, m.start()) + 1, text[m.end() : e]) for m, e in zip(found, ends)]
+
+
+def _check_opencv_text(path: Path, text: str) -> None:
+    """Refuse what OpenCV's parser takes without a word or reports cryptically: a key given twice
+    (it keeps the first, PyYAML the last: the two formats would disagree) and NaN or inf in a
+    matrix written as ``nan``/``inf``."""
+    seen: dict[str, int] = {}
+    for key, line, _ in _top_level_blocks(text):
+        if key in seen:
+            raise CalibrationError(f"{path}: line {line}: key {key!r} appears again (first on line {seen[key]})")
+        seen[key] = line
+    for key, _, body in _top_level_blocks(text):
+        if key in ("camera_matrix", "distortion_coefficients") and _PLAIN_NONFINITE.search(body):
+            raise CalibrationError(f"{path}: {key} contains NaN or inf")
+
+
+def _load_opencv(path: Path, text: str) -> Camera:
+    """Read an OpenCV FileStorage calibration; ``text``: the file's text (checked first, and parsed
+    instead of the file when it starts with a byte-order mark, which OpenCV's parser refuses)."""
+    bom = text.startswith("\ufeff")
+    text = text.removeprefix("\ufeff")
+    _check_opencv_text(path, text)
     try:
-        return _read_opencv(path)
+        return _read_opencv(path, text if bom else None)
     except (cv2.error, SystemError) as exc:
         # FileStorage's parser reports a cut or inconsistent file as cv2.error (raised from its
         # constructor it arrives wrapped in a SystemError); keep the parser's reason only.
@@ -267,8 +335,12 @@ def _load_opencv(path: Path) -> Camera:
         raise CalibrationError(f"{path}: not a valid OpenCV FileStorage calibration (malformed values)") from None
 
 
-def _read_opencv(path: Path) -> Camera:
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+def _read_opencv(path: Path, text: str | None = None) -> Camera:
+    """The calibration in ``path``, or in ``text`` (the file's contents) when given."""
+    if text is None:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    else:
+        fs = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
     if not fs.isOpened():
         raise CalibrationError(f"{path}: not a readable OpenCV FileStorage file")
     try:
@@ -327,6 +399,33 @@ def _load_ros(path: Path, doc: dict) -> Camera:
     return Camera(K.reshape(3, 3), dist, _size(w, path, names[0]), _size(h, path, names[1]))
 
 
+class _DuplicateKey(yaml.YAMLError):
+    """A mapping of a YAML file names a key twice (``line``, ``first``: 1-based lines)."""
+
+    def __init__(self, key: object, line: int, first: int):
+        super().__init__(f"key {key!r} on line {line} appears on line {first} already")
+        self.key, self.line, self.first = key, line, first
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader refusing a mapping that names a key twice: it keeps the last silently
+    (a camera_info with a second ``K:`` had replay use it, 95 cm off), and OpenCV's parser the first."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen: dict[object, int] = {}
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue  # "<<" merges another mapping: the base loader takes it apart
+            key = self.construct_object(key_node, deep=deep)
+            try:
+                first = seen.setdefault(key, key_node.start_mark.line + 1)
+            except TypeError:
+                continue  # an unhashable key: the base loader refuses it
+            if first != key_node.start_mark.line + 1:
+                raise _DuplicateKey(key, key_node.start_mark.line + 1, first)
+        return super().construct_mapping(node, deep=deep)
+
+
 def load_calibration(path: str | Path) -> Camera:
     """Load a camera from OpenCV FileStorage YAML or ROS camera_info YAML (format auto-detected)."""
     path = Path(path)
@@ -336,11 +435,15 @@ def load_calibration(path: str | Path) -> Camera:
         raise CalibrationError(f"{path}: cannot read calibration ({exc.strerror})") from None
     except ValueError:  # e.g. a NUL byte in the name
         raise CalibrationError(f"{path!r}: not a usable file name") from None
-    if text.lstrip().startswith("%YAML") or "!!opencv-matrix" in text:
-        return check_calibration(_load_opencv(path), path)
+    if text.removeprefix("\ufeff").lstrip().startswith("%YAML") or "!!opencv-matrix" in text:
+        return check_calibration(_load_opencv(path, text), path)
     try:
         # A dumped message may end with "---" (the next document's separator): empty documents are fine.
-        docs = [d for d in yaml.safe_load_all(text) if d is not None]
+        docs = [d for d in yaml.load_all(text, Loader=_UniqueKeyLoader) if d is not None]
+    except _DuplicateKey as exc:
+        raise CalibrationError(
+            f"{path}: line {exc.line}: key {exc.key!r} appears again (first on line {exc.first})"
+        ) from None
     except yaml.YAMLError as exc:
         line = getattr(getattr(exc, "problem_mark", None), "line", None)
         where = f" line {line + 1}:" if line is not None else ""

@@ -1,10 +1,19 @@
-"""The one exception root of tagloc.
+"""The one exception root of tagloc, and its one-line warnings.
 
 Every error a user can cause (bad file, bad argument, missing system library) is raised as a
 subclass of :class:`TaglocError`; the CLI turns it into a one-line message and an exit code.
+Something odd but usable (a frame skipped, times made up) is a warning line: :func:`warn_stderr`.
 """
 
 from __future__ import annotations
+
+import sys
+
+
+def warn_stderr(message: str) -> None:
+    """One warning line on stderr, the form every layer writes them in: tagloc's default warning
+    stream (the pipeline's outputs, a session read without frames.csv, a bag's skipped frames)."""
+    print(f"tagloc: warning: {message}", file=sys.stderr, flush=True)
 
 
 class TaglocError(Exception):

@@ -12,13 +12,35 @@ import numpy as np
 from tagloc.core.errors import InputError
 
 
+class DuplicateKey(ValueError):
+    """An object of the file names ``key`` twice."""
+
+    def __init__(self, key: str) -> None:
+        super().__init__(key)
+        self.key = key
+
+
+def unique_keys(pairs: list[tuple[str, object]]) -> dict:
+    """An object's members as a dict, refusing a key given twice (``json`` keeps the last silently):
+    ``object_pairs_hook`` of ``json.loads``, raising :class:`DuplicateKey`."""
+    out: dict = {}
+    for key, value in pairs:
+        if key in out:
+            raise DuplicateKey(key)
+        out[key] = value
+    return out
+
+
 def read_json(path: Path, error: type[InputError], what: str = "") -> object:
     """The parsed contents of ``path``; ``error`` (naming the file, and the line for bad JSON) if it
-    cannot be read, is not UTF-8 text, is not valid JSON, is nested too deeply to parse or holds an
-    integer too long for Python to convert.
+    cannot be read, is not UTF-8 text, is not valid JSON, names a key twice in one object, is nested
+    too deeply to parse or holds an integer too long for Python to convert. A UTF-8 byte-order mark
+    (an editor's) is fine, as in the CSV files.
     ``what`` names the file's kind in the "cannot read" message (e.g. "rig")."""
     try:
-        return json.loads(path.read_bytes().decode("utf-8"))
+        return json.loads(path.read_bytes().decode("utf-8-sig"), object_pairs_hook=unique_keys)
+    except DuplicateKey as exc:
+        raise error(f"{path}: key {json.dumps(exc.key)[:60]} appears twice in one object") from None
     except OSError as exc:
         raise error(f"{path}: cannot read{' ' + what if what else ''} ({exc.strerror})") from None
     except UnicodeDecodeError as exc:

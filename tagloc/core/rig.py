@@ -191,6 +191,13 @@ def _check_T(value: object, where: str) -> np.ndarray:
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise CalibrationError(f"{where}: T_body_camera must be a finite 4x4 matrix")
     R = T[:3, :3]
+    if np.max(np.abs(R)) > 1 + RIGID_TOL:
+        # Refused before R R^T: an entry of 1e308 overflowed there, numpy's warning printed over the
+        # refusal. (The translation is bounded below, with the camera's position in the message.)
+        raise CalibrationError(
+            f"{where}: T_body_camera is not a rigid transform (its rotation holds {np.max(np.abs(R)):.4g};"
+            " a rotation's entries are within +-1)"
+        )
     if (
         not np.allclose(R @ R.T, np.eye(3), atol=RIGID_TOL)
         or np.linalg.det(R) < 0

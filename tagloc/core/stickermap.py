@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,6 +25,51 @@ SIGMA_COLUMNS = ["sigma_m", "sigma_deg"]  # optional, after HEADER, in either or
 # Largest |coordinate| accepted, m. A site spans kilometres at most; 100 km keeps float32 (which
 # OpenCV uses inside) at better than a centimetre and keeps the KD-tree's arithmetic finite.
 MAX_COORD_M = 1e5
+# Largest |yaw| accepted, degrees. Any real heading is within one turn; a million degrees is a typo
+# or a unit mix-up, and far beyond it (1e300) a float holds no angle at all (its spacing is 1e284).
+MAX_YAW_DEG = 1e6
+
+# The one rule for numbers in tagloc's text files (map.csv, frames.csv) and sticker ID arguments:
+# plain ASCII decimals. Python's float() and int() also take "1_0" (as 10) and any Unicode digit
+# ("\u0661" as 1), which a survey or a clock never writes: such a cell is a typo to refuse, not a
+# number to guess. The words nan and inf pass, so that they are refused as "must be finite".
+_DECIMAL = re.compile(r"[+-]?(?:(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|nan|inf|infinity)", re.IGNORECASE)
+_INTEGER = re.compile(r"[+-]?[0-9]+")
+_BLANK = " \t\r\n"  # ASCII white space only, for the same reason
+# A whole number of more digits than this comes back saturated: int() refuses 4300 digits and more,
+# and every caller's range ends long before.
+_MAX_DIGITS = 30
+# Input text echoed in a message is clipped to this many characters: a 5000-digit cell or a line of
+# 4096 NUL bytes must still make a one-line message.
+SHOWN_CHARS = 40
+
+
+def decimal_number(text: str) -> float | None:
+    """``text`` as a float if it is a plain ASCII decimal (sign, digits, point, exponent; nan and inf
+    included), else None. Surrounding ASCII blanks are ignored."""
+    text = text.strip(_BLANK)
+    return float(text) if _DECIMAL.fullmatch(text) else None
+
+
+def decimal_integer(text: str) -> int | None:
+    """``text`` as an int if it is a plain ASCII whole number (optional sign, digits 0-9), else None.
+    Beyond ``_MAX_DIGITS`` significant digits the value saturates at +-10**30."""
+    text = text.strip(_BLANK)
+    if text.isascii() and text.isdigit() and len(text) <= _MAX_DIGITS:
+        return int(text)  # the common case, without the pattern: frames.csv has a line per frame
+    if not _INTEGER.fullmatch(text):
+        return None
+    digits = text.lstrip("+-").lstrip("0")
+    value = int(digits or "0") if len(digits) <= _MAX_DIGITS else 10**_MAX_DIGITS
+    return -value if text.startswith("-") else value
+
+
+def shown(text: str) -> str:
+    """``text`` quoted for a message, clipped to its first ``SHOWN_CHARS`` characters (with its
+    length) when longer, so that bad input cannot make a message of unbounded length."""
+    if len(text) <= SHOWN_CHARS:
+        return repr(text)
+    return f"{text[:SHOWN_CHARS]!r}... ({len(text)} characters)"
 
 
 @dataclass
@@ -104,20 +150,28 @@ class StickerMap:
 
 
 def _number(text: str, where: str, column: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise MapError(f"{where}: {column} {text!r} is not a number") from None
-    if not math.isfinite(value):
-        raise MapError(f"{where}: {column} is {text!r} (must be finite)")
+    """A cell's number; NaN and inf written as such are refused here. Digits too many for a float
+    come back as inf, refused by each column's range with the range in the message."""
+    value = decimal_number(text)
+    if value is None:
+        raise MapError(f"{where}: {column} {shown(text)} is not a number")
+    if math.isnan(value) or (math.isinf(value) and any(c in "nNiI" for c in text)):
+        raise MapError(f"{where}: {column} is {shown(text)} (must be finite)")
     return value
 
 
 def _coord(text: str, where: str, column: str) -> float:
     value = _number(text, where, column)
     if abs(value) > MAX_COORD_M:
-        raise MapError(f"{where}: {column} {text.strip()!r} is beyond +-{MAX_COORD_M:g} m")
+        raise MapError(f"{where}: {column} {shown(text.strip())} is beyond +-{MAX_COORD_M:g} m")
     return value
+
+
+def _yaw(text: str, where: str) -> float:
+    value = _number(text, where, "yaw_deg")
+    if abs(value) > MAX_YAW_DEG:
+        raise MapError(f"{where}: yaw_deg {shown(text.strip())} is beyond +-{MAX_YAW_DEG:g} degrees")
+    return math.radians(value)
 
 
 # Largest survey sigmas a map may state: beyond them a sticker's place or turn is not surveyed at all
@@ -130,17 +184,18 @@ def _sigma(text: str, where: str, column: str) -> float:
         return math.nan
     value = _number(text, where, column)
     if value < 0:
-        raise MapError(f"{where}: {column} {text.strip()!r} is negative")
+        raise MapError(f"{where}: {column} {shown(text.strip())} is negative")
     if value > MAX_SIGMA[column]:
-        raise MapError(f"{where}: {column} {text.strip()!r} is more than {MAX_SIGMA[column]:g}")
+        raise MapError(f"{where}: {column} {shown(text.strip())} is more than {MAX_SIGMA[column]:g}")
     return value
 
 
 def load_map(path: str | Path, min_spacing_m: float = SIZE_M) -> StickerMap:
     """Load and validate a map CSV. Raises :class:`MapError` naming file and line on bad input.
 
-    Refused: a wrong header, missing or extra columns, non-numbers, NaN or inf, coordinates beyond
-    ``MAX_COORD_M``, IDs that are not
+    Refused: a wrong header, missing or extra columns, non-numbers (only plain ASCII decimals are
+    numbers: :func:`decimal_number`), NaN or inf, coordinates beyond ``MAX_COORD_M``, a yaw beyond
+    ``MAX_YAW_DEG``, IDs that are not
     integers in 0-99999, duplicate IDs, two stickers closer than ``min_spacing_m`` (default: one
     sticker width, so they would overlap), and an empty map.
     """
@@ -161,7 +216,7 @@ def load_map(path: str | Path, min_spacing_m: float = SIZE_M) -> StickerMap:
             extra = names[len(HEADER) :]
             if names[: len(HEADER)] != HEADER or len(set(extra)) != len(extra) or not set(extra) <= set(SIGMA_COLUMNS):
                 raise MapError(
-                    f"{path}:1: header is {','.join(header)!r}, want {','.join(HEADER)}"
+                    f"{path}:1: header is {shown(','.join(header))}, want {','.join(HEADER)}"
                     f" optionally followed by {' and/or '.join(SIGMA_COLUMNS)}"
                 )
             ncol = len(names)
@@ -173,15 +228,15 @@ def load_map(path: str | Path, min_spacing_m: float = SIZE_M) -> StickerMap:
                 if len(row) != ncol:
                     raise MapError(f"{where}: {len(row)} columns, want {ncol} ({','.join(names)})")
                 id_value = _number(row[0], where, "id")
-                if id_value != int(id_value) or not 0 <= id_value <= MAX_ID:
-                    raise MapError(f"{where}: id {row[0].strip()!r} is not an integer in 0-{MAX_ID}")
+                if not 0 <= id_value <= MAX_ID or id_value != int(id_value):
+                    raise MapError(f"{where}: id {shown(row[0].strip())} is not an integer in 0-{MAX_ID}")
                 sid = int(id_value)
                 if sid in seen:
                     raise MapError(f"{where}: duplicate id {sid} (first on line {seen[sid]})")
                 seen[sid] = line
                 ids.append(sid)
                 xy.append((_coord(row[1], where, "x_m"), _coord(row[2], where, "y_m")))
-                yaw.append(math.radians(_number(row[3], where, "yaw_deg")))
+                yaw.append(_yaw(row[3], where))
                 sigmas = {c: _sigma(row[len(HEADER) + k], where, c) for k, c in enumerate(extra)}
                 sig_m.append(sigmas.get("sigma_m", math.nan))
                 sig_deg.append(sigmas.get("sigma_deg", math.nan))

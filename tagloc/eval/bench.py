@@ -1076,8 +1076,6 @@ def bench_command(
     """``tagloc bench``: run the bench, print the tables, optionally write the JSON; returns 0."""
     from pathlib import Path
 
-    if json_path is not None and not Path(json_path).parent.exists():
-        raise InputError(f"{json_path}: directory {Path(json_path).parent} does not exist")
     kw = dict(seed=seed, jpeg_quality=jpeg_quality, libdmtx=libdmtx, paper=paper, progress=progress)
     if frames is not None:
         kw["frames"] = frames
@@ -1085,5 +1083,6 @@ def bench_command(
     result = run_bench(cfg)
     print(format_tables(result))
     if json_path is not None:
+        Path(json_path).parent.mkdir(parents=True, exist_ok=True)  # as every output: "out/" need not exist
         write_json(Path(json_path), result)  # standard JSON: a figure that is not a number as null
     return 0

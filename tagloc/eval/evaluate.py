@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from tagloc.core.errors import InputError
-from tagloc.core.jsonfile import write_json
+from tagloc.core.jsonfile import DuplicateKey, unique_keys, write_json
 from tagloc.core.stickermap import StickerMap
 from tagloc.eval.baselines import MODES, make_localiser
 from tagloc.eval.consistency import NEES_BLOCK_S, bounds_text, nees_blocks, nees_test
@@ -41,7 +41,7 @@ from tagloc.eval.metrics import (
     gt_covers,
     trajectory_errors,
 )
-from tagloc.io.session import FRAMES_CSV, SessionReader
+from tagloc.io.session import FRAMES_CSV, FRAMES_DIR, SessionReader
 from tagloc.pipeline.run import RunLog, run_session
 
 if TYPE_CHECKING:  # the simulator is imported only by the commands that render walks
@@ -313,18 +313,21 @@ class VisibleSticker:
     inside: bool
 
 
-def read_frame_truth(session: Path) -> list[tuple[int, list[VisibleSticker]]] | None:
+def read_frame_truth(session: Path, frames: np.ndarray | None = None) -> list[tuple[int, list[VisibleSticker]]] | None:
     """The per-frame truth of ``groundtruth_frames.jsonl`` as (frame index, its visible stickers) in
     file order, or None for a session without it. What is scored is checked, before any work
     (``tagloc eval --walks`` takes such files from other simulators): a line that is not a JSON
     object with an integer ``index`` and ``visible`` stickers each with an integer ``id`` and four
-    finite ``corners`` is refused naming the file and line."""
+    finite ``corners`` is refused naming the file and line, and so is a file that does not list
+    exactly the session's frames (``frames``: their indices; None: read from the session when
+    ``session`` is one, see :func:`_check_truth_covers`)."""
     path = session / GROUNDTRUTH_FRAMES
     if not path.exists():
         return None
     out = []
     try:
-        with path.open(encoding="utf-8") as f:
+        # -sig: a byte-order mark (the file saved by an editor) is not part of the first line.
+        with path.open(encoding="utf-8-sig") as f:
             for n, line in enumerate(f, 1):
                 if line.strip():
                     out.append(_frame_truth_line(line, f"{path}:{n}"))
@@ -332,12 +335,45 @@ def read_frame_truth(session: Path) -> list[tuple[int, list[VisibleSticker]]] | 
         raise InputError(f"{path}: cannot read ({exc.strerror})") from None
     except UnicodeDecodeError:
         raise InputError(f"{path}: not UTF-8 text") from None
+    if frames is None and ((session / FRAMES_CSV).exists() or (session / FRAMES_DIR).is_dir()):
+        frames = SessionReader(session).index
+    if frames is not None:
+        _check_truth_covers(path, out, frames)
     return out
+
+
+def _check_truth_covers(path: Path, truth: list[tuple[int, list[VisibleSticker]]], frames: np.ndarray) -> None:
+    """Refuse per-frame truth that does not list each of the session's ``frames`` once and nothing
+    else: a fix in a frame it does not list would be counted as a wrong ID (no sticker there by the
+    truth), and one listing other frames is another session's (the simulator writes a record for
+    every frame it writes, and only for those). Python sets, not numpy: an index may be any integer."""
+    listed: set[int] = set()
+    for index, _ in truth:
+        if index in listed:
+            raise InputError(f"{path}: frame {str(index)[:24]} is listed more than once")
+        listed.add(index)
+    want = {int(i) for i in np.asarray(frames).ravel()}
+    missing = sorted(want - listed)
+    if missing:
+        more = f" and {len(missing) - 1} more" if len(missing) > 1 else ""
+        raise InputError(
+            f"{path}: lists {len(listed & want)} of the session's {len(want)} frames (none for frame {missing[0]}"
+            f"{more}): every fix in a frame it does not list would count as a wrong ID; use the file the"
+            " simulator wrote with these frames"
+        )
+    extra = sorted(listed - want)
+    if extra:
+        more = f" and {len(extra) - 1} more" if len(extra) > 1 else ""
+        raise InputError(
+            f"{path}: lists frame {str(extra[0])[:24]}{more} that frames.csv does not: is it another session's?"
+        )
 
 
 def _frame_truth_line(line: str, where: str) -> tuple[int, list[VisibleSticker]]:
     try:
-        rec = json.loads(line)
+        rec = json.loads(line, object_pairs_hook=unique_keys)
+    except DuplicateKey as exc:
+        raise InputError(f"{where}: key {json.dumps(exc.key)[:60]} appears twice in one object") from None
     except (ValueError, RecursionError):
         raise InputError(f"{where}: not a JSON object (a line cut short?)") from None
     index = rec.get("index") if isinstance(rec, dict) else None
@@ -373,13 +409,19 @@ def wrong_id_fixes(session: Path, log: RunLog, radius_px: float = 40.0) -> tuple
 def wrong_ids_in(
     frames: list[tuple[int, list[VisibleSticker]]], log: RunLog, radius_px: float = 40.0
 ) -> tuple[int, int]:
-    """:func:`wrong_id_fixes` against per-frame truth already read (:func:`read_frame_truth`)."""
+    """:func:`wrong_id_fixes` against per-frame truth already read (:func:`read_frame_truth`). A fix
+    in a frame the truth does not list is not checked (neither right nor wrong: the truth says
+    nothing of it), so ``checked`` is then below the fixes; :func:`read_frame_truth` refuses such a
+    file for a session's own frames."""
     truth = {index: [(v.id, v.centre) for v in visible] for index, visible in frames}
-    wrong = 0
+    wrong = checked = 0
     for fix in log.fixes:
-        near = [sid for sid, c in truth.get(fix["frame"], []) if np.hypot(*(c - fix["centre"])) < radius_px]
+        if fix["frame"] not in truth:
+            continue
+        near = [sid for sid, c in truth[fix["frame"]] if np.hypot(*(c - fix["centre"])) < radius_px]
         wrong += fix["id"] not in near
-    return wrong, len(log.fixes)
+        checked += 1
+    return wrong, checked
 
 
 #: The simulator's per-frame truth of which sticker is where in each image.
@@ -472,6 +514,8 @@ def score_session(
         raise InputError(f"{path}: no groundtruth.tum to score against")
     # (run_session runs the frames on one thread each for BLAS and OpenCV: real time means one core
     # of the vest's computer, and the report's per-frame timings are taken inside it.)
+    # Read (and checked against the session's frames) before the run: a bad file costs no run.
+    truth = read_frame_truth(Path(path), session.index)  # read once: wrong IDs and the frames before a sticker
     loc = make_localiser(mode, session.map, session.rig, map_path=session.path / "map.csv")
     log = run_session(session, localiser=loc, progress=progress)
     log.require_frames(path)  # nothing localised: no figures to report as if something had been
@@ -479,7 +523,6 @@ def score_session(
     e = trajectory_errors(log.stamps[v], log.poses[v], log.covs[v], *gt)
     m = error_metrics(e)
     in_gt = frames_in_span(log.stamps, gt[0])
-    truth = read_frame_truth(Path(path))  # read once: wrong IDs and the frames before a sticker
     if truth is not None:
         wrong, check = wrong_ids_in(truth, log)[0], "frames"
     else:

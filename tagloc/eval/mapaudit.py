@@ -32,8 +32,8 @@ from tagloc.core.geometry import invert, planar_from_T, planar_T, wrap_angle
 from tagloc.core.jsonfile import write_json
 from tagloc.core.sticker import OUTER_CORNERS
 from tagloc.core.stickermap import StickerMap, save_map
-from tagloc.eval.mapobs import FrameRecord, WalkLog, collect_walks
-from tagloc.eval.maprefine import RefineConfig, RefineResult, refine_map
+from tagloc.eval.mapobs import FrameRecord, WalkLog, collect_walks, frames_text, walks_skipped
+from tagloc.eval.maprefine import RefineConfig, RefineResult, refine_map, residual_text
 
 
 @dataclass
@@ -121,6 +121,8 @@ class AuditResult:
 
     ``walk_frames``, ``walk_tracked``: per walk, its frames and those tracked well enough to check
     the map against; ``unchecked``: the walks with too few of those (``min_tracked_fraction``).
+    ``skipped``: why each frame the localiser skipped was (unreadable, the wrong size, a bad time),
+    "walk: frame N: ..." each.
     """
 
     map: StickerMap
@@ -133,6 +135,7 @@ class AuditResult:
     walk_frames: list[int] = field(default_factory=list)
     walk_tracked: list[int] = field(default_factory=list)
     min_tracked_fraction: float = AuditConfig.min_tracked_fraction
+    skipped: list[str] = field(default_factory=list)
 
     def of(self, kind: str) -> list[Finding]:
         return [f for f in self.findings if f.kind == kind]
@@ -441,6 +444,7 @@ def audit_walks(walks: list[WalkLog], smap: StickerMap, config: AuditConfig | No
         n_frames,
         n_tracked,
         config.min_tracked_fraction,
+        walks_skipped(walks)[1],
     )
 
 
@@ -462,7 +466,8 @@ def audit_markdown(result: AuditResult, map_name: str) -> str:
     lines = [
         f"# Map audit of {map_name}",
         "",
-        f"{len(result.walks)} walks ({', '.join(result.walks)}), {result.frames} frames, {result.tracked_frames}"
+        f"{len(result.walks)} walks ({', '.join(result.walks)}), {frames_text(result.frames, result.skipped)},"
+        f" {result.tracked_frames}"
         f" tracked well enough to check the map against; {len(result.map)} mapped stickers.",
         "",
     ]
@@ -519,8 +524,8 @@ def audit_markdown(result: AuditResult, map_name: str) -> str:
             "",
             f"{r.frames_used} frames with two or more decoded stickers, {r.sightings_used} sightings"
             f" ({r.sightings_dropped} dropped; {r.links_dropped} odometry links dropped),"
-            f" {len(r.changes)} stickers refined, RMS corner residual"
-            f" {r.rms_px:.2f} px; seen but never with another sticker (not checked for placement):"
+            f" {len(r.changes)} stickers refined, {residual_text(r)};"
+            " seen but never with another sticker (not checked for placement):"
             f" {' '.join(map(str, r.seen_alone)) or 'none'}. {r.note}",
             "",
         ]
@@ -603,6 +608,8 @@ def write_audit(result: AuditResult, out_dir: str | Path, map_name: str) -> Path
         "map": map_name,
         "walks": result.walks,
         "frames": result.frames,
+        "skipped_frames": len(result.skipped),
+        "first_skipped": result.skipped[0] if result.skipped else None,
         "tracked_frames": result.tracked_frames,
         "walk_frames": result.walk_frames,
         "walk_tracked_frames": result.walk_tracked,

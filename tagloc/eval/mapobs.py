@@ -103,6 +103,28 @@ class WalkLog:
     def name(self) -> str:
         return self.path.name
 
+    @property
+    def skipped(self) -> list[str]:
+        """Why each frame the localiser skipped was (unreadable, the wrong size, a bad time), in order."""
+        return [fr.skipped for fr in self.frames if fr.skipped]
+
+
+#: What the localiser skips a frame for, as :func:`frames_text` says it.
+SKIP_REASONS = "unreadable, the wrong size or a bad time"
+
+
+def walks_skipped(walks: list[WalkLog]) -> tuple[int, list[str]]:
+    """(frames, why each skipped one was) over ``walks``; each reason names its walk ("walk: frame N: ...")."""
+    return sum(len(w.frames) for w in walks), [f"{w.name}: {why}" for w in walks for why in w.skipped]
+
+
+def frames_text(frames: int, skipped: list[str], reasons: str = SKIP_REASONS) -> str:
+    """How many frames there were and how many were skipped, the first one's reason included:
+    "20 frames (10 skipped: unreadable, ...; the first: walk: frame 3: ...)"; "20 frames" without."""
+    if not skipped:
+        return f"{frames} frames"
+    return f"{frames} frames ({len(skipped)} skipped: {reasons}; the first: {skipped[0]})"
+
 
 def _sighting(obs: Observation, smap: StickerMap, rig: Rig) -> Sighting:
     det = obs.detection

@@ -58,7 +58,7 @@ from tagloc.core.geometry import planar_from_T, wrap_angle
 from tagloc.core.rig import RigCamera
 from tagloc.core.sticker import ALL_CORNERS
 from tagloc.core.stickermap import StickerMap, save_map
-from tagloc.eval.mapobs import FrameRecord, Sighting, WalkLog, collect_walks
+from tagloc.eval.mapobs import FrameRecord, Sighting, WalkLog, collect_walks, frames_text, walks_skipped
 from tagloc.vision.odometry import OdometryConfig, floor_patch
 
 # Solves at most: each but the last drops one sighting, link or prior. The walks measured needed
@@ -879,8 +879,7 @@ def refine_markdown(result: RefineResult, map_name: str, walks: list[str]) -> st
         f" stickers or one and a floor-odometry link ({result.frames_linked} such, {result.odometry_links} links),"
         f" {result.sightings_used} sightings ({result.sightings_dropped} dropped as unexplained,"
         f" {result.links_dropped} links dropped as inconsistent), {len(result.changes)} stickers refined,"
-        f" RMS corner residual {result.rms_px:.2f} px (chi-square per DoF {result.chi2_dof:.2f}; per"
-        f" class, against its redundancy: {_factors(result.variance_factors)}), {result.solve_s:.1f} s.",
+        f" {residual_text(result)}, {result.solve_s:.1f} s.",
         f"Moved (survey prior rejected): {' '.join(str(c.sticker_id) for c in moved) or 'none'}."
         f" Seen but never with another sticker, left unchanged: {' '.join(map(str, result.seen_alone)) or 'none'}.",
     ]
@@ -901,6 +900,17 @@ def refine_markdown(result: RefineResult, map_name: str, walks: list[str]) -> st
     return "\n".join(lines) + "\n"
 
 
+def residual_text(result: RefineResult) -> str:
+    """The solve's RMS corner residual and chi-square, or that nothing was solved (no frame to refine
+    from: a figure of nothing is no "nan px")."""
+    if not math.isfinite(result.rms_px):
+        return "nothing solved (no corner residual)"
+    return (
+        f"RMS corner residual {result.rms_px:.2f} px (chi-square per DoF {result.chi2_dof:.2f}; per"
+        f" class, against its redundancy: {_factors(result.variance_factors)})"
+    )
+
+
 def default_report(out: str | Path) -> Path:
     """Where the report goes when none is named: the refined map's name with ``.md``."""
     return Path(out).with_suffix(".md")
@@ -918,6 +928,10 @@ def refine_sessions(
     a Markdown report of what moved (default: ``out`` with ``.md``)."""
     smap, map_path, walks = collect_walks(sessions, map_path, progress=progress)
     result = refine_map(walks, smap, config)
+    frames, skipped = walks_skipped(walks)
+    if skipped:
+        # Said with the result (the command prints the note): frames lost are stickers not refined.
+        result.note = "; ".join(filter(None, [result.note, f"of the walks' {frames_text(frames, skipped)}"]))
     out = Path(out)
     report = Path(report) if report is not None else default_report(out)
     # The CLI checked that these can be created, missing directories included: create them.

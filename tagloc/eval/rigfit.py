@@ -42,6 +42,7 @@ from tagloc.core.camera import default_camera, save_calibration
 from tagloc.core.errors import InputError
 from tagloc.core.geometry import make_T, wrap_angle
 from tagloc.core.rig import Rig, RigCamera, load_rig, save_rig
+from tagloc.eval.mapobs import frames_text
 from tagloc.io.session import SessionReader
 from tagloc.vision.decode import decode
 from tagloc.vision.detect import detect
@@ -130,6 +131,8 @@ class RigFit:
         fixes: camera poses used; passes: distinct sticker passes among them.
         stretches: straight stretches found, each (t_start, t_end, length_m, yaw_deg).
         warnings: what the walk did not constrain well.
+        frames: the camera's frames looked at (every ``step``-th); skipped: why each of them that
+            could not be used was (unreadable, the wrong size), "frame N: ..." each.
     """
 
     height_m: Estimate
@@ -141,6 +144,8 @@ class RigFit:
     passes: int
     stretches: list[tuple[float, float, float, float]] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    frames: int = 0
+    skipped: list[str] = field(default_factory=list)
 
 
 #: Rolling shutter: corrected solves after the first (measured on a rendered 8 s walk with 30 ms
@@ -149,8 +154,19 @@ class RigFit:
 RS_ITERATIONS = 3
 
 
-def camera_fixes(session: SessionReader, rig_camera: RigCamera, cfg: RigFitConfig, progress: bool = True) -> list:
+def camera_fixes(
+    session: SessionReader,
+    rig_camera: RigCamera,
+    cfg: RigFitConfig,
+    progress: bool = True,
+    looked: list[int] | None = None,
+    skipped: list[str] | None = None,
+) -> list:
     """Decoded, unambiguous camera poses of ``cfg.camera`` over the session, in time order.
+
+    A frame that cannot be used (unreadable, or not an image of the camera's size, which
+    :func:`detect` refuses) is skipped, as the localiser skips it: ``skipped`` (if given) gets
+    why ("frame N: ..."), and ``looked`` the index of every frame of the camera looked at.
 
     With a rolling-shutter camera (``rig_camera.readout_s`` > 0) each pose holds when its
     sticker's rows were read (``PoseSolution.row_time_s`` after the frame's time) and is solved
@@ -160,10 +176,21 @@ def camera_fixes(session: SessionReader, rig_camera: RigCamera, cfg: RigFitConfi
     seen = []
     frames = session.frames()
     for k, frame in enumerate(tqdm(frames, total=len(session), desc="rig fit", unit="frame", disable=not progress)):
-        if k % cfg.step or frame.image is None or frame.camera != cfg.camera:
+        if k % cfg.step or frame.camera != cfg.camera:
             continue
+        if looked is not None:
+            looked.append(frame.index)
         cam = rig_camera.camera
-        for det in detect(frame.image, cam):
+        why = frame.error or f"frame {frame.index}: unreadable"
+        try:
+            dets = None if frame.image is None else detect(frame.image, cam)
+        except InputError as exc:  # not an image of this camera (its size, its type): the frame's fault
+            dets, why = None, f"frame {frame.index}: {exc}"
+        if dets is None:
+            if skipped is not None:
+                skipped.append(why)
+            continue
+        for det in dets:
             res = decode(frame.image, det, cam, backend=cfg.decoder)
             if res.sticker_id is None or res.sticker_id not in session.map:
                 continue
@@ -392,7 +419,14 @@ def fit_rig(
     if not 0 <= cfg.camera < len(rig):
         raise InputError(f"camera {cfg.camera} is not in the rig ({len(rig)} cameras)")
     rc = rig[cfg.camera]
-    fit = fit_rig_fixes(camera_fixes(session, rc, cfg, progress), rc.T_body_camera, cfg)
+    looked: list[int] = []
+    skipped: list[str] = []
+    fixes = camera_fixes(session, rc, cfg, progress, looked, skipped)
+    if looked and len(skipped) == len(looked):
+        # Every frame bad is the frames' fault, not the map's ("no decoded sticker" would blame it).
+        raise InputError(f"{session.path}: none of its {len(looked)} frames could be used ({skipped[0]})")
+    fit = fit_rig_fixes(fixes, rc.T_body_camera, cfg)
+    fit.frames, fit.skipped = len(looked), skipped
     cams = list(rig.cameras)
     # The vest point defaults to the camera's height (tagloc.core.rig): a one-camera rig whose vest
     # height was that default follows the fitted height; a stated one is kept.
@@ -414,6 +448,8 @@ def fit_rig(
         },
         "fixes": fit.fixes,
         "passes": fit.passes,
+        "frames": fit.frames,
+        "frames_skipped": len(fit.skipped),
         "straight_m": round(sum(s[2] for s in fit.stretches), 3),
         "warnings": fit.warnings,
     }
@@ -431,6 +467,7 @@ def format_fit(fit: RigFit) -> str:
     lines = [
         f"{fit.fixes} camera poses from {fit.passes} sticker passes, {len(fit.stretches)} straight stretches "
         f"({sum(s[2] for s in fit.stretches):.1f} m)",
+        *([frames_text(fit.frames, fit.skipped, "unreadable or the wrong size")] if fit.skipped else []),
         f"{'':<8}{'value':>10}{'1-sigma':>10}",
         f"{'height':<8}{fit.height_m.value:>9.4f}m{fit.height_m.sigma:>9.4f}m",
     ]

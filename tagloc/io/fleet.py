@@ -152,6 +152,10 @@ def parse_message(
     """
     if isinstance(payload, dict):
         doc = payload
+    elif not isinstance(payload, (str, bytes, bytearray)):
+        # An already decoded document that is no object (a bag's pose_json holding [1, 2], 5, null):
+        # json.loads and len() raised TypeError on it, which stopped the monitor.
+        raise MessageError(f"not a JSON object ({type(payload).__name__})")
     elif len(payload) > max_bytes:
         raise MessageError(f"{len(payload)} bytes long (a pose message is under 1 kB; bound {max_bytes})")
     else:

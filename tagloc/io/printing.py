@@ -24,6 +24,7 @@ from matplotlib.figure import Figure
 
 from tagloc.core.errors import InputError
 from tagloc.core.sticker import MAX_ID, SIZE_M, check_id, render_sticker
+from tagloc.core.stickermap import shown
 
 #: Paper sizes (width, height) in mm, portrait.
 PAPER_MM = {"a4": (210.0, 297.0), "a3": (297.0, 420.0), "letter": (215.9, 279.4)}
@@ -74,7 +75,9 @@ class SheetLayout:
         return self.cols * self.rows
 
 
-_TOKEN = re.compile(r"^(\d+)(?:-(\d+))?$")
+# ASCII digits only, as every number tagloc reads (\d also takes "\u0661", Arabic-Indic one, as 1),
+# at most 6 each: an ID is at most 99999, and int() of thousands of digits is refused by Python.
+_TOKEN = re.compile(r"([0-9]{1,6})(?:-([0-9]{1,6}))?")
 
 
 def parse_ids(tokens: Iterable[str]) -> list[int]:
@@ -86,16 +89,16 @@ def parse_ids(tokens: Iterable[str]) -> list[int]:
     ids: dict[int, None] = {}
     for token in tokens:
         for part in str(token).replace(",", " ").split():
-            m = _TOKEN.match(part)
+            m = _TOKEN.fullmatch(part)
             if not m:
-                raise InputError(f"sticker ID {part!r} is not a number or a range like 20-29")
+                raise InputError(f"sticker ID {shown(part)} is not a number in 0-{MAX_ID} or a range like 20-29")
             lo = int(m.group(1))
             hi = int(m.group(2)) if m.group(2) is not None else lo
             if hi < lo:
                 raise InputError(f"sticker ID range {part!r} is reversed (want low-high)")
             for value in (lo, hi):
                 if value > MAX_ID:
-                    raise InputError(f"sticker ID {value} in {part!r} is outside 0-{MAX_ID}")
+                    raise InputError(f"sticker ID {value} in {shown(part)} is outside 0-{MAX_ID}")
             ids.update(dict.fromkeys(range(lo, hi + 1)))
     if not ids:
         raise InputError("no sticker IDs given")

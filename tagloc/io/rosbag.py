@@ -30,15 +30,18 @@ import json
 import math
 import os
 import re
-from collections.abc import Iterator, Sequence
+import statistics
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
 
 from tagloc.core.camera import Camera, check_calibration, distortion_model_problem, load_calibration
-from tagloc.core.errors import BackendUnavailable, InputError, SessionError
+from tagloc.core.errors import BackendUnavailable, InputError, SessionError, warn_stderr
 from tagloc.core.geometry import planar_T
 from tagloc.core.rig import Rig, default_rig, load_rig, local_calibration_names
 from tagloc.core.stickermap import StickerMap, load_map
@@ -61,6 +64,15 @@ UNESTIMATED_VARIANCE = 1e6
 WORLD_FRAME = "map"  # REP 105's name for the fixed world frame the sticker map lives in
 MAX_BAG_TIME_S = 2**31  # builtin_interfaces/Time's seconds are an int32: a stamp must be below this
 IMAGE_JPEG_QUALITY = 90  # when a frame has to be encoded for the bag (no original JPEG at hand)
+# Reading a bag, an image whose header stamp is more than WILD_STAMP_STEPS frame intervals (the
+# median) past one of the next WILD_STAMP_WINDOW frames' (that frame after the frames before it) has
+# a wild stamp: that frame is skipped, not every frame after it. As the localiser's
+# clock_reset_frames: a run of frames that long on another clock is a clock that jumped, not a
+# stray stamp. Within 2 intervals the later frame is the one refused (a stamp's jitter: either one).
+WILD_STAMP_WINDOW = 5
+WILD_STAMP_STEPS = 2.0
+SKIPPED_NAMED = 5  # skipped frames a bag conversion names (the rest are counted)
+SIZE_PROBE_FRAMES = 30  # frames a bag conversion reads for a readable image to check its size, up front
 # rosbag2 metadata version 8 (Iron's), the oldest rosbags writes: Humble's rosbag2 reads each topic's
 # offered_qos_profiles as a YAML string with integer policies, which version 8 writes and Iron and
 # Jazzy read too; version 9 (Jazzy's) makes it a list of named policies, and Humble's `ros2 bag info`
@@ -400,6 +412,16 @@ def _open_reader(path: Path):
     if not path.exists():
         raise SessionError(f"{path}: no such bag")
     if path.is_dir() and not (path / "metadata.yaml").exists():
+        storage = sorted([*path.glob("*.mcap"), *path.glob("*.db3")])
+        if storage:
+            # rosbag2 writes metadata.yaml (and an MCAP file's index and footer) when the bag is
+            # closed: storage files without it are a recording that was killed (kill -9, power loss).
+            # rosbags reads no such file, so the user is told why, and what is safe next time.
+            raise SessionError(
+                f"{path}: has {storage[0].name} but no metadata.yaml: the recording was likely interrupted "
+                "(killed before its bag was closed) and cannot be read; ROS 2's `mcap recover` and "
+                "`ros2 bag reindex` may repair it, and `tagloc live --record DIR` records a crash-safe session"
+            )
         raise SessionError(f"{path}: not a rosbag2 directory (no metadata.yaml)")
     if path.is_file() and path.suffix != ".bag":
         raise SessionError(f"{path}: want a rosbag2 directory or a ROS 1 .bag file")
@@ -408,6 +430,9 @@ def _open_reader(path: Path):
         reader.open()
     except Exception as exc:  # noqa: BLE001 - rosbags raises many error types for a damaged bag
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        if "end magic" in reason:
+            # An MCAP file without its footer: cut short, as a recording that was killed leaves it.
+            reason += " The file ends early: the recording was likely interrupted"
         raise SessionError(f"{path}: cannot read bag ({reason})") from exc
     return reader
 
@@ -514,7 +539,8 @@ class BagSession:
         info_topic: CameraInfo topic; default: beside ``topic`` (``.../camera_info``), else the only one.
 
     Frame timestamps are the image headers' stamps (the bag's receive time when a stamp is zero);
-    frames are numbered 0, 1, ... in bag order.
+    frames are numbered 0, 1, ... in bag order. A frame whose stamp is wild (after the frames that
+    follow it, see :data:`WILD_STAMP_WINDOW`) is skipped and counted like an undecodable one.
     """
 
     def __init__(
@@ -547,6 +573,7 @@ class BagSession:
                 # with no output, a conversion written a session that replay refuses).
                 raise SessionError(f"{self.path}: {topic} holds no messages")
             # --calibration overrides the bag's CameraInfo, so a bad one (the very case for it) is not read.
+            self._info_used: str | None = None  # the CameraInfo topic the calibration came from
             bag_camera = (
                 None
                 if calibration
@@ -561,6 +588,13 @@ class BagSession:
             self.rig = default_rig(camera=camera)
         else:
             raise SessionError(f"{self.path}: no CameraInfo for {topic}; give --calibration or --rig")
+        # Where the calibration came from, for a message that has to name it.
+        if calibration:
+            self.calibration_source = f"{calibration} (--calibration)"
+        elif bag_camera is not None:
+            self.calibration_source = f"the bag's CameraInfo on {self._info_used}"
+        else:
+            self.calibration_source = str(Path(rig_path).parent / self.rig.cameras[0].calibration_file)
         self.index = np.arange(self.count)
         self.skipped: list[tuple[int, str]] = []
         self.warnings: list[str] = []  # as SessionReader's: odd but usable (none known for bags yet)
@@ -576,6 +610,7 @@ class BagSession:
                 return None
             chosen = infos
         for conn, _, raw in _messages(reader, self.path, chosen):
+            self._info_used = conn.topic
             try:
                 return camera_from_info(reader.deserialize(raw, conn.msgtype))
             except InputError as exc:
@@ -598,41 +633,134 @@ class BagSession:
         """Bags carry no ground truth tagloc can read."""
         return None
 
-    def encoded_frames(self) -> Iterator[tuple[int, float, object, str]]:
-        """Yield (index, timestamp_s, message, msgtype) for every image message, in bag order."""
+    def _stamped_messages(self) -> Iterator[_RawImage]:
+        """Every image message of the topic in bag order, deserialised (None when it cannot be), with
+        its receive time and header stamp."""
         reader = _open_reader(self.path)
         try:
             conns = [c for c in reader.connections if c.topic == self.topic]
-            offset = 0.0  # the last message's frame time less its receive time (s)
             for i, (conn, bag_ns, raw) in enumerate(_messages(reader, self.path, conns)):
+                received = bag_ns / 1e9
                 try:
                     msg = reader.deserialize(raw, conn.msgtype)
                 except Exception:  # noqa: BLE001 - a corrupt message is one skipped frame
-                    # No header to take its time from: its receive time, moved onto the frames' clock
-                    # as the last message's was. Unmoved, a driver's latency (or header stamps on
-                    # another clock) put it after the frames that follow, each then skipped as not
-                    # after it: one corrupt message cost the rest of the session.
-                    yield i, bag_ns / 1e9 + offset, None, conn.msgtype
+                    yield _RawImage(i, received, None, None, conn.msgtype)
                     continue
                 t = _stamp_s(msg.header.stamp)
-                t = t if t > 0 else bag_ns / 1e9
-                offset = t - bag_ns / 1e9
-                yield i, t, msg, conn.msgtype
+                yield _RawImage(i, received, t if t > 0 else received, msg, conn.msgtype)
         finally:
             reader.close()
 
+    def encoded_frames(self) -> Iterator[BagImage]:
+        """Every image message, in bag order, with its frame time (see :class:`BagImage`)."""
+        return judge_stamps(self._stamped_messages(), self.topic)
+
     def frames(self, with_images: bool = True) -> Iterator[Frame]:
-        """Yield every frame in order; undecodable ones come with ``image=None`` and ``error`` set."""
-        for i, t, msg, msgtype in self.encoded_frames():
+        """Yield every frame in order; undecodable ones, and those of a wild stamp, come with
+        ``image=None`` and ``error`` set."""
+        for f in self.encoded_frames():
             if not with_images:
-                yield Frame(i, t, None)
+                yield Frame(f.index, f.t, None, 0, f.wild)
                 continue
-            img = None if msg is None else _image_to_grey(msg, msgtype)
-            err = None
+            err = f.wild
+            img = None if f.msg is None or err else _image_to_grey(f.msg, f.msgtype)
             if img is None:
-                err = _unreadable(i, self.topic, t, msg, msgtype)
-                self.skipped.append((i, err))
-            yield Frame(i, t, img, 0, err)
+                err = err or _unreadable(f.index, self.topic, f.t, f.msg, f.msgtype)
+                self.skipped.append((f.index, err))
+            yield Frame(f.index, f.t, img, 0, err)
+
+
+def _frame_interval(stamps: Iterable[float | None]) -> float:
+    """The median step between consecutive stamps that advance (0 with none)."""
+    seq = [t for t in stamps if t is not None]
+    steps = [b - a for a, b in zip(seq, seq[1:]) if b > a]
+    return statistics.median(steps) if steps else 0.0
+
+
+class _RawImage(NamedTuple):
+    """An image message as the bag holds it: header stamp None when the message cannot be read."""
+
+    index: int
+    received: float
+    stamp: float | None
+    msg: object
+    msgtype: str
+
+
+class BagImage(NamedTuple):
+    """An image message of a bag's camera topic.
+
+    Attributes:
+        index: its place on the topic (0, 1, ... in bag order): the frame's index.
+        t: the frame time (s): the header stamp, else (a corrupt message, a wild stamp) the receive
+            time moved onto the frames' clock.
+        msg: the deserialised message, None when it could not be.
+        msgtype: its ROS type.
+        wild: why its header stamp was not taken (a wild stamp: skip the frame), else None.
+    """
+
+    index: int
+    t: float
+    msg: object
+    msgtype: str
+    wild: str | None = None
+
+
+def judge_stamps(messages: Iterable[_RawImage], topic: str, window: int = WILD_STAMP_WINDOW) -> Iterator[BagImage]:
+    """The frames of ``messages`` with their times, a wild stamp found by looking ``window`` frames ahead.
+
+    A stamp is wild when one of the next ``window`` frames is stamped between the last stamp taken and
+    it, more than :data:`WILD_STAMP_STEPS` frame intervals (the median of the stamps around it) before
+    it: that one frame is out of order, not all the frames after it. (Taken, a camera stamp 2^31 s
+    in the future made a conversion skip every later frame as "not after" it, and a replay take it
+    as a reset clock and shift every later pose by as much.) A stamp before the last one is passed on
+    as it is: a lone one is refused by the localiser, and a run of them is a clock that was reset
+    (but frames before a reset within the bag's first ``window`` frames are taken as the wild ones:
+    with no stamp before them, the shorter run is the one out of order).
+    """
+    ahead: deque[_RawImage] = deque()
+    taken: deque[float] = deque(maxlen=2 * window)  # the last stamps taken, for the frame interval
+    last = -math.inf  # the last stamp taken
+    offset = 0.0  # that frame's time less its receive time (s)
+
+    def settle(r: _RawImage) -> BagImage:
+        nonlocal last, offset
+        if r.stamp is None:
+            # No header to take its time from: its receive time, moved onto the frames' clock as the
+            # last frame's was. Unmoved, a driver's latency (or header stamps on another clock) put it
+            # after the frames that follow, each then skipped as not after it: one corrupt message
+            # cost the rest of the session.
+            return BagImage(r.index, r.received + offset, None, r.msgtype)
+        between = [(a.stamp, a.index) for a in ahead if a.stamp is not None and last < a.stamp < r.stamp]
+        nxt, k = min(between) if between else (r.stamp, r.index)
+        if between and r.stamp - nxt > WILD_STAMP_STEPS * _frame_interval([*taken, *(a.stamp for a in ahead)]):
+            # Its time for the frame's place in the stream: the receive time on the frames' clock,
+            # kept between its neighbours so that neither is refused for it.
+            t = r.received + offset
+            lo = last if math.isfinite(last) else nxt - 1.0
+            if not lo < t < nxt:
+                t = (lo + nxt) / 2
+            why = (
+                f"frame {r.index}: {topic} message stamped {seconds_text(r.stamp)} s, after frame {k}'s "
+                f"{seconds_text(nxt)} s that follows it (a wild stamp)"
+            )
+            return BagImage(r.index, t, r.msg, r.msgtype, why)
+        last, offset = r.stamp, r.stamp - r.received
+        taken.append(r.stamp)
+        return BagImage(r.index, r.stamp, r.msg, r.msgtype)
+
+    it = iter(messages)
+    try:
+        for r in it:
+            ahead.append(r)
+            if len(ahead) > window:
+                yield settle(ahead.popleft())
+        while ahead:
+            yield settle(ahead.popleft())
+    finally:
+        close = getattr(it, "close", None)
+        if close is not None:
+            close()  # the bag reader's, when the caller stops early
 
 
 def bag_to_session(
@@ -644,6 +772,7 @@ def bag_to_session(
     calibration: str | Path | None = None,
     info_topic: str | None = None,
     progress: bool = False,
+    warn: Callable[[str], None] | None = None,
 ) -> tuple[int, int]:
     """Convert a bag's camera topic to a session directory; returns (frames written, frames skipped).
 
@@ -653,35 +782,79 @@ def bag_to_session(
     refused. One after it but within the last written frame's microsecond (the resolution of
     ``frames.csv``) goes on at the next microsecond, as ``tagloc live`` moves a camera's frame on,
     since a replay of the bag takes it (skipped, the session lacked a frame the bag's replay has).
+    A frame of a wild stamp (see :func:`judge_stamps`) is skipped, not the frames after it, and so
+    is one whose image is not the calibration's size; when the first image is not, nothing is
+    written (every reader would refuse the session). ``warn`` (default: a line on stderr) is given
+    one line naming the first :data:`SKIPPED_NAMED` skipped frames.
     """
+    from itertools import chain
+
     from tqdm import tqdm
 
     src = BagSession(bag, topic, map_path, rig_path, calibration, info_topic)
     _check_inputs_kept(Path(out), src, rig_path, calibration)
-    written = skipped = 0
+    cam = src.rig.cameras[0].camera
+    frames = src.encoded_frames()
+    head = _check_first_size(src, frames, (cam.width, cam.height))
+    written = 0
+    skipped: list[str] = []  # why each skipped frame was
     last = -math.inf  # the last written frame's time
     last_t = -math.inf  # the last stamp a replay of the bag takes (the localiser refuses one not after it)
-    first_skip = ""  # why the first undecodable frame was skipped
     with SessionWriter(out, src.map, src.rig, SessionInfo(source=src.info.source, fps=0.0), image_ext=".png") as w:
         try:
-            for i, t, msg, msgtype in tqdm(src.encoded_frames(), total=len(src), disable=not progress, unit="frame"):
-                if not t > last_t:
-                    skipped += 1
+            for f in tqdm(chain(head, frames), total=len(src), disable=not progress, unit="frame"):
+                if f.wild:
+                    skipped.append(f.wild)
                     continue
-                last_t = t
-                stamp = after_last(t, last)
-                if _convert(w, i, stamp, msg, msgtype):
+                if not f.t > last_t:
+                    skipped.append(
+                        f"frame {f.index}: {topic} message stamped {seconds_text(f.t)} s, not after the previous "
+                        f"frame's {seconds_text(last_t)} s"
+                    )
+                    continue
+                last_t = f.t
+                stamp = after_last(f.t, last)
+                why = _convert(w, f, stamp, (cam.width, cam.height), topic)
+                if why is None:
                     written += 1
                     last = stamp
                 else:
-                    skipped += 1
-                    first_skip = first_skip or _unreadable(i, src.topic, t, msg, msgtype)
+                    skipped.append(why)
         except SessionError as exc:
             raise SessionError(f"{exc}; {out} holds the {written} frames before it") from exc
     if not written:
         # A session listing no frames is refused by every reader: say so now, not at its replay.
-        raise SessionError(f"{src.path}: none of the {skipped} frames of {topic} could be converted ({first_skip})")
-    return written, skipped
+        first = skipped[0] if skipped else "none"
+        raise SessionError(f"{src.path}: none of the {len(skipped)} frames of {topic} could be converted ({first})")
+    if skipped:
+        more = f"; and {len(skipped) - SKIPPED_NAMED} more" if len(skipped) > SKIPPED_NAMED else ""
+        (warn or warn_stderr)(
+            f"{src.path}: {len(skipped)} frame{'s' if len(skipped) > 1 else ''} skipped: "
+            + "; ".join(skipped[:SKIPPED_NAMED])
+            + more
+        )
+    return written, len(skipped)
+
+
+def _check_first_size(src: BagSession, frames: Iterator[BagImage], size: tuple[int, int]) -> list[BagImage]:
+    """Refuse a bag whose first readable image (within its first frames) is not ``size`` (the
+    calibration's), before anything is written: a session of such frames was written whole, and
+    every reader then refused every frame. Returns the frames read to find it, to be converted."""
+    head: list[BagImage] = []
+    for f in frames:
+        head.append(f)
+        img = None if f.msg is None or f.wild else _image_to_grey(f.msg, f.msgtype)
+        if img is not None:
+            h, w = img.shape[:2]
+            if (w, h) != size:
+                raise SessionError(
+                    f"{src.path}: {src.topic}: images are {w}x{h} px but the calibration {src.calibration_source} "
+                    f"is for {size[0]}x{size[1]}; give the calibration of the camera that recorded them"
+                )
+            break
+        if len(head) >= SIZE_PROBE_FRAMES:
+            break  # all unreadable so far: each later one is checked as it is converted
+    return head
 
 
 def _check_inputs_kept(out: Path, src: BagSession, rig_path: str | Path | None, calibration: str | Path | None) -> None:
@@ -698,18 +871,21 @@ def _check_inputs_kept(out: Path, src: BagSession, rig_path: str | Path | None, 
             raise SessionError(f"{out / name}: is one of the conversion's inputs, which the session would overwrite")
 
 
-def _convert(w: SessionWriter, i: int, t: float, msg: object, msgtype: str) -> bool:
-    """Write one bag image message to the session ``w``: False when it is skipped (undecodable)."""
-    if msg is not None and msgtype.endswith("CompressedImage") and "jpeg" in msg.format.lower():
-        data = bytes(msg.data)
-        if decode_grey(data) is not None:
-            w.write_encoded(i, t, data, ".jpg")
-            return True
+def _convert(w: SessionWriter, f: BagImage, t: float, size: tuple[int, int], topic: str) -> str | None:
+    """Write one bag image message to the session ``w`` at time ``t``: None, or why it is skipped
+    (undecodable, or not ``size``, the calibration's: a replay skips such a frame)."""
+    msg, msgtype = f.msg, f.msgtype
     img = None if msg is None else _image_to_grey(msg, msgtype)
     if img is None:
-        return False
-    w.write(i, t, img)
-    return True
+        return _unreadable(f.index, topic, f.t, msg, msgtype)
+    h, wd = img.shape[:2]
+    if (wd, h) != size:
+        return f"frame {f.index}: image is {wd}x{h}, the calibration is for {size[0]}x{size[1]}"
+    if msgtype.endswith("CompressedImage") and "jpeg" in msg.format.lower():
+        w.write_encoded(f.index, t, bytes(msg.data), ".jpg")  # byte for byte: no second lossy encoding
+    else:
+        w.write(f.index, t, img)
+    return None
 
 
 @dataclass
@@ -752,6 +928,10 @@ def read_pose_messages(path: str | Path) -> Iterator[BagPose]:
                 except (ValueError, RecursionError):
                     # Not JSON, or JSON Python will not decode (an integer of over 4300 digits, nesting
                     # past the recursion limit): passed on as text, for the monitor to count and explain.
+                    doc = msg.data
+                if not isinstance(doc, dict):
+                    # JSON, but no object ([1, 2], 5, null): the text, which the monitor refuses as
+                    # "not a JSON object" and counts invalid, as it does a message off the network.
                     doc = msg.data
             else:
                 doc = _doc_from_pose(conn.topic, msg)

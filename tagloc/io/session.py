@@ -11,9 +11,11 @@ A session is a directory::
     groundtruth.tum    optional: "timestamp x y z qx qy qz qw" of the body frame in the world
 
 ``session.json`` may be missing. Reading streams frame by frame and skips (and counts) frames that
-are missing or corrupt. Writing is crash-safe: each image is written to a temporary name and
-renamed, then its line is appended and flushed to ``frames.csv``, so a kill at any moment leaves
-every listed frame readable.
+are missing, unreadable or corrupt; a ``frames.csv`` listing more than twice as many frames as
+``frames/`` holds images is refused up front. Without ``frames.csv`` (a hand-made session of one
+camera) frame times come from the image names and the fps, with a warning. Writing is crash-safe:
+each image is written to a temporary name and renamed, then its line is appended and flushed to
+``frames.csv``, so a kill at any moment leaves every listed frame readable.
 """
 
 from __future__ import annotations
@@ -31,11 +33,11 @@ import cv2
 import numpy as np
 
 from tagloc.core.camera import Camera
-from tagloc.core.errors import SessionError
+from tagloc.core.errors import SessionError, warn_stderr
 from tagloc.core.geometry import T_from_tum, T_to_tum
 from tagloc.core.jsonfile import read_json
 from tagloc.core.rig import Rig, load_rig, save_rig
-from tagloc.core.stickermap import StickerMap, load_map, save_map
+from tagloc.core.stickermap import StickerMap, decimal_integer, decimal_number, load_map, save_map, shown
 from tagloc.core.types import Frame, seconds_text
 
 FORMAT = "tagloc-session"
@@ -66,6 +68,8 @@ CLOCK_JUMP_S = 5.0
 MAX_FRAME_BYTES = 64_000_000
 MAX_FPS = 1000.0  # a frame rate above this in session.json is a typo, not a camera
 IMAGE_EXTENSIONS = (".jpg", ".png", ".jpeg", ".bmp", ".tif", ".tiff")
+# Frame rate assumed for a session without frames.csv whose session.json states none.
+FALLBACK_FPS = 30.0
 
 
 @dataclass
@@ -137,12 +141,16 @@ def tum_poses(table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def read_tum_table(path: str | Path) -> np.ndarray:
     """A TUM file's numbers (N, 8), checked line by line; :class:`SessionError` naming file and line.
 
-    Checking needs no rotation maths (scipy), so a session can be checked up front cheaply.
+    Refused besides a malformed line: a file with no pose, and a timestamp not after the one before
+    (repeated or backwards: interpolating in such a trajectory scores against the wrong pose). A
+    byte-order mark is accepted, as in every text file tagloc reads. Checking needs no rotation maths
+    (scipy), so a session can be checked up front cheaply.
     """
     path = Path(path)
-    rows = []
+    rows: list[list[float]] = []
+    last_line = 0
     try:
-        lines = path.read_text(encoding="utf-8").splitlines()
+        lines = path.read_text(encoding="utf-8-sig").splitlines()
     except OSError as exc:
         raise SessionError(f"{path}: cannot read ({exc.strerror})") from exc
     except UnicodeDecodeError as exc:
@@ -165,7 +173,15 @@ def read_tum_table(path: str | Path) -> np.ndarray:
             raise SessionError(f"{path}:{n}: quaternion qx qy qz qw is not of unit length")
         if max(abs(v) for v in values[1:4]) > 1e6:
             raise SessionError(f"{path}:{n}: position beyond 1000 km")
+        if rows and not values[0] > rows[-1][0]:
+            raise SessionError(
+                f"{path}:{n}: timestamp {seconds_text(values[0])} s is not after line {last_line}'s"
+                f" {seconds_text(rows[-1][0])} s (a trajectory's times must increase)"
+            )
         rows.append(values)
+        last_line = n
+    if not rows:
+        raise SessionError(f"{path}: holds no pose (want lines 'timestamp x y z qx qy qz qw')")
     return np.array(rows, float).reshape(-1, 8)
 
 
@@ -181,6 +197,8 @@ def read_image(path: Path) -> tuple[np.ndarray | None, str | None]:
         # A device or pipe in the frames (a symlink to /dev/zero) would be read without end.
         if not stat.S_ISREG(st.st_mode):
             return None, f"{path.name}: not a regular file"
+        if st.st_size == 0:
+            return None, f"{path.name}: empty file (0 bytes)"
         if st.st_size > MAX_FRAME_BYTES:
             return None, f"{path.name}: {st.st_size / 1e6:.0f} MB, more than any frame ({MAX_FRAME_BYTES / 1e6:.0f} MB)"
         data = path.read_bytes()
@@ -220,7 +238,7 @@ def _check_frames_header(row: list[str], where: str) -> None:
     names = tuple(c.strip().lower() for c in row)
     if names and names not in (FRAMES_COLUMNS[:2], FRAMES_COLUMNS):
         raise SessionError(
-            f"{where}: header is {','.join(row)!r}, want 'index,timestamp_s' or 'index,timestamp_s,camera'"
+            f"{where}: header is {shown(','.join(row))}, want 'index,timestamp_s' or 'index,timestamp_s,camera'"
         )
 
 
@@ -323,19 +341,72 @@ class SessionReader:
                 "(the track will be lost and found again)"
             )
 
+    def _image_count(self) -> int | None:
+        """How many images ``frames/`` holds (a temporary one a killed recorder left is none), read
+        in one listing; None when it cannot be listed (each frame then says why it is unreadable)."""
+        try:
+            with os.scandir(self.path / FRAMES_DIR) as entries:
+                return sum(
+                    1
+                    for e in entries
+                    if os.path.splitext(e.name)[1].lower() in IMAGE_EXTENSIONS and ".tmp." not in e.name
+                )
+        except (FileNotFoundError, NotADirectoryError):
+            return 0
+        except OSError:
+            return None
+
+    def _check_images_listed(self, listed: int) -> None:
+        """Refuse a frames.csv listing ``listed`` frames when frames/ holds fewer than half as many
+        images: it is not these images' list (one of 2,000,000 frames beside 20 images took minutes
+        to find each missing). Checked on the line count, before the lines are parsed, which took
+        seconds for such a file. A recording cut short is not refused: each image is written before
+        its line, so it lists no frame without one. A few missing frames are skipped and counted as
+        they come."""
+        have = self._image_count()
+        if have is not None and 2 * have < listed:
+            raise SessionError(
+                f"{self.path / FRAMES_CSV}: lists {listed} frames but {self.path / FRAMES_DIR} holds"
+                f" {have} images, fewer than half (is frames.csv another recording's?)"
+            )
+
+    def _frames_from_images(self) -> tuple[np.ndarray, np.ndarray]:
+        """The frames of a session without frames.csv: the images named by their index, at the session's
+        fps (``FALLBACK_FPS`` when it states none). Kept for hand-made one-camera sessions, with a
+        warning, as their times are made up; a session of several cameras is refused, as its image
+        names do not give the order of its frames in time."""
+        p = self.path / FRAMES_CSV
+        if len(self.rig) > 1:
+            raise SessionError(
+                f"{p}: missing; a session of {len(self.rig)} cameras needs it (its frames' times and cameras)"
+            )
+        try:
+            # Listed with scandir, not glob: glob takes an unreadable directory for an empty one.
+            with os.scandir(self.path / FRAMES_DIR) as entries:
+                files = sorted(Path(e.path) for e in entries if os.path.splitext(e.name)[1].lower() in IMAGE_EXTENSIONS)
+        except FileNotFoundError:
+            files = []
+        except OSError as exc:
+            raise SessionError(f"{self.path / FRAMES_DIR}: cannot read ({exc.strerror})") from None
+        if not files:
+            raise SessionError(f"{self.path}: missing frames.csv and no images in frames/")
+        fps = self.info.fps or FALLBACK_FPS
+        named = [f for f in files if f.stem.isascii() and f.stem.isdigit()]
+        idx = np.array([int(f.stem) for f in named], np.int64)
+        if not len(idx):
+            raise SessionError(f"{self.path}: missing frames.csv and no image in frames/ is named by its index")
+        fps_from = "session.json's" if self.info.fps else "assumed: session.json states none"
+        ignored = f"; {len(files) - len(named)} images not named by an index ignored" if len(named) < len(files) else ""
+        warn_stderr(
+            f"{p}: missing; frame times made up from the {len(idx)} image names at {fps:g} fps ({fps_from}){ignored}"
+        )
+        self.cameras = np.zeros(len(idx), np.int64)
+        return idx, idx / fps
+
     def _read_frames_csv(self) -> tuple[np.ndarray, np.ndarray]:
         p = self.path / FRAMES_CSV
         if not p.exists():
-            # Without frames.csv, fall back to the images and session fps (documented, for hand-made sessions).
-            files = sorted(f for f in (self.path / FRAMES_DIR).glob("*") if f.suffix.lower() in IMAGE_EXTENSIONS)
-            if not files:
-                raise SessionError(f"{self.path}: missing frames.csv and no images in frames/")
-            fps = self.info.fps or 30.0
-            idx = np.array([int(f.stem) for f in files if f.stem.isascii() and f.stem.isdigit()], np.int64)
-            if not len(idx):
-                raise SessionError(f"{self.path}: missing frames.csv and no image in frames/ is named by its index")
-            self.cameras = np.zeros(len(idx), np.int64)
-            return idx, idx / fps
+            return self._frames_from_images()
         index, stamps, cams = [], [], []
         try:
             # -sig: a spreadsheet's byte-order mark (a frames.csv sorted there, as a refusal advises) is
@@ -348,27 +419,38 @@ class SessionReader:
             # crash, and its number may be cut too ("12.5" -> "1"), so it is not trusted. Any other
             # line, the last one included, is the recording's own and must parse.
             lines = lines[:-1]
+        listed = sum(1 for line in lines if line.strip())
+        header = bool(lines) and lines[0].strip().lower().startswith("index")
+        self._check_images_listed(listed - header)
         rows = csv.reader(lines)
-        for row in rows:
-            n = rows.line_num
-            if not row or (n == 1 and row[0].strip().lower() == "index"):
-                _check_frames_header(row, f"{p}:{n}")
-                continue
-            try:
-                i, t = int(row[0]), float(row[1])
+        try:
+            for row in rows:
+                n = rows.line_num
+                if not row or (n == 1 and row[0].strip().lower() == "index"):
+                    _check_frames_header(row, f"{p}:{n}")
+                    continue
+                # Plain ASCII decimals only (the map's rule): int() and float() took "1_0" and "\u0661".
+                i = decimal_integer(row[0])
+                t = decimal_number(row[1]) if len(row) > 1 else None
                 # A column beyond the camera is no part of the format: what it holds would be ignored.
-                if not 0 <= i < 10**9 or len(row) > len(FRAMES_COLUMNS):
-                    raise ValueError
-            except (ValueError, IndexError):
-                raise SessionError(f"{p}:{n}: want 'index,timestamp_s', got {','.join(row)!r}") from None
-            if not np.isfinite(t):
-                raise SessionError(f"{p}:{n}: timestamp is not finite")
-            cam = row[2].strip() if len(row) > 2 else "0"
-            if not (cam.isascii() and cam.isdigit()) or int(cam) >= len(self.rig):
-                raise SessionError(f"{p}:{n}: camera {cam!r} is not a camera of the rig (0-{len(self.rig) - 1})")
-            index.append(i)
-            stamps.append(t)
-            cams.append(int(cam))
+                if i is None or t is None or not 0 <= i < 10**9 or len(row) > len(FRAMES_COLUMNS):
+                    raise SessionError(f"{p}:{n}: want 'index,timestamp_s', got {shown(','.join(row))}")
+                if not math.isfinite(t):
+                    raise SessionError(f"{p}:{n}: timestamp is not finite")
+                cam: int | None = 0
+                if len(row) > 2:
+                    cam_text = row[2].strip()
+                    cam = decimal_integer(cam_text) if cam_text.isdigit() else None  # no sign
+                    if cam is None or cam >= len(self.rig):
+                        raise SessionError(
+                            f"{p}:{n}: camera {shown(cam_text)} is not a camera of the rig (0-{len(self.rig) - 1})"
+                        )
+                index.append(i)
+                stamps.append(t)
+                cams.append(cam)
+        except csv.Error as exc:
+            # A field past the csv module's limit (a block of zeros a power cut left) or the like.
+            raise SessionError(f"{p}:{rows.line_num}: not a frames.csv line ({exc})") from None
         if not index:
             raise SessionError(f"{p}: lists no frames")
         self.cameras = np.array(cams, np.int64)
@@ -383,12 +465,21 @@ class SessionReader:
         return self.rig.cameras[0].camera
 
     def frame_path(self, index: int, camera: int = 0) -> Path | None:
-        """Path of frame ``index``'s image (of rig camera ``camera``), whatever its extension, or None."""
+        """Path of frame ``index``'s image (of rig camera ``camera``), whatever its extension, or None.
+
+        A path that cannot be looked at (frames/ unreadable, a symlink loop) is returned, not taken
+        for missing: reading it then says why it is unreadable, and the frame is skipped and counted
+        like any unreadable frame (Path.exists() raised for the first and hid the second)."""
         stem = self.path / FRAMES_DIR / frame_stem(index, camera)
         for ext in IMAGE_EXTENSIONS:
             p = stem.with_suffix(ext)
-            if p.exists():
-                return p
+            try:
+                os.stat(p)
+            except (FileNotFoundError, NotADirectoryError):
+                continue
+            except OSError:
+                pass  # there, or maybe there, but unreadable: read_image names the reason
+            return p
         return None
 
     def frames(self, with_images: bool = True) -> Iterator[Frame]:

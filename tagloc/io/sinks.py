@@ -155,6 +155,14 @@ class Sink:
         self.close()
 
 
+def open_for_writing(path: Path) -> IO[str]:
+    """``path`` opened for writing text, its missing directories made first, as every tagloc output
+    does (``--png``, ``--rerun``, ``simulate -o``): ``--out out/run.tum`` on a fresh clone has no
+    ``out/`` yet. The CLI has checked that they can be made (:func:`tagloc.cli.checks.output_file`)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path.open("w", encoding="utf-8")
+
+
 class JsonLinesSink(Sink):
     """One ``tagloc.pose/1`` object per line, to a stream or a file (flushed per line)."""
 
@@ -163,7 +171,7 @@ class JsonLinesSink(Sink):
         if isinstance(target, (str, Path)):
             self.name = str(target)
             try:
-                self._f: IO[str] = Path(target).open("w", encoding="utf-8")
+                self._f: IO[str] = open_for_writing(Path(target))
             except OSError as exc:
                 raise InputError(f"{target}: cannot write ({exc.strerror})") from exc
             self._own = True
@@ -493,7 +501,7 @@ class TumSink(Sink):
         super().__init__()
         self.name = str(path)
         try:
-            self._f = Path(path).open("w", encoding="utf-8")
+            self._f = open_for_writing(Path(path))
         except OSError as exc:
             raise InputError(f"{path}: cannot write ({exc.strerror})") from exc
 
@@ -566,7 +574,7 @@ class FrameLog:
         self.name = str(path)  # what errors and summaries call it, as the sinks' ``name``
         self.include_times = include_times
         try:
-            self._f = self.path.open("w", encoding="utf-8")
+            self._f = open_for_writing(self.path)
         except OSError as exc:
             raise InputError(f"{path}: cannot write ({exc.strerror})") from exc
 

@@ -25,22 +25,16 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from tagloc.core.errors import InputError
+from tagloc.core.errors import InputError, warn_stderr
 from tagloc.core.rig import Rig
 from tagloc.core.stickermap import StickerMap
 from tagloc.core.types import Frame, FrameResult, Observation, TrackerOutput
 from tagloc.io.sinks import FrameLog, PoseMessage, Sink, TumSink, check_vest_id, open_sink
-
-
-def warn_stderr(message: str) -> None:
-    """Default warning stream: one line on stderr."""
-    print(f"tagloc: warning: {message}", file=sys.stderr, flush=True)
 
 
 @dataclass

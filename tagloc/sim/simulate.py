@@ -618,7 +618,7 @@ def read_groundtruth_frames(session_dir: str | Path) -> list[dict]:
     if not p.exists():
         return []
     out = []
-    with p.open(encoding="utf-8") as f:
+    with p.open(encoding="utf-8-sig") as f:
         for n, line in enumerate(f, 1):
             if line.strip():
                 try:
