@@ -136,13 +136,8 @@ def _fold_radius(dist: tuple[float, ...]) -> float:
     """The first normalised radius where r * radial(r) of OpenCV's model stops increasing (or its
     rational denominator reaches 0); inf if neither happens up to ``FOLD_SEARCH_MAX``. Cached: the
     audit and the simulator ask for every sticker of every frame, with one or two lenses."""
-    k = np.zeros(8)
-    radial = [dist[i] for i in (0, 1, 4, 5, 6, 7) if i < len(dist)]  # k1, k2, k3, k4, k5, k6
-    k[: len(radial)] = radial
     r = np.linspace(0.0, FOLD_SEARCH_MAX, FOLD_SEARCH_STEPS + 1)[1:]
-    r2 = r * r
-    num = 1 + r2 * (k[0] + r2 * (k[1] + r2 * k[2]))
-    den = 1 + r2 * (k[3] + r2 * (k[4] + r2 * k[5]))
+    num, den = _radial_terms(dist, r)
     bad = den <= 0
     rd = r * num / np.where(bad, 1.0, den)
     bad[1:] |= np.diff(rd) <= 0
@@ -152,6 +147,16 @@ def _fold_radius(dist: tuple[float, ...]) -> float:
         return math.inf
     # The last radius before the fold (the first sample, if the lens folds at once).
     return float(r[max(first - 1, 0)])
+
+
+def _radial_terms(dist: tuple[float, ...] | np.ndarray, r: np.ndarray | float) -> tuple:
+    """Numerator and denominator of OpenCV's radial factor at normalised radius ``r``:
+    (1 + k1 r^2 + k2 r^4 + k3 r^6, 1 + k4 r^2 + k5 r^4 + k6 r^6), coefficients absent taken as 0."""
+    k = np.zeros(6)
+    radial = [dist[i] for i in (0, 1, 4, 5, 6, 7) if i < len(dist)]  # k1, k2, k3, k4, k5, k6
+    k[: len(radial)] = radial
+    r2 = r * r
+    return 1 + r2 * (k[0] + r2 * (k[1] + r2 * k[2])), 1 + r2 * (k[3] + r2 * (k[4] + r2 * k[5]))
 
 
 # The focal length (px) of the reference camera (default_camera) for which tagloc's pixel and
@@ -236,11 +241,8 @@ def fold_problem(camera: Camera) -> str | None:
     fold = camera.fold_radius()
     if not math.isfinite(fold):
         return None
-    k = np.zeros(8)
-    radial = [camera.dist[i] for i in (0, 1, 4, 5, 6, 7) if i < camera.dist.size]
-    k[: len(radial)] = radial
-    r2 = fold * fold
-    peak = fold * (1 + r2 * (k[0] + r2 * (k[1] + r2 * k[2]))) / (1 + r2 * (k[3] + r2 * (k[4] + r2 * k[5])))
+    num, den = _radial_terms(camera.dist, fold)
+    peak = fold * num / den
     # The image's farthest corner (pixel edges, not centres), as a distorted normalised radius.
     cx, cy = camera.K[0, 2], camera.K[1, 2]
     du = max(cx + 0.5, camera.width - 0.5 - cx) / camera.K[0, 0]
@@ -288,6 +290,15 @@ def _node_size(fs: cv2.FileStorage, path: Path, name: str) -> int:
     return _size(node.real(), path, name)
 
 
+class _DuplicateKey(yaml.YAMLError):
+    """A mapping of a YAML file names a key twice (``line``, ``first``: 1-based lines); its text is
+    the message's, after the file's name, for either YAML form."""
+
+    def __init__(self, key: object, line: int, first: int) -> None:
+        super().__init__(f"line {line}: key {key!r} appears again (first on line {first})")
+        self.key, self.line, self.first = key, line, first
+
+
 # A key at the top level of an OpenCV FileStorage YAML file: a name at column 0 followed by ":".
 _TOP_KEY = re.compile(r"^([A-Za-z_][\w-]*)[ \t]*:", re.MULTILINE)
 # NaN or infinity written as Python or numpy prints them (nan, inf, -inf, infinity): OpenCV reads
@@ -306,12 +317,13 @@ def _check_opencv_text(path: Path, text: str) -> None:
     """Refuse what OpenCV's parser takes without a word or reports cryptically: a key given twice
     (it keeps the first, PyYAML the last: the two formats would disagree) and NaN or inf in a
     matrix written as ``nan``/``inf``."""
+    blocks = _top_level_blocks(text)
     seen: dict[str, int] = {}
-    for key, line, _ in _top_level_blocks(text):
+    for key, line, _ in blocks:
         if key in seen:
-            raise CalibrationError(f"{path}: line {line}: key {key!r} appears again (first on line {seen[key]})")
+            raise CalibrationError(f"{path}: {_DuplicateKey(key, line, seen[key])}")
         seen[key] = line
-    for key, _, body in _top_level_blocks(text):
+    for key, _, body in blocks:
         if key in ("camera_matrix", "distortion_coefficients") and _PLAIN_NONFINITE.search(body):
             raise CalibrationError(f"{path}: {key} contains NaN or inf")
 
@@ -399,14 +411,6 @@ def _load_ros(path: Path, doc: dict) -> Camera:
     return Camera(K.reshape(3, 3), dist, _size(w, path, names[0]), _size(h, path, names[1]))
 
 
-class _DuplicateKey(yaml.YAMLError):
-    """A mapping of a YAML file names a key twice (``line``, ``first``: 1-based lines)."""
-
-    def __init__(self, key: object, line: int, first: int):
-        super().__init__(f"key {key!r} on line {line} appears on line {first} already")
-        self.key, self.line, self.first = key, line, first
-
-
 class _UniqueKeyLoader(yaml.SafeLoader):
     """PyYAML's safe loader refusing a mapping that names a key twice: it keeps the last silently
     (a camera_info with a second ``K:`` had replay use it, 95 cm off), and OpenCV's parser the first."""
@@ -441,9 +445,7 @@ def load_calibration(path: str | Path) -> Camera:
         # A dumped message may end with "---" (the next document's separator): empty documents are fine.
         docs = [d for d in yaml.load_all(text, Loader=_UniqueKeyLoader) if d is not None]
     except _DuplicateKey as exc:
-        raise CalibrationError(
-            f"{path}: line {exc.line}: key {exc.key!r} appears again (first on line {exc.first})"
-        ) from None
+        raise CalibrationError(f"{path}: {exc}") from None
     except yaml.YAMLError as exc:
         line = getattr(getattr(exc, "problem_mark", None), "line", None)
         where = f" line {line + 1}:" if line is not None else ""

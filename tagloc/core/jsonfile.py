@@ -13,10 +13,10 @@ from tagloc.core.errors import InputError
 
 
 class DuplicateKey(ValueError):
-    """An object of the file names ``key`` twice."""
+    """An object of the file names ``key`` twice; its text is the message's, after the file's name."""
 
     def __init__(self, key: str) -> None:
-        super().__init__(key)
+        super().__init__(f"key {json.dumps(key)[:60]} appears twice in one object")
         self.key = key
 
 
@@ -40,7 +40,7 @@ def read_json(path: Path, error: type[InputError], what: str = "") -> object:
     try:
         return json.loads(path.read_bytes().decode("utf-8-sig"), object_pairs_hook=unique_keys)
     except DuplicateKey as exc:
-        raise error(f"{path}: key {json.dumps(exc.key)[:60]} appears twice in one object") from None
+        raise error(f"{path}: {exc}") from None
     except OSError as exc:
         raise error(f"{path}: cannot read{' ' + what if what else ''} ({exc.strerror})") from None
     except UnicodeDecodeError as exc:

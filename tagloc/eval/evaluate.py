@@ -373,7 +373,7 @@ def _frame_truth_line(line: str, where: str) -> tuple[int, list[VisibleSticker]]
     try:
         rec = json.loads(line, object_pairs_hook=unique_keys)
     except DuplicateKey as exc:
-        raise InputError(f"{where}: key {json.dumps(exc.key)[:60]} appears twice in one object") from None
+        raise InputError(f"{where}: {exc}") from None
     except (ValueError, RecursionError):
         raise InputError(f"{where}: not a JSON object (a line cut short?)") from None
     index = rec.get("index") if isinstance(rec, dict) else None
